@@ -1,0 +1,19 @@
+"""c3bf-gym: safe robot-arm reinforcement learning with Collision Cone Control Barrier Functions.
+
+Importing the package registers ``C3BFReach-v0`` with Gymnasium.
+"""
+
+from gymnasium.envs.registration import register, registry
+
+from c3bf_gym.envs import C3BFReachEnv
+from c3bf_gym.scenarios import SCENARIOS, Envelope, ObstacleSpec, Scenario
+
+__all__ = ["C3BFReachEnv", "Envelope", "ObstacleSpec", "SCENARIOS", "Scenario"]
+__version__ = "0.1.0"
+
+if "C3BFReach-v0" not in registry:
+    register(
+        id="C3BFReach-v0",
+        entry_point="c3bf_gym.envs.reach:C3BFReachEnv",
+        max_episode_steps=250,
+    )

@@ -1,0 +1,126 @@
+"""Collision Cone Control Barrier Function (C3BF) with a smoothed speed norm."""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from .base import Barrier, BarrierTerms, FloatArray, check_points, require_positive
+
+__all__ = ["C3BF"]
+
+
+class C3BF(Barrier):
+    """Collision-cone barrier ``h = ⟨p, v⟩ + ‖v‖_ε s``.
+
+    With relative position ``p`` [m], relative velocity ``v`` [m/s] and combined
+    radius ``r`` [m]::
+
+        s      = √(‖p‖² − r²)            tangent length from the point to the ball [m]
+        ‖v‖_ε  = √(‖v‖² + ε²)            smoothed speed [m/s]
+        h      = ⟨p, v⟩ + ‖v‖_ε s         [m²/s]
+        ∂h/∂p  = v + ‖v‖_ε p / s
+        ∂h/∂v  = p + s v / ‖v‖_ε
+        drift  = ⟨∂h/∂p, v⟩ = ‖v‖² + ‖v‖_ε ⟨p, v⟩ / s
+
+    With ε = 0, ``h ≥ 0`` exactly when the relative velocity points outside the
+    collision cone, i.e. the ray ``p + t v`` (t ≥ 0) never enters the open ball.
+
+    Smoothing: the exact norm ``‖v‖`` is not differentiable at ``v = 0``; the
+    smoothed ``‖v‖_ε`` is, everywhere. Since ``‖v‖ ≤ ‖v‖_ε ≤ ‖v‖ + ε``,
+    ``h_exact ≤ h_ε ≤ h_exact + ε s``: the filter is slightly *less*
+    conservative than the exact C3BF, by at most ``ε s``. At rest outside the
+    ball, ``h_ε(v = 0) = ε s > 0``, i.e. being at rest is safe.
+
+    Inside or on the ball (``‖p‖² − r² < δ²`` with ``δ = 1e-6`` m) ``s`` is
+    clamped to ``δ`` and every quantity is computed with that ``s``: no NaN or
+    inf is ever produced, and :attr:`BarrierTerms.inside` flags ``‖p‖ ≤ r``. The
+    resulting row demands a strong push apart (the ``‖v‖_ε ⟨p, v⟩ / s`` drift
+    term is large while approaching), which usually makes the QP infeasible;
+    that is reported upstream, never hidden here.
+
+    Args:
+        gamma: class-K gain γ [1/s], finite and > 0.
+        eps: speed smoothing ε [m/s], finite and > 0.
+
+    Raises:
+        ValueError: if ``gamma`` or ``eps`` is not finite and > 0.
+    """
+
+    name: ClassVar[str] = "c3bf"
+    delta: ClassVar[float] = 1e-6
+    """Floor on the tangent length ``s`` [m] (keeps ``1/s`` finite inside the ball)."""
+
+    def __init__(self, gamma: float = 5.0, eps: float = 1e-2) -> None:
+        self._gamma = require_positive("gamma", gamma)
+        self._eps = require_positive("eps", eps)
+
+    @property
+    def gamma(self) -> float:
+        """Class-K gain γ [1/s] applied to ``h``."""
+        return self._gamma
+
+    @property
+    def eps(self) -> float:
+        """Speed smoothing ε [m/s]."""
+        return self._eps
+
+    def __repr__(self) -> str:
+        return f"C3BF(gamma={self._gamma!r}, eps={self._eps!r})"
+
+    def _core(
+        self, p: ArrayLike, v: ArrayLike, r: ArrayLike
+    ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, np.ndarray]:
+        """Shared intermediate quantities: ``p, v, ⟨p,v⟩, ‖v‖², s, ‖v‖_ε, inside``."""
+        p, v, r = check_points(p, v, r)
+        s = np.einsum("pi,pi->p", p, p)
+        s -= np.square(r)  # ‖p‖² − r²
+        inside = s <= 0.0
+        np.maximum(s, self.delta**2, out=s)
+        np.sqrt(s, out=s)
+        vv = np.einsum("pi,pi->p", v, v)
+        vn = vv + self._eps**2
+        np.sqrt(vn, out=vn)
+        pv = np.einsum("pi,pi->p", p, v)
+        return p, v, pv, vv, s, vn, inside
+
+    def terms(self, p: ArrayLike, v: ArrayLike, r: ArrayLike) -> BarrierTerms:
+        """C3BF terms for P points.
+
+        Args:
+            p: (P, 3) relative positions [m].
+            v: (P, 3) relative velocities [m/s].
+            r: (P,) combined radii [m] (> 0).
+
+        Returns:
+            :class:`BarrierTerms`: ``h`` (P,) [m²/s], ``grad_v`` (P, 3) [m],
+            ``drift`` (P,) [m²/s²], ``inside`` (P,) bool.
+        """
+        p, v, pv, vv, s, vn, inside = self._core(p, v, r)
+        h = vn * s
+        h += pv
+        grad_v = v * (s / vn)[:, None]
+        grad_v += p
+        drift = vn / s
+        drift *= pv
+        drift += vv
+        return BarrierTerms(h, grad_v, drift, inside)
+
+    def partials(
+        self, p: ArrayLike, v: ArrayLike, r: ArrayLike
+    ) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """Value and both gradients ``(h (P,), ∂h/∂p (P, 3), ∂h/∂v (P, 3))``.
+
+        Not needed by the filter (which only uses ``drift = ⟨∂h/∂p, v⟩``); meant
+        for diagnostics and tests. Same clamping as :meth:`terms`.
+        """
+        p, v, pv, _, s, vn, _ = self._core(p, v, r)
+        h = vn * s
+        h += pv
+        grad_p = p * (vn / s)[:, None]
+        grad_p += v
+        grad_v = v * (s / vn)[:, None]
+        grad_v += p
+        return h, grad_p, grad_v

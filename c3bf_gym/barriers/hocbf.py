@@ -1,0 +1,116 @@
+"""Second-order (high-order) CBF on the squared distance to an obstacle sphere."""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from .base import (
+    Barrier,
+    BarrierTerms,
+    FloatArray,
+    check_points,
+    distance_barrier,
+    require_positive,
+)
+
+__all__ = ["DistanceHOCBF"]
+
+
+class DistanceHOCBF(Barrier):
+    """Distance HOCBF: ``h0 = ‖p‖² − r²``, ``ψ₁ = ḣ0 + γ₁ h0 = 2⟨p, v⟩ + γ₁ h0``.
+
+    The relative degree of ``h0`` w.r.t. torque is two, so the enforced condition
+    is ``ψ̇₁ + γ₂ ψ₁ ≥ 0``. In the common form ``drift + ⟨grad_v, a⟩ + γ h ≥ 0``::
+
+        h      = ψ₁ = 2⟨p, v⟩ + γ₁ (‖p‖² − r²)     [m²/s]
+        grad_v = 2 p                                [m]
+        drift  = 2‖v‖² + 2γ₁⟨p, v⟩                  [m²/s²]
+        γ      = γ₂
+
+    The distance barrier value ``h0`` itself is available from :meth:`h0`.
+    Everything is polynomial, so there is no singular configuration; ``inside``
+    flags ``‖p‖ ≤ r`` (``h0 ≤ 0``).
+
+    Args:
+        gamma1: gain γ₁ [1/s] of the first-order term, finite and > 0.
+        gamma2: gain γ₂ [1/s] applied to ψ₁ in the row, finite and > 0.
+
+    Raises:
+        ValueError: if a gain is not finite and > 0.
+    """
+
+    name: ClassVar[str] = "hocbf"
+
+    def __init__(self, gamma1: float = 5.0, gamma2: float = 5.0) -> None:
+        self._gamma1 = require_positive("gamma1", gamma1)
+        self._gamma2 = require_positive("gamma2", gamma2)
+
+    @property
+    def gamma(self) -> float:
+        """Class-K gain applied to ψ₁ in the row (= γ₂) [1/s]."""
+        return self._gamma2
+
+    @property
+    def gamma1(self) -> float:
+        """Gain γ₁ [1/s] inside ψ₁."""
+        return self._gamma1
+
+    @property
+    def gamma2(self) -> float:
+        """Gain γ₂ [1/s] applied to ψ₁."""
+        return self._gamma2
+
+    def __repr__(self) -> str:
+        return f"DistanceHOCBF(gamma1={self._gamma1!r}, gamma2={self._gamma2!r})"
+
+    @staticmethod
+    def h0(p: ArrayLike, r: ArrayLike) -> FloatArray:
+        """Distance barrier value ``h0 = ‖p‖² − r²`` [m²], shape (P,)."""
+        return distance_barrier(p, r)
+
+    def terms(self, p: ArrayLike, v: ArrayLike, r: ArrayLike) -> BarrierTerms:
+        """HOCBF terms for P points.
+
+        Args:
+            p: (P, 3) relative positions [m].
+            v: (P, 3) relative velocities [m/s].
+            r: (P,) combined radii [m] (> 0).
+
+        Returns:
+            :class:`BarrierTerms`: ``h = ψ₁`` (P,) [m²/s], ``grad_v = 2p`` (P, 3)
+            [m], ``drift`` (P,) [m²/s²], ``inside`` (P,) bool.
+        """
+        p, v, r = check_points(p, v, r)
+        g1 = self._gamma1
+        h0 = distance_barrier(p, r)
+        inside = h0 <= 0.0
+        pv2 = np.einsum("pi,pi->p", p, v)
+        pv2 *= 2.0  # 2⟨p, v⟩ = ḣ0
+
+        h = h0  # ψ₁ = 2⟨p, v⟩ + γ₁ h0, reusing h0's storage
+        h *= g1
+        h += pv2
+
+        drift = np.einsum("pi,pi->p", v, v)
+        drift *= 2.0
+        pv2 *= g1  # 2γ₁⟨p, v⟩
+        drift += pv2
+
+        grad_v = 2.0 * p
+        return BarrierTerms(h, grad_v, drift, inside)
+
+    def partials(
+        self, p: ArrayLike, v: ArrayLike, r: ArrayLike
+    ) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """Value and both gradients ``(ψ₁ (P,), ∂ψ₁/∂p (P, 3), ∂ψ₁/∂v (P, 3))``.
+
+        ``∂ψ₁/∂p = 2v + 2γ₁ p``, ``∂ψ₁/∂v = 2p``. For diagnostics and tests.
+        """
+        p, v, r = check_points(p, v, r)
+        h, grad_v, _, _ = self.terms(p, v, r)
+        grad_p = p * (2.0 * self._gamma1)
+        grad_p += 2.0 * v
+        return h, grad_p, grad_v

@@ -1,0 +1,211 @@
+"""Joint position and velocity limits as control-barrier rows in torque space."""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from .base import FloatArray, Rows, require_positive
+
+__all__ = ["JointLimits"]
+
+
+class JointLimits:
+    """Box limits on ``q`` and ``q̇`` of an n-joint arm as ``4n`` rows ``A @ τ >= b``.
+
+    The joint accelerations are affine in torque, ``q̈ = Minv τ + c_q``.
+
+    Position limits ``q_lo ≤ q ≤ q_hi`` [rad] have relative degree two and are
+    enforced as second-order barriers (gains γ₁, γ₂ [1/s])::
+
+        upper:  ψ_u = −q̇ + γ₁ (q_hi − q),   −q̈ − γ₁ q̇ + γ₂ ψ_u ≥ 0
+        lower:  ψ_l =  q̇ + γ₁ (q − q_lo),    q̈ + γ₁ q̇ + γ₂ ψ_l ≥ 0
+
+    Velocity limits ``|q̇| ≤ qd_max`` [rad/s] are first-order barriers (gain γ_v)::
+
+        upper:  −q̈ + γ_v (qd_max − q̇) ≥ 0
+        lower:   q̈ + γ_v (q̇ + qd_max) ≥ 0
+
+    Row order: ``[position upper (n), position lower (n), velocity upper (n),
+    velocity lower (n)]``.
+
+    Args:
+        q_lo: (n,) lower position limits [rad], finite.
+        q_hi: (n,) upper position limits [rad], finite, ``q_lo < q_hi``. Give
+            unlimited (continuous) joints wide finite limits.
+        qd_max: (n,) or scalar speed limits [rad/s], finite and > 0.
+        gamma1: position-barrier gain γ₁ [1/s], finite and > 0.
+        gamma2: position-barrier gain γ₂ [1/s], finite and > 0.
+        gamma_v: velocity-barrier gain γ_v [1/s], finite and > 0.
+
+    Raises:
+        ValueError: on inconsistent shapes, non-finite limits, ``q_lo >= q_hi``,
+            ``qd_max <= 0`` or a gain that is not finite and > 0.
+
+    Note:
+        :meth:`rows` uses an internal (n,) scratch buffer: one instance must not
+        be shared between threads.
+    """
+
+    def __init__(
+        self,
+        q_lo: ArrayLike,
+        q_hi: ArrayLike,
+        qd_max: ArrayLike,
+        gamma1: float = 10.0,
+        gamma2: float = 10.0,
+        gamma_v: float = 20.0,
+    ) -> None:
+        q_lo = np.array(q_lo, dtype=np.float64)
+        q_hi = np.array(q_hi, dtype=np.float64)
+        if q_lo.ndim != 1 or q_lo.shape[0] == 0:
+            raise ValueError(f"q_lo must have shape (n,) with n >= 1; got {q_lo.shape}")
+        n = q_lo.shape[0]
+        if q_hi.shape != (n,):
+            raise ValueError(f"q_hi must have shape ({n},) like q_lo; got {q_hi.shape}")
+        qd_arr = np.asarray(qd_max, dtype=np.float64)
+        if qd_arr.shape not in ((), (n,)):
+            raise ValueError(f"qd_max must be a scalar or have shape ({n},); got {qd_arr.shape}")
+        qd_arr = np.broadcast_to(qd_arr, (n,)).copy()
+        if not (np.all(np.isfinite(q_lo)) and np.all(np.isfinite(q_hi))):
+            raise ValueError("q_lo and q_hi must be finite")
+        bad = np.flatnonzero(~(q_lo < q_hi))
+        if bad.size:
+            raise ValueError(
+                f"q_lo must be < q_hi for every joint; violated at joints {bad.tolist()}"
+            )
+        bad = np.flatnonzero(~(np.isfinite(qd_arr) & (qd_arr > 0.0)))
+        if bad.size:
+            raise ValueError(
+                f"qd_max must be finite and in (0, inf); violated at joints {bad.tolist()}"
+            )
+        self._g1 = require_positive("gamma1", gamma1)
+        self._g2 = require_positive("gamma2", gamma2)
+        self._gv = require_positive("gamma_v", gamma_v)
+        for arr in (q_lo, q_hi, qd_arr):
+            arr.flags.writeable = False
+        self._q_lo, self._q_hi, self._qd_max = q_lo, q_hi, qd_arr
+        self._work = np.empty(n)
+
+    @property
+    def n(self) -> int:
+        """Number of joints."""
+        return self._q_lo.shape[0]
+
+    @property
+    def n_rows(self) -> int:
+        """Number of rows produced by :meth:`rows` (``4n``)."""
+        return 4 * self.n
+
+    @property
+    def q_lo(self) -> FloatArray:
+        """(n,) lower position limits [rad] (read-only)."""
+        return self._q_lo
+
+    @property
+    def q_hi(self) -> FloatArray:
+        """(n,) upper position limits [rad] (read-only)."""
+        return self._q_hi
+
+    @property
+    def qd_max(self) -> FloatArray:
+        """(n,) speed limits [rad/s] (read-only)."""
+        return self._qd_max
+
+    @property
+    def gains(self) -> tuple[float, float, float]:
+        """``(gamma1, gamma2, gamma_v)`` [1/s]."""
+        return self._g1, self._g2, self._gv
+
+    def __repr__(self) -> str:
+        return (
+            f"JointLimits(n={self.n}, gamma1={self._g1!r}, gamma2={self._g2!r}, "
+            f"gamma_v={self._gv!r})"
+        )
+
+    def rows(
+        self,
+        q: ArrayLike,
+        qd: ArrayLike,
+        Minv: ArrayLike,
+        c_q: ArrayLike,
+        out: Rows | None = None,
+    ) -> Rows:
+        """The ``4n`` limit rows ``A @ τ >= b`` at state ``(q, q̇)``.
+
+        Args:
+            q: (n,) joint positions [rad].
+            qd: (n,) joint velocities [rad/s].
+            Minv: (n, n) inverse mass matrix (``q̈ = Minv τ + c_q``).
+            c_q: (n,) joint acceleration at zero torque [rad/s²].
+            out: optional preallocated :class:`Rows` with ``out.A`` (>= 4n, n) and
+                ``out.b`` (>= 4n,); the first 4n rows are overwritten.
+
+        Returns:
+            :class:`Rows` with ``A`` (4n, n) and ``b`` (4n,), in the row order of
+            the class docstring (views of ``out`` when given).
+
+        Raises:
+            ValueError: on inconsistent shapes.
+        """
+        n = self.n
+        m = 4 * n
+        q = np.asarray(q, dtype=np.float64)
+        qd = np.asarray(qd, dtype=np.float64)
+        Minv = np.asarray(Minv, dtype=np.float64)
+        c_q = np.asarray(c_q, dtype=np.float64)
+        for name, arr, shape in (
+            ("q", q, (n,)),
+            ("qd", qd, (n,)),
+            ("Minv", Minv, (n, n)),
+            ("c_q", c_q, (n,)),
+        ):
+            if arr.shape != shape:
+                raise ValueError(f"{name} must have shape {shape}; got {arr.shape}")
+        if out is None:
+            A = np.empty((m, n))
+            b = np.empty(m)
+        else:
+            if out.A.ndim != 2 or out.A.shape[0] < m or out.A.shape[1] != n:
+                raise ValueError(f"out.A must have shape (>= {m}, {n}); got {out.A.shape}")
+            if out.b.ndim != 1 or out.b.shape[0] < m:
+                raise ValueError(f"out.b must have shape (>= {m},); got {out.b.shape}")
+            A = out.A[:m]
+            b = out.b[:m]
+
+        # Upper-type rows constrain −q̈, lower-type rows +q̈.
+        np.negative(Minv, out=A[0:n])
+        A[n : 2 * n] = Minv
+        A[2 * n : 3 * n] = A[0:n]
+        A[3 * n : 4 * n] = Minv
+
+        g1, g2, gv = self._g1, self._g2, self._gv
+        b_pu, b_pl, b_vu, b_vl = b[0:n], b[n : 2 * n], b[2 * n : 3 * n], b[3 * n : 4 * n]
+        g1qd = np.multiply(qd, g1, out=self._work)  # γ₁ q̇
+
+        # Position upper: −Minv τ ≥ c_q + γ₁ q̇ − γ₂ ψ_u, ψ_u = −q̇ + γ₁ (q_hi − q).
+        np.subtract(self._q_hi, q, out=b_pu)
+        b_pu *= g1
+        b_pu -= qd
+        b_pu *= -g2
+        b_pu += c_q
+        b_pu += g1qd
+
+        # Position lower: Minv τ ≥ −c_q − γ₁ q̇ − γ₂ ψ_l, ψ_l = q̇ + γ₁ (q − q_lo).
+        np.subtract(q, self._q_lo, out=b_pl)
+        b_pl *= g1
+        b_pl += qd
+        b_pl *= -g2
+        b_pl -= c_q
+        b_pl -= g1qd
+
+        # Velocity upper: −Minv τ ≥ c_q − γ_v (qd_max − q̇).
+        np.subtract(qd, self._qd_max, out=b_vu)
+        b_vu *= gv
+        b_vu += c_q
+
+        # Velocity lower: Minv τ ≥ −c_q − γ_v (q̇ + qd_max).
+        np.add(qd, self._qd_max, out=b_vl)
+        b_vl *= -gv
+        b_vl -= c_q
+        return Rows(A, b)

@@ -1,0 +1,490 @@
+"""``C3BFReach-v0``: a torque-controlled UR5e-class arm reaching goals among moving spheres."""
+
+from __future__ import annotations
+
+from importlib import resources
+from typing import Any, Callable, Literal
+
+import mujoco
+import numpy as np
+from gymnasium import spaces, utils
+from gymnasium.envs.mujoco.mujoco_env import MujocoEnv
+
+from c3bf_gym.scenarios import (
+    MAX_OBSTACLES,
+    Envelope,
+    ObstacleSampler,
+    Scenario,
+    get_scenario,
+)
+
+__all__ = ["C3BFReachEnv", "DISTANCE_CUTOFF", "HOOK_STAGES", "OBSERVATION_LAYOUT", "TorqueHook"]
+
+#: A per-physics-step torque transformation: total joint torque in (N m, gravity compensation
+#: included), total joint torque out. It may read ``env.data`` (kinematics and dynamics are
+#: current for the state about to be integrated) and must not write to it.
+TorqueHook = Callable[[np.ndarray], np.ndarray]
+
+#: Hook stages in the order they run at every physics step: a ``nominal`` controller first (it may
+#: replace the commanded torque), then a ``filter`` (the last word before the physics).
+HOOK_STAGES = ("nominal", "filter")
+
+#: Observation layout: (name, size, unit). Obstacle entries repeat for each of the 8 slots.
+OBSERVATION_LAYOUT: tuple[tuple[str, int, str], ...] = (
+    ("joint_pos", 6, "rad"),
+    ("joint_vel", 6, "rad/s"),
+    ("tool_pos", 3, "m (world frame)"),
+    ("tool_vel", 3, "m/s"),
+    ("goal_rel", 3, "m (goal - tool)"),
+    ("obstacle_rel_pos", 3 * MAX_OBSTACLES, "m (obstacle centre - tool), slot-major"),
+    ("obstacle_vel", 3 * MAX_OBSTACLES, "m/s"),
+    ("obstacle_radius", MAX_OBSTACLES, "m"),
+    ("obstacle_sensed", MAX_OBSTACLES, "1 if sensed, else 0 (and the slot's other entries are 0)"),
+)
+_OBS_SIZE = sum(size for _, size, _ in OBSERVATION_LAYOUT)
+
+_ARM_CONTYPE = 2  # arm geoms: contype 2, conaffinity 1 (see assets/ur5e.xml)
+_PARK_DEPTH = -50.0  # unused obstacles wait here, far beyond the distance cutoff
+#: Signed distances between every obstacle and every arm geom come from MuJoCo distance sensors
+#: (``mjSENS_GEOMDIST``), computed in C at every physics step; beyond this cutoff (m) they read
+#: the cutoff itself.
+DISTANCE_CUTOFF = 3.0
+#: Goal region (m): an axis-aligned box in front of the robot.
+_GOAL_LOW = np.array([0.3, -0.4, 0.15])
+_GOAL_HIGH = np.array([0.65, 0.4, 0.6])
+_GOAL_MIN_TRAVEL = 0.3  # m, minimum start-to-goal distance
+_HOME_NOISE = 0.05  # rad, uniform joint noise around the home keyframe at reset
+
+
+def _asset(name: str) -> str:
+    return str(resources.files("c3bf_gym.assets").joinpath(name))
+
+
+class C3BFReachEnv(MujocoEnv, utils.EzPickle):
+    r"""Reach a goal with a torque-controlled 6-DOF arm while spheres move through the workspace.
+
+    The arm is a UR5e-class manipulator written in MJCF from Universal Robots' published DH
+    parameters, masses, centres of mass and torque limits (``assets/ur5e.xml`` cites each number).
+    Physics runs at 500 Hz; the policy acts every ``frame_skip`` physics steps (default 10: 50 Hz).
+
+    ## Action Space
+    ``Box(-1, 1, (6,), float32)``: joint torque as a fraction of each joint's limit
+    (150, 150, 150, 28, 28, 28 N m), applied on top of gravity compensation (when
+    ``gravity_compensation=True``); MuJoCo clamps the total to the limits. Actions outside
+    ``[-1, 1]``, of the wrong shape or non-finite raise ``ValueError``: nothing is clipped silently.
+
+    At every physics step the commanded total torque passes through the installed *torque hooks*
+    (``add_torque_hook``): a ``nominal`` controller (e.g. Cartesian impedance), then a ``filter``
+    (the C3BF safety filter). This is how wrappers act at 500 Hz rather than at the policy rate.
+
+    ## Observation Space
+    ``Box(-inf, inf, (85,), float32)``, in order (see ``OBSERVATION_LAYOUT``):
+
+    | index | name | unit |
+    |-------|------|------|
+    | 0-5   | joint positions | rad |
+    | 6-11  | joint velocities | rad/s |
+    | 12-14 | tool position (``ee_site``) | m, world |
+    | 15-17 | tool linear velocity | m/s |
+    | 18-20 | goal minus tool position | m |
+    | 21-44 | obstacle centre minus tool, 8 slots x 3 | m |
+    | 45-68 | obstacle velocity, 8 slots x 3 | m/s |
+    | 69-76 | obstacle radius, 8 slots | m |
+    | 77-84 | obstacle sensed flag, 8 slots | 1 or 0 |
+
+    An obstacle is *sensed* (the paper's perception boundary) when its surface is within
+    ``sensing_radius`` of some arm geom; unsensed and unused slots are all zeros.
+
+    ## Rewards
+    ``reward = progress + success - effort`` with, per step,
+    ``progress = progress_weight * (d_prev - d)`` (d: tool-to-goal distance in m),
+    ``success = success_bonus`` if ``d < success_tolerance`` else 0, and
+    ``effort = effort_weight * mean_j (u_j / limit_j)^2`` averaged over the physics steps, where
+    ``u`` is the torque applied on top of gravity compensation. ``info`` carries the three terms as
+    ``reward_progress``, ``reward_success`` and ``reward_effort`` (the latter negative); they sum
+    to the reward. ``info["is_success"]`` is ``d < success_tolerance``.
+
+    ## Cost and safety signals
+    Computed from MuJoCo's geometry at every physics step, independent of any filter:
+    ``info["cost"]`` is 1.0 if any obstacle touched any arm geom (base, links, tool) during the step
+    (signed distance <= 0), else 0.0 (the Safety-Gymnasium convention); ``info["min_distance"]`` is
+    the smallest signed surface distance (m) between any obstacle and any arm geom during the step
+    (capped at ``DISTANCE_CUTOFF`` = 3 m). Distances are MuJoCo's exact signed geom distances
+    (distance sensors, one per obstacle/arm-geom pair).
+
+    ## Starting State
+    The ``home`` keyframe (tool in front of the robot, pointing down) plus uniform joint noise of
+    +/-0.05 rad, at rest. The goal is drawn uniformly in the box x in [0.3, 0.65], y in
+    [-0.4, 0.4], z in [0.15, 0.6] m, at least 0.3 m from the tool. Obstacles follow the scenario.
+
+    ## Episode End
+    Truncation after ``max_episode_steps`` (250 steps, 5 s, set at registration). Termination only
+    on collision and only with ``terminate_on_collision=True``.
+
+    ## Scenarios
+    ``static``, ``head_on``, ``crossing``, ``multi`` (the paper's four), ``random`` (uniform mixture
+    of the four, the default) and ``none``; or any :class:`~c3bf_gym.scenarios.Scenario` instance.
+    Obstacles move at constant velocity and respawn (redrawn by their spec) when they leave the
+    workspace box. The :class:`~c3bf_gym.scenarios.Envelope` bounds speed
+    (``obstacle_speed_range``, default 0.1-0.4 m/s) and radius (``obstacle_radius_range``, default
+    0.04-0.08 m), spawns every obstacle at least 0.2 m from the arm, and keeps every path out of a
+    0.3 m-radius, 0.45 m-high keep-out cylinder around the base.
+
+    ## Arguments
+    ``scenario``, ``frame_skip``, ``gravity_compensation``, ``sensing_radius`` (m),
+    ``terminate_on_collision``, ``success_tolerance`` (m), ``obstacle_speed_range`` (m/s),
+    ``obstacle_radius_range`` (m), ``progress_weight``, ``success_bonus``, ``effort_weight``,
+    ``render_mode`` (``human``, ``rgb_array``, ``depth_array``), ``width``, ``height``,
+    ``camera_name``.
+    """
+
+    metadata = {"render_modes": ["human", "rgb_array", "depth_array"], "render_fps": 50}
+
+    def __init__(
+        self,
+        scenario: str | Scenario = "random",
+        frame_skip: int = 10,
+        gravity_compensation: bool = True,
+        sensing_radius: float = 1.0,
+        terminate_on_collision: bool = False,
+        success_tolerance: float = 0.05,
+        obstacle_speed_range: tuple[float, float] = (0.1, 0.4),
+        obstacle_radius_range: tuple[float, float] = (0.04, 0.08),
+        progress_weight: float = 10.0,
+        success_bonus: float = 1.0,
+        effort_weight: float = 0.05,
+        render_mode: str | None = None,
+        width: int = 480,
+        height: int = 480,
+        camera_name: str = "overview",
+    ) -> None:
+        utils.EzPickle.__init__(
+            self, scenario, frame_skip, gravity_compensation, sensing_radius, terminate_on_collision,
+            success_tolerance, obstacle_speed_range, obstacle_radius_range, progress_weight,
+            success_bonus, effort_weight, render_mode, width, height, camera_name,
+        )  # fmt: skip
+        self.scenario = scenario if isinstance(scenario, Scenario) else get_scenario(scenario)
+        self._check_scenario(self.scenario)
+        if isinstance(frame_skip, bool) or not isinstance(frame_skip, (int, np.integer)) or frame_skip < 1:
+            raise ValueError(f"frame_skip must be an integer >= 1, got {frame_skip!r}")
+        for name, value, low in (
+            ("sensing_radius", sensing_radius, 0.0),
+            ("success_tolerance", success_tolerance, 0.0),
+        ):
+            if not (isinstance(value, (int, float)) and value > low):
+                raise ValueError(f"{name} must be a number > {low}, got {value!r}")
+        for name, value in (
+            ("progress_weight", progress_weight),
+            ("success_bonus", success_bonus),
+            ("effort_weight", effort_weight),
+        ):
+            if not (isinstance(value, (int, float)) and np.isfinite(value) and value >= 0):
+                raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
+        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
+            raise ValueError(
+                f"unknown render_mode {render_mode!r}; valid choices: None, "
+                + ", ".join(map(repr, self.metadata["render_modes"]))
+            )
+        self.envelope = Envelope(speed_range=obstacle_speed_range, radius_range=obstacle_radius_range)
+        self.sensing_radius = float(sensing_radius)
+        self.terminate_on_collision = bool(terminate_on_collision)
+        self.success_tolerance = float(success_tolerance)
+        self.gravity_compensation = bool(gravity_compensation)
+        self._weights = (float(progress_weight), float(success_bonus), float(effort_weight))
+
+        self.metadata = {**self.metadata, "render_fps": int(round(1.0 / (0.002 * frame_skip)))}
+        observation_space = spaces.Box(-np.inf, np.inf, shape=(_OBS_SIZE,), dtype=np.float32)
+        MujocoEnv.__init__(
+            self,
+            _asset("scene.xml"),
+            int(frame_skip),
+            observation_space=observation_space,
+            render_mode=render_mode,
+            width=width,
+            height=height,
+            camera_name=camera_name,
+        )
+        self._setup_model()
+        self._hooks: dict[str, TorqueHook] = {}
+        self._hook_chain: tuple[TorqueHook, ...] = ()
+        self._sampler = ObstacleSampler(self.envelope, self._arm_clearance)
+        self._workspace = tuple(np.asarray(c, dtype=float) for c in self.envelope.workspace)
+        self._goal_distance = 0.0
+
+    # ------------------------------------------------------------------ model and spaces
+    def _setup_model(self) -> None:
+        m = self.model
+        obj = mujoco.mjtObj
+        self.arm_geom_ids = np.flatnonzero(m.geom_contype == _ARM_CONTYPE)
+        self.obstacle_geom_ids = np.array(
+            [mujoco.mj_name2id(m, obj.mjOBJ_GEOM, f"obstacle_{i}") for i in range(MAX_OBSTACLES)]
+        )
+        obstacle_bodies = m.geom_bodyid[self.obstacle_geom_ids]
+        mocap = m.body_mocapid[obstacle_bodies]
+        if not np.array_equal(mocap, np.arange(mocap[0], mocap[0] + MAX_OBSTACLES)):
+            raise RuntimeError("scene.xml must declare obstacle_0..7 as consecutive mocap bodies")
+        self._goal_mocap = int(m.body_mocapid[mujoco.mj_name2id(m, obj.mjOBJ_BODY, "goal")])
+        self.ee_site_id = mujoco.mj_name2id(m, obj.mjOBJ_SITE, "ee_site")
+        self.torque_limit = m.jnt_actfrcrange[:, 1].copy()
+        self.joint_range = m.jnt_range.copy()
+        n_arm = len(self.arm_geom_ids)
+        #: (obstacle slot, arm geom) signed surface distances: a view into MuJoCo's sensordata.
+        self.distances = self.data.sensordata[: MAX_OBSTACLES * n_arm].reshape(MAX_OBSTACLES, n_arm)
+        if not self.gravity_compensation:
+            m.body_gravcomp[:] = 0.0
+        self._inv_limit = 1.0 / self.torque_limit
+        # Obstacle state. Positions are a view into MuJoCo's mocap array: one source of truth.
+        self.obstacle_pos = self.data.mocap_pos[mocap[0] : mocap[0] + MAX_OBSTACLES]
+        self.obstacle_vel = np.zeros((MAX_OBSTACLES, 3))
+        self.obstacle_radius = np.zeros(MAX_OBSTACLES)
+        self.obstacle_active = np.zeros(MAX_OBSTACLES, dtype=bool)
+        self._obstacle_specs: list = [None] * MAX_OBSTACLES
+        self._step_displacement = np.zeros((MAX_OBSTACLES, 3))
+        self._obs = np.zeros(_OBS_SIZE)
+        k = MAX_OBSTACLES
+        self._obs_obstacles = (  # views into self._obs
+            self._obs[21 : 21 + 3 * k].reshape(k, 3),
+            self._obs[21 + 3 * k : 21 + 6 * k].reshape(k, 3),
+            self._obs[21 + 6 * k : 21 + 7 * k],
+            self._obs[21 + 7 * k : 21 + 8 * k],
+        )
+        self._tool_vel = np.zeros(6)
+
+    def _initialize_simulation(self) -> tuple[mujoco.MjModel, mujoco.MjData]:
+        """Compile scene.xml plus one distance sensor per (obstacle, arm geom) pair."""
+        spec = mujoco.MjSpec.from_file(self.fullpath)
+        arm = [g.name for g in spec.geoms if g.contype == _ARM_CONTYPE]
+        for i in range(MAX_OBSTACLES):
+            for name in arm:
+                spec.add_sensor(
+                    name=f"distance_obstacle_{i}_{name}",
+                    type=mujoco.mjtSensor.mjSENS_GEOMDIST,
+                    objtype=mujoco.mjtObj.mjOBJ_GEOM,
+                    objname=f"obstacle_{i}",
+                    reftype=mujoco.mjtObj.mjOBJ_GEOM,
+                    refname=name,
+                    cutoff=DISTANCE_CUTOFF,
+                )
+        model = spec.compile()
+        model.vis.global_.offwidth = max(model.vis.global_.offwidth, self.width)
+        model.vis.global_.offheight = max(model.vis.global_.offheight, self.height)
+        return model, mujoco.MjData(model)
+
+    def _set_action_space(self) -> spaces.Box:
+        self.action_space = spaces.Box(-1.0, 1.0, shape=(self.model.nu,), dtype=np.float32)
+        return self.action_space
+
+    @staticmethod
+    def _check_scenario(scenario: Scenario) -> None:
+        if len(scenario.obstacles) > MAX_OBSTACLES:
+            raise ValueError(
+                f"scenario {scenario.name!r} has {len(scenario.obstacles)} obstacles; "
+                f"the scene and the observation hold at most {MAX_OBSTACLES}"
+            )
+        for name in scenario.mixture:
+            get_scenario(name)
+
+    # ------------------------------------------------------------------ hooks
+    def add_torque_hook(self, hook: TorqueHook, stage: Literal["nominal", "filter"]) -> None:
+        """Install ``hook`` to run at every physics step at ``stage`` (one hook per stage)."""
+        if stage not in HOOK_STAGES:
+            raise ValueError(f"unknown hook stage {stage!r}; valid choices: {', '.join(map(repr, HOOK_STAGES))}")
+        if not callable(hook):
+            raise TypeError(f"hook must be callable, got {type(hook).__name__}")
+        if stage in self._hooks:
+            raise ValueError(f"a {stage!r} torque hook is already installed on this environment")
+        self._hooks[stage] = hook
+        self._hook_chain = tuple(self._hooks[s] for s in HOOK_STAGES if s in self._hooks)
+
+    def remove_torque_hook(self, stage: Literal["nominal", "filter"]) -> None:
+        self._hooks.pop(stage, None)
+        self._hook_chain = tuple(self._hooks[s] for s in HOOK_STAGES if s in self._hooks)
+
+    def has_torque_hook(self, stage: str) -> bool:
+        return stage in self._hooks
+
+    # ------------------------------------------------------------------ gym API
+    def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        torque = self._validate_action(action) * self.torque_limit
+        min_distance, effort = self._simulate(torque)
+        self._respawn_departed()
+
+        to_goal = self.data.mocap_pos[self._goal_mocap] - self.data.site_xpos[self.ee_site_id]
+        distance = float(np.sqrt(to_goal @ to_goal))
+        w_progress, w_success, w_effort = self._weights
+        progress = w_progress * (self._goal_distance - distance)
+        self._goal_distance = distance
+        success = distance < self.success_tolerance
+        terms = {
+            "reward_progress": progress,
+            "reward_success": w_success if success else 0.0,
+            "reward_effort": -w_effort * effort,
+        }
+        reward = terms["reward_progress"] + terms["reward_success"] + terms["reward_effort"]
+        cost = 1.0 if min_distance <= 0.0 else 0.0
+        info = {
+            **terms,
+            "distance": distance,
+            "is_success": success,
+            "cost": cost,
+            "min_distance": min_distance,
+        }
+        if self.render_mode == "human":
+            self.render()
+        terminated = self.terminate_on_collision and cost > 0.0
+        return self._get_obs(), reward, terminated, False, info
+
+    def _validate_action(self, action: Any) -> np.ndarray:
+        a = np.asarray(action)
+        if a.shape != self.action_space.shape:
+            raise ValueError(f"action must have shape {self.action_space.shape}, got {a.shape}")
+        if a.dtype.kind not in "fiu":
+            raise ValueError(f"action must be a real (float) array, got dtype {a.dtype}")
+        if not (np.abs(a) <= 1.0 + 1e-6).all():  # also False for NaN
+            if not np.isfinite(a).all():
+                raise ValueError(f"action contains NaN or inf: {a}")
+            raise ValueError(f"action must lie in [-1, 1] (fraction of each joint's torque limit), got {a}")
+        return a.astype(np.float64)
+
+    def _simulate(self, torque: np.ndarray) -> tuple[float, float]:
+        """Advance ``frame_skip`` physics steps; return (min signed distance, mean effort).
+
+        Invariant: between calls ``data`` holds ``mj_step1`` results for the current state, so a
+        hook reads current kinematics, mass matrix and bias forces.
+        """
+        m, d = self.model, self.data
+        dt = m.opt.timestep
+        np.multiply(self.obstacle_vel, dt, out=self._step_displacement)
+        hooks = self._hook_chain
+        distances = self.distances
+        min_distance = DISTANCE_CUTOFF
+        effort = 0.0
+        if not hooks:
+            d.ctrl[:] = torque
+            u = torque * self._inv_limit
+            effort = float(u @ u) / len(u)
+        for _ in range(self.frame_skip):
+            if hooks:
+                gravity = d.qfrc_gravcomp
+                tau = torque + gravity
+                for hook in hooks:
+                    tau = hook(tau)
+                ctrl = tau - gravity
+                d.ctrl[:] = ctrl
+                u = ctrl * self._inv_limit
+                effort += float(u @ u) / (len(u) * self.frame_skip)
+            mujoco.mj_step2(m, d)
+            self.obstacle_pos += self._step_displacement
+            mujoco.mj_step1(m, d)
+            distance = distances.min()
+            if distance < min_distance:
+                min_distance = distance
+        return float(min_distance), effort
+
+    def obstacle_distances(self) -> np.ndarray:
+        """Per obstacle slot, the smallest signed surface distance (m) to any arm geom, now
+        (``DISTANCE_CUTOFF`` when farther, and for unused slots)."""
+        return self.distances.min(axis=1)
+
+    def _get_obs(self) -> np.ndarray:
+        d = self.data
+        obs = self._obs
+        tool = d.site_xpos[self.ee_site_id]
+        mujoco.mj_objectVelocity(self.model, d, mujoco.mjtObj.mjOBJ_SITE, self.ee_site_id, self._tool_vel, 0)
+        obs[0:6] = d.qpos
+        obs[6:12] = d.qvel
+        obs[12:15] = tool
+        obs[15:18] = self._tool_vel[3:]
+        obs[18:21] = d.mocap_pos[self._goal_mocap] - tool
+        sensed = self.sensed_mask()
+        rel, vel, radius, flag = self._obs_obstacles
+        np.subtract(self.obstacle_pos, tool, out=rel)
+        np.multiply(rel, sensed[:, None], out=rel)
+        np.multiply(self.obstacle_vel, sensed[:, None], out=vel)
+        np.multiply(self.obstacle_radius, sensed, out=radius)
+        flag[:] = sensed
+        return obs.astype(np.float32)
+
+    def sensed_mask(self) -> np.ndarray:
+        """Which obstacle slots are active and within ``sensing_radius`` of the arm, now."""
+        return self.obstacle_active & (self.obstacle_distances() <= self.sensing_radius)
+
+    # ------------------------------------------------------------------ reset and scenarios
+    def reset_model(self) -> np.ndarray:
+        m, d, rng = self.model, self.data, self.np_random
+        mujoco.mj_resetDataKeyframe(m, d, 0)
+        d.qpos[:] += rng.uniform(-_HOME_NOISE, _HOME_NOISE, size=m.nq)
+        self._park_all()
+        mujoco.mj_forward(m, d)
+        start = d.site_xpos[self.ee_site_id].copy()
+        scenario = self.scenario.resolve(rng)
+        for _ in range(100):
+            goal = self._sample_goal(start, rng)
+            samples = [self._sampler.sample(spec, start, goal, rng) for spec in scenario.obstacles]
+            if all(s is not None for s in samples):
+                break
+        else:
+            raise RuntimeError(f"could not place scenario {scenario.name!r} inside the envelope in 100 attempts")
+        d.mocap_pos[self._goal_mocap] = goal
+        for slot, (spec, sample) in enumerate(zip(scenario.obstacles, samples)):
+            self._place(slot, sample)
+            self._obstacle_specs[slot] = spec
+        self._start_goal = (start, goal)
+        mujoco.mj_forward(m, d)
+        self._goal_distance = float(np.linalg.norm(goal - start))
+        return self._get_obs()
+
+    def _sample_goal(self, start: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        for _ in range(1000):
+            goal = rng.uniform(_GOAL_LOW, _GOAL_HIGH)
+            if np.linalg.norm(goal - start) >= _GOAL_MIN_TRAVEL:
+                return goal
+        raise RuntimeError("could not draw a goal far enough from the tool")
+
+    def _park_all(self) -> None:
+        self.obstacle_active[:] = False
+        self.obstacle_vel[:] = 0.0
+        self.obstacle_radius[:] = 0.0
+        self._obstacle_specs = [None] * MAX_OBSTACLES
+        self.obstacle_pos[:] = 0.0
+        self.obstacle_pos[:, 0] = np.arange(MAX_OBSTACLES) * 2.0 * DISTANCE_CUTOFF
+        self.obstacle_pos[:, 2] = _PARK_DEPTH
+
+    def _place(self, slot: int, sample) -> None:
+        geom = self.obstacle_geom_ids[slot]
+        self.model.geom_size[geom, 0] = sample.radius
+        self.model.geom_rbound[geom] = sample.radius
+        self.obstacle_pos[slot] = sample.position
+        self.obstacle_vel[slot] = sample.velocity
+        self.obstacle_radius[slot] = sample.radius
+        self.obstacle_active[slot] = True
+
+    def _respawn_departed(self) -> None:
+        low, high = self._workspace
+        outside = ((self.obstacle_pos < low) | (self.obstacle_pos > high)).any(axis=1) & self.obstacle_active
+        if not outside.any():
+            return
+        for slot in np.flatnonzero(outside):
+            tool = self.data.site_xpos[self.ee_site_id].copy()
+            goal = self.data.mocap_pos[self._goal_mocap].copy()
+            sample = self._sampler.sample(self._obstacle_specs[slot], tool, goal, self.np_random)
+            if sample is None:  # nothing fits right now: retire the obstacle for this episode
+                self.obstacle_active[slot] = False
+                self.obstacle_vel[slot] = 0.0
+                self.obstacle_pos[slot] = (slot * 2.0 * DISTANCE_CUTOFF, 0.0, _PARK_DEPTH)
+            else:
+                self._place(slot, sample)
+            mujoco.mj_forward(self.model, self.data)  # sensors and contacts see the new position
+
+    def _arm_clearance(self, centre: np.ndarray, radius: float) -> float:
+        """Smallest surface distance from a sphere to the arm's geoms (capsule/cylinder segments)."""
+        d, m = self.data, self.model
+        ids = self.arm_geom_ids
+        axis = d.geom_xmat[ids].reshape(-1, 3, 3)[:, :, 2]
+        half = m.geom_size[ids, 1]
+        a = d.geom_xpos[ids] - axis * half[:, None]
+        ab = 2.0 * axis * half[:, None]
+        t = np.clip(np.einsum("ij,ij->i", centre - a, ab) / np.einsum("ij,ij->i", ab, ab), 0.0, 1.0)
+        closest = a + t[:, None] * ab
+        gap = np.linalg.norm(centre - closest, axis=1) - m.geom_size[ids, 0] - radius
+        return float(gap.min())
