@@ -5,10 +5,23 @@ Importing the package registers ``C3BFReach-v0`` with Gymnasium.
 
 from gymnasium.envs.registration import register, registry
 
+from c3bf_gym.controllers import CartesianImpedance
 from c3bf_gym.envs import C3BFReachEnv
+from c3bf_gym.filter import SafetyInfeasibleError
 from c3bf_gym.scenarios import SCENARIOS, Envelope, ObstacleSpec, Scenario
+from c3bf_gym.wrappers import CartesianImpedanceAction, SafetyFilter
 
-__all__ = ["C3BFReachEnv", "Envelope", "ObstacleSpec", "SCENARIOS", "Scenario"]
+__all__ = [
+    "C3BFReachEnv",
+    "CartesianImpedance",
+    "CartesianImpedanceAction",
+    "Envelope",
+    "ObstacleSpec",
+    "SCENARIOS",
+    "SafetyFilter",
+    "SafetyInfeasibleError",
+    "Scenario",
+]
 __version__ = "0.1.0"
 
 if "C3BFReach-v0" not in registry:

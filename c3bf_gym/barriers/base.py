@@ -141,9 +141,7 @@ class Barrier(abc.ABC):
             r: (P,) combined radii [m] (> 0).
 
         Returns:
-            :class:`BarrierTerms` with arrays of leading dimension P. The arrays
-            must be freshly allocated and owned by the caller (:meth:`rows`
-            reuses them as scratch space).
+            :class:`BarrierTerms` with arrays of leading dimension P.
         """
 
     @property
@@ -182,7 +180,14 @@ class Barrier(abc.ABC):
         Raises:
             ValueError: on inconsistent shapes.
         """
-        h, grad_v, drift, _ = self.terms(p, v, r)
+        return self.rows_from_terms(self.terms(p, v, r), G, c, out)
+
+    def rows_from_terms(
+        self, terms: BarrierTerms, G: ArrayLike, c: ArrayLike, out: Rows | None = None
+    ) -> Rows:
+        """:meth:`rows` from already evaluated :meth:`terms` (which are left unchanged), so a
+        caller that also reports ``h`` or ``inside`` evaluates the barrier once."""
+        h, grad_v, drift, _ = terms
         n_pts = h.shape[0]
         G = np.asarray(G, dtype=np.float64)
         c = np.asarray(c, dtype=np.float64)
@@ -203,11 +208,10 @@ class Barrier(abc.ABC):
             A = out.A[:n_pts]
             b = out.b[:n_pts]
 
-        np.einsum("pi,pin->pn", grad_v, G, out=A)
+        np.matmul(grad_v[:, None, :], G, out=A[:, None, :])
         # b = −(⟨grad_v, c⟩ + drift + γ h), built in place.
         np.einsum("pi,pi->p", grad_v, c, out=b)
         b += drift
-        h *= self.gamma  # h is a fresh array owned by this call
-        b += h
+        b += self.gamma * h
         np.negative(b, out=b)
         return Rows(A, b)

@@ -206,6 +206,10 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
         )
         self._setup_model()
         self._hooks: dict[str, TorqueHook] = {}
+        #: Incremented whenever ``data`` moves to a new state (each physics step, reset,
+        #: respawn): consumers key their per-state caches on it.
+        self.state_version = 0
+        self._arm = None
         self._hook_chain: tuple[TorqueHook, ...] = ()
         self._sampler = ObstacleSampler(self.envelope, self._arm_clearance)
         self._workspace = tuple(np.asarray(c, dtype=float) for c in self.envelope.workspace)
@@ -236,6 +240,9 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
         # Obstacle state. Positions are a view into MuJoCo's mocap array: one source of truth.
         self.obstacle_pos = self.data.mocap_pos[mocap[0] : mocap[0] + MAX_OBSTACLES]
         self.obstacle_vel = np.zeros((MAX_OBSTACLES, 3))
+        #: Obstacle accelerations: zero, the scenarios move obstacles at constant velocity (the
+        #: C3BF theorem's assumption); filters read it rather than assume it.
+        self.obstacle_acc = np.zeros((MAX_OBSTACLES, 3))
         self.obstacle_radius = np.zeros(MAX_OBSTACLES)
         self.obstacle_active = np.zeros(MAX_OBSTACLES, dtype=bool)
         self._obstacle_specs: list = [None] * MAX_OBSTACLES
@@ -283,6 +290,15 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
             )
         for name in scenario.mixture:
             get_scenario(name)
+
+    @property
+    def arm(self):
+        """The arm's :class:`~c3bf_gym.robot.ArmModel`, shared by every hook on this env."""
+        if self._arm is None:
+            from c3bf_gym.robot import ArmModel
+
+            self._arm = ArmModel(self.model, self.arm_geom_ids, self.ee_site_id)
+        return self._arm
 
     # ------------------------------------------------------------------ hooks
     def add_torque_hook(self, hook: TorqueHook, stage: Literal["nominal", "filter"]) -> None:
@@ -342,7 +358,7 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
             raise ValueError(f"action must be a real (float) array, got dtype {a.dtype}")
         if not (np.abs(a) <= 1.0 + 1e-6).all():  # also False for NaN
             if not np.isfinite(a).all():
-                raise ValueError(f"action contains NaN or inf: {a}")
+                raise ValueError(f"action contains NaN or inf: {a}; it must be finite and lie in [-1, 1]")
             raise ValueError(f"action must lie in [-1, 1] (fraction of each joint's torque limit), got {a}")
         return a.astype(np.float64)
 
@@ -376,6 +392,7 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
             mujoco.mj_step2(m, d)
             self.obstacle_pos += self._step_displacement
             mujoco.mj_step1(m, d)
+            self.state_version += 1
             distance = distances.min()
             if distance < min_distance:
                 min_distance = distance
@@ -432,6 +449,7 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
         self._start_goal = (start, goal)
         mujoco.mj_forward(m, d)
         self._goal_distance = float(np.linalg.norm(goal - start))
+        self.state_version += 1
         return self._get_obs()
 
     def _sample_goal(self, start: np.ndarray, rng: np.random.Generator) -> np.ndarray:
@@ -475,6 +493,7 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
             else:
                 self._place(slot, sample)
             mujoco.mj_forward(self.model, self.data)  # sensors and contacts see the new position
+        self.state_version += 1
 
     def _arm_clearance(self, centre: np.ndarray, radius: float) -> float:
         """Smallest surface distance from a sphere to the arm's geoms (capsule/cylinder segments)."""

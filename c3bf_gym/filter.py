@@ -1,0 +1,254 @@
+"""The safety filter as a per-physics-step torque hook: barrier rows + joint limits -> QP.
+
+At every physics step (``C3BFReachEnv`` calls the hook between ``mj_step1`` and ``mj_step2``):
+
+1. the arm's dynamics at the protected points are refreshed (:class:`~c3bf_gym.robot.ArmModel`);
+2. every *sensed* obstacle (active, surface within ``sensing_radius`` of the arm) contributes one
+   row per protected point (``whole_arm``: the closest point of every link capsule, with the
+   capsule radius added to the obstacle's; ``ee``: the tool site with ``ee_radius``);
+3. joint position and velocity limits contribute ``4 n`` rows;
+4. :class:`~c3bf_gym.qp.TorqueQP` returns the torque closest to the nominal one (weighted by
+   ``W``) that satisfies all rows and the actuator limits, or reports that none does.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+
+from c3bf_gym.barriers import Barrier, JointLimits, Rows, make_barrier
+from c3bf_gym.qp import QPResult, TorqueQP
+from c3bf_gym.robot import ArmModel
+
+__all__ = ["ON_INFEASIBLE", "POINTS", "WEIGHTS", "SafetyHook", "SafetyInfeasibleError", "StepSafety", "build_hook"]
+
+POINTS = ("whole_arm", "ee")
+ON_INFEASIBLE = ("relax", "raise")
+WEIGHTS = ("limits", "identity")
+
+#: UR5e joint speed limit, 180 deg/s on every joint (UR5e technical specifications).
+UR5E_JOINT_SPEED = np.pi
+
+
+class SafetyInfeasibleError(RuntimeError):
+    """Raised with ``on_infeasible="raise"`` when no torque within the limits satisfies the rows."""
+
+
+@dataclass
+class StepSafety:
+    """What the filter did over one policy step (all its physics steps).
+
+    Attributes:
+        feasible: every physics step's QP was solved without slack.
+        slack: the largest slack used [N m, row-normalised]; 0.0 when feasible.
+        min_h: the smallest barrier value over all rows and physics steps (inf with no row).
+        correction: the largest ``‖τ − τ_nom‖`` [N m] (``τ_nom`` clipped to the torque limits,
+            so plain saturation is not counted as a safety intervention).
+        active_rows: the largest number of binding rows.
+        sensed: the largest number of sensed obstacles.
+        solve_time: mean wall time of the filter per physics step [s] (rows and QP).
+        intervened: some physics step changed the torque by more than ``intervention_tol``.
+        inside: some protected point was already inside an obstacle's (margin-inflated) radius.
+        infeasible_steps: number of physics steps whose QP needed slack.
+    """
+
+    feasible: bool = True
+    slack: float = 0.0
+    min_h: float = np.inf
+    correction: float = 0.0
+    active_rows: int = 0
+    sensed: int = 0
+    solve_time: float = 0.0
+    intervened: bool = False
+    inside: bool = False
+    infeasible_steps: int = 0
+    substeps: int = 0
+
+    def as_info(self) -> dict[str, float | bool | int]:
+        return {
+            "feasible": self.feasible,
+            "slack": self.slack,
+            "min_h": self.min_h,
+            "correction": self.correction,
+            "active_rows": self.active_rows,
+            "sensed": self.sensed,
+            "solve_time": self.solve_time / max(self.substeps, 1),
+            "intervened": self.intervened,
+            "inside": self.inside,
+            "infeasible_steps": self.infeasible_steps,
+        }
+
+
+class SafetyHook:
+    """The filter itself, installed as the env's ``filter`` torque hook.
+
+    Args:
+        env: the unwrapped :class:`~c3bf_gym.envs.C3BFReachEnv`.
+        barrier: a :class:`~c3bf_gym.barriers.Barrier` (e.g. ``C3BF(gamma=5)``).
+        points: ``"whole_arm"`` or ``"ee"``.
+        margin: extra clearance added to every combined radius [m].
+        sensing_radius: obstacles whose surface is farther than this from the arm add no row [m].
+        ee_radius: radius of the protected sphere at the tool site with ``points="ee"`` [m].
+        joint_limits: the joint-limit barrier (None: no joint rows).
+        weight: ``"limits"`` (W = diag(1/τ_max²): relative changes weigh the same on every joint)
+            or ``"identity"`` (the paper's plain ‖τ − τ_nom‖²).
+        on_infeasible: ``"relax"`` (apply the least-violating torque and report it) or
+            ``"raise"`` (raise :class:`SafetyInfeasibleError`).
+        intervention_tol: ‖τ − τ_nom‖ above which a step counts as an intervention [N m].
+    """
+
+    def __init__(
+        self,
+        env,
+        barrier: Barrier,
+        points: Literal["whole_arm", "ee"],
+        margin: float,
+        sensing_radius: float,
+        ee_radius: float,
+        joint_limits: JointLimits | None,
+        weight: Literal["limits", "identity"],
+        on_infeasible: Literal["relax", "raise"],
+        intervention_tol: float = 1e-3,
+    ) -> None:
+        self.env = env
+        self.barrier = barrier
+        self.points = points
+        self.margin = float(margin)
+        self.sensing_radius = float(sensing_radius)
+        self.ee_radius = float(ee_radius)
+        self.joint_limits = joint_limits
+        self.on_infeasible = on_infeasible
+        self.intervention_tol = float(intervention_tol)
+        self.arm: ArmModel = env.arm
+        n = env.model.nv
+        limit = env.torque_limit
+        self._per_obstacle = len(self.arm.capsule_ids) if points == "whole_arm" else 1
+        n_obstacles = len(env.obstacle_radius)
+        self._n_joint_rows = 0 if joint_limits is None else 4 * n
+        max_rows = n_obstacles * self._per_obstacle + self._n_joint_rows
+        # The QP runs in normalised torque u = τ / s with s = τ_max ("limits": W = diag(1/τ_max²)
+        # becomes the identity, box ±1) or s = 1 ("identity"): a well-conditioned problem either way.
+        self._scale = limit.copy() if weight == "limits" else np.ones(n)
+        self.qp = TorqueQP(n, max_rows, -limit / self._scale, limit / self._scale)
+        self._limit = limit
+        self._A = np.zeros((max_rows, n))
+        self._b = np.zeros(max_rows)
+        self._point_radius = (
+            np.tile(self.arm.capsule_radius, n_obstacles) if points == "whole_arm" else np.full(n_obstacles, self.ee_radius)
+        )
+        self.last: QPResult | None = None
+        self.last_min_h = np.inf
+        self.report = StepSafety()
+
+    def begin_step(self) -> None:
+        """Start a new policy step's report."""
+        self.report = StepSafety()
+
+    def rows(self) -> tuple[np.ndarray, np.ndarray, float, bool, int]:
+        """Assemble the rows for the current state: (A, b, min h, any inside, sensed count)."""
+        env, arm = self.env, self.arm
+        data = env.data
+        arm.update(data, env.state_version)
+        sensed = np.flatnonzero(env.obstacle_active & (env.obstacle_distances() <= self.sensing_radius))
+        m = 0
+        min_h, inside = np.inf, False
+        if len(sensed):
+            centres = env.obstacle_pos[sensed]
+            k = self._per_obstacle
+            if self.points == "whole_arm":
+                pd = arm.closest_dynamics(centres)
+            else:
+                site = arm.site_dynamics(data)
+                pd = type(site)(*(None if x is None else np.repeat(x, len(sensed), axis=0) for x in site))
+            p = pd.pos - np.repeat(centres, k, axis=0)
+            v = pd.vel - np.repeat(env.obstacle_vel[sensed], k, axis=0)
+            c = pd.c - np.repeat(env.obstacle_acc[sensed], k, axis=0)
+            r = np.repeat(env.obstacle_radius[sensed], k) + self._point_radius[: len(p)] + self.margin
+            terms = self.barrier.terms(p, v, r)
+            m = len(p)
+            self.barrier.rows_from_terms(terms, pd.G, c, out=Rows(self._A, self._b))
+            min_h = float(terms.h.min())
+            inside = bool(terms.inside.any())
+        if self.joint_limits is not None:
+            self.joint_limits.rows(
+                data.qpos, data.qvel, arm.Minv, arm.qacc_free, out=Rows(self._A[m:], self._b[m:])
+            )
+            m += self._n_joint_rows
+        return self._A[:m], self._b[:m], min_h, inside, len(sensed)
+
+    def __call__(self, tau_nom: np.ndarray) -> np.ndarray:
+        A, b, min_h, inside, n_sensed = self.rows()
+        A *= self._scale  # rows in u = τ / s: (A s) u ≥ b
+        result = self.qp.solve(tau_nom / self._scale, A, b)
+        tau = result.tau * self._scale
+        self.last, self.last_min_h = result, min_h
+        report = self.report
+        report.substeps += 1
+        report.solve_time += result.solve_time
+        report.min_h = min(report.min_h, min_h)
+        report.inside |= inside
+        report.sensed = max(report.sensed, n_sensed)
+        report.active_rows = max(report.active_rows, result.active_rows)
+        correction = float(np.linalg.norm(tau - np.clip(tau_nom, -self._limit, self._limit)))
+        report.correction = max(report.correction, correction)
+        report.intervened |= correction > self.intervention_tol
+        if not result.feasible:
+            report.feasible = False
+            report.infeasible_steps += 1
+            report.slack = max(report.slack, result.slack)
+            if self.on_infeasible == "raise":
+                raise SafetyInfeasibleError(
+                    f"no torque within the limits satisfies the safety rows (status {result.status!r}, "
+                    f"slack {result.slack:.3g}, min h {min_h:.3g}); pass on_infeasible='relax' to apply "
+                    "the least-violating torque instead"
+                )
+        return tau
+
+
+def build_hook(
+    env,
+    barrier: str | Barrier,
+    points: str,
+    gamma: float | None,
+    margin: float,
+    sensing_radius: float | None,
+    ee_radius: float,
+    joint_speed_fraction: float,
+    weight: str,
+    on_infeasible: str,
+) -> SafetyHook:
+    """Validate user-facing options and build a :class:`SafetyHook` (used by the wrappers)."""
+    if points not in POINTS:
+        raise ValueError(f"unknown points {points!r}; valid choices: {', '.join(map(repr, POINTS))}")
+    if on_infeasible not in ON_INFEASIBLE:
+        raise ValueError(f"unknown on_infeasible {on_infeasible!r}; valid choices: {', '.join(map(repr, ON_INFEASIBLE))}")
+    if weight not in WEIGHTS:
+        raise ValueError(f"unknown weight {weight!r}; valid choices: {', '.join(map(repr, WEIGHTS))}")
+    for name, value, low, strict in (
+        ("margin", margin, 0.0, False),
+        ("ee_radius", ee_radius, 0.0, False),
+        ("joint_speed_fraction", joint_speed_fraction, 0.0, True),
+    ):
+        if not (isinstance(value, (int, float)) and np.isfinite(value) and (value > low if strict else value >= low)):
+            raise ValueError(f"{name} must be a finite number {'>' if strict else '>='} {low}, got {value!r}")
+    if joint_speed_fraction > 1.0:
+        raise ValueError(f"joint_speed_fraction must be in (0, 1] (a fraction of the UR5e's 180 deg/s), got {joint_speed_fraction!r}")
+    if sensing_radius is None:
+        sensing_radius = env.sensing_radius
+    elif not (isinstance(sensing_radius, (int, float)) and sensing_radius > 0):
+        raise ValueError(f"sensing_radius must be a number > 0 (m), got {sensing_radius!r}")
+    if isinstance(barrier, Barrier):
+        if gamma is not None:
+            raise ValueError("pass gamma either to the Barrier instance or here, not both")
+        barrier_obj = barrier
+    elif barrier == "hocbf":
+        barrier_obj = make_barrier(barrier, **({} if gamma is None else {"gamma1": gamma, "gamma2": gamma}))
+    else:
+        barrier_obj = make_barrier(barrier, **({} if gamma is None else {"gamma": gamma}))
+    q_lo, q_hi = env.joint_range.T
+    joint_limits = JointLimits(q_lo, q_hi, joint_speed_fraction * UR5E_JOINT_SPEED)
+    return SafetyHook(
+        env, barrier_obj, points, margin, sensing_radius, ee_radius, joint_limits, weight, on_infeasible
+    )

@@ -1,0 +1,205 @@
+"""Public wrappers: the safety filter and the Cartesian impedance action space.
+
+Both act at the physics rate through the environment's torque hooks, so they compose in either
+wrapping order: the impedance controller is always the ``nominal`` stage and the filter the
+``filter`` stage, which runs after it at every physics step (see ``C3BFReachEnv``)::
+
+    env = gym.make("C3BFReach-v0")
+    env = CartesianImpedanceAction(env)          # policy outputs tool targets
+    env = SafetyFilter(env, barrier="c3bf")      # every torque passes the QP
+"""
+
+from __future__ import annotations
+
+from typing import Any, Callable, Literal
+
+import gymnasium as gym
+import numpy as np
+
+from c3bf_gym.barriers import Barrier
+from c3bf_gym.controllers.impedance import CartesianImpedance
+from c3bf_gym.envs.reach import C3BFReachEnv
+from c3bf_gym.filter import SafetyHook, StepSafety, build_hook
+from c3bf_gym.robot import ArmModel
+
+__all__ = ["CartesianImpedanceAction", "ImpedanceHook", "SafetyFilter", "reach_env"]
+
+#: (position, velocity, acceleration) of the desired tool motion at a time [s].
+Trajectory = Callable[[float], tuple[np.ndarray, np.ndarray, np.ndarray]]
+
+
+def reach_env(env: gym.Env, wrapper: str) -> C3BFReachEnv:
+    """The unwrapped :class:`C3BFReachEnv` under ``env``, or a clear error."""
+    base = getattr(env, "unwrapped", None)
+    if not isinstance(base, C3BFReachEnv):
+        raise TypeError(
+            f"{wrapper} wraps a C3BFReach environment (gym.make('C3BFReach-v0') or C3BFReachEnv), "
+            f"got {type(base if base is not None else env).__name__}"
+        )
+    return base
+
+
+class SafetyFilter(gym.Wrapper):
+    """Project every torque through the C3BF (or distance-HOCBF) quadratic program.
+
+    The filter runs at every physics step (500 Hz) on whatever total torque arrives (the policy's
+    torque plus gravity compensation, or the impedance controller's), so the policy's rate does
+    not weaken it. Adds ``info["safety"]`` (a dict, see :class:`~c3bf_gym.filter.StepSafety`)
+    and flat scalars for SB3's ``Monitor(info_keywords=...)``: ``safety_intervened`` (0/1 this
+    step), ``safety_infeasible`` (0/1), ``episode_interventions`` and ``episode_infeasible``
+    (counts of such steps so far in the episode: the value at the episode's last step is its
+    total).
+
+    Args:
+        env: a ``C3BFReach-v0`` environment (possibly wrapped).
+        barrier: ``"c3bf"`` (default), ``"hocbf"``, or a :class:`~c3bf_gym.barriers.Barrier`.
+        points: ``"whole_arm"`` (every link capsule, default) or ``"ee"`` (the tool only, as in the
+            paper).
+        gamma: class-K gain [1/s] (C3BF: γ; HOCBF: γ₁ = γ₂); None for the barrier's default (5).
+        margin: extra clearance added to every radius [m].
+        sensing_radius: perception boundary [m]; None uses the environment's.
+        ee_radius: protected sphere around the tool site with ``points="ee"`` [m].
+        joint_speed_fraction: joint speed limit rows at this fraction of the UR5e's 180 deg/s.
+            The C3BF bounds the direction of the relative velocity, not its size: without a speed
+            bound a fast link near an obstacle needs more torque than the motors have.
+        weight: QP metric, ``"limits"`` (default) or ``"identity"``.
+        on_infeasible: ``"relax"`` (default: apply the least-violating torque, report it) or
+            ``"raise"``.
+    """
+
+    def __init__(
+        self,
+        env: gym.Env,
+        barrier: str | Barrier = "c3bf",
+        points: Literal["whole_arm", "ee"] = "whole_arm",
+        gamma: float | None = None,
+        margin: float = 0.02,
+        sensing_radius: float | None = None,
+        ee_radius: float = 0.05,
+        joint_speed_fraction: float = 0.5,
+        weight: Literal["limits", "identity"] = "limits",
+        on_infeasible: Literal["relax", "raise"] = "relax",
+    ) -> None:
+        super().__init__(env)
+        base = reach_env(env, "SafetyFilter")
+        if base.has_torque_hook("filter"):
+            raise ValueError("this environment already has a safety filter installed")
+        self.hook: SafetyHook = build_hook(
+            base, barrier, points, gamma, margin, sensing_radius, ee_radius, joint_speed_fraction, weight, on_infeasible
+        )
+        base.add_torque_hook(self.hook, stage="filter")
+        self._base = base
+        self._episode_interventions = 0
+        self._episode_infeasible = 0
+
+    def reset(self, **kwargs: Any):
+        self._episode_interventions = 0
+        self._episode_infeasible = 0
+        return self.env.reset(**kwargs)
+
+    def step(self, action):
+        self.hook.begin_step()
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        report: StepSafety = self.hook.report
+        self._episode_interventions += int(report.intervened)
+        self._episode_infeasible += int(not report.feasible)
+        info["safety"] = report.as_info()
+        info["safety_intervened"] = float(report.intervened)
+        info["safety_infeasible"] = float(not report.feasible)
+        info["episode_interventions"] = self._episode_interventions
+        info["episode_infeasible"] = self._episode_infeasible
+        return obs, reward, terminated, truncated, info
+
+    def close(self) -> None:
+        self._base.remove_torque_hook("filter")
+        super().close()
+
+
+class ImpedanceHook:
+    """The ``nominal`` torque hook: a :class:`CartesianImpedance` law towards a tool target.
+
+    The target is either fixed by its owner (``set_target``) or, with ``trajectory``, evaluated
+    at the simulation time of every physics step. The commanded torque arriving at the hook is
+    replaced by the controller's.
+    """
+
+    def __init__(self, env: C3BFReachEnv, controller: CartesianImpedance, trajectory: Trajectory | None = None) -> None:
+        self.env = env
+        self.controller = controller
+        self.trajectory = trajectory
+        self.arm: ArmModel = env.arm
+        self.target_pos = env.data.site_xpos[env.ee_site_id].copy()
+        self.target_vel = np.zeros(3)
+        self.target_acc = np.zeros(3)
+
+    def set_target(self, pos: np.ndarray, vel: np.ndarray | None = None, acc: np.ndarray | None = None) -> None:
+        self.target_pos[:] = pos
+        self.target_vel[:] = 0.0 if vel is None else vel
+        self.target_acc[:] = 0.0 if acc is None else acc
+
+    def __call__(self, tau: np.ndarray) -> np.ndarray:
+        env, arm = self.env, self.arm
+        d = env.data
+        if self.trajectory is not None:
+            self.set_target(*self.trajectory(d.time))
+        arm.update(d, env.state_version)
+        site = arm.site_dynamics(d)
+        jac = site.jac[0]
+        jdot_qd = site.c[0] - jac @ arm.qacc_free
+        return self.controller.torque(
+            d.qpos, d.qvel, site.pos[0], site.vel[0], jac, jdot_qd, arm.Minv, d.qfrc_bias,
+            self.target_pos, self.target_vel, self.target_acc,
+        )  # fmt: skip
+
+
+def default_impedance(env: C3BFReachEnv) -> CartesianImpedance:
+    """The impedance law used by default: 300 N/m, critically damped, posture at ``home``."""
+    return CartesianImpedance(stiffness=300.0, posture=env.model.key_qpos[0].copy(), max_force=150.0)
+
+
+class CartesianImpedanceAction(gym.ActionWrapper):
+    """Actions are tool position targets; an impedance controller turns them into torque.
+
+    The action ``a`` in ``Box(-1, 1, (3,))`` sets the target ``x_tool + max_offset * a`` (world
+    frame, m) when the step begins; at every physics step the controller
+    (:class:`~c3bf_gym.controllers.CartesianImpedance`, default 300 N/m, critically damped, with a
+    null-space pull to the ``home`` posture) computes the torque towards it. Out-of-range, wrongly
+    shaped or non-finite actions raise ``ValueError``.
+
+    Args:
+        env: a ``C3BFReach-v0`` environment (possibly wrapped, e.g. by :class:`SafetyFilter`).
+        max_offset: the target's largest distance from the tool per axis [m].
+        controller: a custom :class:`CartesianImpedance`.
+    """
+
+    def __init__(self, env: gym.Env, max_offset: float = 0.1, controller: CartesianImpedance | None = None) -> None:
+        super().__init__(env)
+        base = reach_env(env, "CartesianImpedanceAction")
+        if base.has_torque_hook("nominal"):
+            raise ValueError("this environment already has a nominal controller installed")
+        if not (isinstance(max_offset, (int, float)) and np.isfinite(max_offset) and max_offset > 0):
+            raise ValueError(f"max_offset must be a finite number > 0 (m), got {max_offset!r}")
+        self.max_offset = float(max_offset)
+        self.hook = ImpedanceHook(base, controller or default_impedance(base))
+        base.add_torque_hook(self.hook, stage="nominal")
+        self._base = base
+        self.action_space = gym.spaces.Box(-1.0, 1.0, shape=(3,), dtype=np.float32)
+        self._zero = np.zeros(base.action_space.shape, dtype=np.float32)
+
+    def action(self, action: np.ndarray) -> np.ndarray:
+        a = np.asarray(action)
+        if a.shape != (3,):
+            raise ValueError(f"action must have shape (3,), got {a.shape}")
+        if a.dtype.kind not in "fiu":
+            raise ValueError(f"action must be a real (float) array, got dtype {a.dtype}")
+        if not (np.abs(a) <= 1.0 + 1e-6).all():
+            if not np.isfinite(a).all():
+                raise ValueError(f"action contains NaN or inf: {a}")
+            raise ValueError(f"action must lie in [-1, 1] (fraction of max_offset per axis), got {a}")
+        tool = self._base.data.site_xpos[self._base.ee_site_id]
+        self.hook.set_target(tool + self.max_offset * a)
+        return self._zero  # the torque action underneath is replaced by the controller's
+
+    def close(self) -> None:
+        self._base.remove_torque_hook("nominal")
+        super().close()
