@@ -27,6 +27,6 @@ __version__ = "0.1.0"
 if "C3BFReach-v0" not in registry:
     register(
         id="C3BFReach-v0",
-        entry_point="c3bf_gym.envs.reach:C3BFReachEnv",
+        entry_point="c3bf_gym.wrappers:make_reach",
         max_episode_steps=250,
     )

@@ -110,6 +110,10 @@ class ArmModel:
         self.Minv = np.zeros((self.nv, self.nv))
         self.qacc_free = np.zeros(self.nv)  # M⁻¹(τ_passive − b): joint acceleration at zero torque
         self._version: int | None = None
+        self._ends_current = False
+        self._site_body = int(model.site_bodyid[self.site_id])
+        self._site_jac = np.zeros((1, 3, self.nv))
+        self._site_jac_dot = np.zeros((3, self.nv))
 
     @staticmethod
     def _chain_mask(model: mujoco.MjModel, body: int) -> np.ndarray:
@@ -132,8 +136,15 @@ class ArmModel:
         if version is not None and version == self._version:
             return
         self._version = version
+        self._ends_current = False
+        self._data = data
         mujoco.mj_solveM(self.model, data, self.Minv, self._eye)
         np.matmul(self.Minv, data.qfrc_passive - data.qfrc_bias, out=self.qacc_free)
+
+    def _update_ends(self) -> None:
+        """The capsule end points' dynamics, computed on first use after :meth:`update`."""
+        data = self._data
+        self._ends_current = True
         a, b = self.capsule_segments(data)
         ends = self.point_dynamics(data, np.concatenate([a, b]), self._end_chain)
         s = len(self.capsule_ids)
@@ -161,6 +172,8 @@ class ArmModel:
             ``k`` and capsule ``s``); ``jac`` is None (the filter needs ``G`` and ``c`` only).
             Call :meth:`update` first in the same physics step.
         """
+        if not self._ends_current:
+            self._update_ends()
         a, ab = self.ends_a, self.ends_ab
         # Parameter of the closest point on each axis, t = clip(((o - a) . ab) / |ab|^2, 0, 1).
         t = centres @ ab.pos.T
@@ -200,5 +213,12 @@ class ArmModel:
         return PointDynamics(points, vel, jac, G, c)
 
     def site_dynamics(self, data: mujoco.MjData) -> PointDynamics:
-        """:class:`PointDynamics` of the tool site (P = 1)."""
-        return self.point_dynamics(data, data.site_xpos[self.site_id][None], self.site_chain[None])
+        """:class:`PointDynamics` of the tool site (P = 1), from ``mj_jacSite`` and ``mj_jacDot``.
+        ``Minv`` and ``qacc_free`` must be current (:meth:`update`)."""
+        jac, jac_dot = self._site_jac[0], self._site_jac_dot
+        mujoco.mj_jacSite(self.model, data, jac, None, self.site_id)
+        pos = data.site_xpos[self.site_id]
+        mujoco.mj_jacDot(self.model, data, jac_dot, None, pos, self._site_body)
+        G = jac @ self.Minv
+        c = jac @ self.qacc_free + jac_dot @ data.qvel
+        return PointDynamics(pos[None].copy(), (jac @ data.qvel)[None], self._site_jac.copy(), G[None], c[None])

@@ -22,7 +22,7 @@ from c3bf_gym.envs.reach import C3BFReachEnv
 from c3bf_gym.filter import SafetyHook, StepSafety, build_hook
 from c3bf_gym.robot import ArmModel
 
-__all__ = ["CartesianImpedanceAction", "ImpedanceHook", "SafetyFilter", "reach_env"]
+__all__ = ["CartesianImpedanceAction", "ImpedanceHook", "SAFETY_FILTERS", "SafetyFilter", "make_reach", "reach_env"]
 
 #: (position, velocity, acceleration) of the desired tool motion at a time [s].
 Trajectory = Callable[[float], tuple[np.ndarray, np.ndarray, np.ndarray]]
@@ -203,3 +203,21 @@ class CartesianImpedanceAction(gym.ActionWrapper):
     def close(self) -> None:
         self._base.remove_torque_hook("nominal")
         super().close()
+
+
+SAFETY_FILTERS = (None, "c3bf", "hocbf")
+
+
+def make_reach(safety_filter: str | None = None, **kwargs: Any) -> gym.Env:
+    """Entry point of ``C3BFReach-v0``: the environment, optionally inside a :class:`SafetyFilter`.
+
+    ``gym.make("C3BFReach-v0", safety_filter="c3bf")`` is the shortcut for
+    ``SafetyFilter(gym.make("C3BFReach-v0"), barrier="c3bf")`` with default filter settings; every
+    other keyword goes to :class:`~c3bf_gym.envs.C3BFReachEnv`.
+    """
+    if safety_filter not in SAFETY_FILTERS:
+        raise ValueError(
+            f"unknown safety_filter {safety_filter!r}; valid choices: {', '.join(map(repr, SAFETY_FILTERS))}"
+        )
+    env = C3BFReachEnv(**kwargs)
+    return env if safety_filter is None else SafetyFilter(env, barrier=safety_filter)

@@ -13,6 +13,7 @@ closed loop ``Λ ë + D ė + K e = 0``: ``D = 2 L U diag(ω) Uᵀ Lᵀ`` where `
 
 from __future__ import annotations
 
+import mujoco
 import numpy as np
 
 __all__ = ["CartesianImpedance"]
@@ -62,6 +63,9 @@ class CartesianImpedance:
         max_force: float | None = None,
     ) -> None:
         self.K = _spd("stiffness", stiffness, 3)
+        # Isotropic K = k I (the common case) admits a cheaper critical damping: D = 2ζ√k Λ^{1/2}.
+        self._k_iso = float(self.K[0, 0]) if np.allclose(self.K, self.K[0, 0] * np.eye(3)) else None
+        self._mu, self._V, self._quat = np.zeros(3), np.zeros((3, 3)), np.zeros(4)
         self.D = None if damping is None else _spd("damping", damping, 3)
         if not (np.isfinite(damping_ratio) and damping_ratio > 0):
             raise ValueError(f"damping_ratio must be a finite number > 0, got {damping_ratio!r}")
@@ -114,8 +118,14 @@ class CartesianImpedance:
                 (velocity and acceleration default to zero: set-point regulation).
         """
         Lambda_inv = J @ Minv @ J.T
-        Lambda = np.linalg.inv(Lambda_inv + 1e-9 * np.eye(3))
-        D = self.damping_for(Lambda)
+        mu, V = self._mu, self._V
+        mujoco.mju_eig3(mu, V.reshape(9), self._quat, Lambda_inv.ravel())  # eigenvectors in columns
+        mu = np.maximum(mu, 1e-9)  # regularised near kinematic singularities
+        Lambda = (V / mu) @ V.T
+        if self.D is None and self._k_iso is not None:
+            D = (2.0 * self.damping_ratio * np.sqrt(self._k_iso)) * ((V / np.sqrt(mu)) @ V.T)
+        else:
+            D = self.damping_for(Lambda)
         accel = -Jdot_qd if xdd_des is None else xdd_des - Jdot_qd
         vel_err = -xd if xd_des is None else xd_des - xd
         F = Lambda @ accel + D @ vel_err + self.K @ (x_des - x)

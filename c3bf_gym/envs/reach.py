@@ -109,7 +109,9 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
     ``info["cost"]`` is 1.0 if any obstacle touched any arm geom (base, links, tool) during the step
     (signed distance <= 0), else 0.0 (the Safety-Gymnasium convention); ``info["min_distance"]`` is
     the smallest signed surface distance (m) between any obstacle and any arm geom during the step
-    (capped at ``DISTANCE_CUTOFF`` = 3 m). Distances are MuJoCo's exact signed geom distances
+    (capped at ``DISTANCE_CUTOFF`` = 3 m); ``info["episode_cost"]`` is the sum of ``cost`` so far in
+    the episode (at the last step, the episode's number of collision steps: what SB3's
+    ``Monitor(info_keywords=("episode_cost",))`` logs). Distances are MuJoCo's exact signed geom distances
     (distance sensors, one per obstacle/arm-geom pair).
 
     ## Starting State
@@ -125,8 +127,8 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
     ``static``, ``head_on``, ``crossing``, ``multi`` (the paper's four), ``random`` (uniform mixture
     of the four, the default) and ``none``; or any :class:`~c3bf_gym.scenarios.Scenario` instance.
     Obstacles move at constant velocity and respawn (redrawn by their spec) when they leave the
-    workspace box. The :class:`~c3bf_gym.scenarios.Envelope` bounds speed
-    (``obstacle_speed_range``, default 0.1-0.4 m/s) and radius (``obstacle_radius_range``, default
+    workspace box. The :class:`~c3bf_gym.scenarios.Envelope` bounds the speed of moving obstacles
+    (``obstacle_speed_range``, default 0.1-0.4 m/s; static ones are at rest) and radius (``obstacle_radius_range``, default
     0.04-0.08 m), spawns every obstacle at least 0.2 m from the arm, and keeps every path out of a
     0.3 m-radius, 0.45 m-high keep-out cylinder around the base.
 
@@ -214,6 +216,7 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
         self._sampler = ObstacleSampler(self.envelope, self._arm_clearance)
         self._workspace = tuple(np.asarray(c, dtype=float) for c in self.envelope.workspace)
         self._goal_distance = 0.0
+        self._episode_cost = 0.0
 
     # ------------------------------------------------------------------ model and spaces
     def _setup_model(self) -> None:
@@ -338,11 +341,13 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
         }
         reward = terms["reward_progress"] + terms["reward_success"] + terms["reward_effort"]
         cost = 1.0 if min_distance <= 0.0 else 0.0
+        self._episode_cost += cost
         info = {
             **terms,
             "distance": distance,
             "is_success": success,
             "cost": cost,
+            "episode_cost": self._episode_cost,
             "min_distance": min_distance,
         }
         if self.render_mode == "human":
@@ -449,6 +454,7 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
         self._start_goal = (start, goal)
         mujoco.mj_forward(m, d)
         self._goal_distance = float(np.linalg.norm(goal - start))
+        self._episode_cost = 0.0
         self.state_version += 1
         return self._get_obs()
 

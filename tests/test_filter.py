@@ -1,0 +1,464 @@
+"""Tests for c3bf_gym/filter.py: the safety filter as a per-physics-step torque hook.
+
+Rows are checked against an independent evaluation of the barrier condition ``ḣ + γ h`` (the
+barrier written out here from DESIGN.md, its gradients by finite differences, the arm point's
+acceleration from MuJoCo's own forward dynamics, ``mj_jac`` and ``mj_jacDot``); QP solutions
+against the KKT conditions of the QP the filter claims to solve.
+"""
+
+from __future__ import annotations
+
+import mujoco
+import numpy as np
+import pytest
+
+from c3bf_gym import SafetyFilter
+from c3bf_gym.barriers import C3BF, DistanceHOCBF
+from c3bf_gym.filter import UR5E_JOINT_SPEED, SafetyHook, SafetyInfeasibleError, build_hook
+from c3bf_gym.scenarios import ObstacleSample, ObstacleSpec
+
+#: build_hook defaults as the SafetyFilter wrapper passes them.
+DEFAULTS = dict(
+    barrier="c3bf", points="whole_arm", gamma=None, margin=0.02, sensing_radius=None, ee_radius=0.05,
+    joint_speed_fraction=0.5, weight="limits", on_infeasible="relax",
+)  # fmt: skip
+
+
+# ----------------------------------------------------------------------------- helpers
+
+
+def hook_for(u, **overrides) -> SafetyHook:
+    return build_hook(u, **{**DEFAULTS, **overrides})
+
+
+@pytest.fixture
+def env(make_env):
+    e = make_env(scenario="none")
+    e.reset(seed=0)
+    return e.unwrapped
+
+
+def refresh(u) -> None:
+    mujoco.mj_forward(u.model, u.data)
+    u.state_version += 1
+
+
+def capsule_frame(u, gid):
+    axis = u.data.geom_xmat[gid].reshape(3, 3)[:, 2]
+    half = u.model.geom_size[gid, 1]
+    return u.data.geom_xpos[gid] - half * axis, u.data.geom_xpos[gid] + half * axis
+
+
+def put_obstacle(u, slot, centre, radius, velocity=(0.0, 0.0, 0.0)) -> None:
+    u._place(slot, ObstacleSample(np.asarray(centre, float), np.asarray(velocity, float), float(radius)))
+    u._obstacle_specs[slot] = ObstacleSpec("static")
+
+
+def beside_capsule(u, gid, clearance, radius, rng=None, t=0.5):
+    """(centre, outward unit normal): a sphere ``clearance`` from capsule ``gid``, off its axis."""
+    a, b = capsule_frame(u, gid)
+    axis = (b - a) / np.linalg.norm(b - a)
+    side = np.cross(axis, [0.0, 0.0, 1.0]) if rng is None else rng.normal(size=3)
+    side -= (side @ axis) * axis
+    side /= np.linalg.norm(side)
+    return a + t * (b - a) + side * (u.model.geom_size[gid, 0] + radius + clearance), side
+
+
+def random_scene(u, rng, n_obstacles, clearance=(0.02, 0.25), speed=0.4, qd=0.5):
+    """A random arm state with obstacles near random links, none touching the arm, no contact."""
+    m, d = u.model, u.data
+    for _ in range(100):
+        d.qpos[:] = m.key_qpos[0] + rng.uniform(-0.5, 0.5, m.nq)
+        d.qvel[:] = rng.uniform(-qd, qd, m.nv)
+        u._park_all()
+        mujoco.mj_forward(m, d)
+        for slot in range(n_obstacles):
+            gid = rng.choice(u.arm.capsule_ids[1:])  # link2 ... tool
+            radius = rng.uniform(0.04, 0.08)
+            centre, _ = beside_capsule(u, gid, rng.uniform(*clearance), radius, rng, t=rng.uniform(0.2, 0.8))
+            put_obstacle(u, slot, centre, radius, rng.uniform(-speed, speed, 3))
+        refresh(u)
+        if d.nefc == 0 and u.obstacle_distances()[:n_obstacles].min() > 0.005:
+            return
+    raise AssertionError("could not draw a clean random scene")
+
+
+def mujoco_accelerations(u, tau):
+    """Joint acceleration for total actuator torque ``tau`` from MuJoCo's forward dynamics."""
+    m, d = u.model, u.data
+    ctrl = d.ctrl.copy()
+    d.ctrl[:] = tau - d.qfrc_gravcomp  # the env's convention: the motors add gravity compensation
+    mujoco.mj_forward(m, d)
+    assert d.nefc == 0
+    np.testing.assert_allclose(d.qfrc_actuator, tau, atol=1e-9)  # no clamping happened
+    qacc = d.qacc.copy()
+    d.ctrl[:] = ctrl
+    mujoco.mj_forward(m, d)
+    return qacc
+
+
+def point_motion(u, x, body, qacc):
+    m, d = u.model, u.data
+    jac = np.zeros((3, m.nv))
+    jdot = np.zeros((3, m.nv))
+    mujoco.mj_jac(m, d, jac, None, x, body)
+    mujoco.mj_jacDot(m, d, jdot, None, x, body)
+    return jac @ d.qvel, jac @ qacc + jdot @ d.qvel
+
+
+def grad(f, x, step=1e-6):
+    g = np.empty(3)
+    for i in range(3):
+        dx = np.zeros(3)
+        dx[i] = step
+        g[i] = (f(x + dx) - f(x - dx)) / (2 * step)
+    return g
+
+
+def independent_condition(barrier, p, v, a, r):
+    """ḣ + γ h for one point, with the barrier written out here (DESIGN.md section 2)."""
+    if isinstance(barrier, C3BF):
+        eps, gamma = barrier.eps, barrier.gamma
+
+        def h(p_, v_):
+            return p_ @ v_ + np.sqrt(v_ @ v_ + eps**2) * np.sqrt(p_ @ p_ - r**2)
+    else:
+        g1, gamma = barrier.gamma1, barrier.gamma2
+
+        def h(p_, v_):  # ψ₁ = ḣ0 + γ₁ h0 with h0 = ‖p‖² − r²
+            return 2 * p_ @ v_ + g1 * (p_ @ p_ - r**2)
+
+    hdot = grad(lambda q: h(q, v), p) @ v + grad(lambda w: h(p, w), v) @ a
+    return hdot + gamma * h(p, v)
+
+
+def expected_rows(u, hook, tau, qacc):
+    """The filter's rows' ``A τ − b``, evaluated independently, in the filter's row order."""
+    m, d = u.model, u.data
+    values = []
+    sensed = [k for k in range(len(u.obstacle_active))
+              if u.obstacle_active[k] and u.obstacle_distances()[k] <= hook.sensing_radius]  # fmt: skip
+    for k in sensed:
+        o, vo, R = u.obstacle_pos[k], u.obstacle_vel[k], u.obstacle_radius[k]
+        if hook.points == "whole_arm":
+            for gid in u.arm.capsule_ids:
+                a_end, b_end = capsule_frame(u, gid)
+                ab = b_end - a_end
+                x = a_end + np.clip((o - a_end) @ ab / (ab @ ab), 0, 1) * ab
+                xd, xdd = point_motion(u, x, m.geom_bodyid[gid], qacc)
+                r = R + m.geom_size[gid, 0] + hook.margin
+                values.append(independent_condition(hook.barrier, x - o, xd - vo, xdd - u.obstacle_acc[k], r))
+        else:
+            x = d.site_xpos[u.ee_site_id].copy()
+            xd, xdd = point_motion(u, x, m.site_bodyid[u.ee_site_id], qacc)
+            r = R + hook.ee_radius + hook.margin
+            values.append(independent_condition(hook.barrier, x - o, xd - vo, xdd - u.obstacle_acc[k], r))
+    # joint limits (JointLimits docstring; defaults γ₁ = γ₂ = 10, γ_v = 20)
+    q, qd = d.qpos, d.qvel
+    q_lo, q_hi = u.joint_range.T
+    qd_max = hook.joint_limits.qd_max
+    g1, g2, gv = 10.0, 10.0, 20.0
+    values += list(-qacc - g1 * qd + g2 * (-qd + g1 * (q_hi - q)))
+    values += list(qacc + g1 * qd + g2 * (qd + g1 * (q - q_lo)))
+    values += list(-qacc + gv * (qd_max - qd))
+    values += list(qacc + gv * (qd + qd_max))
+    return np.array(values), len(sensed)
+
+
+def assert_kkt_optimal(tau, tau_nom, A, b, W, lo, hi, tol=1e-6):
+    """τ solves min ½(τ−τ_nom)ᵀW(τ−τ_nom) s.t. Aτ ≥ b, lo ≤ τ ≤ hi (checked by its KKT conditions)."""
+    nnls = pytest.importorskip("scipy.optimize").nnls
+    norms = np.linalg.norm(A, axis=1)
+    residual = (A @ tau - b) / np.maximum(norms, 1e-12)
+    assert residual.min() >= -tol, residual.min()
+    assert np.all(tau >= lo - 1e-9) and np.all(tau <= hi + 1e-9)
+    span = hi - lo
+    columns = [A[k] / norms[k] for k in np.flatnonzero(residual <= 1e-5)]
+    columns += [np.eye(len(tau))[i] for i in np.flatnonzero(tau - lo <= 1e-7 * span)]
+    columns += [-np.eye(len(tau))[i] for i in np.flatnonzero(hi - tau <= 1e-7 * span)]
+    gradient = W @ (tau - tau_nom)
+    if not columns:
+        np.testing.assert_allclose(tau, tau_nom, atol=1e-9)
+        return
+    _, res = nnls(np.array(columns).T, gradient)  # gradient = Σ λ_k ∇g_k with λ ≥ 0
+    assert res <= 1e-4 * max(1.0, np.linalg.norm(gradient)), (res, np.linalg.norm(gradient))
+
+
+def toward_obstacles(u, scale=1.0):
+    """A nominal torque that pushes the arm's points nearest to each obstacle towards it."""
+    m, d = u.model, u.data
+    tau = d.qfrc_gravcomp.copy()
+    for k in np.flatnonzero(u.obstacle_active):
+        best = None
+        for gid in u.arm.capsule_ids:
+            a, b = capsule_frame(u, gid)
+            ab = b - a
+            x = a + np.clip((u.obstacle_pos[k] - a) @ ab / (ab @ ab), 0, 1) * ab
+            gap = np.linalg.norm(u.obstacle_pos[k] - x) - m.geom_size[gid, 0]
+            if best is None or gap < best[0]:
+                best = (gap, x, m.geom_bodyid[gid])
+        jac = np.zeros((3, m.nv))
+        mujoco.mj_jac(m, d, jac, None, best[1], best[2])
+        direction = u.obstacle_pos[k] - best[1]
+        tau += jac.T @ (200.0 * scale * direction / np.linalg.norm(direction))
+    return np.clip(tau, -u.torque_limit, u.torque_limit)
+
+
+# ----------------------------------------------------------------------------- rows
+
+
+@pytest.mark.parametrize("seed", range(6))
+@pytest.mark.parametrize(
+    "barrier, points",
+    [(C3BF(gamma=3.0, eps=1e-2), "whole_arm"), (DistanceHOCBF(gamma1=2.0, gamma2=4.0), "whole_arm"),
+     (C3BF(gamma=5.0, eps=1e-2), "ee")],  # fmt: skip
+    ids=["c3bf-whole_arm", "hocbf-whole_arm", "c3bf-ee"],
+)
+def test_rows_equal_independent_barrier_condition(env, seed, barrier, points):
+    """For any torque τ, the filter's ``A τ − b`` is ``ḣ + γ h`` of every (obstacle, point) pair
+    followed by the 24 joint-limit conditions."""
+    u = env
+    rng = np.random.default_rng(seed)
+    random_scene(u, rng, n_obstacles=1 + seed % 3)
+    hook = hook_for(u, barrier=barrier, points=points, margin=0.015)
+    A, b, min_h, inside, n_sensed = hook.rows()
+    A, b = A.copy(), b.copy()
+    assert not inside and n_sensed == 1 + seed % 3
+    per = len(u.arm.capsule_ids) if points == "whole_arm" else 1
+    assert A.shape == (n_sensed * per + 24, 6)
+    for _ in range(3):
+        tau = rng.uniform(-0.3, 0.3, 6) * u.torque_limit + u.data.qfrc_gravcomp
+        qacc = mujoco_accelerations(u, tau)
+        expected, _ = expected_rows(u, hook, tau, qacc)
+        got = A @ tau - b
+        np.testing.assert_allclose(got, expected, rtol=1e-6, atol=1e-6 * max(1.0, np.abs(expected).max()))
+    assert np.abs(expected[: n_sensed * per]).max() > 0.01  # the obstacle rows are not trivial
+    assert np.isfinite(min_h)
+
+
+def test_min_h_and_sensed_count_reported(env):
+    u = env
+    rng = np.random.default_rng(3)
+    random_scene(u, rng, n_obstacles=2)
+    hook = hook_for(u, barrier=C3BF(gamma=5.0, eps=1e-2))
+    _, _, min_h, inside, n_sensed = hook.rows()
+    p_v_r = []
+    m = u.model
+    for k in range(2):
+        for gid in u.arm.capsule_ids:
+            a, b = capsule_frame(u, gid)
+            ab = b - a
+            x = a + np.clip((u.obstacle_pos[k] - a) @ ab / (ab @ ab), 0, 1) * ab
+            xd, _ = point_motion(u, x, m.geom_bodyid[gid], np.zeros(6))
+            p, v = x - u.obstacle_pos[k], xd - u.obstacle_vel[k]
+            r = u.obstacle_radius[k] + m.geom_size[gid, 0] + 0.02
+            p_v_r.append(p @ v + np.sqrt(v @ v + 1e-4) * np.sqrt(p @ p - r**2))
+    assert n_sensed == 2 and not inside
+    assert min_h == pytest.approx(min(p_v_r), rel=1e-9, abs=1e-12)
+
+
+# ----------------------------------------------------------------------------- pass-through
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_no_sensed_obstacle_returns_nominal_unchanged(env, seed):
+    u = env
+    rng = np.random.default_rng(seed)
+    hook = hook_for(u, on_infeasible="raise")
+    for _ in range(5):
+        u.data.qpos[:] = u.model.key_qpos[0] + rng.uniform(-0.3, 0.3, 6)
+        u.data.qvel[:] = rng.uniform(-0.2, 0.2, 6)
+        refresh(u)
+        tau_nom = u.data.qfrc_gravcomp + rng.uniform(-0.02, 0.02, 6) * u.torque_limit
+        hook.begin_step()
+        tau = hook(tau_nom.copy())
+        np.testing.assert_allclose(tau, tau_nom, rtol=1e-14, atol=1e-12)
+        assert hook.report.sensed == 0 and hook.report.min_h == np.inf
+        assert not hook.report.intervened and hook.report.feasible and hook.report.correction < 1e-9
+        assert hook.last.iterations == 0  # the QP's fast path: nothing was solved
+
+
+def test_far_obstacle_pushing_nominal_is_not_filtered(env):
+    """An obstacle beyond the sensing radius adds no row, so even a torque driving the arm
+    straight at it passes unchanged; with a larger sensing radius the same torque is filtered."""
+    u = env
+    gid = u.arm.capsule_ids[2]
+    centre, _ = beside_capsule(u, gid, 0.2, 0.06)
+    put_obstacle(u, 0, centre, 0.06)
+    u.data.qvel[:] = 0.0
+    refresh(u)
+    tau_nom = toward_obstacles(u, scale=0.2)
+    near = hook_for(u, sensing_radius=0.1)
+    A, b, *_ = near.rows()
+    assert len(b) == 24
+    out = near(tau_nom.copy())
+    np.testing.assert_allclose(out, tau_nom, rtol=1e-14, atol=1e-12)
+    far = hook_for(u, sensing_radius=0.5)
+    A, b, *_ = far.rows()
+    assert len(b) == 24 + len(u.arm.capsule_ids)
+    far.begin_step()
+    out = far(tau_nom.copy())
+    assert far.report.sensed == 1
+    assert far.report.intervened and np.linalg.norm(out - tau_nom) > 1.0
+
+
+def test_obstacles_beyond_sensing_radius_add_no_row(env):
+    u = env
+    rng = np.random.default_rng(0)
+    s = len(u.arm.capsule_ids)
+    hook = hook_for(u, sensing_radius=0.15)
+    hook_ee = hook_for(u, sensing_radius=0.15, points="ee")
+    clearances = [0.05, 0.1, 0.14, 0.16, 0.3, 0.6]
+    for slot, clearance in enumerate(clearances):
+        gid = u.arm.capsule_ids[2] if slot % 2 else u.arm.capsule_ids[1]
+        centre, _ = beside_capsule(u, gid, clearance, 0.05, rng)
+        put_obstacle(u, slot, centre, 0.05)
+    refresh(u)
+    distances = u.obstacle_distances()
+    n_near = int(np.sum(distances[: len(clearances)] <= 0.15))
+    assert n_near == 3  # by construction (nothing else is nearer than the chosen link)
+    A, b, _, _, n_sensed = hook.rows()
+    assert n_sensed == n_near and len(b) == n_near * s + 24
+    A, b, _, _, n_sensed = hook_ee.rows()
+    assert n_sensed == n_near and len(b) == n_near + 24
+    # inactive (retired) obstacles add no row even when near
+    u.obstacle_active[0] = False
+    A, b, _, _, n_sensed = hook.rows()
+    assert n_sensed == n_near - 1 and len(b) == (n_near - 1) * s + 24
+    # none sensed: only the joint-limit rows
+    u.obstacle_active[:] = False
+    A, b, _, _, n_sensed = hook.rows()
+    assert n_sensed == 0 and len(b) == 24
+
+
+# ----------------------------------------------------------------------------- QP
+
+
+@pytest.mark.parametrize("weight", ["limits", "identity"])
+@pytest.mark.parametrize("seed", range(5))
+def test_solution_satisfies_every_row_and_is_optimal(env, seed, weight):
+    u = env
+    rng = np.random.default_rng(100 + seed)
+    # close (but outside the 2 cm margin) and slow: a state the filter can keep safe
+    random_scene(u, rng, n_obstacles=2 + seed % 3, clearance=(0.03, 0.08), speed=0.05, qd=0.1)
+    hook = hook_for(u, weight=weight, on_infeasible="raise")
+    tau_nom = toward_obstacles(u)
+    A, b, min_h, *_ = hook.rows()
+    A, b = A.copy(), b.copy()
+    assert min_h > 0
+    assert np.min(A @ tau_nom - b) < 0  # the nominal torque is unsafe: the QP has work to do
+    hook.begin_step()
+    tau = hook(tau_nom.copy()).copy()
+    assert hook.report.feasible and hook.report.slack == 0.0 and hook.report.intervened
+    assert hook.report.active_rows >= 1
+    W = np.diag(1.0 / u.torque_limit**2) if weight == "limits" else np.eye(6)
+    assert_kkt_optimal(tau, tau_nom, A, b, W, -u.torque_limit, u.torque_limit)
+
+
+def test_weights_give_different_optima_in_their_own_metric(env):
+    u = env
+    rng = np.random.default_rng(7)
+    random_scene(u, rng, n_obstacles=3, clearance=(0.03, 0.06), speed=0.05, qd=0.1)
+    tau_nom = toward_obstacles(u)
+    out = {}
+    for weight in ("limits", "identity"):
+        hook = hook_for(u, weight=weight, on_infeasible="raise")
+        A, b, *_ = hook.rows()
+        A, b = A.copy(), b.copy()
+        out[weight] = hook(tau_nom.copy()).copy()
+        assert np.min(A @ out[weight] - b) >= -1e-6 * np.linalg.norm(A, axis=1).max()
+    assert np.linalg.norm(out["limits"] - out["identity"]) > 1e-3
+    W = np.diag(1.0 / u.torque_limit**2)
+    cost = {k: (v - tau_nom) @ W @ (v - tau_nom) for k, v in out.items()}
+    assert cost["limits"] <= cost["identity"] + 1e-9  # each is optimal in its own metric
+    cost = {k: (v - tau_nom) @ (v - tau_nom) for k, v in out.items()}
+    assert cost["identity"] <= cost["limits"] + 1e-9
+
+
+def test_torque_limits_are_never_exceeded(env):
+    u = env
+    hook = hook_for(u)
+    tau = hook(np.array([500.0, -500.0, 300.0, 100.0, -100.0, 50.0]))
+    assert np.all(np.abs(tau) <= u.torque_limit + 1e-12)
+    assert hook.report.correction < 1e-6  # saturation alone is not a safety intervention
+
+
+# ----------------------------------------------------------------------------- infeasible
+
+
+def infeasible_scene(u, inside=False):
+    """An obstacle 1 cm from link3 (or overlapping it), rushing at it at 3 m/s."""
+    gid = u.arm.capsule_ids[2]
+    centre, normal = beside_capsule(u, gid, -0.03 if inside else 0.01, 0.06)
+    put_obstacle(u, 0, centre, 0.06, -3.0 * normal)
+    refresh(u)
+
+
+@pytest.mark.parametrize("inside", [False, True])
+def test_raise_in_infeasible_state(env, inside):
+    u = env
+    infeasible_scene(u, inside)
+    hook = hook_for(u, on_infeasible="raise")
+    with pytest.raises(SafetyInfeasibleError, match="relax"):
+        hook(u.data.qfrc_gravcomp.copy())
+    assert not hook.report.feasible and hook.report.infeasible_steps == 1 and hook.report.slack > 0
+
+
+@pytest.mark.parametrize("inside", [False, True])
+def test_relax_reports_and_does_not_return_nominal(env, inside):
+    u = env
+    infeasible_scene(u, inside)
+    hook = hook_for(u, on_infeasible="relax")
+    tau_nom = u.data.qfrc_gravcomp.copy()
+    hook.begin_step()
+    tau = hook(tau_nom.copy())
+    assert hook.last.status == "relaxed" and not hook.last.feasible
+    assert hook.report.inside is inside
+    assert np.linalg.norm(tau - tau_nom) > 1.0  # the least-violating torque, not the nominal one
+    assert np.all(np.abs(tau) <= u.torque_limit + 1e-12)
+
+
+def test_relax_through_the_wrapper_reports_in_info(make_env):
+    env = SafetyFilter(make_env(scenario="none"), on_infeasible="relax")
+    env.reset(seed=0)
+    infeasible_scene(env.unwrapped)
+    _, _, _, _, info = env.step(np.zeros(6, np.float32))
+    s = info["safety"]
+    assert s["feasible"] is False and s["slack"] > 0 and s["infeasible_steps"] >= 1
+    assert info["safety_infeasible"] == 1.0 and info["episode_infeasible"] == 1
+
+
+def test_raise_through_the_wrapper(make_env):
+    env = SafetyFilter(make_env(scenario="none"), on_infeasible="raise")
+    env.reset(seed=0)
+    infeasible_scene(env.unwrapped)
+    with pytest.raises(SafetyInfeasibleError):
+        env.step(np.zeros(6, np.float32))
+
+
+# ----------------------------------------------------------------------------- options
+
+
+def test_joint_speed_fraction_sets_the_speed_rows(env):
+    u = env
+    for fraction in (0.25, 1.0):
+        hook = hook_for(u, joint_speed_fraction=fraction)
+        np.testing.assert_allclose(hook.joint_limits.qd_max, fraction * UR5E_JOINT_SPEED)
+        np.testing.assert_array_equal(hook.joint_limits.q_lo, u.joint_range[:, 0])
+        np.testing.assert_array_equal(hook.joint_limits.q_hi, u.joint_range[:, 1])
+
+
+def test_gamma_reaches_the_barrier(env):
+    u = env
+    assert hook_for(u, gamma=2.5).barrier.gamma == 2.5
+    hocbf = hook_for(u, barrier="hocbf", gamma=3.5).barrier
+    assert (hocbf.gamma1, hocbf.gamma2) == (3.5, 3.5)
+    assert hook_for(u).barrier.gamma == 5.0
+    with pytest.raises(ValueError, match="not both"):
+        hook_for(u, barrier=C3BF(gamma=1.0), gamma=2.0)
+
+
+def test_sensing_radius_defaults_to_the_env(make_env):
+    e = make_env(scenario="none", sensing_radius=0.37)
+    e.reset(seed=0)
+    assert hook_for(e.unwrapped).sensing_radius == 0.37

@@ -1,0 +1,83 @@
+"""A real, non-editable install: ``pip install .`` into a fresh plain venv (no system site
+packages), then make and reset the environment from an unrelated directory. This proves the MJCF
+assets ship in the wheel (the editable install used for development would find them in the
+checkout either way).
+
+Takes ~25-30 s here: pip resolves gymnasium, mujoco, numpy and proxsuite from the configured
+package index/wheel cache into the new venv.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import venv
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+
+CHECK = r"""
+import sys
+from importlib import metadata, resources
+import gymnasium as gym, c3bf_gym
+env = gym.make('C3BFReach-v0')
+obs, info = env.reset(seed=0)
+assert obs.shape == (85,), obs.shape
+obs, *_ = env.step(env.action_space.sample())
+scene = resources.files('c3bf_gym.assets').joinpath('scene.xml')
+shipped = sorted(str(f) for f in metadata.files('c3bf-gym') if str(f).endswith('.xml'))
+print('PACKAGE', c3bf_gym.__file__)
+print('SCENE', scene)
+print('SHIPPED', ' '.join(shipped))
+"""
+
+
+
+def _clean_env() -> dict[str, str]:
+    env = dict(os.environ)
+    for key in ("PYTHONPATH", "PYTHONHOME", "VIRTUAL_ENV", "PYTHONSTARTUP"):
+        env.pop(key, None)
+    return env
+
+
+def _run(args, cwd: Path, timeout: float = 600) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [str(a) for a in args], cwd=cwd, env=_clean_env(), capture_output=True, text=True, timeout=timeout
+    )
+
+
+def test_pip_install_dot_into_fresh_venv_ships_assets(tmp_path):
+    # Install from a copy of the checkout: pip builds in the source tree (build/, *.egg-info),
+    # which must not touch the shared working tree.
+    src = tmp_path / "src"
+    shutil.copytree(
+        REPO,
+        src,
+        ignore=shutil.ignore_patterns(
+            ".git", "build", "dist", "*.egg-info", "__pycache__", ".pytest_cache", ".hypothesis",
+            ".venv", "runs", "results",
+        ),
+    )
+    prefix = tmp_path / "venv"
+    venv.EnvBuilder(with_pip=True, system_site_packages=False, clear=True).create(prefix)
+    python = prefix / "bin" / "python"
+    assert "include-system-site-packages = false" in (prefix / "pyvenv.cfg").read_text()
+
+    install = _run([python, "-m", "pip", "install", "--no-input", "--disable-pip-version-check", "."], cwd=src)
+    assert install.returncode == 0, install.stdout[-3000:] + install.stderr[-3000:]
+
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    check = _run([python, "-c", CHECK], cwd=elsewhere, timeout=120)
+
+    assert check.returncode == 0, check.stdout[-3000:] + check.stderr[-3000:]
+    lines = dict(line.split(" ", 1) for line in check.stdout.splitlines() if " " in line)
+    site = str(prefix.resolve())
+    assert Path(lines["PACKAGE"]).resolve().as_posix().startswith(site), lines["PACKAGE"]  # not the checkout
+    assert Path(lines["SCENE"]).resolve().as_posix().startswith(site), lines["SCENE"]
+    assert lines["SHIPPED"].split() == ["c3bf_gym/assets/scene.xml", "c3bf_gym/assets/ur5e.xml"]
+
+
