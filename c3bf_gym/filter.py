@@ -13,6 +13,7 @@ At every physics step (``C3BFReachEnv`` calls the hook between ``mj_step1`` and 
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 from typing import Literal
 
@@ -52,6 +53,9 @@ class StepSafety:
         intervened: some physics step changed the torque by more than ``intervention_tol``.
         inside: some protected point was already inside an obstacle's (margin-inflated) radius.
         infeasible_steps: number of physics steps whose QP needed slack.
+        min_constraint: the smallest row residual ``A τ − b`` at the applied torque (the QP
+            constraint value: >= 0 when every row holds) [row units]; inf with no row.
+        tau_nominal, tau: the last physics step's nominal and filtered torques [N m].
     """
 
     feasible: bool = True
@@ -64,7 +68,10 @@ class StepSafety:
     intervened: bool = False
     inside: bool = False
     infeasible_steps: int = 0
+    min_constraint: float = np.inf
     substeps: int = 0
+    tau_nominal: np.ndarray | None = None
+    tau: np.ndarray | None = None
 
     def as_info(self) -> dict[str, float | bool | int]:
         return {
@@ -78,6 +85,7 @@ class StepSafety:
             "intervened": self.intervened,
             "inside": self.inside,
             "infeasible_steps": self.infeasible_steps,
+            "min_constraint": self.min_constraint,
         }
 
 
@@ -97,6 +105,10 @@ class SafetyHook:
         on_infeasible: ``"relax"`` (apply the least-violating torque and report it) or
             ``"raise"`` (raise :class:`SafetyInfeasibleError`).
         intervention_tol: ‖τ − τ_nom‖ above which a step counts as an intervention [N m].
+
+    Attributes:
+        solve_times: when a list (set ``record_times=True``), every physics step's filter wall
+            time [s] is appended, for latency percentiles.
     """
 
     def __init__(
@@ -141,6 +153,11 @@ class SafetyHook:
         self.last: QPResult | None = None
         self.last_min_h = np.inf
         self.report = StepSafety()
+        self.solve_times: list[float] | None = None
+
+    def record_times(self, enabled: bool = True) -> None:
+        """Start (or stop) keeping every physics step's filter time in ``solve_times``."""
+        self.solve_times = [] if enabled else None
 
     def begin_step(self) -> None:
         """Start a new policy step's report."""
@@ -179,14 +196,21 @@ class SafetyHook:
         return self._A[:m], self._b[:m], min_h, inside, len(sensed)
 
     def __call__(self, tau_nom: np.ndarray) -> np.ndarray:
+        start = time.perf_counter()
         A, b, min_h, inside, n_sensed = self.rows()
         A *= self._scale  # rows in u = τ / s: (A s) u ≥ b
         result = self.qp.solve(tau_nom / self._scale, A, b)
         tau = result.tau * self._scale
+        residual = float((A @ result.tau - b).min()) if len(b) else np.inf
+        elapsed = time.perf_counter() - start
+        if self.solve_times is not None:
+            self.solve_times.append(elapsed)
         self.last, self.last_min_h = result, min_h
         report = self.report
         report.substeps += 1
-        report.solve_time += result.solve_time
+        report.solve_time += elapsed
+        report.min_constraint = min(report.min_constraint, residual)
+        report.tau_nominal, report.tau = tau_nom.copy(), tau
         report.min_h = min(report.min_h, min_h)
         report.inside |= inside
         report.sensed = max(report.sensed, n_sensed)

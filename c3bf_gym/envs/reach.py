@@ -152,7 +152,7 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
         success_tolerance: float = 0.05,
         obstacle_speed_range: tuple[float, float] = (0.1, 0.4),
         obstacle_radius_range: tuple[float, float] = (0.04, 0.08),
-        progress_weight: float = 10.0,
+        progress_weight: float = 50.0,
         success_bonus: float = 1.0,
         effort_weight: float = 0.05,
         render_mode: str | None = None,

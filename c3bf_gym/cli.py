@@ -1,0 +1,190 @@
+"""The ``c3bf-gym`` command line.
+
+    c3bf-gym experiments [options]      the paper's four scenarios, C3BF vs HOCBF vs no filter
+    c3bf-gym train [options]            one Stable-Baselines3 run (PPO or SAC)
+    c3bf-gym evaluate MODEL [options]   roll out a saved model
+    c3bf-gym plot-training RUNS...      learning curves of several runs, grouped by filter
+
+Run ``c3bf-gym COMMAND --help`` for each command's options.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Sequence
+
+__all__ = ["main"]
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a whole number >= 1, got {value}")
+    return value
+
+
+def _nonnegative_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"expected a whole number >= 0, got {value}")
+    return value
+
+
+def _positive_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not (value > 0 and value < float("inf")):
+        raise argparse.ArgumentTypeError(f"expected a finite number > 0, got {text}")
+    return value
+
+
+def _nonnegative_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not (value >= 0 and value < float("inf")):
+        raise argparse.ArgumentTypeError(f"expected a finite number >= 0, got {text}")
+    return value
+
+
+def _add_train(sub: argparse._SubParsersAction) -> None:
+    from c3bf_gym.scenarios import SCENARIOS
+    from c3bf_gym.training import ACTIONS, ALGORITHMS, FILTERS
+
+    p = sub.add_parser(
+        "train",
+        help="train one Stable-Baselines3 agent",
+        description="Train PPO or SAC on C3BFReach-v0, with no filter, the distance HOCBF or the C3BF "
+        "filter. Writes a run directory (config, model, per-episode metrics with the cumulative "
+        "training cost, evaluations, tensorboard logs).",
+    )
+    p.add_argument("--algo", choices=ALGORITHMS, default="sac")
+    p.add_argument("--action", choices=ACTIONS, default="impedance",
+                   help="impedance: Cartesian tool targets through the impedance controller; torque: raw joint torques")  # fmt: skip
+    p.add_argument("--filter", choices=FILTERS, default="c3bf")
+    p.add_argument("--scenario", choices=list(SCENARIOS), default="random")
+    p.add_argument("--timesteps", type=_positive_int, default=60_000)
+    p.add_argument("--seed", type=_nonnegative_int, default=0)
+    p.add_argument("--n-envs", type=_positive_int, default=1, help="parallel environments (SubprocVecEnv when > 1)")
+    p.add_argument("--eval-freq", type=_positive_int, default=10_000, help="evaluate every N timesteps")
+    p.add_argument("--eval-episodes", type=_positive_int, default=10)
+    p.add_argument("--checkpoint-freq", type=_positive_int, default=20_000)
+    p.add_argument("--out", default="runs", help="parent directory of the run directory")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--hyperparams", type=json.loads, default={},
+                   help='JSON overriding the defaults, e.g. \'{"learning_rate": 1e-3}\'')  # fmt: skip
+    p.set_defaults(func=_run_train)
+
+
+def _run_train(args: argparse.Namespace) -> int:
+    from c3bf_gym.training import TrainConfig, train
+
+    config = TrainConfig(
+        algo=args.algo, action=args.action, filter=args.filter, scenario=args.scenario,
+        timesteps=args.timesteps, seed=args.seed, n_envs=args.n_envs, eval_freq=args.eval_freq,
+        eval_episodes=args.eval_episodes, checkpoint_freq=args.checkpoint_freq, out=args.out,
+        progress_bar=not args.no_progress, hyperparams=args.hyperparams,
+    )  # fmt: skip
+    run_dir = train(config)
+    print(f"run written to {run_dir}")
+    print((run_dir / "summary.json").read_text())
+    return 0
+
+
+def _add_evaluate(sub: argparse._SubParsersAction) -> None:
+    from c3bf_gym.scenarios import SCENARIOS
+    from c3bf_gym.training import FILTERS
+
+    p = sub.add_parser(
+        "evaluate",
+        help="evaluate a saved model",
+        description="Roll out a saved model for N seeded episodes: success rate, return, collisions "
+        "(from the environment's geometric cost) and filter interventions. --filter evaluates a "
+        "model under another filter than it was trained with (e.g. an unfiltered agent with C3BF on).",
+    )
+    p.add_argument("model", help="path to model.zip inside a run directory")
+    p.add_argument("--episodes", type=_positive_int, default=50)
+    p.add_argument("--filter", choices=FILTERS, default=None, help="default: the run's own")
+    p.add_argument("--scenario", choices=list(SCENARIOS), default=None, help="default: the run's own")
+    p.add_argument("--seed", type=_nonnegative_int, default=100_000)
+    p.add_argument("--json", dest="json_out", default=None, help="also write the result to this JSON file")
+    p.set_defaults(func=_run_evaluate)
+
+
+def _run_evaluate(args: argparse.Namespace) -> int:
+    from c3bf_gym.training import evaluate
+
+    result = evaluate(args.model, args.episodes, args.filter, args.scenario, args.seed)
+    text = json.dumps(result, indent=2)
+    print(text)
+    if args.json_out:
+        Path(args.json_out).write_text(text)
+    return 0
+
+
+def _add_plot_training(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "plot-training",
+        help="learning curves of several runs",
+        description="Plot return, success rate and cumulative training collisions against timesteps "
+        "for run directories, grouped by filter (mean and min-max band over seeds).",
+    )
+    p.add_argument("runs", nargs="+", help="run directories (each with config.json and episodes.csv)")
+    p.add_argument("--out", default="docs/training_curves.png")
+    p.add_argument("--table", default=None, help="also write a summary table (markdown) here")
+    p.set_defaults(func=_run_plot_training)
+
+
+def _run_plot_training(args: argparse.Namespace) -> int:
+    from c3bf_gym.plots import plot_training
+
+    table = plot_training([Path(r) for r in args.runs], Path(args.out))
+    print(table)
+    if args.table:
+        Path(args.table).write_text(table + "\n")
+    print(f"figure written to {args.out}")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="c3bf-gym",
+        description="Safe robot-arm RL with Collision Cone Control Barrier Functions: the paper's "
+        "experiments, and Stable-Baselines3 baselines with and without the safety filter.",
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    from c3bf_gym.experiments import add_parser as add_experiments
+
+    add_experiments(sub)
+    _add_train(sub)
+    _add_evaluate(sub)
+    _add_plot_training(sub)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.command is None:
+        parser.print_help()
+        return 2
+    try:
+        return int(args.func(args) or 0)
+    except (ValueError, FileNotFoundError) as error:
+        parser.exit(2, f"c3bf-gym {args.command}: error: {error}\n")
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,244 @@
+"""Figures for the experiments and the training runs (matplotlib, Agg backend, PNG)."""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+from typing import Mapping, Sequence
+
+import numpy as np
+
+from c3bf_gym.metrics import EpisodeRecord
+
+__all__ = [
+    "plot_barrier",
+    "plot_clearance",
+    "plot_sensing",
+    "plot_summary",
+    "plot_torques",
+    "plot_training",
+    "plot_trajectories",
+]
+
+COLORS = {"none": "tab:red", "hocbf": "tab:orange", "c3bf": "tab:blue"}
+LABELS = {"none": "no filter", "hocbf": "distance HOCBF", "c3bf": "C3BF"}
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _save(fig, path: Path) -> Path:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110, bbox_inches="tight")
+    _pyplot().close(fig)
+    return path
+
+
+def plot_trajectories(records: Mapping[str, EpisodeRecord], title: str, path: Path) -> Path:
+    """Tool paths of each filter with the obstacle paths, top (x-y) and side (x-z) views."""
+    plt = _pyplot()
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.8))
+    any_record = next(iter(records.values()))
+    obstacles = np.asarray(any_record.obstacles)  # (T, K, 3)
+    for ax, (i, j), view in zip(axes, ((0, 1), (0, 2)), ("top view", "side view")):
+        for k in range(obstacles.shape[1] if obstacles.ndim == 3 else 0):
+            path_k = obstacles[:, k]
+            ax.plot(path_k[:, i], path_k[:, j], "--", color="0.45", lw=1, label="obstacle path" if k == 0 else None)
+            radius = any_record.obstacle_radius[k]
+            for where, alpha in ((0, 0.25), (-1, 0.5)):
+                ax.add_patch(plt.Circle((path_k[where, i], path_k[where, j]), radius, color="0.3", alpha=alpha))
+        for name, record in records.items():
+            tool = np.asarray(record.tool)
+            ax.plot(tool[:, i], tool[:, j], color=COLORS.get(name), lw=2, label=LABELS.get(name, name))
+        tool0 = np.asarray(any_record.tool)[0]
+        ax.plot(tool0[i], tool0[j], "ko", ms=6, label="start")
+        ax.plot(any_record.goal[i], any_record.goal[j], "g*", ms=14, label="goal")
+        ax.set_xlabel("xyz"[i] + " [m]")
+        ax.set_ylabel("xyz"[j] + " [m]")
+        ax.set_title(view)
+        ax.set_aspect("equal", adjustable="datalim")
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=8, loc="best")
+    fig.suptitle(f"{title}: tool trajectories (obstacles shaded at spawn and at the end)")
+    return _save(fig, path)
+
+
+def plot_clearance(records: Mapping[str, EpisodeRecord], title: str, margin: float, path: Path) -> Path:
+    """Smallest obstacle-to-arm distance over time per filter, zero (contact) marked."""
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(8, 3.6))
+    for name, record in records.items():
+        ax.plot(record.time[1:], record.min_distance, color=COLORS.get(name), label=LABELS.get(name, name))
+    ax.axhline(0.0, color="k", lw=1.2, label="contact")
+    ax.axhline(margin, color="k", lw=0.8, ls=":", label=f"filter margin {margin:g} m")
+    ax.set_ylim(min(-0.02, ax.get_ylim()[0]), min(ax.get_ylim()[1], 0.6))
+    ax.set_xlabel("time [s]")
+    ax.set_ylabel("min distance arm-obstacle [m]")
+    ax.set_title(f"{title}: clearance (MuJoCo geometry, every arm geom)")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    return _save(fig, path)
+
+
+def plot_barrier(records: Mapping[str, EpisodeRecord], title: str, path: Path) -> Path:
+    """The smallest barrier value h(t) and the QP constraint value (min_k A_k τ − b_k) over time."""
+    plt = _pyplot()
+    filtered = {n: r for n, r in records.items() if r.min_h}
+    fig, axes = plt.subplots(2, len(filtered), figsize=(5.5 * len(filtered), 5.5), squeeze=False)
+    for col, (name, record) in enumerate(filtered.items()):
+        t = record.time[1:]
+        h = np.asarray(record.min_h, dtype=float)
+        g = np.asarray(record.min_constraint, dtype=float)
+        axes[0, col].plot(t, np.where(np.isfinite(h), h, np.nan), color=COLORS.get(name))
+        axes[0, col].axhline(0.0, color="k", lw=1)
+        axes[0, col].set_title(f"{LABELS.get(name, name)}: min h over rows")
+        axes[0, col].set_ylabel("h" + (" [m²/s]"))
+        axes[1, col].plot(t, np.where(np.isfinite(g), g, np.nan), color=COLORS.get(name))
+        axes[1, col].axhline(0.0, color="k", lw=1)
+        axes[1, col].set_title("QP constraint value min(Aτ − b) (>= 0: all rows hold)")
+        axes[1, col].set_xlabel("time [s]")
+        for ax in axes[:, col]:
+            ax.grid(alpha=0.3)
+    fig.suptitle(f"{title}: barrier and constraint over time (inf = no sensed obstacle, not drawn)")
+    return _save(fig, path)
+
+
+def plot_torques(record: EpisodeRecord, title: str, path: Path) -> Path:
+    """Nominal (impedance controller) vs filtered torque per joint."""
+    plt = _pyplot()
+    nominal, filtered = np.asarray(record.tau_nominal), np.asarray(record.tau)
+    t = record.time[1:]
+    fig, axes = plt.subplots(2, 3, figsize=(12, 5.5), sharex=True)
+    for j, ax in enumerate(axes.flat):
+        ax.plot(t, nominal[:, j], color="0.5", lw=1.2, label="nominal")
+        ax.plot(t, filtered[:, j], color=COLORS["c3bf"], lw=1.2, label="filtered")
+        ax.set_title(f"joint {j + 1}")
+        ax.grid(alpha=0.3)
+    for ax in axes[1]:
+        ax.set_xlabel("time [s]")
+    for ax in axes[:, 0]:
+        ax.set_ylabel("torque [N m]")
+    axes[0, 0].legend(fontsize=8)
+    fig.suptitle(f"{title}: nominal vs filtered torque (C3BF)")
+    return _save(fig, path)
+
+
+def plot_summary(rows: Sequence[Mapping[str, float | str]], path: Path) -> Path:
+    """C3BF vs HOCBF across scenarios on the metrics that show conservativeness."""
+    plt = _pyplot()
+    metrics = (
+        ("intervention_share", "share of steps the filter intervened"),
+        ("mean_correction", "mean correction ‖τ − τ_nom‖ [N m]"),
+        ("tracking_deviation", "deviation from unfiltered path [m]"),
+        ("reached", "goal reached (share of episodes)"),
+    )
+    scenarios = sorted({str(r["scenario"]) for r in rows}, key=lambda s: ["static", "head_on", "crossing", "multi"].index(s) if s in ("static", "head_on", "crossing", "multi") else 9)
+    filters = [f for f in ("hocbf", "c3bf") if any(r["filter"] == f for r in rows)]
+    fig, axes = plt.subplots(1, len(metrics), figsize=(4.2 * len(metrics), 3.8))
+    x = np.arange(len(scenarios))
+    width = 0.8 / max(len(filters), 1)
+    for ax, (key, label) in zip(axes, metrics):
+        for i, f in enumerate(filters):
+            values = [next((float(r[key]) for r in rows if r["scenario"] == s and r["filter"] == f), np.nan) for s in scenarios]
+            ax.bar(x + (i - (len(filters) - 1) / 2) * width, values, width, color=COLORS[f], label=LABELS[f])
+        ax.set_xticks(x, scenarios, rotation=20)
+        ax.set_title(label, fontsize=9)
+        ax.grid(alpha=0.3, axis="y")
+    axes[0].legend(fontsize=8)
+    fig.suptitle("C3BF vs distance HOCBF (same episodes, same nominal controller)")
+    return _save(fig, path)
+
+
+def plot_sensing(rows: Sequence[Mapping[str, float | str]], speed: float, path: Path) -> Path:
+    """Collision rate and infeasible-step rate against the sensing radius."""
+    plt = _pyplot()
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.8))
+    for f in sorted({str(r["filter"]) for r in rows}):
+        sel = sorted((r for r in rows if r["filter"] == f), key=lambda r: float(r["sensing_radius"]))
+        radii = [float(r["sensing_radius"]) for r in sel]
+        axes[0].plot(radii, [float(r["collision_rate"]) for r in sel], "o-", color=COLORS.get(f), label=LABELS.get(f, f))
+        axes[1].plot(radii, [float(r["infeasible_share"]) for r in sel], "o-", color=COLORS.get(f), label=LABELS.get(f, f))
+    axes[0].set_ylabel("collision episodes (share)")
+    axes[1].set_ylabel("physics steps needing slack (share)")
+    for ax in axes:
+        ax.set_xlabel("sensing radius [m]")
+        ax.set_xscale("log")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.suptitle(f"Perception boundary: obstacles at {speed:g} m/s, sensed only within the radius")
+    return _save(fig, path)
+
+
+def _trailing_mean(x: np.ndarray, window: int) -> np.ndarray:
+    """Mean of the last ``window`` values at each index (fewer at the start)."""
+    sums = np.convolve(x, np.ones(window), mode="full")[: len(x)]
+    return sums / np.minimum(np.arange(1, len(x) + 1), window)
+
+
+def _read_episodes(run: Path) -> dict[str, np.ndarray]:
+    with open(run / "episodes.csv") as fh:
+        rows = list(csv.DictReader(fh))
+    return {key: np.array([float(r[key]) for r in rows]) for key in (rows[0] if rows else {})}
+
+
+def plot_training(runs: Sequence[Path], path: Path, window: int = 20) -> str:
+    """Learning curves grouped by filter (mean and min-max over seeds); returns a markdown table."""
+    plt = _pyplot()
+    groups: dict[str, list[tuple[dict, dict[str, np.ndarray]]]] = {}
+    for run in runs:
+        config_file = run / "config.json"
+        if not config_file.exists() or not (run / "episodes.csv").exists():
+            raise FileNotFoundError(f"{run} is not a run directory (needs config.json and episodes.csv)")
+        config = json.loads(config_file.read_text())
+        data = _read_episodes(run)
+        if not data:
+            continue
+        summary = run / "summary.json"
+        config["_summary"] = json.loads(summary.read_text()) if summary.exists() else {}
+        config["_eval"] = np.load(run / "evaluations.npz") if (run / "evaluations.npz").exists() else None
+        groups.setdefault(config["filter"], []).append((config, data))
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4))
+    grid_len = 200
+    lines = [
+        "| algo | action | filter | seeds | timesteps | training collision steps (per seed) | final eval success | final eval return |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for name in [f for f in ("none", "hocbf", "c3bf") if f in groups]:
+        entries = groups[name]
+        horizon = min(d["timesteps"][-1] for _, d in entries)
+        grid = np.linspace(0, horizon, grid_len)
+        curves = {"return": [], "success": [], "cumulative_cost": []}
+        for _, d in entries:
+            for key in curves:
+                values = d[key] if key == "cumulative_cost" else _trailing_mean(d[key], window)
+                curves[key].append(np.interp(grid, d["timesteps"], values))
+        for ax, key, label in zip(axes, curves, ("episode return", "success (end of episode)", "cumulative collision steps")):
+            stack = np.array(curves[key])
+            ax.plot(grid, stack.mean(0), color=COLORS.get(name), label=f"{LABELS.get(name, name)} ({len(entries)} seeds)")
+            ax.fill_between(grid, stack.min(0), stack.max(0), color=COLORS.get(name), alpha=0.2)
+            ax.set_title(label)
+            ax.set_xlabel("timesteps")
+            ax.grid(alpha=0.3)
+        config = entries[0][0]
+        costs = [int(c["_summary"].get("training_cost", d["cumulative_cost"][-1])) for c, d in entries]
+        evals = [c["_eval"] for c, _ in entries if c["_eval"] is not None]
+        succ = [float(np.mean(e["successes"][-1])) for e in evals if "successes" in e]
+        ret = [float(np.mean(e["results"][-1])) for e in evals]
+        lines.append(
+            f"| {config['algo']} | {config['action']} | {name} | {len(entries)} | {int(horizon)} | "
+            f"{sum(costs)} ({', '.join(map(str, costs))}) | "
+            f"{np.mean(succ):.2f} | {np.mean(ret):.1f} |"
+            if succ
+            else f"| {config['algo']} | {config['action']} | {name} | {len(entries)} | {int(horizon)} | {sum(costs)} ({', '.join(map(str, costs))}) | n/a | n/a |"
+        )
+    axes[0].legend(fontsize=8)
+    fig.suptitle(f"Training curves (moving average over {window} episodes; band: min-max over seeds)")
+    _save(fig, path)
+    return "\n".join(lines)

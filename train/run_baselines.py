@@ -1,0 +1,64 @@
+"""Run the baseline set: one algorithm and action mode, three filters, several seeds.
+
+Runs go two at a time (one core each; set --jobs) as `c3bf-gym train` subprocesses, so every
+run's exact command is in its config.json and its log in OUT/logs/. Finished runs are skipped,
+so the script can be re-run after an interruption.
+
+    python train/run_baselines.py --algo sac --action impedance --seeds 0 1 2 --timesteps 40000
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import subprocess
+import sys
+import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--algo", choices=("sac", "ppo"), default="sac")
+    parser.add_argument("--action", choices=("impedance", "torque"), default="impedance")
+    parser.add_argument("--filters", nargs="+", choices=("none", "hocbf", "c3bf"), default=["none", "c3bf", "hocbf"])
+    parser.add_argument("--scenario", default="random")
+    parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
+    parser.add_argument("--timesteps", type=int, default=40_000)
+    parser.add_argument("--jobs", type=int, default=2)
+    parser.add_argument("--out", default="runs")
+    args = parser.parse_args()
+
+    out = Path(args.out)
+    (out / "logs").mkdir(parents=True, exist_ok=True)
+    jobs = []
+    for seed, filter_name in itertools.product(args.seeds, args.filters):
+        name = f"{args.algo}_{args.action}_{filter_name}_{args.scenario}_s{seed}"
+        if (out / name / "summary.json").exists():
+            print(f"skip {name}: finished")
+            continue
+        command = [
+            sys.executable, "-m", "c3bf_gym.cli", "train", "--algo", args.algo, "--action", args.action,
+            "--filter", filter_name, "--scenario", args.scenario, "--seed", str(seed),
+            "--timesteps", str(args.timesteps), "--out", str(out), "--no-progress",
+        ]  # fmt: skip
+        jobs.append((name, command))
+
+    def run(job: tuple[str, list[str]]) -> tuple[str, int, float]:
+        name, command = job
+        start = time.perf_counter()
+        with open(out / "logs" / f"{name}.log", "w") as log:
+            code = subprocess.call(command, stdout=log, stderr=subprocess.STDOUT)
+        return name, code, time.perf_counter() - start
+
+    failed = 0
+    with ThreadPoolExecutor(max_workers=args.jobs) as pool:
+        for name, code, seconds in pool.map(run, jobs):
+            print(f"{'done' if code == 0 else 'FAILED'} {name} in {seconds / 60:.1f} min", flush=True)
+            failed += code != 0
+    return 1 if failed else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
