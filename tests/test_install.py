@@ -49,6 +49,7 @@ def _run(args, cwd: Path, timeout: float = 600) -> subprocess.CompletedProcess:
     )
 
 
+@pytest.mark.slow
 def test_pip_install_dot_into_fresh_venv_ships_assets(tmp_path):
     # Install from a copy of the checkout: pip builds in the source tree (build/, *.egg-info),
     # which must not touch the shared working tree.
