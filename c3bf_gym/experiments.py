@@ -61,8 +61,9 @@ class ExperimentConfig:
     duration: float = 5.0
     move_time: float = 2.5
     video: bool = False
-    sensing_radii: tuple[float, ...] = (0.05, 0.1, 0.2, 0.4, 1.0)
-    sensing_seeds: int = 4
+    sensing_radii: tuple[float, ...] = (0.01, 0.05, 0.2, 1.0)
+    sensing_speeds: tuple[float, ...] = (0.4, 1.5)
+    sensing_seeds: int = 2
     progress: bool = True
     env_kwargs: dict[str, Any] = field(default_factory=dict)
 
@@ -82,6 +83,8 @@ class ExperimentConfig:
             raise ValueError("duration and move_time must be > 0 (s)")
         if any(not r > 0 for r in self.sensing_radii):
             raise ValueError(f"sensing radii must be > 0 (m), got {self.sensing_radii}")
+        if any(not v >= 0 for v in self.sensing_speeds):
+            raise ValueError(f"sensing speeds must be >= 0 (m/s), got {self.sensing_speeds}")
 
 
 def run_episode(
@@ -233,45 +236,49 @@ def run_experiments(config: ExperimentConfig) -> dict[str, Any]:
 
 
 def _sensing_study(config: ExperimentConfig, out: Path, figures: Path) -> str:
-    """Collision rate against the sensing radius, obstacles at the envelope's top speed."""
-    from c3bf_gym import plots
-    from c3bf_gym.scenarios import Envelope
+    """Collision rate against the sensing radius at the envelope's top speed and beyond.
 
-    top = Envelope().speed_range[1]
+    Each (speed, scenario, seed) episode is also run without a filter, whose collision rate
+    (independent of the radius) is the reference: a radius is safe when the filter keeps the
+    episodes that collide unfiltered collision-free.
+    """
+    from c3bf_gym import plots
+
     filters = [f for f in config.filters if f != "none"] or ["c3bf"]
     scenarios = [s for s in ("head_on", "crossing") if s in config.scenarios] or ["head_on"]
+    seeds = range(config.first_seed, config.first_seed + config.sensing_seeds)
+    runs = [("none", None)] + [(f, r) for f in filters for r in config.sensing_radii]
     rows = []
-    total = len(filters) * len(config.sensing_radii) * len(scenarios) * config.sensing_seeds
-    bar = _progress(total, config.progress, "sensing sweep")
-    for filter_name in filters:
-        for radius in config.sensing_radii:
+    bar = _progress(len(config.sensing_speeds) * len(runs) * len(scenarios) * len(seeds), config.progress, "sensing sweep")
+    for speed in config.sensing_speeds:
+        for filter_name, radius in runs:
             collisions, infeasible, substeps = 0, 0, 0
             for scenario in scenarios:
-                for seed in range(config.first_seed, config.first_seed + config.sensing_seeds):
-                    record, _ = run_episode(
-                        scenario, filter_name, seed, config,
-                        env_kwargs={"sensing_radius": radius, "obstacle_speed_range": (top, top)},
-                    )  # fmt: skip
+                for seed in seeds:
+                    env_kwargs: dict[str, Any] = {"obstacle_speed_range": (speed, speed)}
+                    if radius is not None:
+                        env_kwargs["sensing_radius"] = radius
+                    record, _ = run_episode(scenario, filter_name, seed, config, env_kwargs=env_kwargs)
                     collisions += int(np.sum(record.cost) > 0)
-                    infeasible += int(np.sum(~np.asarray(record.feasible)))
+                    infeasible += int(np.sum(~np.asarray(record.feasible))) if record.feasible else 0
                     substeps += len(record.feasible)
                     bar.update()
-            episodes = len(scenarios) * config.sensing_seeds
+            episodes = len(scenarios) * len(seeds)
             rows.append(
                 {
                     "filter": filter_name,
-                    "sensing_radius": radius,
-                    "obstacle_speed": top,
+                    "sensing_radius": float("nan") if radius is None else radius,
+                    "obstacle_speed": speed,
                     "episodes": episodes,
                     "collision_episodes": collisions,
                     "collision_rate": collisions / episodes,
-                    "infeasible_share": infeasible / max(substeps, 1),
+                    "infeasible_share": infeasible / substeps if substeps else float("nan"),
                 }
             )
     bar.close()
     columns = ("filter", "sensing_radius", "obstacle_speed", "episodes", "collision_episodes", "collision_rate", "infeasible_share")
     text = _write_table(rows, columns, out / "sensing")
-    plots.plot_sensing(rows, top, figures / "sensing_boundary.png")
+    plots.plot_sensing(rows, figures / "sensing_boundary.png")
     return text
 
 
@@ -297,18 +304,21 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "perception-boundary (sensing radius) study.",
     )
     p.add_argument("--out", type=Path, default=Path("results"), help="output directory (default: results)")
-    p.add_argument("--seeds", type=_positive_int, default=3, help="seeded episodes per scenario and filter")
+    p.add_argument("--seeds", type=_positive_int, default=ExperimentConfig.seeds, help="seeded episodes per scenario and filter")
     p.add_argument("--first-seed", type=_nonnegative_int, default=0)
     p.add_argument("--scenarios", nargs="+", choices=[s for s in SCENARIOS if s not in ("random", "none")], default=list(PAPER_SCENARIOS))
     p.add_argument("--filters", nargs="+", choices=EXPERIMENT_FILTERS, default=list(EXPERIMENT_FILTERS))
     p.add_argument("--points", choices=POINTS, default="whole_arm", help="protect the whole arm or only the tool (the paper)")
     p.add_argument("--gamma", type=_positive_float, default=None, help="class-K gain [1/s] (default: the barrier's, 5)")
-    p.add_argument("--margin", type=_nonnegative_float, default=0.02, help="extra clearance [m]")
-    p.add_argument("--duration", type=_positive_float, default=5.0, help="episode length [s]")
+    p.add_argument("--margin", type=_nonnegative_float, default=ExperimentConfig.margin, help="extra clearance [m]")
+    p.add_argument("--duration", type=_positive_float, default=ExperimentConfig.duration, help="episode length [s]")
     p.add_argument("--sensing-radius", dest="sensing_radii", nargs="*", type=_positive_float,
-                   default=[0.05, 0.1, 0.2, 0.4, 1.0],
+                   default=list(ExperimentConfig.sensing_radii),
                    help="radii [m] of the perception-boundary sweep (none: skip the sweep)")  # fmt: skip
-    p.add_argument("--sensing-seeds", type=_nonnegative_int, default=4, help="episodes per radius and scenario")
+    p.add_argument("--sensing-speeds", nargs="+", type=_nonnegative_float, default=list(ExperimentConfig.sensing_speeds),
+                   help="obstacle speeds [m/s] of the sweep: the envelope's top (0.4) and beyond")  # fmt: skip
+    p.add_argument("--sensing-seeds", type=_nonnegative_int, default=ExperimentConfig.sensing_seeds,
+                   help="episodes per radius, speed and scenario (head_on, crossing)")  # fmt: skip
     p.add_argument("--video", action="store_true", help="also record a GIF per scenario (C3BF, first seed)")
     p.add_argument("--no-progress", action="store_true")
     p.set_defaults(func=_run)
@@ -319,6 +329,7 @@ def _run(args: argparse.Namespace) -> int:
         out=args.out, scenarios=tuple(args.scenarios), filters=tuple(args.filters), seeds=args.seeds,
         first_seed=args.first_seed, points=args.points, gamma=args.gamma, margin=args.margin,
         duration=args.duration, video=args.video, sensing_radii=tuple(args.sensing_radii),
+        sensing_speeds=tuple(args.sensing_speeds),
         sensing_seeds=args.sensing_seeds if args.sensing_radii else 0, progress=not args.no_progress,
     )  # fmt: skip
     result = run_experiments(config)

@@ -156,23 +156,29 @@ def plot_summary(rows: Sequence[Mapping[str, float | str]], path: Path) -> Path:
     return _save(fig, path)
 
 
-def plot_sensing(rows: Sequence[Mapping[str, float | str]], speed: float, path: Path) -> Path:
-    """Collision rate and infeasible-step rate against the sensing radius."""
+def plot_sensing(rows: Sequence[Mapping[str, float | str]], path: Path) -> Path:
+    """Collision rate against the sensing radius, one panel per obstacle speed; the unfiltered
+    collision rate (independent of the radius) as a horizontal reference."""
     plt = _pyplot()
-    fig, axes = plt.subplots(1, 2, figsize=(10, 3.8))
-    for f in sorted({str(r["filter"]) for r in rows}):
-        sel = sorted((r for r in rows if r["filter"] == f), key=lambda r: float(r["sensing_radius"]))
-        radii = [float(r["sensing_radius"]) for r in sel]
-        axes[0].plot(radii, [float(r["collision_rate"]) for r in sel], "o-", color=COLORS.get(f), label=LABELS.get(f, f))
-        axes[1].plot(radii, [float(r["infeasible_share"]) for r in sel], "o-", color=COLORS.get(f), label=LABELS.get(f, f))
-    axes[0].set_ylabel("collision episodes (share)")
-    axes[1].set_ylabel("physics steps needing slack (share)")
-    for ax in axes:
+    speeds = sorted({float(r["obstacle_speed"]) for r in rows})
+    fig, axes = plt.subplots(1, len(speeds), figsize=(5 * len(speeds), 3.8), squeeze=False)
+    for ax, speed in zip(axes[0], speeds):
+        here = [r for r in rows if float(r["obstacle_speed"]) == speed]
+        for f in sorted({str(r["filter"]) for r in here}):
+            sel = sorted((r for r in here if r["filter"] == f), key=lambda r: float(r["sensing_radius"]))
+            if f == "none":
+                ax.axhline(float(sel[0]["collision_rate"]), color=COLORS["none"], ls="--", label=LABELS["none"])
+                continue
+            radii = [float(r["sensing_radius"]) for r in sel]
+            ax.plot(radii, [float(r["collision_rate"]) for r in sel], "o-", color=COLORS.get(f), label=LABELS.get(f, f))
+        ax.set_title(f"obstacles at {speed:g} m/s")
         ax.set_xlabel("sensing radius [m]")
         ax.set_xscale("log")
+        ax.set_ylim(-0.05, 1.05)
         ax.grid(alpha=0.3)
-        ax.legend(fontsize=8)
-    fig.suptitle(f"Perception boundary: obstacles at {speed:g} m/s, sensed only within the radius")
+    axes[0, 0].set_ylabel("collision episodes (share)")
+    axes[0, 0].legend(fontsize=8)
+    fig.suptitle("Perception boundary: the filter only sees obstacles within the sensing radius")
     return _save(fig, path)
 
 
