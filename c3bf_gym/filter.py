@@ -183,9 +183,17 @@ class SafetyHook:
             v = pd.vel - np.repeat(env.obstacle_vel[sensed], k, axis=0)
             c = pd.c - np.repeat(env.obstacle_acc[sensed], k, axis=0)
             r = np.repeat(env.obstacle_radius[sensed], k) + self._point_radius[: len(p)] + self.margin
+            if self.points == "whole_arm":
+                # The closest points slide along the links as things move, so their ḣ has the
+                # terms ⟨∂h/∂p, ṗ_slide⟩ + ⟨∂h/∂v, v̇_slide⟩ besides the material point's; without
+                # them ḣ is overestimated and links drift into obstacles (ArmModel.closest_sliding).
+                slide_p, slide_v = arm.closest_sliding(centres, p, v)
+                c += slide_v
             terms = self.barrier.terms(p, v, r)
             m = len(p)
             self.barrier.rows_from_terms(terms, pd.G, c, out=Rows(self._A, self._b))
+            if self.points == "whole_arm":
+                self._b[:m] -= np.einsum("ij,ij->i", terms.grad_p, slide_p)
             min_h = float(terms.h.min())
             inside = bool(terms.inside.any())
         if self.joint_limits is not None:

@@ -255,6 +255,7 @@ class TorqueQP:
         self._h[M:M + n] = self.tau_min
         self._h[M + n:] = -self.tau_max
         self._Ce, self._l = self._G[:M], self._h[:M]
+        self._l_clipped = np.empty(M)  # lower bounds with impossible rows clipped to their reach
         self._u = np.full(M, PROXSUITE_INF)
         self._r = np.zeros(M + 2 * n)                 # residuals G·(τ, 0) − h
         self._xe = np.zeros(n + 1)                    # (τ, 0); τ part is the returned buffer
@@ -367,15 +368,31 @@ class TorqueQP:
             np.clip(tau_nom, lo, hi, out=self._tau)
             return self._result(0, 0.0, True, "solved", 0, t0)
 
+        # ---- rows no torque in the box can satisfy: max_{τ∈box} Â_k τ = Σ_j max(Â_kj lo_j, Â_kj hi_j).
+        # Their violation is certain; proxsuite sees them clipped to that reach, which keeps the
+        # elastic problem well scaled (rows asking for 1e4 times more than the motors can give
+        # otherwise cost proxsuite 1e5-1e6 iterations) without changing where the least-violating
+        # torque lies. The slack is still measured against the original rows.
+        l = self._l
+        impossible = False
+        if m:
+            Gm = G[:m, :n]
+            reach = np.maximum(Gm * lo, Gm * hi).sum(axis=1)
+            if (h[:m] > reach + self.active_tol).any():
+                impossible = True
+                l = self._l_clipped
+                np.copyto(l, self._l)
+                np.minimum(l[:m], reach, out=l[:m])
+
         # ---- elastic solve (warm-started)
         g = self._g
         np.dot(self._negW, tau_nom, out=g[:n])
         el = self._el
         if self._el_h_dirty:
-            el.update(H=self._H, g=g, C=self._Ce, l=self._l, update_preconditioner=True, mu_in=_MU_IN_RESET)
+            el.update(H=self._H, g=g, C=self._Ce, l=l, update_preconditioner=True, mu_in=_MU_IN_RESET)
             self._el_h_dirty = False
         else:
-            el.update(g=g, C=self._Ce, l=self._l, mu_in=_MU_IN_RESET)
+            el.update(g=g, C=self._Ce, l=l, mu_in=_MU_IN_RESET)
         el.solve()
         info = el.results.info
         iters = int(info.iter)
@@ -390,6 +407,8 @@ class TorqueQP:
             np.clip(x[:n] if np.isfinite(x.sum()) else tau_nom, lo, hi, out=self._tau)
             return self._result(m, None, False, "failed", iters, t0)
         np.clip(x[:n], lo, hi, out=self._tau)
+        if impossible:
+            return self._result(m, None, False, "relaxed", iters, t0)
         tol = self.active_tol
         if float(x[n]) / self._sigma <= tol:
             return self._result(m, 0.0, True, "solved", iters, t0)

@@ -185,6 +185,43 @@ class ArmModel:
             _lerp(a.pos, ab.pos, t), _lerp(a.vel, ab.vel, t), None, _lerp(a.G, ab.G, t), _lerp(a.c, ab.c, t)
         )
 
+    def closest_sliding(self, centres: np.ndarray, p: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """How fast the closest points of :meth:`closest_dynamics` slide along their axes.
+
+        A closest point is not a material point: while the arm and the obstacle move it slides
+        along the capsule axis, ``x*(t) = a + t*(t) (b − a)``. Its offset ``p = x* − o`` and the
+        velocity ``v`` of the arm point under it (relative to the obstacle) therefore change as
+
+            ṗ = v + ṫ (b − a),        v̇ = (material acceleration) + ṫ (ḃ − ȧ),
+            ṫ = −(⟨v, b − a⟩ + ⟨p, ḃ − ȧ⟩) / |b − a|²
+
+        where the closest point lies inside the segment, and ``ṫ = 0`` where it is clamped to an
+        end (``⟨b − a, ḃ − ȧ⟩ = 0``: the axis is rigid). A barrier on ``(p, v)`` that leaves these
+        terms out overestimates its own rate (for the distance HOCBF by exactly
+        ``2 (⟨v, b − a⟩ + ⟨p, ḃ − ȧ⟩)² / |b − a|²``), which lets a link drift into an obstacle.
+
+        Args:
+            centres: (K, 3) the centres given to :meth:`closest_dynamics` (same physics step).
+            p, v: (K * S, 3) closest point minus centre, and that arm point's velocity minus the
+                centre's, obstacle-major.
+
+        Returns:
+            ``(ṫ (b − a), ṫ (ḃ − ȧ))``: the sliding terms of ``ṗ`` and ``v̇``, both (K * S, 3).
+        """
+        if not self._ends_current:
+            self._update_ends()
+        ab = self.ends_ab
+        k, s = len(centres), len(self.capsule_ids)
+        t = centres @ ab.pos.T
+        t -= self._a_dot_ab
+        t /= self._length2
+        rate = np.einsum("ksj,sj->ks", v.reshape(k, s, 3), ab.pos)
+        rate += np.einsum("ksj,sj->ks", p.reshape(k, s, 3), ab.vel)
+        rate /= -self._length2
+        rate[(t <= 0.0) | (t >= 1.0)] = 0.0
+        rate = rate[..., None]
+        return (rate * ab.pos).reshape(-1, 3), (rate * ab.vel).reshape(-1, 3)
+
     def point_dynamics(self, data: mujoco.MjData, points: np.ndarray, chain: np.ndarray) -> PointDynamics:
         """:class:`PointDynamics` for ``points`` (P, 3) moving with bodies whose dof masks are
         ``chain`` (P, nv). ``Minv`` and ``qacc_free`` must be current (:meth:`update`)."""

@@ -210,6 +210,21 @@ def _episode_logger():
     return EpisodeLogger
 
 
+def _code_version() -> str:
+    """The package version and, when run from a git checkout, its commit."""
+    import subprocess
+
+    from c3bf_gym import __version__
+
+    try:
+        commit = subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"], cwd=Path(__file__).parent, capture_output=True, text=True, timeout=5
+        ).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        commit = ""
+    return f"{__version__}+{commit}" if commit else __version__
+
+
 def train(config: TrainConfig) -> Path:
     """Run one training run; returns its directory."""
     import torch
@@ -223,7 +238,10 @@ def train(config: TrainConfig) -> Path:
     run_dir.mkdir(parents=True, exist_ok=True)
     hyper = config.resolved_hyperparams()
     (run_dir / "config.json").write_text(
-        json.dumps({**asdict(config), "resolved_hyperparams": hyper, "command": " ".join(sys.argv)}, indent=2)
+        json.dumps(
+            {**asdict(config), "resolved_hyperparams": hyper, "command": " ".join(sys.argv), "code": _code_version()},
+            indent=2,
+        )
     )
     filter_name = _filter_name(config.filter)
     thunks = [

@@ -124,6 +124,8 @@ class ImpedanceHook:
     """
 
     def __init__(self, env: C3BFReachEnv, controller: CartesianImpedance, trajectory: Trajectory | None = None) -> None:
+        if controller.posture is not None and controller.posture.shape != (env.model.nv,):
+            raise ValueError(f"the controller's posture has {controller.posture.size} joint angles; the arm has {env.model.nv}")
         self.env = env
         self.controller = controller
         self.trajectory = trajectory

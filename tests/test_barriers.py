@@ -232,12 +232,19 @@ def test_inside_and_on_ball_is_finite_and_flagged(bar):
     assert np.all(np.isfinite(rows.A)) and np.all(np.isfinite(rows.b))
 
 
-def test_c3bf_inside_approaching_demands_strong_push():
-    """On the surface, moving inward: the clamped row needs a huge outward push."""
-    bar = C3BF()
+def test_c3bf_inside_falls_back_to_a_bounded_recovery_row():
+    """On or inside the ball, moving inward: the row asks for a bounded push apart along p,
+    and its value meets the C3BF's on the surface."""
+    bar = C3BF(gamma=5.0)
     p, v, r = np.array([[0.5, 0.0, 0.0]]), np.array([[-1.0, 0.0, 0.0]]), np.array([0.5])
     rows = bar.rows(p, v, r, np.eye(3)[None], np.zeros((1, 3)))
-    assert rows.b[0] > 1e4
+    # h = <p,v> = -0.5, drift = |v|^2 + γ<p,v> = -1.5: <p, a> >= γ 0.5 + 1.5 = 4
+    np.testing.assert_allclose(rows.A[0], p[0])
+    np.testing.assert_allclose(rows.b[0], 4.0)
+    outside = bar.terms(p * (1 + 1e-9), v, r).h[0]
+    assert bar.terms(p, v, r).h[0] == pytest.approx(outside, abs=1e-4)
+    deep = bar.rows(np.array([[0.1, 0.0, 0.0]]), v, r, np.eye(3)[None], np.zeros((1, 3)))
+    assert 0 < deep.b[0] < 100  # well scaled, unlike a clamped cone
 
 
 @FAST

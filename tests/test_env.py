@@ -9,6 +9,7 @@ that the distance sensors see them before the next step.
 
 from __future__ import annotations
 
+import inspect
 import os
 import pickle
 import warnings
@@ -272,7 +273,8 @@ def test_different_seeds_different_goals(make_env):
 def test_reward_terms_sum_to_reward_and_follow_the_spec(make_env):
     env = make_env(scenario="multi")
     u = env.unwrapped
-    w_progress, _, w_effort = 10.0, 1.0, 0.05
+    defaults = inspect.signature(C3BFReachEnv).parameters
+    w_progress, w_effort = defaults["progress_weight"].default, defaults["effort_weight"].default
     env.reset(seed=11)
     rng = np.random.default_rng(0)
     goal = u.data.mocap_pos[u._goal_mocap].copy()

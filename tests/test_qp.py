@@ -233,3 +233,21 @@ def test_nonfinite_inputs_raise_valueerror_not_warnings():
     assert qp.solve(np.zeros(2), np.zeros((1, 2)), np.array([-1.0])).feasible
     res = qp.solve(np.zeros(2), np.zeros((1, 2)), np.array([1.0]))
     assert not res.feasible and res.status == "relaxed" and res.slack == pytest.approx(1.0)
+
+
+@pytest.mark.parametrize("scale", [1.0, 1e4, 3e5])
+def test_impossible_rows_are_solved_in_bounded_iterations(scale):
+    """Rows asking more than any torque in the box can give (here contradictory pairs, scaled up)
+    are certain violations: reported 'relaxed' with their true slack, in few iterations."""
+    rng = np.random.default_rng(3)
+    qp = TorqueQP(6, 20, -np.ones(6), np.ones(6))
+    A = rng.normal(size=(10, 6))
+    A = np.vstack([A, -A])
+    b = np.full(20, 0.5 * scale)
+    for _ in range(5):
+        result = qp.solve(rng.uniform(-1, 1, 6), A, b)
+        assert result.status == "relaxed" and not result.feasible
+        assert result.iterations < 200
+        assert np.all(np.abs(result.tau) <= 1.0)
+        normalized_violation = np.max((b - A @ result.tau) / np.linalg.norm(A, axis=1))
+        assert result.slack == pytest.approx(normalized_violation, rel=1e-9)

@@ -407,3 +407,62 @@ def test_predicted_acceleration_matches_one_physics_step(make_env, seed):
         scale = np.linalg.norm(fd[i])
         assert np.linalg.norm(rec["pred"][i] - fd[i]) <= 0.06 * scale + 1e-3, (i, rec["pred"][i], fd[i])
         assert np.linalg.norm(rec["pred_implicit"][i] - fd[i]) <= 0.005 * scale + 1e-3, (i, rec["pred_implicit"][i], fd[i])
+
+
+# ----------------------------------------------------------------------------- sliding closest points
+
+
+def closest_state(u, centre, centre_vel, gid):
+    """(p, v) of the closest point of capsule ``gid`` to a moving centre, from the geom frame."""
+    a, b = capsule_frame(u, gid)
+    x = closest_on_segment(a, b, centre)
+    jac, _ = mujoco_point(u, x, u.model.geom_bodyid[gid])
+    return x - centre, jac @ u.data.qvel - centre_vel
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_closest_sliding_is_the_rate_of_the_moving_closest_point(env, seed):
+    """ṗ = v + slide_p and v̇ = (material acceleration) + slide_v, where p, v are the closest
+    point's offset and velocity found anew at every instant: checked by central differences
+    along the motion (joints at a random q̈, centres at constant velocity)."""
+    u = env
+    m, d = u.model, u.data
+    rng = np.random.default_rng(seed)
+    random_state(u, rng, q_spread=1.0)
+    arm = u.arm
+    arm.update(d, u.state_version)
+    s = len(arm.capsule_ids)
+    centres = d.geom_xpos[rng.choice(arm.capsule_ids, 4)] + rng.uniform(-0.3, 0.3, (4, 3))
+    centre_vel = rng.uniform(-0.5, 0.5, (4, 3))
+    qacc = rng.uniform(-5, 5, m.nv)
+    got = arm.closest_dynamics(centres)
+    p = got.pos - np.repeat(centres, s, axis=0)
+    v = got.vel - np.repeat(centre_vel, s, axis=0)
+    slide_p, slide_v = arm.closest_sliding(centres, p, v)
+    assert slide_p.shape == slide_v.shape == (4 * s, 3)
+    tau = solve_m_full(u) @ qacc - (d.qfrc_passive - d.qfrc_bias)  # the torque giving q̈
+    material_acc = np.einsum("pij,j->pi", got.G, tau) + got.c  # = J q̈ + J̇ q̇
+    q0, qd0, delta = d.qpos.copy(), d.qvel.copy(), 1e-5
+    states = []
+    for sign in (1.0, -1.0):
+        dt = sign * delta
+        d.qpos[:] = q0 + dt * qd0 + 0.5 * dt**2 * qacc
+        d.qvel[:] = qd0 + dt * qacc
+        mujoco.mj_forward(m, d)
+        states.append([closest_state(u, centres[k] + dt * centre_vel[k], centre_vel[k], g)
+                       for k in range(4) for g in arm.capsule_ids])  # fmt: skip
+    d.qpos[:], d.qvel[:] = q0, qd0
+    mujoco.mj_forward(m, d)
+    p_dot = np.array([(a[0] - b[0]) / (2 * delta) for a, b in zip(*states)])
+    v_dot = np.array([(a[1] - b[1]) / (2 * delta) for a, b in zip(*states)])
+    np.testing.assert_allclose(p_dot, v + slide_p, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(v_dot, material_acc + slide_v, rtol=0, atol=1e-5 * max(1.0, np.abs(v_dot).max()))
+    sliding = np.linalg.norm(slide_p, axis=1) > 1e-3
+    assert 0 < sliding.sum() < 4 * s  # interior (sliding) and clamped (end point) cases both seen
+
+
+def solve_m_full(u):
+    """M (dense), so that τ = M q̈ − (passive − bias) gives joint acceleration q̈."""
+    full = np.zeros((u.model.nv, u.model.nv))
+    mujoco.mj_fullM(u.model, u.data, full)
+    return full

@@ -61,12 +61,16 @@ class BarrierTerms(NamedTuple):
         drift: (P,) the part of ``ḣ`` not depending on the acceleration,
             ``⟨∂h/∂p, v⟩``.
         inside: (P,) bool, ``‖p‖ <= r`` (the point already overlaps the obstacle).
+        grad_p: (P, 3) gradient of ``h`` w.r.t. the relative position ``p`` (so that a caller
+            whose ``p`` moves by more than ``v``, e.g. a closest point sliding along a link,
+            can add ``⟨grad_p, ṗ − v⟩`` to the drift).
     """
 
     h: FloatArray
     grad_v: FloatArray
     drift: FloatArray
     inside: NDArray[np.bool_]
+    grad_p: FloatArray
 
 
 def require_positive(name: str, value: float) -> float:
@@ -187,7 +191,7 @@ class Barrier(abc.ABC):
     ) -> Rows:
         """:meth:`rows` from already evaluated :meth:`terms` (which are left unchanged), so a
         caller that also reports ``h`` or ``inside`` evaluates the barrier once."""
-        h, grad_v, drift, _ = terms
+        h, grad_v, drift = terms.h, terms.grad_v, terms.drift
         n_pts = h.shape[0]
         G = np.asarray(G, dtype=np.float64)
         c = np.asarray(c, dtype=np.float64)

@@ -34,12 +34,18 @@ class C3BF(Barrier):
     conservative than the exact C3BF, by at most ``ε s``. At rest outside the
     ball, ``h_ε(v = 0) = ε s > 0``, i.e. being at rest is safe.
 
-    Inside or on the ball (``‖p‖² − r² < δ²`` with ``δ = 1e-6`` m) ``s`` is
-    clamped to ``δ`` and every quantity is computed with that ``s``: no NaN or
-    inf is ever produced, and :attr:`BarrierTerms.inside` flags ``‖p‖ ≤ r``. The
-    resulting row demands a strong push apart (the ``‖v‖_ε ⟨p, v⟩ / s`` drift
-    term is large while approaching), which usually makes the QP infeasible;
-    that is reported upstream, never hidden here.
+    Inside or on the ball (``‖p‖ ≤ r``, flagged by :attr:`BarrierTerms.inside`)
+    the cone is undefined (``s`` is not real). There the point falls back to a
+    recovery barrier, the second-order distance barrier with γ₁ = γ₂ = γ scaled to
+    meet the C3BF on the surface::
+
+        h_in = ⟨p, v⟩ + (γ/2)(‖p‖² − r²)      (= the C3BF's ⟨p, v⟩ at ‖p‖ = r)
+        ∂h_in/∂p = v + γ p,   ∂h_in/∂v = p
+
+    whose row asks for a bounded push apart (``ḣ_in + γ h_in ≥ 0``). No NaN or inf
+    is produced. (Clamping ``s`` instead gives rows with ``b`` of order 1e5 that
+    leave the QP badly conditioned.) The violation itself is reported upstream
+    through ``inside``. Outside, ``s`` is floored at ``δ = 1e-6`` m.
 
     Args:
         gamma: class-K gain γ [1/s], finite and > 0.
@@ -72,22 +78,22 @@ class C3BF(Barrier):
 
     def _core(
         self, p: ArrayLike, v: ArrayLike, r: ArrayLike
-    ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, np.ndarray]:
-        """Shared intermediate quantities: ``p, v, ⟨p,v⟩, ‖v‖², s, ‖v‖_ε, inside``."""
+    ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, np.ndarray]:
+        """Shared intermediate quantities: ``p, v, ⟨p,v⟩, ‖v‖², ‖p‖² − r², s, ‖v‖_ε, inside``."""
         p, v, r = check_points(p, v, r)
-        s = np.einsum("pi,pi->p", p, p)
-        s -= np.square(r)  # ‖p‖² − r²
-        inside = s <= 0.0
-        np.maximum(s, self.delta**2, out=s)
+        h0 = np.einsum("pi,pi->p", p, p)
+        h0 -= np.square(r)  # ‖p‖² − r²
+        inside = h0 <= 0.0
+        s = np.maximum(h0, self.delta**2)
         np.sqrt(s, out=s)
         vv = np.einsum("pi,pi->p", v, v)
         vn = vv + self._eps**2
         np.sqrt(vn, out=vn)
         pv = np.einsum("pi,pi->p", p, v)
-        return p, v, pv, vv, s, vn, inside
+        return p, v, pv, vv, h0, s, vn, inside
 
     def terms(self, p: ArrayLike, v: ArrayLike, r: ArrayLike) -> BarrierTerms:
-        """C3BF terms for P points.
+        """C3BF terms for P points (the recovery barrier for points inside the ball).
 
         Args:
             p: (P, 3) relative positions [m].
@@ -96,31 +102,26 @@ class C3BF(Barrier):
 
         Returns:
             :class:`BarrierTerms`: ``h`` (P,) [m²/s], ``grad_v`` (P, 3) [m],
-            ``drift`` (P,) [m²/s²], ``inside`` (P,) bool.
+            ``drift`` (P,) [m²/s²], ``inside`` (P,) bool, ``grad_p`` (P, 3) [m/s].
         """
-        p, v, pv, vv, s, vn, inside = self._core(p, v, r)
+        p, v, pv, vv, h0, s, vn, inside = self._core(p, v, r)
         h = vn * s
         h += pv
         grad_v = v * (s / vn)[:, None]
         grad_v += p
-        drift = vn / s
-        drift *= pv
-        drift += vv
-        return BarrierTerms(h, grad_v, drift, inside)
+        grad_p = p * (vn / s)[:, None]
+        grad_p += v
+        if inside.any():
+            g = self._gamma
+            h[inside] = pv[inside] + 0.5 * g * h0[inside]
+            grad_v[inside] = p[inside]
+            grad_p[inside] = v[inside] + g * p[inside]
+        drift = np.einsum("pi,pi->p", grad_p, v)
+        return BarrierTerms(h, grad_v, drift, inside, grad_p)
 
     def partials(
         self, p: ArrayLike, v: ArrayLike, r: ArrayLike
     ) -> tuple[FloatArray, FloatArray, FloatArray]:
-        """Value and both gradients ``(h (P,), ∂h/∂p (P, 3), ∂h/∂v (P, 3))``.
-
-        Not needed by the filter (which only uses ``drift = ⟨∂h/∂p, v⟩``); meant
-        for diagnostics and tests. Same clamping as :meth:`terms`.
-        """
-        p, v, pv, _, s, vn, _ = self._core(p, v, r)
-        h = vn * s
-        h += pv
-        grad_p = p * (vn / s)[:, None]
-        grad_p += v
-        grad_v = v * (s / vn)[:, None]
-        grad_v += p
-        return h, grad_p, grad_v
+        """Value and both gradients ``(h (P,), ∂h/∂p (P, 3), ∂h/∂v (P, 3))``, as in :meth:`terms`."""
+        t = self.terms(p, v, r)
+        return t.h, t.grad_p, t.grad_v

@@ -81,7 +81,8 @@ class DistanceHOCBF(Barrier):
 
         Returns:
             :class:`BarrierTerms`: ``h = ψ₁`` (P,) [m²/s], ``grad_v = 2p`` (P, 3)
-            [m], ``drift`` (P,) [m²/s²], ``inside`` (P,) bool.
+            [m], ``drift`` (P,) [m²/s²], ``inside`` (P,) bool, ``grad_p = 2v + 2γ₁p``
+            (P, 3) [m/s].
         """
         p, v, r = check_points(p, v, r)
         g1 = self._gamma1
@@ -100,7 +101,9 @@ class DistanceHOCBF(Barrier):
         drift += pv2
 
         grad_v = 2.0 * p
-        return BarrierTerms(h, grad_v, drift, inside)
+        grad_p = p * (2.0 * g1)
+        grad_p += 2.0 * v
+        return BarrierTerms(h, grad_v, drift, inside, grad_p)
 
     def partials(
         self, p: ArrayLike, v: ArrayLike, r: ArrayLike
@@ -109,8 +112,5 @@ class DistanceHOCBF(Barrier):
 
         ``∂ψ₁/∂p = 2v + 2γ₁ p``, ``∂ψ₁/∂v = 2p``. For diagnostics and tests.
         """
-        p, v, r = check_points(p, v, r)
-        h, grad_v, _, _ = self.terms(p, v, r)
-        grad_p = p * (2.0 * self._gamma1)
-        grad_p += 2.0 * v
-        return h, grad_p, grad_v
+        t = self.terms(p, v, r)
+        return t.h, t.grad_p, t.grad_v

@@ -71,6 +71,8 @@ class CartesianImpedance:
             raise ValueError(f"damping_ratio must be a finite number > 0, got {damping_ratio!r}")
         self.damping_ratio = float(damping_ratio)
         self.posture = None if posture is None else np.array(posture, dtype=float)
+        if self.posture is not None and (self.posture.ndim != 1 or not np.all(np.isfinite(self.posture))):
+            raise ValueError(f"posture must be a finite 1-D array of joint angles (rad), got {posture!r}")
         kq = np.asarray(posture_stiffness, dtype=float)
         if not np.all(np.isfinite(kq)) or np.any(kq < 0):
             raise ValueError(f"posture_stiffness must be finite and >= 0, got {posture_stiffness!r}")

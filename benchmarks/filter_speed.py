@@ -1,0 +1,272 @@
+"""Cost of the safety filter: per physics step (the hook) and per env step (throughput).
+
+(a) **Hook latency.** The whole-arm C3BF filter hook, timed call by call while it filters a real
+rollout at 500 Hz: the environment (scenario ``none``) gets 1, 4 or 8 obstacles placed by hand
+around the arm (0.07-0.3 m from it, drifting slowly, all within the sensing radius so every one
+adds a row per link; re-placed every 50 steps), and an adversarial policy drives the arm point
+nearest to an obstacle straight at it, so the rows bind and the QP has work to do
+(``--policy random``: uniformly random torques instead). Every ``hook(tau)`` call is
+timed as a whole, and split (same call, no second evaluation) into building the rows
+(``SafetyHook.rows``: arm dynamics, barrier, joint limits) and the QP solve
+(``TorqueQP.solve``). Median, p99 and max in µs, the share of calls the QP answered on its fast
+path (nominal already safe), and the QP's status counts.
+
+(b) **Throughput.** Env steps/s of unfiltered ``C3BFReach-v0``, filtered
+(``SafetyFilter(barrier="c3bf")``) and Gymnasium's ``Pusher-v5``, all from ``gymnasium.make``,
+random actions, reset at episode end, timed in interleaved rounds in this process (rotating the
+order) so machine noise hits all three alike; the ratios filtered/unfiltered and
+filtered/Pusher are per round, the headline is their median.
+
+Usage: ``python benchmarks/filter_speed.py [--calls 3000] [--obstacles 1 4 8] [--policy adversarial]
+[--rounds 5] [--steps 1000] [--profile]``
+"""
+
+from __future__ import annotations
+
+import argparse
+import cProfile
+import io
+import pstats
+import statistics
+import time
+
+import gymnasium as gym
+import mujoco
+import numpy as np
+
+import c3bf_gym  # noqa: F401  (registers C3BFReach-v0)
+from c3bf_gym import SafetyFilter
+from c3bf_gym.envs.reach import DISTANCE_CUTOFF
+from c3bf_gym.scenarios import ObstacleSample, ObstacleSpec
+
+# ----------------------------------------------------------------------------- (a) hook latency
+
+
+def place_obstacles(u, count: int, rng: np.random.Generator) -> None:
+    """``count`` obstacles 0.07-0.3 m from the arm near random links, slowly drifting, none
+    overlapping another or inside the scenarios' keep-out cylinder around the base."""
+    m, d = u.model, u.data
+    links = u.arm.capsule_ids[1:]  # link2 ... tool (link1 sits on the base axis)
+    placed: list[tuple[np.ndarray, float]] = []
+    slot = 0
+    while slot < count:
+        gid = rng.choice(links)
+        axis = d.geom_xmat[gid].reshape(3, 3)[:, 2] * m.geom_size[gid, 1]
+        on_axis = d.geom_xpos[gid] + rng.uniform(-1.0, 1.0) * axis
+        side = rng.normal(size=3)
+        side -= (side @ axis) / (axis @ axis) * axis
+        side /= np.linalg.norm(side)
+        radius = rng.uniform(0.04, 0.07)
+        centre = on_axis + side * (m.geom_size[gid, 0] + radius + rng.uniform(0.08, 0.3))
+        if centre[2] < radius + 0.05 or any(np.linalg.norm(centre - c) < radius + r + 0.02 for c, r in placed):
+            continue
+        if np.hypot(centre[0], centre[1]) < 0.3 + radius and centre[2] < 0.45 + radius:
+            continue  # the scenarios' keep-out cylinder around the base (nothing can dodge there)
+        sample = ObstacleSample(centre, rng.uniform(-0.05, 0.05, 3), radius)
+        u._place(slot, sample)
+        mujoco.mj_forward(m, d)
+        if u.obstacle_distances()[slot] < 0.07:  # too close to some other link: park it again
+            u.obstacle_active[slot] = False
+            u.obstacle_vel[slot] = 0.0
+            u.obstacle_pos[slot] = (slot * 2.0 * DISTANCE_CUTOFF, 0.0, -50.0)
+            continue
+        u._obstacle_specs[slot] = ObstacleSpec("static")
+        placed.append((centre, radius))
+        slot += 1
+    mujoco.mj_forward(m, d)
+    u.state_version += 1
+
+
+def adversarial_action(u) -> np.ndarray:
+    """Full torque driving the arm capsule point nearest to any obstacle straight at it."""
+    m, d = u.model, u.data
+    best = None
+    for k in np.flatnonzero(u.obstacle_active):
+        centre = u.obstacle_pos[k]
+        for gid in u.arm.capsule_ids:
+            axis = d.geom_xmat[gid].reshape(3, 3)[:, 2] * m.geom_size[gid, 1]
+            a, ab = d.geom_xpos[gid] - axis, 2 * axis
+            x = a + np.clip((centre - a) @ ab / (ab @ ab), 0.0, 1.0) * ab
+            gap = np.linalg.norm(centre - x) - m.geom_size[gid, 0] - u.obstacle_radius[k]
+            if best is None or gap < best[0]:
+                best = (gap, x, m.geom_bodyid[gid], centre)
+    if best is None:
+        return np.zeros(6, np.float32)
+    _, x, body, centre = best
+    jac = np.zeros((3, m.nv))
+    mujoco.mj_jac(m, d, jac, None, x, body)
+    action = jac.T @ ((centre - x) / np.linalg.norm(centre - x)) / u.torque_limit
+    return np.clip(action / max(np.abs(action).max(), 1e-12), -1, 1).astype(np.float32)
+
+
+class TimedHook:
+    """Installed in place of the filter hook: times each call, and its rows / QP parts."""
+
+    def __init__(self, hook, profiler: cProfile.Profile | None = None) -> None:
+        self.hook = hook
+        self.profiler = profiler
+        self.total: list[float] = []
+        self.rows: list[float] = []
+        self.qp: list[float] = []
+        self.fast: list[bool] = []
+        self.status: dict[str, int] = {}
+        self.sensed: list[int] = []
+        rows, solve = hook.rows, hook.qp.solve
+
+        def timed_rows():
+            start = time.perf_counter()
+            out = rows()
+            self.rows.append(time.perf_counter() - start)
+            self.sensed.append(out[4])
+            return out
+
+        def timed_solve(*args):
+            start = time.perf_counter()
+            result = solve(*args)
+            self.qp.append(time.perf_counter() - start)
+            self.fast.append(result.iterations == 0)
+            self.status[result.status] = self.status.get(result.status, 0) + 1
+            return result
+
+        hook.rows = timed_rows  # instance attributes shadow the methods for this hook only
+        hook.qp.solve = timed_solve
+
+    def __call__(self, tau: np.ndarray) -> np.ndarray:
+        if self.profiler is not None:
+            self.profiler.enable()
+            out = self.hook(tau)
+            self.profiler.disable()
+            return out
+        start = time.perf_counter()
+        out = self.hook(tau)
+        self.total.append(time.perf_counter() - start)
+        return out
+
+
+def hook_latency(count: int, calls: int, seed: int, policy: str = "adversarial", profile: bool = False) -> TimedHook:
+    env = SafetyFilter(gym.make("C3BFReach-v0", scenario="none"), barrier="c3bf")
+    u = env.unwrapped
+    rng = np.random.default_rng(seed)
+    env.reset(seed=seed)
+    place_obstacles(u, count, rng)
+    profiler = cProfile.Profile() if profile else None
+    timed = TimedHook(env.hook, profiler)
+    u.remove_torque_hook("filter")
+    u.add_torque_hook(timed, "filter")
+    steps = 0
+    while len(timed.rows) < calls:
+        if steps and steps % 50 == 0:  # a fresh arrangement now and then (obstacles drift away)
+            env.reset(seed=seed + steps)
+            place_obstacles(u, count, rng)
+        action = adversarial_action(u) if policy == "adversarial" else rng.uniform(-1, 1, 6).astype(np.float32)
+        env.step(action)
+        steps += 1
+    env.close()
+    if profiler is not None:
+        stream = io.StringIO()
+        stats = pstats.Stats(profiler, stream=stream).sort_stats("tottime")
+        stats.print_stats(15)
+        print(f"\ncProfile of {len(timed.rows)} filter hook calls with {count} obstacles (top 15 by own time):")
+        print(stream.getvalue())
+    return timed
+
+
+def us(values: list[float], q: float) -> float:
+    return float(np.percentile(np.asarray(values) * 1e6, q))
+
+
+# ----------------------------------------------------------------------------- (b) throughput
+
+
+def make_runner(name: str, steps: int, seed: int):
+    if name == "filtered":
+        env = SafetyFilter(gym.make("C3BFReach-v0"), barrier="c3bf")
+    elif name == "unfiltered":
+        env = gym.make("C3BFReach-v0")
+    else:
+        env = gym.make("Pusher-v5")
+    env.reset(seed=seed)
+    env.action_space.seed(seed)
+    actions = np.stack([env.action_space.sample() for _ in range(steps)])
+    for action in actions[:50]:  # warm-up, untimed
+        _, _, terminated, truncated, _ = env.step(action)
+        if terminated or truncated:
+            env.reset()
+    env.reset(seed=seed)
+
+    def run() -> float:
+        step, reset = env.step, env.reset
+        start = time.perf_counter()
+        for action in actions:
+            _, _, terminated, truncated, _ = step(action)
+            if terminated or truncated:
+                reset()
+        return len(actions) / (time.perf_counter() - start)
+
+    return env, run
+
+
+def main(argv: list[str] | None = None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--calls", type=int, default=3000, help="timed hook calls per obstacle count (default 3000)")
+    parser.add_argument("--obstacles", type=int, nargs="+", default=[1, 4, 8], help="obstacle counts (default 1 4 8)")
+    parser.add_argument("--rounds", type=int, default=5, help="interleaved throughput rounds (default 5)")
+    parser.add_argument("--steps", type=int, default=1000, help="env steps per environment per round (default 1000)")
+    parser.add_argument("--policy", choices=("adversarial", "random"), default="adversarial",
+                        help="policy during the latency runs (default adversarial: the rows bind)")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--profile", action="store_true", help="print a cProfile top-15 of the filtered steps (4 obstacles)")
+    args = parser.parse_args(argv)
+    if args.calls < 1 or args.rounds < 1 or args.steps < 1 or any(not 1 <= k <= 8 for k in args.obstacles):
+        parser.error("--calls, --rounds, --steps must be >= 1 and obstacle counts in 1..8")
+
+    out: dict = {"hook": {}, "throughput": {}}
+    print(f"(a) filter hook per physics step, whole-arm C3BF, {args.policy} policy, {args.calls} calls each [µs]")
+    header = (f"{'obst':>4} {'sensed':>6} {'rows':>4} | {'total med':>9} {'p99':>7} {'max':>8} | "
+              f"{'rows med':>8} {'p99':>6} | {'QP med':>7} {'p99':>7} {'max':>8} | {'fast path':>9}  QP status")  # fmt: skip
+    print(header)
+    print("-" * len(header))
+    for count in args.obstacles:
+        t = hook_latency(count, args.calls, args.seed, args.policy)
+        n_rows = 7 * int(np.median(t.sensed)) + 24
+        row = {
+            "total_median_us": us(t.total, 50), "total_p99_us": us(t.total, 99), "total_max_us": us(t.total, 100),
+            "rows_median_us": us(t.rows, 50), "rows_p99_us": us(t.rows, 99),
+            "qp_median_us": us(t.qp, 50), "qp_p99_us": us(t.qp, 99), "qp_max_us": us(t.qp, 100),
+            "fast_path": float(np.mean(t.fast)), "status": t.status, "sensed_median": float(np.median(t.sensed)),
+        }  # fmt: skip
+        out["hook"][count] = row
+        status = ", ".join(f"{k} {v}" for k, v in sorted(t.status.items()))
+        print(f"{count:>4} {row['sensed_median']:>6.0f} {n_rows:>4} | {row['total_median_us']:>9.0f} {row['total_p99_us']:>7.0f} "
+              f"{row['total_max_us']:>8.0f} | {row['rows_median_us']:>8.0f} {row['rows_p99_us']:>6.0f} | "
+              f"{row['qp_median_us']:>7.0f} {row['qp_p99_us']:>7.0f} {row['qp_max_us']:>8.0f} | "
+              f"{100 * row['fast_path']:>8.0f}%  {status}")  # fmt: skip
+    if args.profile:
+        hook_latency(4, min(args.calls, 2000), args.seed, args.policy, profile=True)
+
+    print(f"\n(b) env steps/s, {args.rounds} interleaved rounds x {args.steps} steps, random actions")
+    names = ("unfiltered", "filtered", "pusher")
+    runners = {name: make_runner(name, args.steps, args.seed) for name in names}
+    rates: dict[str, list[float]] = {name: [] for name in names}
+    header = f"{'round':>5} | {'unfiltered':>10} {'filtered':>9} {'Pusher-v5':>9} | {'filt/unfilt':>11} {'filt/Pusher':>11}"
+    print(header)
+    print("-" * len(header))
+    for r in range(args.rounds):
+        order = names[r % 3:] + names[: r % 3]  # rotate who goes first
+        for name in order:
+            rates[name].append(runners[name][1]())
+        u, f, p = (rates[n][-1] for n in names)
+        print(f"{r + 1:>5} | {u:>10.0f} {f:>9.0f} {p:>9.0f} | {f / u:>11.3f} {f / p:>11.3f}")
+    ratio_fu = [f / u for f, u in zip(rates["filtered"], rates["unfiltered"])]
+    ratio_fp = [f / p for f, p in zip(rates["filtered"], rates["pusher"])]
+    med = {n: statistics.median(v) for n, v in rates.items()}
+    print(f"{'median':>5} | {med['unfiltered']:>10.0f} {med['filtered']:>9.0f} {med['pusher']:>9.0f} | "
+          f"{statistics.median(ratio_fu):>11.3f} {statistics.median(ratio_fp):>11.3f}")  # fmt: skip
+    for env, _ in runners.values():
+        env.close()
+    out["throughput"] = {"steps_per_s": rates, "filtered_over_unfiltered": ratio_fu, "filtered_over_pusher": ratio_fp}
+    return out
+
+
+if __name__ == "__main__":
+    main()

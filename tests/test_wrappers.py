@@ -1,0 +1,367 @@
+"""Tests for c3bf_gym/wrappers.py: composition, info for loggers, the gym.make shortcut, bad
+input, and hook lifetime."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+from c3bf_gym import CartesianImpedanceAction, SafetyFilter
+from c3bf_gym.barriers import C3BF, DistanceHOCBF
+
+from conftest import ENV_ID
+
+#: info["safety"] entries every user may rely on, and their Python types.
+SAFETY_TYPES = {
+    "feasible": bool,
+    "slack": float,
+    "min_h": float,
+    "correction": float,
+    "active_rows": int,
+    "sensed": int,
+    "solve_time": float,
+    "intervened": bool,
+    "inside": bool,
+    "infeasible_steps": int,
+}
+
+
+# ----------------------------------------------------------------------------- helpers
+
+
+def toward_nearest_obstacle(env) -> np.ndarray:
+    """A tool-target action aiming at the nearest active obstacle (makes the filter work)."""
+    u = env.unwrapped
+    tool = u.data.site_xpos[u.ee_site_id]
+    active = np.flatnonzero(u.obstacle_active)
+    if not len(active):
+        return np.zeros(3, np.float32)
+    nearest = active[np.argmin(np.linalg.norm(u.obstacle_pos[active] - tool, axis=1))]
+    return np.clip((u.obstacle_pos[nearest] - tool) / 0.1, -1.0, 1.0).astype(np.float32)
+
+
+def snapshot(env) -> dict:
+    u = env.unwrapped
+    d = u.data
+    return {
+        "qpos": d.qpos.copy(),
+        "qvel": d.qvel.copy(),
+        "time": np.array(d.time),
+        "mocap_pos": d.mocap_pos.copy(),
+        "ctrl": d.ctrl.copy(),
+        "obstacle_vel": u.obstacle_vel.copy(),
+        "version": np.array(u.state_version),
+    }
+
+
+def rollout(env, seed, steps, policy):
+    obs, _ = env.reset(seed=seed)
+    trace = [obs]
+    infos = []
+    rng = np.random.default_rng(seed)
+    for _ in range(steps):
+        action = policy(env, rng)
+        obs, reward, terminated, truncated, info = env.step(action)
+        trace.append(obs)
+        infos.append((reward, info))
+    return np.array(trace), infos
+
+
+def mixed_policy(env, rng):
+    return toward_nearest_obstacle(env) if rng.random() < 0.7 else rng.uniform(-1, 1, 3).astype(np.float32)
+
+
+# ----------------------------------------------------------------------------- composition
+
+
+#: Trajectories through the filter agree to this, not bit for bit: replaying one sequence of QPs
+#: on two fresh solver instances gave torques differing by ~1e-9 depending on earlier memory
+#: allocations (alignment-dependent floating point), and the QP is only solved to 1e-8.
+SAME = dict(rtol=0.0, atol=1e-6)
+
+
+def assert_same_safety(ia, ib):
+    sa, sb = ia["safety"], ib["safety"]
+    for key in ("feasible", "intervened", "inside", "sensed"):
+        assert sa[key] == sb[key], key
+    for key in ("slack", "min_h", "correction"):
+        assert sa[key] == pytest.approx(sb[key], rel=1e-5, abs=1e-6), key
+    for key in ("cost", "safety_intervened", "safety_infeasible", "episode_interventions", "episode_infeasible"):
+        assert ia[key] == ib[key], key
+    assert ia["min_distance"] == pytest.approx(ib["min_distance"], abs=1e-6)
+
+
+def test_both_wrapping_orders_give_identical_trajectories(make_env):
+    filter_outside = SafetyFilter(CartesianImpedanceAction(make_env(scenario="multi")))
+    filter_inside = CartesianImpedanceAction(SafetyFilter(make_env(scenario="multi")))
+    assert filter_outside.action_space == filter_inside.action_space == gym.spaces.Box(-1, 1, (3,), np.float32)
+    a, info_a = rollout(filter_outside, 4, 60, mixed_policy)
+    b, info_b = rollout(filter_inside, 4, 60, mixed_policy)
+    np.testing.assert_allclose(a, b, **SAME)
+    interventions = 0
+    for (reward_a, ia), (reward_b, ib) in zip(info_a, info_b):
+        assert reward_a == pytest.approx(reward_b, abs=1e-6)
+        assert_same_safety(ia, ib)
+        interventions += ia["safety"]["intervened"]
+    assert interventions > 0  # the filter did act: the comparison covers both stages
+
+
+def test_filter_changes_the_trajectory_of_the_same_actions(make_env):
+    """Sanity check for the comparison above: the filter is not a no-op on this rollout."""
+    filtered = SafetyFilter(CartesianImpedanceAction(make_env(scenario="multi")))
+    plain = CartesianImpedanceAction(make_env(scenario="multi"))
+    a, _ = rollout(filtered, 4, 60, mixed_policy)
+    b, _ = rollout(plain, 4, 60, mixed_policy)
+    assert not np.array_equal(a, b)
+
+
+def test_same_seed_same_filtered_trajectory(make_env):
+    """An episode repeats (to the solver's precision, see SAME) whatever ran before it on the
+    same env. Full torque from the first step makes the joint-speed rows bind at once, so the QP
+    solver (not its fast path) decides the torques from the start."""
+    env = SafetyFilter(make_env(scenario="crossing"))
+    policy = lambda e, rng: np.sign(rng.uniform(-1, 1, 6)).astype(np.float32)  # noqa: E731
+    a, info_a = rollout(env, 11, 40, policy)
+    rollout(env, 12, 40, policy)  # another episode in between leaves another solver state
+    b, info_b = rollout(env, 11, 40, policy)
+    np.testing.assert_allclose(a, b, **SAME)
+    for (_, ia), (_, ib) in zip(info_a, info_b):
+        assert_same_safety(ia, ib)
+    assert info_a[0][1]["safety"]["intervened"]
+
+
+# ----------------------------------------------------------------------------- info
+
+
+def test_info_safety_keys_and_types(make_env):
+    env = SafetyFilter(make_env(scenario="multi"))
+    env.reset(seed=1)
+    rng = np.random.default_rng(1)
+    interventions = infeasible = 0
+    for step in range(30):
+        _, _, _, _, info = env.step(rng.uniform(-1, 1, 6).astype(np.float32))
+        safety = info["safety"]
+        for key, kind in SAFETY_TYPES.items():
+            assert type(safety[key]) is kind, (key, type(safety[key]))
+        for key, value in safety.items():  # anything else added later: plain scalars only
+            assert type(value) in (bool, int, float), (key, type(value))
+        assert safety["slack"] >= 0.0 and safety["correction"] >= 0.0 and safety["solve_time"] > 0.0
+        assert safety["feasible"] == (safety["infeasible_steps"] == 0) == (safety["slack"] == 0.0)
+        # flat keys for SB3's Monitor(info_keywords=...)
+        assert type(info["safety_intervened"]) is float and info["safety_intervened"] in (0.0, 1.0)
+        assert type(info["safety_infeasible"]) is float and info["safety_infeasible"] in (0.0, 1.0)
+        assert info["safety_intervened"] == float(safety["intervened"])
+        assert info["safety_infeasible"] == float(not safety["feasible"])
+        interventions += safety["intervened"]
+        infeasible += not safety["feasible"]
+        assert type(info["episode_interventions"]) is int and info["episode_interventions"] == interventions
+        assert type(info["episode_infeasible"]) is int and info["episode_infeasible"] == infeasible
+    assert interventions > 0
+    env.reset(seed=2)
+    _, _, _, _, info = env.step(np.zeros(6, np.float32))
+    assert info["episode_interventions"] == int(info["safety"]["intervened"])  # counters restart
+    assert info["episode_infeasible"] == int(not info["safety"]["feasible"])
+
+
+def test_sb3_monitor_logs_the_flat_keys(make_env):
+    monitor_module = pytest.importorskip("stable_baselines3.common.monitor")
+    keys = ("safety_intervened", "safety_infeasible", "episode_interventions", "episode_infeasible")
+    env = monitor_module.Monitor(SafetyFilter(make_env(scenario="multi", max_episode_steps=15)), info_keywords=keys)
+    env.reset(seed=0)
+    rng = np.random.default_rng(0)
+    total = 0
+    for _ in range(15):
+        _, _, terminated, truncated, info = env.step(rng.uniform(-1, 1, 6).astype(np.float32))
+        total += info["safety_intervened"]
+    assert truncated
+    episode = info["episode"]
+    assert episode["l"] == 15
+    assert episode["episode_interventions"] == total
+    for key in keys:
+        assert isinstance(episode[key], (int, float))
+
+
+# ----------------------------------------------------------------------------- gym.make shortcut
+
+
+def test_gym_make_safety_filter_shortcut():
+    env = gym.make(ENV_ID, safety_filter="c3bf", scenario="static")
+    try:
+        u = env.unwrapped
+        assert u.has_torque_hook("filter")
+        env.reset(seed=0)
+        _, _, _, _, info = env.step(np.zeros(6, np.float32))
+        assert set(SAFETY_TYPES) <= set(info["safety"])
+        assert "safety_intervened" in info and "episode_interventions" in info
+    finally:
+        env.close()
+    assert not u.has_torque_hook("filter")
+
+
+def test_gym_make_shortcut_barrier_choice_and_default():
+    env = gym.make(ENV_ID, safety_filter="hocbf")
+    try:
+        wrapper = env
+        while not isinstance(wrapper, SafetyFilter):
+            wrapper = wrapper.env
+        assert isinstance(wrapper.hook.barrier, DistanceHOCBF)
+    finally:
+        env.close()
+    env = gym.make(ENV_ID)
+    try:
+        assert not env.unwrapped.has_torque_hook("filter")  # no filter unless asked for
+    finally:
+        env.close()
+    with pytest.raises(ValueError, match=r"(?s)safety_filter.*'c3bf'.*'hocbf'"):
+        gym.make(ENV_ID, safety_filter="cbf")
+
+
+# ----------------------------------------------------------------------------- bad input
+
+BAD_FILTER_ARGS = [
+    (dict(barrier="cbf"), r"(?s)barrier.*'c3bf'.*'hocbf'"),
+    (dict(barrier=None), r"(?s)barrier.*'c3bf'.*'hocbf'"),
+    (dict(points="links"), r"(?s)points.*'whole_arm'.*'ee'"),
+    (dict(weight="diag"), r"(?s)weight.*'limits'.*'identity'"),
+    (dict(on_infeasible="ignore"), r"(?s)on_infeasible.*'relax'.*'raise'"),
+    (dict(gamma=-1.0), "gamma"),
+    (dict(gamma=0.0), "gamma"),
+    (dict(gamma=float("nan")), "gamma"),
+    (dict(barrier="hocbf", gamma=-2.0), "gamma"),
+    (dict(margin=-0.01), "margin"),
+    (dict(margin=float("inf")), "margin"),
+    (dict(sensing_radius=0.0), "sensing_radius"),
+    (dict(sensing_radius=-1.0), "sensing_radius"),
+    (dict(sensing_radius=float("nan")), "sensing_radius"),
+    (dict(ee_radius=-0.05), "ee_radius"),
+    (dict(joint_speed_fraction=0.0), "joint_speed_fraction"),
+    (dict(joint_speed_fraction=-0.5), "joint_speed_fraction"),
+    (dict(joint_speed_fraction=1.5), "joint_speed_fraction"),
+    (dict(joint_speed_fraction=float("nan")), "joint_speed_fraction"),
+]
+
+
+@pytest.mark.parametrize("kwargs, message", BAD_FILTER_ARGS, ids=[str(k) for k, _ in BAD_FILTER_ARGS])
+def test_bad_filter_arguments_rejected_and_nothing_installed(make_env, kwargs, message):
+    env = make_env(scenario="none")
+    with pytest.raises(ValueError, match=message):
+        SafetyFilter(env, **kwargs)
+    assert not env.unwrapped.has_torque_hook("filter")
+    SafetyFilter(env)  # the env is still usable
+
+
+def test_edge_values_accepted(make_env):
+    env = make_env(scenario="none")
+    for kwargs in (dict(joint_speed_fraction=1.0), dict(margin=0.0), dict(points="ee", ee_radius=0.0),
+                   dict(barrier=C3BF(gamma=2.0)), dict(weight="identity", on_infeasible="raise")):  # fmt: skip
+        SafetyFilter(env, **kwargs).close()
+
+
+@pytest.mark.parametrize("wrapper", [SafetyFilter, CartesianImpedanceAction])
+def test_non_c3bf_env_rejected(wrapper):
+    env = gym.make("Pendulum-v1")
+    try:
+        with pytest.raises(TypeError, match="C3BFReach"):
+            wrapper(env)
+    finally:
+        env.close()
+
+
+def test_double_filter_rejected(make_env):
+    env = SafetyFilter(make_env(scenario="none"))
+    with pytest.raises(ValueError, match="already"):
+        SafetyFilter(env)
+    with pytest.raises(ValueError, match="already"):
+        SafetyFilter(CartesianImpedanceAction(env))
+
+
+def test_double_impedance_rejected(make_env):
+    env = CartesianImpedanceAction(make_env(scenario="none"))
+    with pytest.raises(ValueError, match="already"):
+        CartesianImpedanceAction(SafetyFilter(env))
+    with pytest.raises(ValueError, match="already"):
+        CartesianImpedanceAction(env)
+
+
+@pytest.mark.parametrize("max_offset", [0.0, -0.1, float("nan"), float("inf")])
+def test_bad_max_offset_rejected(make_env, max_offset):
+    env = make_env(scenario="none")
+    with pytest.raises(ValueError, match="max_offset"):
+        CartesianImpedanceAction(env, max_offset=max_offset)
+    assert not env.unwrapped.has_torque_hook("nominal")
+
+
+NAN_CASES = {
+    "filter": (lambda e: SafetyFilter(e), np.array([0, np.nan, 0, 0, 0, 0], np.float32)),
+    "impedance": (lambda e: CartesianImpedanceAction(e), np.array([np.nan, 0, 0], np.float32)),
+    "filter(impedance)": (lambda e: SafetyFilter(CartesianImpedanceAction(e)), np.array([0, 0, np.nan], np.float32)),
+    "impedance(filter)": (lambda e: CartesianImpedanceAction(SafetyFilter(e)), np.array([0, np.inf, 0], np.float32)),
+    "impedance out of range": (lambda e: CartesianImpedanceAction(e), np.array([0, 1.5, 0], np.float32)),
+    "impedance wrong shape": (lambda e: CartesianImpedanceAction(e), np.zeros(6, np.float32)),
+}
+
+
+@pytest.mark.parametrize("case", list(NAN_CASES))
+def test_bad_action_raises_and_leaves_the_env_untouched(make_env, case):
+    build, bad = NAN_CASES[case]
+    env = build(make_env(scenario="crossing"))
+    env.reset(seed=0)
+    good = np.zeros(env.action_space.shape, np.float32)
+    for _ in range(3):
+        env.step(good)
+    before = snapshot(env)
+    wrappers = []
+    w = env
+    while isinstance(w, gym.Wrapper):
+        wrappers.append(w)
+        w = w.env
+    filters = [w for w in wrappers if isinstance(w, SafetyFilter)]
+    impedances = [w for w in wrappers if isinstance(w, CartesianImpedanceAction)]
+    counters = [(f._episode_interventions, f._episode_infeasible) for f in filters]
+    targets = [i.hook.target_pos.copy() for i in impedances]
+    with pytest.raises(ValueError):
+        env.step(bad)
+    after = snapshot(env)
+    for key in before:
+        np.testing.assert_array_equal(after[key], before[key], err_msg=key)
+    assert counters == [(f._episode_interventions, f._episode_infeasible) for f in filters]
+    for i, target in zip(impedances, targets):
+        np.testing.assert_array_equal(i.hook.target_pos, target)
+    obs, *_ = env.step(good)  # and it keeps working
+    assert np.isfinite(obs).all()
+
+
+# ----------------------------------------------------------------------------- lifetime
+
+
+@pytest.mark.parametrize("order", ["filter outside", "filter inside", "filter only", "impedance only"])
+def test_close_removes_the_hooks(make_env, order):
+    base = make_env(scenario="none")
+    build = {
+        "filter outside": lambda e: SafetyFilter(CartesianImpedanceAction(e)),
+        "filter inside": lambda e: CartesianImpedanceAction(SafetyFilter(e)),
+        "filter only": SafetyFilter,
+        "impedance only": CartesianImpedanceAction,
+    }[order]
+    env = build(base)
+    u = base.unwrapped
+    assert u.has_torque_hook("filter") or u.has_torque_hook("nominal")
+    env.close()
+    assert not u.has_torque_hook("filter") and not u.has_torque_hook("nominal")
+    assert u._hook_chain == ()
+    env.close()  # closing twice is harmless
+
+
+def test_hooks_removed_by_close_no_longer_act(make_env):
+    """After close, the same env (reset) steps like an unfiltered one."""
+    raw = make_env(scenario="crossing")
+    filtered = SafetyFilter(make_env(scenario="crossing"))
+    filtered.close()
+    rng_actions = np.random.default_rng(0).uniform(-1, 1, (20, 6)).astype(np.float32)
+    a, _ = raw.reset(seed=3)
+    b, _ = filtered.unwrapped.reset(seed=3)
+    for action in rng_actions:
+        a, *_ = raw.step(action)
+        b, *_ = filtered.unwrapped.step(action)
+    np.testing.assert_array_equal(a, b)
