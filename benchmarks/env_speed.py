@@ -28,7 +28,12 @@ import c3bf_gym  # noqa: F401  (registers C3BFReach-v0)
 
 
 def make_runner(env_id: str, steps: int, seed: int, **kwargs):
-    env = gym.make(env_id, **kwargs)
+    return runner_for(gym.make(env_id, **kwargs), steps, seed)
+
+
+def runner_for(env: gym.Env, steps: int, seed: int):
+    """``(env, run)``: ``run()`` steps ``env`` through ``steps`` pre-sampled random actions
+    (resetting at episode ends) and returns steps per wall second."""
     env.reset(seed=seed)
     env.action_space.seed(seed)
     actions = np.stack([env.action_space.sample() for _ in range(steps)])

@@ -38,6 +38,7 @@ import c3bf_gym  # noqa: F401  (registers C3BFReach-v0)
 from c3bf_gym import SafetyFilter
 from c3bf_gym.envs.reach import DISTANCE_CUTOFF
 from c3bf_gym.scenarios import ObstacleSample, ObstacleSpec
+from env_speed import runner_for  # this folder's shared timing loop
 
 # ----------------------------------------------------------------------------- (a) hook latency
 
@@ -185,25 +186,7 @@ def make_runner(name: str, steps: int, seed: int):
         env = gym.make("C3BFReach-v0")
     else:
         env = gym.make("Pusher-v5")
-    env.reset(seed=seed)
-    env.action_space.seed(seed)
-    actions = np.stack([env.action_space.sample() for _ in range(steps)])
-    for action in actions[:50]:  # warm-up, untimed
-        _, _, terminated, truncated, _ = env.step(action)
-        if terminated or truncated:
-            env.reset()
-    env.reset(seed=seed)
-
-    def run() -> float:
-        step, reset = env.step, env.reset
-        start = time.perf_counter()
-        for action in actions:
-            _, _, terminated, truncated, _ = step(action)
-            if terminated or truncated:
-                reset()
-        return len(actions) / (time.perf_counter() - start)
-
-    return env, run
+    return runner_for(env, steps, seed)
 
 
 def main(argv: list[str] | None = None) -> dict:
