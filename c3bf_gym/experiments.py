@@ -283,8 +283,13 @@ def _sensing_study(config: ExperimentConfig, out: Path, figures: Path) -> str:
 
 
 def _videos(config: ExperimentConfig, folder: Path) -> None:
+    import os
+    import sys
+
     import imageio.v3 as iio
 
+    if sys.platform.startswith("linux") and not os.environ.get("DISPLAY"):
+        os.environ.setdefault("MUJOCO_GL", "egl")  # headless: offscreen rendering through EGL
     folder.mkdir(parents=True, exist_ok=True)
     for scenario in config.scenarios:
         _, frames = run_episode(scenario, "c3bf", config.first_seed, config, render=True)
