@@ -10,6 +10,7 @@ import numpy as np
 from gymnasium import spaces, utils
 from gymnasium.envs.mujoco.mujoco_env import MujocoEnv
 
+from c3bf_gym.robot import ArmModel, segment_closest_points
 from c3bf_gym.scenarios import (
     MAX_OBSTACLES,
     Envelope,
@@ -298,8 +299,6 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
     def arm(self):
         """The arm's :class:`~c3bf_gym.robot.ArmModel`, shared by every hook on this env."""
         if self._arm is None:
-            from c3bf_gym.robot import ArmModel
-
             self._arm = ArmModel(self.model, self.arm_geom_ids, self.ee_site_id)
         return self._arm
 
@@ -502,14 +501,10 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
         self.state_version += 1
 
     def _arm_clearance(self, centre: np.ndarray, radius: float) -> float:
-        """Smallest surface distance from a sphere to the arm's geoms (capsule/cylinder segments)."""
+        """Smallest surface distance from a sphere to the arm's geoms (capsule/cylinder axes)."""
         d, m = self.data, self.model
         ids = self.arm_geom_ids
-        axis = d.geom_xmat[ids].reshape(-1, 3, 3)[:, :, 2]
-        half = m.geom_size[ids, 1]
-        a = d.geom_xpos[ids] - axis * half[:, None]
-        ab = 2.0 * axis * half[:, None]
-        t = np.clip(np.einsum("ij,ij->i", centre - a, ab) / np.einsum("ij,ij->i", ab, ab), 0.0, 1.0)
-        closest = a + t[:, None] * ab
+        axis = d.geom_xmat[ids][:, 2::3] * m.geom_size[ids, 1][:, None]  # z column, half length
+        closest = segment_closest_points(d.geom_xpos[ids] - axis, d.geom_xpos[ids] + axis, centre[None])[0]
         gap = np.linalg.norm(centre - closest, axis=1) - m.geom_size[ids, 0] - radius
         return float(gap.min())
