@@ -108,7 +108,7 @@ def run_episode(
         env.hook.record_times()
     env.reset(seed=seed)
     start = base.data.site_xpos[base.ee_site_id].copy()
-    goal = base.data.mocap_pos[base._goal_mocap].copy()
+    goal = base.goal.copy()
     hook = ImpedanceHook(base, default_impedance(base), MinimumJerk(start, goal, config.move_time))
     base.add_torque_hook(hook, stage="nominal")
     record = EpisodeRecord.start(base)

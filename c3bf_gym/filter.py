@@ -151,7 +151,6 @@ class SafetyHook:
             np.tile(self.arm.capsule_radius, n_obstacles) if points == "whole_arm" else np.full(n_obstacles, self.ee_radius)
         )
         self.last: QPResult | None = None
-        self.last_min_h = np.inf
         self.report = StepSafety()
         self.solve_times: list[float] | None = None
 
@@ -213,7 +212,7 @@ class SafetyHook:
         elapsed = time.perf_counter() - start
         if self.solve_times is not None:
             self.solve_times.append(elapsed)
-        self.last, self.last_min_h = result, min_h
+        self.last = result
         report = self.report
         report.substeps += 1
         report.solve_time += elapsed

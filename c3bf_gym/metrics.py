@@ -44,7 +44,7 @@ class EpisodeRecord:
         """A record for the episode ``env`` (unwrapped ``C3BFReachEnv``) has just reset into."""
         active = env.obstacle_active.copy()
         record = cls(dt=env.dt, obstacle_radius=env.obstacle_radius[active].copy())
-        record.goal = env.data.mocap_pos[env._goal_mocap].copy()
+        record.goal = env.goal.copy()
         record._active = active
         record._add_state(env)
         return record

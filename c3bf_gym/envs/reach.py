@@ -296,7 +296,12 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
             get_scenario(name)
 
     @property
-    def arm(self):
+    def goal(self) -> np.ndarray:
+        """The goal position (3,) [m] (a view into MuJoCo's mocap array)."""
+        return self.data.mocap_pos[self._goal_mocap]
+
+    @property
+    def arm(self) -> ArmModel:
         """The arm's :class:`~c3bf_gym.robot.ArmModel`, shared by every hook on this env."""
         if self._arm is None:
             self._arm = ArmModel(self.model, self.arm_geom_ids, self.ee_site_id)
@@ -450,7 +455,6 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
         for slot, (spec, sample) in enumerate(zip(scenario.obstacles, samples)):
             self._place(slot, sample)
             self._obstacle_specs[slot] = spec
-        self._start_goal = (start, goal)
         mujoco.mj_forward(m, d)
         self._goal_distance = float(np.linalg.norm(goal - start))
         self._episode_cost = 0.0
