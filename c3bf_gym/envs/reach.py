@@ -188,7 +188,10 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
                 f"unknown render_mode {render_mode!r}; valid choices: None, "
                 + ", ".join(map(repr, self.metadata["render_modes"]))
             )
-        self.envelope = Envelope(speed_range=obstacle_speed_range, radius_range=obstacle_radius_range)
+        try:
+            self.envelope = Envelope(speed_range=obstacle_speed_range, radius_range=obstacle_radius_range)
+        except ValueError as error:  # name the keyword the caller used
+            raise ValueError(f"obstacle_{error}") from None
         self.sensing_radius = float(sensing_radius)
         self.terminate_on_collision = bool(terminate_on_collision)
         self.success_tolerance = float(success_tolerance)
