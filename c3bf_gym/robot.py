@@ -161,6 +161,14 @@ class ArmModel:
         centre = data.geom_xpos[ids]
         return centre - axis, centre + axis
 
+    def _axis_parameter(self, centres: np.ndarray) -> np.ndarray:
+        """(K, S) position along each capsule axis of the point nearest each centre, before
+        clamping to the segment: ``t = ((o - a) . (b - a)) / |b - a|^2`` (0 at end a, 1 at b)."""
+        t = centres @ self.ends_ab.pos.T
+        t -= self._a_dot_ab
+        t /= self._length2
+        return t
+
     def closest_dynamics(self, centres: np.ndarray) -> PointDynamics:
         """:class:`PointDynamics` of the point on every capsule axis closest to every centre.
 
@@ -175,10 +183,7 @@ class ArmModel:
         if not self._ends_current:
             self._update_ends()
         a, ab = self.ends_a, self.ends_ab
-        # Parameter of the closest point on each axis, t = clip(((o - a) . ab) / |ab|^2, 0, 1).
-        t = centres @ ab.pos.T
-        t -= self._a_dot_ab
-        t /= self._length2
+        t = self._axis_parameter(centres)
         np.maximum(t, 0.0, out=t)
         np.minimum(t, 1.0, out=t)
         return PointDynamics(
@@ -212,9 +217,7 @@ class ArmModel:
             self._update_ends()
         ab = self.ends_ab
         k, s = len(centres), len(self.capsule_ids)
-        t = centres @ ab.pos.T
-        t -= self._a_dot_ab
-        t /= self._length2
+        t = self._axis_parameter(centres)
         rate = np.einsum("ksj,sj->ks", v.reshape(k, s, 3), ab.pos)
         rate += np.einsum("ksj,sj->ks", p.reshape(k, s, 3), ab.vel)
         rate /= -self._length2

@@ -34,6 +34,7 @@ __all__ = [
     "check_points",
     "distance_barrier",
     "require_positive",
+    "row_buffers",
 ]
 
 FloatArray = NDArray[np.float64]
@@ -71,6 +72,18 @@ class BarrierTerms(NamedTuple):
     drift: FloatArray
     inside: NDArray[np.bool_]
     grad_p: FloatArray
+
+
+def row_buffers(out: Rows | None, m: int, n: int) -> tuple[FloatArray, FloatArray]:
+    """``(A, b)`` of shapes (m, n) and (m,) to write rows into: new arrays, or the first ``m``
+    rows of ``out`` after checking it is large enough (ValueError otherwise)."""
+    if out is None:
+        return np.empty((m, n)), np.empty(m)
+    if out.A.ndim != 2 or out.A.shape[0] < m or out.A.shape[1] != n:
+        raise ValueError(f"out.A must have shape (>= {m}, {n}); got {out.A.shape}")
+    if out.b.ndim != 1 or out.b.shape[0] < m:
+        raise ValueError(f"out.b must have shape (>= {m},); got {out.b.shape}")
+    return out.A[:m], out.b[:m]
 
 
 def require_positive(name: str, value: float) -> float:
@@ -201,16 +214,7 @@ class Barrier(abc.ABC):
             raise ValueError(f"c must have shape ({n_pts}, 3); got {c.shape}")
         n = G.shape[2]
 
-        if out is None:
-            A = np.empty((n_pts, n))
-            b = np.empty(n_pts)
-        else:
-            if out.A.ndim != 2 or out.A.shape[0] < n_pts or out.A.shape[1] != n:
-                raise ValueError(f"out.A must have shape (>= {n_pts}, {n}); got {out.A.shape}")
-            if out.b.ndim != 1 or out.b.shape[0] < n_pts:
-                raise ValueError(f"out.b must have shape (>= {n_pts},); got {out.b.shape}")
-            A = out.A[:n_pts]
-            b = out.b[:n_pts]
+        A, b = row_buffers(out, n_pts, n)
 
         np.matmul(grad_v[:, None, :], G, out=A[:, None, :])
         # b = −(⟨grad_v, c⟩ + drift + γ h), built in place.

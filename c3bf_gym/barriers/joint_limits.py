@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike
 
-from .base import FloatArray, Rows, require_positive
+from .base import FloatArray, Rows, require_positive, row_buffers
 
 __all__ = ["JointLimits"]
 
@@ -162,16 +162,7 @@ class JointLimits:
         ):
             if arr.shape != shape:
                 raise ValueError(f"{name} must have shape {shape}; got {arr.shape}")
-        if out is None:
-            A = np.empty((m, n))
-            b = np.empty(m)
-        else:
-            if out.A.ndim != 2 or out.A.shape[0] < m or out.A.shape[1] != n:
-                raise ValueError(f"out.A must have shape (>= {m}, {n}); got {out.A.shape}")
-            if out.b.ndim != 1 or out.b.shape[0] < m:
-                raise ValueError(f"out.b must have shape (>= {m},); got {out.b.shape}")
-            A = out.A[:m]
-            b = out.b[:m]
+        A, b = row_buffers(out, m, n)
 
         # Upper-type rows constrain −q̈, lower-type rows +q̈.
         np.negative(Minv, out=A[0:n])
