@@ -168,20 +168,37 @@ class CartesianImpedanceAction(gym.ActionWrapper):
     null-space pull to the ``home`` posture) computes the torque towards it. Out-of-range, wrongly
     shaped or non-finite actions raise ``ValueError``.
 
+    With ``residual=True`` the action is a correction to a step straight for the goal: the target
+    is ``x_tool + clip(goal - x_tool, ±max_offset) + max_offset * a`` (per axis, so up to
+    ``2 max_offset`` from the tool), and ``a = 0`` heads for the goal. This is residual RL
+    (Johannink et al., ICRA 2019): the policy only has to learn what the straight line gets
+    wrong, such as going around an obstacle at rest on it. The task itself does not change.
+
     Args:
         env: a ``C3BFReach-v0`` environment (possibly wrapped, e.g. by :class:`SafetyFilter`).
-        max_offset: the target's largest distance from the tool per axis [m].
+        max_offset: the target's largest distance from the tool per axis (per part with
+            ``residual``) [m].
         controller: a custom :class:`CartesianImpedance`.
+        residual: actions correct a straight step for the goal instead of being the whole offset.
     """
 
-    def __init__(self, env: gym.Env, max_offset: float = 0.1, controller: CartesianImpedance | None = None) -> None:
+    def __init__(
+        self,
+        env: gym.Env,
+        max_offset: float = 0.1,
+        controller: CartesianImpedance | None = None,
+        residual: bool = False,
+    ) -> None:
         super().__init__(env)
         base = reach_env(env, "CartesianImpedanceAction")
         if base.has_torque_hook("nominal"):
             raise ValueError("this environment already has a nominal controller installed")
         if not (isinstance(max_offset, (int, float)) and np.isfinite(max_offset) and max_offset > 0):
             raise ValueError(f"max_offset must be a finite number > 0 (m), got {max_offset!r}")
+        if not isinstance(residual, (bool, np.bool_)):
+            raise ValueError(f"residual must be True or False, got {residual!r}")
         self.max_offset = float(max_offset)
+        self.residual = bool(residual)
         self.hook = ImpedanceHook(base, controller or default_impedance(base))
         base.add_torque_hook(self.hook, stage="nominal")
         self._base = base
@@ -199,7 +216,10 @@ class CartesianImpedanceAction(gym.ActionWrapper):
                 raise ValueError(f"action contains NaN or inf: {a}")
             raise ValueError(f"action must lie in [-1, 1] (fraction of max_offset per axis), got {a}")
         tool = self._base.data.site_xpos[self._base.ee_site_id]
-        self.hook.set_target(tool + self.max_offset * a)
+        offset = self.max_offset * a
+        if self.residual:
+            offset = offset + np.clip(self._base.goal - tool, -self.max_offset, self.max_offset)
+        self.hook.set_target(tool + offset)
         return self._zero  # the torque action underneath is replaced by the controller's
 
     def close(self) -> None:

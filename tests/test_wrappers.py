@@ -292,6 +292,40 @@ def test_bad_max_offset_rejected(make_env, max_offset):
     assert not env.unwrapped.has_torque_hook("nominal")
 
 
+def test_residual_action_heads_for_the_goal(make_env):
+    """residual=True: a = 0 targets a straight step for the goal (clipped per axis to max_offset)
+    and a adds max_offset * a on top; residual=False keeps the offset from the tool."""
+    env = CartesianImpedanceAction(make_env(scenario="none"), max_offset=0.1, residual=True)
+    env.reset(seed=3)
+    base = env.unwrapped
+    tool = base.data.site_xpos[base.ee_site_id].copy()
+    straight = np.clip(base.goal - tool, -0.1, 0.1)
+    assert np.abs(straight).max() == pytest.approx(0.1)  # goals start >= 0.3 m away
+    env.action(np.zeros(3, np.float32))
+    np.testing.assert_allclose(env.hook.target_pos, tool + straight)
+    env.action(np.array([1.0, -1.0, 0.5], np.float32))
+    np.testing.assert_allclose(env.hook.target_pos, tool + straight + [0.1, -0.1, 0.05], atol=1e-7)
+    plain = CartesianImpedanceAction(make_env(scenario="none"), max_offset=0.1)
+    plain.reset(seed=3)
+    plain.action(np.zeros(3, np.float32))
+    np.testing.assert_allclose(plain.hook.target_pos, tool)
+
+
+def test_residual_zero_action_reaches_the_goal(make_env):
+    """With no obstacle, the zero residual brings the tool within the success tolerance."""
+    env = CartesianImpedanceAction(make_env(scenario="none"), residual=True)
+    env.reset(seed=5)
+    for _ in range(150):
+        _, _, _, _, info = env.step(np.zeros(3, np.float32))
+    assert info["is_success"], info["distance"]
+
+
+@pytest.mark.parametrize("residual", [1, "yes", None])
+def test_bad_residual_rejected(make_env, residual):
+    with pytest.raises(ValueError, match="residual must be True or False"):
+        CartesianImpedanceAction(make_env(scenario="none"), residual=residual)
+
+
 NAN_CASES = {
     "filter": (lambda e: SafetyFilter(e), np.array([0, np.nan, 0, 0, 0, 0], np.float32)),
     "impedance": (lambda e: CartesianImpedanceAction(e), np.array([np.nan, 0, 0], np.float32)),
