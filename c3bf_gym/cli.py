@@ -56,14 +56,17 @@ def _add_train(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--algo", choices=ALGORITHMS, default="sac")
     p.add_argument("--action", choices=ACTIONS, default="impedance",
-                   help="impedance: Cartesian tool targets through the impedance controller; torque: raw joint torques")  # fmt: skip
+                   help="impedance: Cartesian tool targets through the impedance controller; residual: corrections "
+                   "to a straight step for the goal, through the same controller; torque: raw joint torques")  # fmt: skip
     p.add_argument("--filter", choices=FILTERS, default="c3bf")
     p.add_argument("--scenario", choices=list(SCENARIOS), default="random")
     p.add_argument("--timesteps", type=_positive_int, default=60_000)
     p.add_argument("--seed", type=_nonnegative_int, default=0)
     p.add_argument("--n-envs", type=_positive_int, default=1, help="parallel environments (SubprocVecEnv when > 1)")
     p.add_argument("--eval-freq", type=_positive_int, default=10_000, help="evaluate every N timesteps")
-    p.add_argument("--eval-episodes", type=_positive_int, default=10)
+    p.add_argument("--eval-episodes", type=_positive_int, default=10, help="episodes per periodic evaluation")
+    p.add_argument("--final-eval-episodes", type=_nonnegative_int, default=50,
+                   help="episodes of the final model's evaluation (final_eval.json; 0: none)")  # fmt: skip
     p.add_argument("--checkpoint-freq", type=_positive_int, default=20_000)
     p.add_argument("--out", default="runs", help="parent directory of the run directory")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -78,7 +81,7 @@ def _run_train(args: argparse.Namespace) -> int:
     config = TrainConfig(
         algo=args.algo, action=args.action, filter=args.filter, scenario=args.scenario,
         timesteps=args.timesteps, seed=args.seed, n_envs=args.n_envs, eval_freq=args.eval_freq,
-        eval_episodes=args.eval_episodes, checkpoint_freq=args.checkpoint_freq, out=args.out,
+        eval_episodes=args.eval_episodes, final_eval_episodes=args.final_eval_episodes, checkpoint_freq=args.checkpoint_freq, out=args.out,
         progress_bar=not args.no_progress, hyperparams=args.hyperparams,
     )  # fmt: skip
     run_dir = train(config)
@@ -89,7 +92,7 @@ def _run_train(args: argparse.Namespace) -> int:
 
 def _add_evaluate(sub: argparse._SubParsersAction) -> None:
     from c3bf_gym.scenarios import SCENARIOS
-    from c3bf_gym.training import FILTERS
+    from c3bf_gym.training import FILTERS, FINAL_EVAL_SEED
 
     p = sub.add_parser(
         "evaluate",
@@ -102,7 +105,7 @@ def _add_evaluate(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--episodes", type=_positive_int, default=50)
     p.add_argument("--filter", choices=FILTERS, default=None, help="default: the run's own")
     p.add_argument("--scenario", choices=list(SCENARIOS), default=None, help="default: the run's own")
-    p.add_argument("--seed", type=_nonnegative_int, default=100_000)
+    p.add_argument("--seed", type=_nonnegative_int, default=FINAL_EVAL_SEED, help="seed of the first episode")
     p.add_argument("--json", dest="json_out", default=None, help="also write the result to this JSON file")
     p.set_defaults(func=_run_evaluate)
 

@@ -194,10 +194,33 @@ def _read_episodes(run: Path) -> dict[str, np.ndarray]:
     return {key: np.array([float(r[key]) for r in rows]) for key in (rows[0] if rows else {})}
 
 
+def _final_success(run: Path) -> tuple[float, float, int] | None:
+    """(success rate, mean return, episodes) of a run's final model: ``final_eval.json`` when the
+    run has it, else the last periodic evaluation in ``evaluations.npz``; None without either."""
+    final = run / "final_eval.json"
+    if final.exists():
+        result = json.loads(final.read_text())
+        return result["success_rate"], result["return_mean"], result["episodes"]
+    if (run / "evaluations.npz").exists():
+        evals = np.load(run / "evaluations.npz")
+        if "successes" in evals and len(evals["successes"]):
+            return float(np.mean(evals["successes"][-1])), float(np.mean(evals["results"][-1])), evals["successes"].shape[1]
+    return None
+
+
+#: Line styles of the action modes when one figure holds several.
+ACTION_STYLES = {"impedance": "-", "residual": "--", "torque": ":"}
+
+
 def plot_training(runs: Sequence[Path], path: Path, window: int = 20) -> str:
-    """Learning curves grouped by filter (mean and min-max over seeds); returns a markdown table."""
+    """Learning curves grouped by (algorithm, action mode, filter): mean and min-max over seeds.
+
+    Returns a markdown table, one row per group: training collision steps (total and per seed)
+    and the final models' success rate and return (per seed and mean) with the number of
+    evaluation episodes per model.
+    """
     plt = _pyplot()
-    groups: dict[str, list[tuple[dict, dict[str, np.ndarray]]]] = {}
+    groups: dict[tuple[str, str, str], list[tuple[dict, dict[str, np.ndarray]]]] = {}
     for run in runs:
         config_file = run / "config.json"
         if not config_file.exists() or not (run / "episodes.csv").exists():
@@ -208,42 +231,48 @@ def plot_training(runs: Sequence[Path], path: Path, window: int = 20) -> str:
             continue
         summary = run / "summary.json"
         config["_summary"] = json.loads(summary.read_text()) if summary.exists() else {}
-        config["_eval"] = np.load(run / "evaluations.npz") if (run / "evaluations.npz").exists() else None
-        groups.setdefault(config["filter"], []).append((config, data))
+        config["_final"] = _final_success(run)
+        groups.setdefault((config["algo"], config["action"], config["filter"]), []).append((config, data))
+    if not groups:
+        raise ValueError("no run has a finished training episode to plot")
+    order = {"none": 0, "hocbf": 1, "c3bf": 2}
+    keys = sorted(groups, key=lambda k: (k[0], k[1], order.get(k[2], 3)))
+    several_modes = len({k[:2] for k in keys}) > 1
     fig, axes = plt.subplots(1, 3, figsize=(15, 4))
     grid_len = 200
     lines = [
-        "| algo | action | filter | seeds | timesteps | training collision steps (per seed) | final eval success | final eval return |",
-        "|---|---|---|---|---|---|---|---|",
+        "| algo | action | filter | seeds | timesteps | training collision steps (per seed) "
+        "| final success (per seed) | final return | eval episodes per model |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
-    for name in [f for f in ("none", "hocbf", "c3bf") if f in groups]:
-        entries = groups[name]
+    for key in keys:
+        algo, action, name = key
+        entries = groups[key]
         horizon = min(d["timesteps"][-1] for _, d in entries)
         grid = np.linspace(0, horizon, grid_len)
         curves = {"return": [], "success": [], "cumulative_cost": []}
         for _, d in entries:
-            for key in curves:
-                values = d[key] if key == "cumulative_cost" else _trailing_mean(d[key], window)
-                curves[key].append(np.interp(grid, d["timesteps"], values))
-        for ax, key, label in zip(axes, curves, ("episode return", "success (end of episode)", "cumulative collision steps")):
-            stack = np.array(curves[key])
-            ax.plot(grid, stack.mean(0), color=COLORS.get(name), label=f"{LABELS.get(name, name)} ({len(entries)} seeds)")
+            for curve in curves:
+                values = d[curve] if curve == "cumulative_cost" else _trailing_mean(d[curve], window)
+                curves[curve].append(np.interp(grid, d["timesteps"], values))
+        label = f"{LABELS.get(name, name)}" + (f", {algo} {action}" if several_modes else "")
+        for ax, curve, title in zip(axes, curves, ("episode return", "success (end of episode)", "cumulative collision steps")):
+            stack = np.array(curves[curve])
+            ax.plot(grid, stack.mean(0), ACTION_STYLES.get(action, "-"), color=COLORS.get(name),
+                    label=f"{label} ({len(entries)} seeds)")  # fmt: skip
             ax.fill_between(grid, stack.min(0), stack.max(0), color=COLORS.get(name), alpha=0.2)
-            ax.set_title(label)
+            ax.set_title(title)
             ax.set_xlabel("timesteps")
             ax.grid(alpha=0.3)
-        config = entries[0][0]
         costs = [int(c["_summary"].get("training_cost", d["cumulative_cost"][-1])) for c, d in entries]
-        evals = [c["_eval"] for c, _ in entries if c["_eval"] is not None]
-        succ = [float(np.mean(e["successes"][-1])) for e in evals if "successes" in e]
-        ret = [float(np.mean(e["results"][-1])) for e in evals]
-        lines.append(
-            f"| {config['algo']} | {config['action']} | {name} | {len(entries)} | {int(horizon)} | "
-            f"{sum(costs)} ({', '.join(map(str, costs))}) | "
-            f"{np.mean(succ):.2f} | {np.mean(ret):.1f} |"
-            if succ
-            else f"| {config['algo']} | {config['action']} | {name} | {len(entries)} | {int(horizon)} | {sum(costs)} ({', '.join(map(str, costs))}) | n/a | n/a |"
-        )
+        finals = [c["_final"] for c, _ in entries if c["_final"] is not None]
+        head = f"| {algo} | {action} | {name} | {len(entries)} | {int(horizon)} | {sum(costs)} ({', '.join(map(str, costs))}) |"
+        if finals:
+            succ, ret, episodes = zip(*finals)
+            per_seed = ", ".join(f"{x:.2f}" for x in succ)
+            lines.append(f"{head} {np.mean(succ):.2f} ({per_seed}) | {np.mean(ret):.1f} | {', '.join(sorted(set(map(str, episodes))))} |")
+        else:
+            lines.append(f"{head} n/a | n/a | n/a |")
     axes[0].legend(fontsize=8)
     fig.suptitle(f"Training curves (moving average over {window} episodes; band: min-max over seeds)")
     _save(fig, path)

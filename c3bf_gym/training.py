@@ -32,6 +32,7 @@ __all__ = [
     "ACTIONS",
     "ALGORITHMS",
     "FILTERS",
+    "FINAL_EVAL_SEED",
     "HYPERPARAMS",
     "TrainConfig",
     "evaluate",
@@ -39,8 +40,12 @@ __all__ = [
     "train",
 ]
 
+#: Seed of the first evaluation episode (``c3bf-gym evaluate`` and the final evaluation of a run);
+#: training envs use ``1000 * seed + i`` and the periodic evaluation ``10_000 + seed``.
+FINAL_EVAL_SEED = 100_000
+
 ALGORITHMS = ("sac", "ppo")
-ACTIONS = ("impedance", "torque")
+ACTIONS = ("impedance", "residual", "torque")
 FILTERS = ("none", "hocbf", "c3bf")
 
 #: Default hyperparameters per (algorithm, action mode). How they were chosen: SB3 / RL-Zoo
@@ -57,11 +62,19 @@ HYPERPARAMS: dict[tuple[str, str], dict[str, Any]] = {
         learning_rate=3e-4, buffer_size=300_000, batch_size=128, gamma=0.98, tau=0.005, ent_coef="auto_0.1",
         learning_starts=2_000, train_freq=1, gradient_steps=1, policy_kwargs=dict(net_arch=[256, 256]),
     ),
+    ("sac", "residual"): dict(
+        learning_rate=3e-4, buffer_size=300_000, batch_size=128, gamma=0.98, tau=0.005, ent_coef="auto_0.1",
+        learning_starts=2_000, train_freq=1, gradient_steps=1, policy_kwargs=dict(net_arch=[256, 256]),
+    ),
     ("sac", "torque"): dict(
         learning_rate=3e-4, buffer_size=300_000, batch_size=128, gamma=0.98, tau=0.005, ent_coef="auto_0.1",
         learning_starts=5_000, train_freq=1, gradient_steps=1, policy_kwargs=dict(net_arch=[256, 256]),
     ),
     ("ppo", "impedance"): dict(
+        learning_rate=3e-4, n_steps=1024, batch_size=64, n_epochs=10, gamma=0.98, gae_lambda=0.95,
+        clip_range=0.2, ent_coef=0.0, policy_kwargs=dict(net_arch=dict(pi=[256, 256], vf=[256, 256])),
+    ),
+    ("ppo", "residual"): dict(
         learning_rate=3e-4, n_steps=1024, batch_size=64, n_epochs=10, gamma=0.98, gae_lambda=0.95,
         clip_range=0.2, ent_coef=0.0, policy_kwargs=dict(net_arch=dict(pi=[256, 256], vf=[256, 256])),
     ),
@@ -77,7 +90,7 @@ class TrainConfig:
     """One training run. ``filter`` is ``"none"``, ``"hocbf"`` or ``"c3bf"``."""
 
     algo: Literal["sac", "ppo"] = "sac"
-    action: Literal["impedance", "torque"] = "impedance"
+    action: Literal["impedance", "residual", "torque"] = "impedance"
     filter: Literal["none", "hocbf", "c3bf"] = "c3bf"
     scenario: str = "random"
     timesteps: int = 60_000
@@ -85,6 +98,7 @@ class TrainConfig:
     n_envs: int = 1
     eval_freq: int = 10_000
     eval_episodes: int = 10
+    final_eval_episodes: int = 50
     checkpoint_freq: int = 20_000
     out: str = "runs"
     progress_bar: bool = True
@@ -105,8 +119,10 @@ class TrainConfig:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
-        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
-            raise ValueError(f"seed must be an integer >= 0, got {self.seed!r}")
+        for name in ("seed", "final_eval_episodes"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+                raise ValueError(f"{name} must be an integer >= 0, got {value!r}")
 
     @property
     def name(self) -> str:
@@ -148,8 +164,8 @@ def make_env(
 
     def thunk() -> gym.Env:
         env = gym.make("C3BFReach-v0", scenario=scenario, **env_kwargs)
-        if action == "impedance":
-            env = CartesianImpedanceAction(env)
+        if action in ("impedance", "residual"):
+            env = CartesianImpedanceAction(env, residual=action == "residual")
         if filter_name is not None:
             env = SafetyFilter(env, barrier=filter_name)
         env = Monitor(env, monitor_file, info_keywords=info_keywords(filter_name))
@@ -275,9 +291,15 @@ def train(config: TrainConfig) -> Path:
         "training_cost": callbacks.callbacks[0].cumulative_cost,
         "training_episodes": callbacks.callbacks[0].episodes,
     }
-    (run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
     venv.close()
     eval_env.close()
+    if config.final_eval_episodes:
+        # The headline success rate: the final model on FINAL_EVAL_SEED.. (the same episodes for
+        # every run), more episodes than the periodic evaluation affords.
+        final = evaluate(run_dir / "model.zip", episodes=config.final_eval_episodes, seed=FINAL_EVAL_SEED)
+        (run_dir / "final_eval.json").write_text(json.dumps(final, indent=2))
+        summary["final_eval"] = final
+    (run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
     return run_dir
 
 
@@ -286,7 +308,7 @@ def evaluate(
     episodes: int = 50,
     filter: str | None = None,
     scenario: str | None = None,
-    seed: int = 100_000,
+    seed: int = FINAL_EVAL_SEED,
     deterministic: bool = True,
 ) -> dict[str, float]:
     """Roll out a saved model for ``episodes`` seeded episodes.

@@ -17,7 +17,7 @@ from c3bf_gym.training import TrainConfig, evaluate, make_env, train
 def test_train_save_reload_evaluate(algo, filter_name, tmp_path):
     config = TrainConfig(
         algo=algo, filter=filter_name, scenario="head_on", timesteps=300, eval_freq=250, eval_episodes=1,
-        checkpoint_freq=250, out=str(tmp_path), progress_bar=False,
+        final_eval_episodes=2, checkpoint_freq=250, out=str(tmp_path), progress_bar=False,
         hyperparams={"learning_starts": 100} if algo == "sac" else {"n_steps": 128, "batch_size": 64},
     )  # fmt: skip
     run = train(config)
@@ -34,6 +34,8 @@ def test_train_save_reload_evaluate(algo, filter_name, tmp_path):
     if filter_name == "c3bf":
         assert summary["training_cost"] == 0.0
         assert all(float(r["interventions"]) >= 0 for r in rows)
+    final = json.loads((run / "final_eval.json").read_text())
+    assert final["episodes"] == 2 and final["filter"] == filter_name and summary["final_eval"] == final
     result = evaluate(run / "model.zip", episodes=1)
     assert result["filter"] == filter_name and result["episodes"] == 1
     assert 0.0 <= result["success_rate"] <= 1.0
@@ -43,7 +45,7 @@ def test_train_save_reload_evaluate(algo, filter_name, tmp_path):
 
 @pytest.mark.slow
 def test_evaluate_command_with_another_filter(tmp_path, capsys):
-    run = train(TrainConfig(timesteps=260, filter="none", scenario="head_on", eval_freq=10_000, out=str(tmp_path),
+    run = train(TrainConfig(timesteps=260, filter="none", scenario="head_on", eval_freq=10_000, final_eval_episodes=0, out=str(tmp_path),
                             progress_bar=False, hyperparams={"learning_starts": 100}))  # fmt: skip
     out_json = tmp_path / "eval.json"
     assert main(["evaluate", str(run / "model.zip"), "--episodes", "2", "--filter", "c3bf", "--json", str(out_json)]) == 0
@@ -58,6 +60,16 @@ def test_make_env_puts_monitor_outside_the_filter():
     env.close()
 
 
+@pytest.mark.parametrize("action, shape", [("impedance", (3,)), ("residual", (3,)), ("torque", (6,))])
+def test_make_env_action_modes(action, shape):
+    env = make_env("static", "c3bf", action, seed=0)()
+    assert env.action_space.shape == shape
+    impedance = env.get_wrapper_attr("residual") if action != "torque" else None
+    assert impedance == {"impedance": False, "residual": True, "torque": None}[action]
+    env.step(env.action_space.sample())
+    env.close()
+
+
 @pytest.mark.parametrize(
     "kwargs, message",
     [
@@ -67,6 +79,7 @@ def test_make_env_puts_monitor_outside_the_filter():
         ({"scenario": "sideways"}, "unknown scenario 'sideways'"),
         ({"timesteps": 0}, "timesteps must be an integer >= 1"),
         ({"seed": -1}, "seed must be an integer >= 0"),
+        ({"final_eval_episodes": -1}, "final_eval_episodes must be an integer >= 0"),
     ],
 )
 def test_bad_training_options(kwargs, message):
@@ -77,3 +90,41 @@ def test_bad_training_options(kwargs, message):
 def test_evaluate_missing_model(tmp_path):
     with pytest.raises(FileNotFoundError, match="no model at"):
         evaluate(tmp_path / "model.zip")
+
+
+def _fake_run(root, name, filter_name, action, costs, final=None):
+    """A run directory as `train` writes it, with made-up numbers (tests the table, not RL)."""
+    run = root / name
+    run.mkdir()
+    (run / "config.json").write_text(json.dumps({"algo": "sac", "action": action, "filter": filter_name}))
+    with open(run / "episodes.csv", "w", newline="") as fh:
+        writer = csv.writer(fh)
+        writer.writerow(["timesteps", "return", "length", "success", "cost", "interventions", "cumulative_cost"])
+        for i, cost in enumerate(costs):
+            writer.writerow([250 * (i + 1), 10.0 * i, 250, float(i % 2), cost, 0, sum(costs[: i + 1])])
+    (run / "summary.json").write_text(json.dumps({"training_cost": float(sum(costs))}))
+    if final is not None:
+        (run / "final_eval.json").write_text(json.dumps({"success_rate": final, "return_mean": 5.0, "episodes": 50}))
+    return run
+
+
+def test_plot_training_table_groups_by_mode_and_filter(tmp_path):
+    runs = [
+        _fake_run(tmp_path, "a", "none", "impedance", [3, 0, 2], final=0.5),
+        _fake_run(tmp_path, "b", "none", "impedance", [1, 1, 0], final=0.25),
+        _fake_run(tmp_path, "c", "c3bf", "residual", [0, 0, 0], final=1.0),
+        _fake_run(tmp_path, "d", "c3bf", "impedance", [0, 0, 0]),  # no evaluation at all
+    ]
+    out = tmp_path / "curves.png"
+    assert main(["plot-training", *map(str, runs), "--out", str(out), "--table", str(tmp_path / "t.md")]) == 0
+    rows = (tmp_path / "t.md").read_text().splitlines()
+    assert out.stat().st_size > 0
+    assert "| sac | impedance | none | 2 | 750 | 7 (5, 2) | 0.38 (0.50, 0.25) | 5.0 | 50 |" in rows
+    assert "| sac | impedance | c3bf | 1 | 750 | 0 (0) | n/a | n/a | n/a |" in rows
+    assert "| sac | residual | c3bf | 1 | 750 | 0 (0) | 1.00 (1.00) | 5.0 | 50 |" in rows
+
+
+def test_plot_training_rejects_a_non_run(tmp_path, capsys):
+    with pytest.raises(SystemExit):
+        main(["plot-training", str(tmp_path), "--out", str(tmp_path / "x.png")])
+    assert "not a run directory" in capsys.readouterr().err

@@ -17,12 +17,14 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
+from c3bf_gym.training import ACTIONS, ALGORITHMS, FILTERS
+
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--algo", choices=("sac", "ppo"), default="sac")
-    parser.add_argument("--action", choices=("impedance", "torque"), default="impedance")
-    parser.add_argument("--filters", nargs="+", choices=("none", "hocbf", "c3bf"), default=["none", "c3bf", "hocbf"])
+    parser.add_argument("--algo", choices=ALGORITHMS, default="sac")
+    parser.add_argument("--action", choices=ACTIONS, default="impedance")
+    parser.add_argument("--filters", nargs="+", choices=FILTERS, default=["none", "c3bf", "hocbf"])
     parser.add_argument("--scenario", default="random")
     parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     parser.add_argument("--timesteps", type=int, default=40_000)

@@ -15,14 +15,14 @@ import json
 
 import numpy as np
 
-from c3bf_gym.training import FILTERS, make_env
+from c3bf_gym.training import FILTERS, FINAL_EVAL_SEED, make_env
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--episodes", type=int, default=20)
     parser.add_argument("--scenario", default="random")
-    parser.add_argument("--seed", type=int, default=100_000, help="seed of episode 0 (as c3bf-gym evaluate)")
+    parser.add_argument("--seed", type=int, default=FINAL_EVAL_SEED, help="seed of episode 0 (as c3bf-gym evaluate)")
     parser.add_argument("--filters", nargs="+", choices=FILTERS, default=list(FILTERS))
     args = parser.parse_args()
     results = []
