@@ -11,8 +11,17 @@ gives the translational Jacobian column of dof ``j`` on the body's chain as
 (the same expressions as ``mj_jac`` and ``mj_jacDot``, which the tests compare against). With the
 chain mask folded into ``q̇``, every sum is one small matrix product for all points at once.
 
-Everything here needs ``data`` after ``mj_step1`` (or ``mj_forward``): positions, ``qM``, bias
-and passive forces, ``cdof`` and ``cdof_dot`` of the state about to be integrated.
+The joint acceleration is the one the next physics step integrates, not the continuous-time
+``M⁻¹ f``. MuJoCo's Euler integrator treats joint damping ``D`` implicitly (unless
+``mjDSBL_EULERDAMP`` is set): it integrates ``q̇⁺ = q̇ + h (M + h D)⁻¹ f``, with ``f = τ + τ_passive
+− b`` (``τ_passive`` holding the explicit damping force ``−D q̇``). ``implicitfast`` and
+``implicit`` do the same for the damping (``implicit`` also differentiates the Coriolis forces,
+which is left out here). So ``Minv`` is ``(M + h D)⁻¹``, and plain ``M⁻¹`` only for RK4 or with
+``mjDSBL_EULERDAMP`` (with ``h D = 0``). With ``D = 10 N m s/rad`` on the big joints and
+``h = 2 ms``, ``M⁻¹`` would mispredict the accelerations by 2–4 %.
+
+Everything here needs ``data`` after ``mj_step1`` (or ``mj_forward``): positions, the mass
+matrix, bias and passive forces, ``cdof`` and ``cdof_dot`` of the state about to be integrated.
 """
 
 from __future__ import annotations
@@ -32,8 +41,8 @@ class PointDynamics(NamedTuple):
         pos: (P, 3) point positions [m].
         vel: (P, 3) point velocities [m/s].
         jac: (P, 3, n) translational Jacobians (None where not computed).
-        G: (P, 3, n) ``J M⁻¹`` [m/s² per N m].
-        c: (P, 3) acceleration at zero actuator torque, ``J M⁻¹(τ_passive − b) + J̇ q̇`` [m/s²].
+        G: (P, 3, n) ``J M_h⁻¹`` [m/s² per N m], ``M_h = M + h D`` (:attr:`ArmModel.Minv`).
+        c: (P, 3) acceleration at zero actuator torque, ``J M_h⁻¹(τ_passive − b) + J̇ q̇`` [m/s²].
     """
 
     pos: np.ndarray
@@ -43,18 +52,17 @@ class PointDynamics(NamedTuple):
     c: np.ndarray
 
 
-def _cross(a: np.ndarray, b: np.ndarray, out: np.ndarray) -> np.ndarray:
-    """Row-wise cross product of (P, 3) arrays into ``out`` (faster than ``np.cross``)."""
-    out[:, 0] = a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1]
-    out[:, 1] = a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2]
-    out[:, 2] = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
-    return out
+def _levi_civita() -> np.ndarray:
+    eps = np.zeros((3, 3, 3))
+    for i, j, k in ((0, 1, 2), (1, 2, 0), (2, 0, 1)):
+        eps[i, j, k], eps[i, k, j] = 1.0, -1.0
+    return eps
 
 
-def _lerp(base: np.ndarray, delta: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """``base + t * delta`` for (S, ...) arrays and (K, S) weights, flattened to (K * S, ...)."""
-    weights = t.reshape(t.shape + (1,) * (base.ndim - 1))
-    return (base + weights * delta).reshape(-1, *base.shape[1:])
+#: ``(u ⊗ r).reshape(P, 9) @ _CROSS = u × r`` for (P, 3) arrays u, r (row 3i + k is ε_{jik}).
+_CROSS = np.einsum("jik->ikj", _levi_civita()).reshape(9, 3)
+#: ``_OMEGA_CROSS @ ω`` stacks ``ω × e_k`` for k = 0, 1, 2 (row 3k + i is ε_{ilk}).
+_OMEGA_CROSS = np.einsum("ilk->kil", _levi_civita()).reshape(9, 3)
 
 
 def segment_closest_points(a: np.ndarray, b: np.ndarray, centres: np.ndarray) -> np.ndarray:
@@ -95,6 +103,9 @@ class ArmModel:
         if not ids:
             raise ValueError("the model has no capsule geoms on moving arm bodies")
         self.capsule_ids = np.array(ids)
+        # a slice (a view, no gather) when the capsules are consecutive geoms, as in ur5e.xml
+        contiguous = ids == list(range(ids[0], ids[0] + len(ids)))
+        self._capsule_index = slice(ids[0], ids[0] + len(ids)) if contiguous else self.capsule_ids
         self.capsule_radius = model.geom_size[self.capsule_ids, 0].copy()
         self.capsule_half = model.geom_size[self.capsule_ids, 1].copy()
         self.capsule_names = [model.geom(g).name for g in self.capsule_ids]
@@ -106,14 +117,41 @@ class ArmModel:
         self.site_chain = self._chain_mask(model, model.site_bodyid[self.site_id])
         self._length2 = (2.0 * self.capsule_half) ** 2
         self._end_chain = np.concatenate([self.capsule_chain, self.capsule_chain])
+        s = len(self.capsule_ids)
+        self._ends = np.zeros((2 * s, 3, 3 + self.nv))  # ends a then b, packed [pos | vel | c | G]
+        self._ends_a = self._ends[:s]
+        self._ends_ab = np.zeros((s, 3, 3 + self.nv))
+        self._end_jac = np.zeros((2 * s, 3, self.nv))
         self._eye = np.eye(self.nv)
+        #: ``(M + h D)⁻¹``: the map from joint torque to the joint acceleration the next physics
+        #: step integrates (module docstring); ``M⁻¹`` when the integrator has no implicit damping.
         self.Minv = np.zeros((self.nv, self.nv))
-        self.qacc_free = np.zeros(self.nv)  # M⁻¹(τ_passive − b): joint acceleration at zero torque
+        self.qacc_free = np.zeros(self.nv)  # Minv (τ_passive − b): joint acceleration at zero torque
+        #: ``h D``, the implicit damping the integrator adds to the mass matrix's diagonal (nv,).
+        self.implicit_damping = self._implicit_damping(model)
+        # M + h D is factored in a scratch MjData (MuJoCo's sparse L'DL of the tree), never in the
+        # env's data: mj_step2 still needs that one's own factorisation of M.
+        self._scratch = mujoco.MjData(model)
+        self._step_M = self._scratch.M  # lower-triangular CSR, same layout as data.M
+        self._M_damping = np.zeros(model.nM)  # h D at the diagonal entries of that layout
+        self._M_damping[model.M_rowadr + model.M_rownnz - 1] = self.implicit_damping
         self._version: int | None = None
         self._ends_current = False
         self._site_body = int(model.site_bodyid[self.site_id])
         self._site_jac = np.zeros((1, 3, self.nv))
         self._site_jac_dot = np.zeros((3, self.nv))
+
+    @staticmethod
+    def _implicit_damping(model: mujoco.MjModel) -> np.ndarray:
+        """(nv,) ``h D`` if the integrator treats joint damping implicitly, else zeros."""
+        integrator = mujoco.mjtIntegrator
+        euler_damp = model.opt.integrator == integrator.mjINT_EULER and not (
+            model.opt.disableflags & mujoco.mjtDisableBit.mjDSBL_EULERDAMP
+        )
+        implicit = model.opt.integrator in (integrator.mjINT_IMPLICIT, integrator.mjINT_IMPLICITFAST)
+        if not (euler_damp or implicit):
+            return np.zeros(model.nv)
+        return model.opt.timestep * model.dof_damping.copy()
 
     @staticmethod
     def _chain_mask(model: mujoco.MjModel, body: int) -> np.ndarray:
@@ -127,8 +165,9 @@ class ArmModel:
 
     # ------------------------------------------------------------------ per physics step
     def update(self, data: mujoco.MjData, version: int | None = None) -> None:
-        """Refresh ``Minv``, ``qacc_free`` and the capsule end points' dynamics for the current
-        state (one ``mj_solveM`` and a handful of small matrix products).
+        """Refresh ``Minv = (M + h D)⁻¹``, ``qacc_free`` and the capsule end points' dynamics for
+        the current state (one sparse factorisation of ``M + h D``, one solve for its inverse, and
+        a handful of small matrix products).
 
         With ``version`` (the env's ``state_version``), a call for the version already computed
         returns at once, so several hooks in one physics step share the work.
@@ -138,36 +177,66 @@ class ArmModel:
         self._version = version
         self._ends_current = False
         self._data = data
-        mujoco.mj_solveM(self.model, data, self.Minv, self._eye)
+        scratch = self._scratch
+        np.add(data.M, self._M_damping, out=self._step_M)
+        mujoco.mj_factorM(self.model, scratch)
+        mujoco.mj_solveM(self.model, scratch, self.Minv, self._eye)
         np.matmul(self.Minv, data.qfrc_passive - data.qfrc_bias, out=self.qacc_free)
 
     def _update_ends(self) -> None:
-        """The capsule end points' dynamics, computed on first use after :meth:`update`."""
+        """The capsule end points' dynamics, computed on first use after :meth:`update`.
+
+        Each capsule's axis lies on one rigid body, so position, velocity, ``c`` and ``G`` are
+        all affine along it: ``_ends_a`` holds them at end a and ``_ends_ab`` the difference to
+        end b, packed as (S, 3, 3 + nv) arrays ``[pos | vel | c | G]`` so that one broadcast
+        product evaluates all of them at any points of the axes (:meth:`_closest`).
+        """
         data = self._data
         self._ends_current = True
-        a, b = self.capsule_segments(data)
-        ends = self.point_dynamics(data, np.concatenate([a, b]), self._end_chain)
         s = len(self.capsule_ids)
-        # Each capsule's axis lies on one rigid body, so position, velocity, J, G and c are all
-        # affine along it: store the value at end a and the difference to end b.
-        self.ends_a = PointDynamics(*(x[:s] for x in ends))
-        self.ends_ab = PointDynamics(*(x[s:] - x[:s] for x in ends))
-        self._a_dot_ab = (self.ends_a.pos * self.ends_ab.pos).sum(axis=1)
+        centre, axis = self._capsule_axes(data)
+        ends = self._ends
+        np.subtract(centre, axis, out=ends[:s, :, 0])
+        np.add(centre, axis, out=ends[s:, :, 0])
+        self._packed_dynamics(data, self._end_chain, ends, self._end_jac)
+        np.subtract(ends[s:], ends[:s], out=self._ends_ab)
+        self._a_dot_ab = (self._ends_a[:, :, 0] * self._ends_ab[:, :, 0]).sum(axis=1)
+
+    def _capsule_axes(self, data: mujoco.MjData) -> tuple[np.ndarray, np.ndarray]:
+        """Centres and half-axis vectors (S, 3), (S, 3) of the protected capsules [m]."""
+        ids = self._capsule_index
+        return data.geom_xpos[ids], data.geom_xmat[ids, 2::3] * self.capsule_half[:, None]  # z column of xmat
 
     def capsule_segments(self, data: mujoco.MjData) -> tuple[np.ndarray, np.ndarray]:
         """End points (S, 3), (S, 3) of the protected capsules' axes, in world coordinates [m]."""
-        ids = self.capsule_ids
-        axis = data.geom_xmat[ids][:, 2::3] * self.capsule_half[:, None]  # z column (xmat is row-major)
-        centre = data.geom_xpos[ids]
+        centre, axis = self._capsule_axes(data)
         return centre - axis, centre + axis
 
     def _axis_parameter(self, centres: np.ndarray) -> np.ndarray:
         """(K, S) position along each capsule axis of the point nearest each centre, before
         clamping to the segment: ``t = ((o - a) . (b - a)) / |b - a|^2`` (0 at end a, 1 at b)."""
-        t = centres @ self.ends_ab.pos.T
+        t = centres @ self._ends_ab[:, :, 0].T
         t -= self._a_dot_ab
         t /= self._length2
         return t
+
+    def _closest(self, centres: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The packed ``[pos | vel | c | G]`` (K, S, 3, 3 + nv) of the closest points, and the
+        unclamped axis parameter (K, S)."""
+        if not self._ends_current:
+            self._update_ends()
+        t = self._axis_parameter(centres)
+        clamped = np.maximum(t, 0.0)
+        np.minimum(clamped, 1.0, out=clamped)
+        packed = np.multiply(clamped[:, :, None, None], self._ends_ab)
+        packed += self._ends_a
+        return packed, t
+
+    @staticmethod
+    def _unpack(packed: np.ndarray) -> PointDynamics:
+        """:class:`PointDynamics` (views, leading dimension K * S) of a packed (K, S, 3, 3 + nv)."""
+        flat = packed.reshape(-1, *packed.shape[2:])
+        return PointDynamics(flat[:, :, 0], flat[:, :, 1], None, flat[:, :, 3:], flat[:, :, 2])
 
     def closest_dynamics(self, centres: np.ndarray) -> PointDynamics:
         """:class:`PointDynamics` of the point on every capsule axis closest to every centre.
@@ -180,15 +249,16 @@ class ArmModel:
             ``k`` and capsule ``s``); ``jac`` is None (the filter needs ``G`` and ``c`` only).
             Call :meth:`update` first in the same physics step.
         """
-        if not self._ends_current:
-            self._update_ends()
-        a, ab = self.ends_a, self.ends_ab
-        t = self._axis_parameter(centres)
-        np.maximum(t, 0.0, out=t)
-        np.minimum(t, 1.0, out=t)
-        return PointDynamics(
-            _lerp(a.pos, ab.pos, t), _lerp(a.vel, ab.vel, t), None, _lerp(a.G, ab.G, t), _lerp(a.c, ab.c, t)
-        )
+        return self._unpack(self._closest(centres)[0])
+
+    def _sliding_rate(self, t: np.ndarray, p: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """(K, S, 1) ``ṫ`` of :meth:`closest_sliding` from the unclamped axis parameter ``t``."""
+        ab = self._ends_ab
+        rate = np.vecdot(v, ab[:, :, 0])
+        rate += np.vecdot(p, ab[:, :, 1])
+        rate /= -self._length2
+        rate *= (t > 0.0) & (t < 1.0)  # 0 where the point is clamped to an end
+        return rate[..., None]
 
     def closest_sliding(self, centres: np.ndarray, p: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """How fast the closest points of :meth:`closest_dynamics` slide along their axes.
@@ -215,42 +285,75 @@ class ArmModel:
         """
         if not self._ends_current:
             self._update_ends()
-        ab = self.ends_ab
         k, s = len(centres), len(self.capsule_ids)
-        t = self._axis_parameter(centres)
-        rate = np.einsum("ksj,sj->ks", v.reshape(k, s, 3), ab.pos)
-        rate += np.einsum("ksj,sj->ks", p.reshape(k, s, 3), ab.vel)
-        rate /= -self._length2
-        rate[(t <= 0.0) | (t >= 1.0)] = 0.0
-        rate = rate[..., None]
-        return (rate * ab.pos).reshape(-1, 3), (rate * ab.vel).reshape(-1, 3)
+        rate = self._sliding_rate(self._axis_parameter(centres), p.reshape(k, s, 3), v.reshape(k, s, 3))
+        ab = self._ends_ab
+        return (rate * ab[:, :, 0]).reshape(-1, 3), (rate * ab[:, :, 1]).reshape(-1, 3)
+
+    def closest_relative(
+        self, centres: np.ndarray, velocities: np.ndarray, accelerations: np.ndarray
+    ) -> tuple[PointDynamics, np.ndarray]:
+        """:meth:`closest_dynamics` and :meth:`closest_sliding` in one pass, relative to moving
+        obstacles: what a barrier row on the closest points needs.
+
+        Args:
+            centres, velocities, accelerations: (K, 3) the obstacles' [m, m/s, m/s²].
+
+        Returns:
+            ``(rel, slide_p)``: ``rel`` is a :class:`PointDynamics` (leading dimension K * S,
+            obstacle-major) with ``pos = p = x* − o``, ``vel = v = ẋ − v_o``, ``G``, and
+            ``c = (material c) − a_o + ṫ (ḃ − ȧ)`` (the sliding term of ``v̇`` included);
+            ``slide_p = ṫ (b − a)`` (K * S, 3), the sliding term of ``ṗ``.
+        """
+        packed, t = self._closest(centres)
+        p = np.subtract(packed[:, :, :, 0], centres[:, None, :])
+        v = np.subtract(packed[:, :, :, 1], velocities[:, None, :])
+        c = np.subtract(packed[:, :, :, 2], accelerations[:, None, :])
+        rate = self._sliding_rate(t, p, v)
+        ab = self._ends_ab
+        c += rate * ab[:, :, 1]
+        slide_p = rate * ab[:, :, 0]
+        flat = packed.reshape(-1, *packed.shape[2:])
+        return PointDynamics(p.reshape(-1, 3), v.reshape(-1, 3), None, flat[:, :, 3:], c.reshape(-1, 3)), slide_p.reshape(-1, 3)
+
+    def _packed_dynamics(self, data: mujoco.MjData, chain: np.ndarray, packed: np.ndarray, jac: np.ndarray) -> None:
+        """Fill ``packed[:, :, 1:]`` (velocity, ``c``, ``G``) of the points in ``packed[:, :, 0]``
+        (P, 3, 3 + nv) moving with bodies whose dof masks are ``chain`` (P, nv), and their
+        Jacobians ``jac`` (P, 3, nv). ``Minv`` and ``qacc_free`` must be current."""
+        n, nv = len(chain), self.nv
+        cdof = data.cdof
+        r = packed[:, :, 0] - data.subtree_com[self._root]
+        # J[p, :, j] = chain[p, j] (v_j + ω_j × r_p);  ω_j × r = Σ_k r_k (ω_j × e_k)
+        omega_cross = _OMEGA_CROSS @ cdof[:, :3].T  # (9, nv): row 3k + i is (ω_j × e_k)_i
+        flat = jac.reshape(n, 3 * nv)
+        np.matmul(r, omega_cross.reshape(3, 3 * nv), out=flat)
+        jac += cdof[:, 3:].T
+        jac *= chain[:, None, :]
+        jac2 = jac.reshape(3 * n, nv)
+        rows = packed.reshape(3 * n, 3 + nv)  # a view: the products below write into packed
+        np.matmul(jac2, data.qvel, out=rows[:, 1])
+        vel = packed[:, :, 1]
+        qd_masked = chain * data.qvel
+        omega = qd_masked @ cdof[:, :3]
+        # J̇q̇ = Σ q̇_j v̇_j + (Σ q̇_j ω̇_j) × r + ω × ẋ, both cross products from one sum of outer products
+        rates = qd_masked @ data.cdof_dot  # (P, 6): Σ q̇_j ω̇_j, Σ q̇_j v̇_j
+        outer = rates[:, :3, None] * r[:, None, :]
+        outer += omega[:, :, None] * vel[:, None, :]
+        bias = outer.reshape(n, 9) @ _CROSS
+        bias += rates[:, 3:]
+        np.matmul(jac2, self.qacc_free, out=rows[:, 2])
+        packed[:, :, 2] += bias
+        np.matmul(jac2, self.Minv, out=rows[:, 3:])
 
     def point_dynamics(self, data: mujoco.MjData, points: np.ndarray, chain: np.ndarray) -> PointDynamics:
         """:class:`PointDynamics` for ``points`` (P, 3) moving with bodies whose dof masks are
         ``chain`` (P, nv). ``Minv`` and ``qacc_free`` must be current (:meth:`update`)."""
-        n, nv = len(points), self.nv
-        cdof, cdof_dot = data.cdof, data.cdof_dot
-        r = points - data.subtree_com[self._root]
-        # J[p, :, j] = chain[p, j] (v_j + ω_j × r_p) = chain[p, j] (v_j - skew(r_p) ω_j)
-        skew = np.zeros((n, 3, 3))
-        skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = -r[:, 2], r[:, 1], -r[:, 0]
-        skew[:, 1, 0], skew[:, 2, 0], skew[:, 2, 1] = r[:, 2], -r[:, 1], r[:, 0]
-        skew2 = skew.reshape(3 * n, 3)
-        jac = (skew2 @ -cdof[:, :3].T).reshape(n, 3, nv)
-        jac += cdof[:, 3:].T
-        jac *= chain[:, None, :]
-        jac2 = jac.reshape(3 * n, nv)
-        vel = (jac2 @ data.qvel).reshape(n, 3)
-        qd_masked = chain * data.qvel
-        omega = qd_masked @ cdof[:, :3]
-        # J̇q̇ = Σ q̇_j v̇_j + (Σ q̇_j ω̇_j) × r + ω × ẋ ;  u × r = -skew(r) u
-        bias = qd_masked @ cdof_dot[:, 3:]
-        bias -= np.einsum("pij,pj->pi", skew, qd_masked @ cdof_dot[:, :3])
-        bias += _cross(omega, vel, np.empty_like(r))
-        G = (jac2 @ self.Minv).reshape(n, 3, nv)
-        c = (jac2 @ self.qacc_free).reshape(n, 3)
-        c += bias
-        return PointDynamics(points, vel, jac, G, c)
+        n = len(points)
+        packed = np.empty((n, 3, 3 + self.nv))
+        packed[:, :, 0] = points
+        jac = np.empty((n, 3, self.nv))
+        self._packed_dynamics(data, np.asarray(chain, dtype=float), packed, jac)
+        return PointDynamics(points, packed[:, :, 1], jac, packed[:, :, 3:], packed[:, :, 2])
 
     def site_dynamics(self, data: mujoco.MjData) -> PointDynamics:
         """:class:`PointDynamics` of the tool site (P = 1), from ``mj_jacSite`` and ``mj_jacDot``.

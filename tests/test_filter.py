@@ -84,17 +84,16 @@ def random_scene(u, rng, n_obstacles, clearance=(0.02, 0.25), speed=0.4, qd=0.5)
 
 
 def mujoco_accelerations(u, tau):
-    """Joint acceleration for total actuator torque ``tau`` from MuJoCo's forward dynamics."""
-    m, d = u.model, u.data
-    ctrl = d.ctrl.copy()
+    """Joint acceleration for total actuator torque ``tau``: the one MuJoCo's next physics step
+    integrates, ``(q̇⁺ − q̇) / h`` (Euler treats joint damping implicitly), on a copy of the data."""
+    m = u.model
+    d = mujoco.MjData(m)
+    mujoco.mj_copyData(d, m, u.data)
     d.ctrl[:] = tau - d.qfrc_gravcomp  # the env's convention: the motors add gravity compensation
-    mujoco.mj_forward(m, d)
+    mujoco.mj_step(m, d)
     assert d.nefc == 0
     np.testing.assert_allclose(d.qfrc_actuator, tau, atol=1e-9)  # no clamping happened
-    qacc = d.qacc.copy()
-    d.ctrl[:] = ctrl
-    mujoco.mj_forward(m, d)
-    return qacc
+    return (d.qvel - u.data.qvel) / m.opt.timestep
 
 
 def point_motion(u, x, body, qacc):
