@@ -13,6 +13,7 @@ At every physics step (``C3BFReachEnv`` calls the hook between ``mj_step1`` and 
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass
 from typing import Literal
@@ -147,9 +148,7 @@ class SafetyHook:
         self._limit = limit
         self._A = np.zeros((max_rows, n))
         self._b = np.zeros(max_rows)
-        self._point_radius = (
-            np.tile(self.arm.capsule_radius, n_obstacles) if points == "whole_arm" else np.full(n_obstacles, self.ee_radius)
-        )
+        self._capsule_radius = self.arm.capsule_radius
         self.last: QPResult | None = None
         self.report = StepSafety()
         self.solve_times: list[float] | None = None
@@ -172,27 +171,30 @@ class SafetyHook:
         min_h, inside = np.inf, False
         if len(sensed):
             centres = env.obstacle_pos[sensed]
-            k = self._per_obstacle
-            if self.points == "whole_arm":
-                pd = arm.closest_dynamics(centres)
-            else:
-                site = arm.site_dynamics(data)
-                pd = type(site)(*(None if x is None else np.repeat(x, len(sensed), axis=0) for x in site))
-            p = pd.pos - np.repeat(centres, k, axis=0)
-            v = pd.vel - np.repeat(env.obstacle_vel[sensed], k, axis=0)
-            c = pd.c - np.repeat(env.obstacle_acc[sensed], k, axis=0)
-            r = np.repeat(env.obstacle_radius[sensed], k) + self._point_radius[: len(p)] + self.margin
+            radius = env.obstacle_radius[sensed]
             if self.points == "whole_arm":
                 # The closest points slide along the links as things move, so their ḣ has the
                 # terms ⟨∂h/∂p, ṗ_slide⟩ + ⟨∂h/∂v, v̇_slide⟩ besides the material point's; without
                 # them ḣ is overestimated and links drift into obstacles (ArmModel.closest_sliding).
-                slide_p, slide_v = arm.closest_sliding(centres, p, v)
-                c += slide_v
+                # closest_relative puts v̇_slide into c and returns ṗ_slide.
+                rel, slide_p = arm.closest_relative(centres, env.obstacle_vel[sensed], env.obstacle_acc[sensed])
+                p, v, G, c = rel.pos, rel.vel, rel.G, rel.c
+                r = radius[:, None] + self._capsule_radius
+                r += self.margin
+                r = r.reshape(-1)
+            else:
+                site = arm.site_dynamics(data)
+                p = site.pos - centres
+                v = site.vel - env.obstacle_vel[sensed]
+                c = site.c - env.obstacle_acc[sensed]
+                G = np.broadcast_to(site.G, (len(sensed),) + site.G.shape[1:])
+                r = radius + self.ee_radius
+                r += self.margin
             terms = self.barrier.terms(p, v, r)
             m = len(p)
-            self.barrier.rows_from_terms(terms, pd.G, c, out=Rows(self._A, self._b))
+            self.barrier.rows_from_terms(terms, G, c, out=Rows(self._A, self._b))
             if self.points == "whole_arm":
-                self._b[:m] -= np.einsum("ij,ij->i", terms.grad_p, slide_p)
+                self._b[:m] -= np.vecdot(terms.grad_p, slide_p)
             min_h = float(terms.h.min())
             inside = bool(terms.inside.any())
         if self.joint_limits is not None:
@@ -222,7 +224,10 @@ class SafetyHook:
         report.inside |= inside
         report.sensed = max(report.sensed, n_sensed)
         report.active_rows = max(report.active_rows, result.active_rows)
-        correction = float(np.linalg.norm(tau - np.clip(tau_nom, -self._limit, self._limit)))
+        change = np.minimum(tau_nom, self._limit)  # τ_nom clipped to the torque limits ...
+        np.maximum(change, -self._limit, out=change)
+        np.subtract(tau, change, out=change)  # ... and the filter's change to it
+        correction = math.sqrt(float(change @ change))
         report.correction = max(report.correction, correction)
         report.intervened |= correction > self.intervention_tol
         if not result.feasible:

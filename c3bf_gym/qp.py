@@ -268,8 +268,6 @@ class TorqueQP:
         self._r = np.zeros(M + 2 * n)                 # residuals G·(τ, 0) − h
         self._xe = np.zeros(n + 1)                    # (τ, 0); τ part is the returned buffer
         self._tau = self._xe[:n]
-        self._sq = np.zeros((M, n))
-        self._ones = np.ones(n)
         self._mask = np.zeros(M, dtype=bool)
         self._H = np.zeros((n + 1, n + 1))            # elastic Hessian blockdiag(W, 1) (ρ s² = t²)
         self._H[n, n] = 1.0
@@ -353,8 +351,7 @@ class TorqueQP:
         G, h, r, xe = self._G, self._h, self._r, self._xe
         if m:
             nrm = self._nrm[:m]
-            np.multiply(A, A, out=self._sq[:m])
-            np.dot(self._sq[:m], self._ones, out=nrm)
+            np.vecdot(A, A, out=nrm)
             np.sqrt(nrm, out=nrm)
             if nrm.min() < _ROW_NORM_MIN:           # (near-)zero rows stay unscaled
                 np.less(nrm, _ROW_NORM_MIN, out=self._mask[:m])
@@ -373,7 +370,7 @@ class TorqueQP:
         if r.min() >= 0.0:
             return self._result(m, 0.0, True, "solved", 0, t0, residuals_ready=True)
         if m == 0 and self._diag_W:                 # W-metric box projection of a diagonal W = clip
-            np.clip(tau_nom, lo, hi, out=self._tau)
+            self._clip(tau_nom)
             return self._result(0, 0.0, True, "solved", 0, t0)
 
         # ---- rows no torque in the box can satisfy: max_{τ∈box} Â_k τ = Σ_j max(Â_kj lo_j, Â_kj hi_j).
@@ -412,9 +409,9 @@ class TorqueQP:
             iters += int(info.iter)
         x = el.results.x
         if info.status != _SOLVED:
-            np.clip(x[:n] if np.isfinite(x.sum()) else tau_nom, lo, hi, out=self._tau)
+            self._clip(x[:n] if np.isfinite(x.sum()) else tau_nom)
             return self._result(m, None, False, "failed", iters, t0)
-        np.clip(x[:n], lo, hi, out=self._tau)
+        self._clip(x[:n])
         if impossible:
             return self._result(m, None, False, "relaxed", iters, t0)
         tol = self.active_tol
@@ -440,11 +437,16 @@ class TorqueQP:
         hard.solve()
         iters += int(hard.results.info.iter)
         if hard.results.info.status == _SOLVED:
-            np.clip(hard.results.x, lo, hi, out=self._tau)
+            self._clip(hard.results.x)
             return self._result(m, 0.0, True, "solved", iters, t0)
         return self._result(m, None, False, "relaxed", iters, t0)
 
     # ------------------------------------------------------------------ helpers
+    def _clip(self, x) -> None:
+        """``self._tau = clip(x, τ_min, τ_max)`` (two ufuncs: cheaper than ``np.clip``)."""
+        np.maximum(x, self.tau_min, out=self._tau)
+        np.minimum(self._tau, self.tau_max, out=self._tau)
+
     def _result(self, m, slack, feasible, status, iters, t0, residuals_ready=False) -> QPResult:
         """Pack a QPResult for the τ in the buffer; slack=None → recompute max row violation."""
         r = self._r

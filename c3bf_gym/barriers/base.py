@@ -135,7 +135,7 @@ def distance_barrier(p: ArrayLike, r: ArrayLike, out: FloatArray | None = None) 
     clearance independently of which barrier the filter enforces.
     """
     p = np.asarray(p, dtype=np.float64)
-    out = np.einsum("pi,pi->p", p, p, out=out)
+    out = np.vecdot(p, p, out=out)
     out -= np.square(r)
     return out
 
@@ -218,7 +218,7 @@ class Barrier(abc.ABC):
 
         np.matmul(grad_v[:, None, :], G, out=A[:, None, :])
         # b = −(⟨grad_v, c⟩ + drift + γ h), built in place.
-        np.einsum("pi,pi->p", grad_v, c, out=b)
+        np.vecdot(grad_v, c, out=b)
         b += drift
         b += self.gamma * h
         np.negative(b, out=b)

@@ -81,15 +81,15 @@ class C3BF(Barrier):
     ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, np.ndarray]:
         """Shared intermediate quantities: ``p, v, ⟨p,v⟩, ‖v‖², ‖p‖² − r², s, ‖v‖_ε, inside``."""
         p, v, r = check_points(p, v, r)
-        h0 = np.einsum("pi,pi->p", p, p)
+        h0 = np.vecdot(p, p)
         h0 -= np.square(r)  # ‖p‖² − r²
         inside = h0 <= 0.0
         s = np.maximum(h0, self.delta**2)
         np.sqrt(s, out=s)
-        vv = np.einsum("pi,pi->p", v, v)
+        vv = np.vecdot(v, v)
         vn = vv + self._eps**2
         np.sqrt(vn, out=vn)
-        pv = np.einsum("pi,pi->p", p, v)
+        pv = np.vecdot(p, v)
         return p, v, pv, vv, h0, s, vn, inside
 
     def terms(self, p: ArrayLike, v: ArrayLike, r: ArrayLike) -> BarrierTerms:
@@ -116,7 +116,7 @@ class C3BF(Barrier):
             h[inside] = pv[inside] + 0.5 * g * h0[inside]
             grad_v[inside] = p[inside]
             grad_p[inside] = v[inside] + g * p[inside]
-        drift = np.einsum("pi,pi->p", grad_p, v)
+        drift = np.vecdot(grad_p, v)
         return BarrierTerms(h, grad_v, drift, inside, grad_p)
 
     def partials(

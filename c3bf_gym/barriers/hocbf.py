@@ -88,14 +88,14 @@ class DistanceHOCBF(Barrier):
         g1 = self._gamma1
         h0 = distance_barrier(p, r)
         inside = h0 <= 0.0
-        pv2 = np.einsum("pi,pi->p", p, v)
+        pv2 = np.vecdot(p, v)
         pv2 *= 2.0  # 2⟨p, v⟩ = ḣ0
 
         h = h0  # ψ₁ = 2⟨p, v⟩ + γ₁ h0, reusing h0's storage
         h *= g1
         h += pv2
 
-        drift = np.einsum("pi,pi->p", v, v)
+        drift = np.vecdot(v, v)
         drift *= 2.0
         pv2 *= g1  # 2γ₁⟨p, v⟩
         drift += pv2

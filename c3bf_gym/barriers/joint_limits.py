@@ -43,7 +43,7 @@ class JointLimits:
             ``qd_max <= 0`` or a gain that is not finite and > 0.
 
     Note:
-        :meth:`rows` uses an internal (n,) scratch buffer: one instance must not
+        :meth:`rows` uses an internal (3, n) scratch buffer: one instance must not
         be shared between threads.
     """
 
@@ -85,7 +85,14 @@ class JointLimits:
         for arr in (q_lo, q_hi, qd_arr):
             arr.flags.writeable = False
         self._q_lo, self._q_hi, self._qd_max = q_lo, q_hi, qd_arr
-        self._work = np.empty(n)
+        # The four row blocks of b, expanded, are one linear map of (q, q̇, c_q) plus a constant:
+        #   b_pu =  γ₁γ₂ (q − q_hi) + (γ₁ + γ₂) q̇ + c_q      b_vu =  γ_v (q̇ − qd_max) + c_q
+        #   b_pl = −γ₁γ₂ (q − q_lo) − (γ₁ + γ₂) q̇ − c_q      b_vl = −γ_v (q̇ + qd_max) − c_q
+        g12, g1p2, gv = self._g1 * self._g2, self._g1 + self._g2, self._gv
+        self._b_coef = np.array([[g12, g1p2, 1.0], [-g12, -g1p2, -1.0], [0.0, gv, 1.0], [0.0, -gv, -1.0]])
+        self._b_const = np.stack([-g12 * q_hi, g12 * q_lo, -gv * qd_arr, -gv * qd_arr])
+        self._sign = np.array([-1.0, 1.0, -1.0, 1.0])[:, None, None]  # A blocks: ∓Minv
+        self._state = np.empty((3, n))  # (q, q̇, c_q)
 
     @property
     def n(self) -> int:
@@ -163,40 +170,18 @@ class JointLimits:
             if arr.shape != shape:
                 raise ValueError(f"{name} must have shape {shape}; got {arr.shape}")
         A, b = row_buffers(out, m, n)
-
-        # Upper-type rows constrain −q̈, lower-type rows +q̈.
-        np.negative(Minv, out=A[0:n])
-        A[n : 2 * n] = Minv
-        A[2 * n : 3 * n] = A[0:n]
-        A[3 * n : 4 * n] = Minv
-
-        g1, g2, gv = self._g1, self._g2, self._gv
-        b_pu, b_pl, b_vu, b_vl = b[0:n], b[n : 2 * n], b[2 * n : 3 * n], b[3 * n : 4 * n]
-        g1qd = np.multiply(qd, g1, out=self._work)  # γ₁ q̇
-
-        # Position upper: −Minv τ ≥ c_q + γ₁ q̇ − γ₂ ψ_u, ψ_u = −q̇ + γ₁ (q_hi − q).
-        np.subtract(self._q_hi, q, out=b_pu)
-        b_pu *= g1
-        b_pu -= qd
-        b_pu *= -g2
-        b_pu += c_q
-        b_pu += g1qd
-
-        # Position lower: Minv τ ≥ −c_q − γ₁ q̇ − γ₂ ψ_l, ψ_l = q̇ + γ₁ (q − q_lo).
-        np.subtract(q, self._q_lo, out=b_pl)
-        b_pl *= g1
-        b_pl += qd
-        b_pl *= -g2
-        b_pl -= c_q
-        b_pl -= g1qd
-
-        # Velocity upper: −Minv τ ≥ c_q − γ_v (qd_max − q̇).
-        np.subtract(qd, self._qd_max, out=b_vu)
-        b_vu *= gv
-        b_vu += c_q
-
-        # Velocity lower: Minv τ ≥ −c_q − γ_v (q̇ + qd_max).
-        np.add(qd, self._qd_max, out=b_vl)
-        b_vl *= -gv
-        b_vl -= c_q
+        # Upper-type rows constrain −q̈, lower-type rows +q̈: A = [−Minv; Minv; −Minv; Minv].
+        if A.flags.c_contiguous:
+            np.multiply(self._sign, Minv, out=A.reshape(4, n, n))
+        else:
+            for k in range(4):
+                np.multiply(self._sign[k], Minv, out=A[k * n : (k + 1) * n])
+        state = self._state
+        state[0], state[1], state[2] = q, qd, c_q
+        if b.flags.c_contiguous:
+            b4 = b.reshape(4, n)  # a view: written in place
+            np.matmul(self._b_coef, state, out=b4)
+            b4 += self._b_const
+        else:
+            b[:] = (self._b_coef @ state + self._b_const).reshape(-1)
         return Rows(A, b)
