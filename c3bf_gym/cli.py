@@ -45,7 +45,7 @@ _nonnegative_float = _number(float, 0.0, strict=False)
 
 def _add_train(sub: argparse._SubParsersAction) -> None:
     from c3bf_gym.scenarios import SCENARIOS
-    from c3bf_gym.training import ACTIONS, ALGORITHMS, FILTERS
+    from c3bf_gym.training import ACTIONS, ALGORITHMS, DEFAULT_TRAIN_HZ, FILTERS, POLICY_RATES
 
     p = sub.add_parser(
         "train",
@@ -70,6 +70,10 @@ def _add_train(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--checkpoint-freq", type=_positive_int, default=20_000)
     p.add_argument("--out", default="runs", help="parent directory of the run directory")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--policy-hz", type=int, default=DEFAULT_TRAIN_HZ, choices=POLICY_RATES,
+                   help="actions per second (the physics and the filter stay at 500 Hz; episodes stay 5 s)")  # fmt: skip
+    p.add_argument("--normalize-obs", action="store_true",
+                   help="normalise observations with running statistics (SB3 VecNormalize, saved with the model)")  # fmt: skip
     p.add_argument("--hyperparams", type=json.loads, default={},
                    help='JSON overriding the defaults, e.g. \'{"learning_rate": 1e-3}\'')  # fmt: skip
     p.set_defaults(func=_run_train)
@@ -82,7 +86,7 @@ def _run_train(args: argparse.Namespace) -> int:
         algo=args.algo, action=args.action, filter=args.filter, scenario=args.scenario,
         timesteps=args.timesteps, seed=args.seed, n_envs=args.n_envs, eval_freq=args.eval_freq,
         eval_episodes=args.eval_episodes, final_eval_episodes=args.final_eval_episodes, checkpoint_freq=args.checkpoint_freq, out=args.out,
-        progress_bar=not args.no_progress, hyperparams=args.hyperparams,
+        progress_bar=not args.no_progress, normalize_obs=args.normalize_obs, policy_hz=args.policy_hz, hyperparams=args.hyperparams,
     )  # fmt: skip
     run_dir = train(config)
     print(f"run written to {run_dir}")

@@ -5,10 +5,19 @@ from __future__ import annotations
 import csv
 import json
 
+import numpy as np
 import pytest
 
 from c3bf_gym.cli import main
-from c3bf_gym.training import TrainConfig, evaluate, make_env, train
+from c3bf_gym.training import (
+    NORMALIZATION_FILE,
+    TrainConfig,
+    _load_normalizer,
+    evaluate,
+    make_env,
+    policy_rate_kwargs,
+    train,
+)
 
 
 @pytest.mark.slow
@@ -53,6 +62,39 @@ def test_evaluate_command_with_another_filter(tmp_path, capsys):
     assert result["filter"] == "c3bf" and result["collision_episodes"] == 0 and result["episodes"] == 2
 
 
+@pytest.mark.slow
+def test_normalized_run_saves_and_applies_its_statistics(tmp_path, monkeypatch):
+    from stable_baselines3 import SAC
+
+    run = train(TrainConfig(timesteps=300, filter="none", scenario="head_on", normalize_obs=True, policy_hz=10, eval_freq=10_000,
+                            final_eval_episodes=1, out=str(tmp_path), progress_bar=False,
+                            hyperparams={"learning_starts": 100}))  # fmt: skip
+    assert run.name == "sac_impedance_norm_10hz_none_head_on_s0"
+    stats = _load_normalizer(run / NORMALIZATION_FILE)
+    assert stats is not None and stats.obs_rms.count >= 300 and not stats.training
+    obs = np.ones(stats.obs_rms.mean.shape, np.float32)
+    assert not np.allclose(stats.normalize_obs(obs), obs)
+    seen = []
+    original = SAC.predict
+    monkeypatch.setattr(SAC, "predict", lambda self, o, **kw: (seen.append(o.copy()), original(self, o, **kw))[1])
+    assert evaluate(run / "model.zip", episodes=1, seed=7)["episodes"] == 1
+    raw, _ = make_env("head_on", "none", "impedance", seed=7, **policy_rate_kwargs(10))().reset(seed=7)
+    np.testing.assert_allclose(seen[0], stats.normalize_obs(raw), rtol=1e-6)  # the policy saw normalised obs
+    assert len(seen) == 50  # one 5-s episode at the run's 10 Hz
+
+
+@pytest.mark.parametrize("hz", [10, 50])
+def test_policy_rate_keeps_five_second_episodes(hz):
+    env = make_env("none", "none", "impedance", seed=0, **policy_rate_kwargs(hz))()
+    assert env.unwrapped.dt == pytest.approx(1.0 / hz)
+    steps, done = 0, False
+    while not done:
+        _, _, terminated, truncated, _ = env.step(env.action_space.sample())
+        steps, done = steps + 1, terminated or truncated
+    assert steps == 5 * hz and env.unwrapped.data.time == pytest.approx(5.0)
+    env.close()
+
+
 def test_make_env_puts_monitor_outside_the_filter():
     env = make_env("static", "c3bf", "impedance", seed=0)()
     assert type(env).__name__ == "Monitor"
@@ -80,6 +122,9 @@ def test_make_env_action_modes(action, shape):
         ({"timesteps": 0}, "timesteps must be an integer >= 1"),
         ({"seed": -1}, "seed must be an integer >= 0"),
         ({"final_eval_episodes": -1}, "final_eval_episodes must be an integer >= 0"),
+        ({"normalize_obs": 1}, "normalize_obs must be True or False"),
+        ({"policy_hz": 30}, "policy_hz must be one of 10, 20, 25, 50, 100"),
+        ({"policy_hz": 10.0}, "policy_hz must be one of"),
     ],
 )
 def test_bad_training_options(kwargs, message):

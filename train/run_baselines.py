@@ -17,7 +17,7 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-from c3bf_gym.training import ACTIONS, ALGORITHMS, FILTERS
+from c3bf_gym.training import ACTIONS, ALGORITHMS, DEFAULT_TRAIN_HZ, FILTERS, POLICY_RATES, TrainConfig
 
 
 def main() -> int:
@@ -28,6 +28,9 @@ def main() -> int:
     parser.add_argument("--scenario", default="random")
     parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     parser.add_argument("--timesteps", type=int, default=40_000)
+    parser.add_argument("--policy-hz", type=int, choices=POLICY_RATES, default=DEFAULT_TRAIN_HZ)
+    parser.add_argument("--normalize-obs", action="store_true")
+    parser.add_argument("--hyperparams", default=None, help="JSON overriding the defaults (passed to every run)")
     parser.add_argument("--jobs", type=int, default=2)
     parser.add_argument("--out", default="runs")
     args = parser.parse_args()
@@ -36,15 +39,18 @@ def main() -> int:
     (out / "logs").mkdir(parents=True, exist_ok=True)
     jobs = []
     for seed, filter_name in itertools.product(args.seeds, args.filters):
-        name = f"{args.algo}_{args.action}_{filter_name}_{args.scenario}_s{seed}"
+        name = TrainConfig(
+            algo=args.algo, action=args.action, filter=filter_name, scenario=args.scenario, seed=seed,
+            policy_hz=args.policy_hz, normalize_obs=args.normalize_obs,
+        ).name  # fmt: skip
         if (out / name / "summary.json").exists():
             print(f"skip {name}: finished")
             continue
         command = [
             sys.executable, "-m", "c3bf_gym.cli", "train", "--algo", args.algo, "--action", args.action,
             "--filter", filter_name, "--scenario", args.scenario, "--seed", str(seed),
-            "--timesteps", str(args.timesteps), "--out", str(out), "--no-progress",
-        ]  # fmt: skip
+            "--timesteps", str(args.timesteps), "--out", str(out), "--no-progress", "--policy-hz", str(args.policy_hz),
+        ] + (["--normalize-obs"] if args.normalize_obs else []) + (["--hyperparams", args.hyperparams] if args.hyperparams else [])  # fmt: skip
         jobs.append((name, command))
 
     def run(job: tuple[str, list[str]]) -> tuple[str, int, float]:
