@@ -519,3 +519,55 @@ def test_sensing_radius_defaults_to_the_env(make_env):
     e = make_env(scenario="none", sensing_radius=0.37)
     e.reset(seed=0)
     assert hook_for(e.unwrapped).sensing_radius == 0.37
+
+
+# ----------------------------------------------------------------------------- relaxation
+
+#: A recorded state (scenario "multi", random torques, seed 10, physics step 100) where no torque
+#: satisfies every row: a cone row of obstacle 3 (0.7 m from link2) conflicts with the speed rows
+#: of joints 0 and 1. The elastic QP's one shared slack let the speed rows of joints 3-5, which
+#: take no part in the conflict, be violated as much as the conflicting rows (the nominal torque
+#: pushes them); repeated over a few hundred steps the joint speeds reached 2-6x their limit, the
+#: cone rows became infeasible on their own, and link3 touched an obstacle (-0.5 mm).
+MULTI_SEED10_STEP100 = dict(
+    qpos=[0.1345031012108953, -1.7705026570570717, 1.7054354950463855, -1.4335353759181693, -1.5785698449113568,
+          -0.02325586952318217],
+    qvel=[-0.6559897422797262, -1.479574067804223, -0.5637474835166877, 1.4735848089918464, 1.0799127085672886,
+          -0.1513303530379898],
+    obstacle_pos=[[0.5943143989548043, -0.15184202393812163, 0.4570185511150511],
+                  [0.5901976780408892, -0.3156646902789156, 0.4826963672869392],
+                  [0.7573595152802364, 0.11439015270866804, 0.4011645825333701],
+                  [0.8039028970107978, 0.09421982301656578, 0.3585908696629526]],
+    obstacle_vel=[[0.0, 0.0, 0.0],
+                  [-0.11302922882046307, 0.3329818435638014, -0.034856594064680585],
+                  [-0.16261752894900325, -0.1277505131927212, 0.03251445367910794],
+                  [-0.13785896783334978, -0.1258955918559636, 0.06948930442532282]],
+    tau_nom=[-0.457951158285141, 0.6493165522915322, -0.9972222507784312, 0.569900877370029, 0.7635147234178364,
+             -0.15296721458435059],
+)  # fmt: skip
+
+
+def test_relaxed_solve_keeps_rows_outside_the_conflict(make_env):
+    """Regression: when the rows conflict, only conflicting rows may give way. The old single
+    shared slack violated the speed rows of joints 3, 4 and 5 by 0.03 (normalised torque) here."""
+    u = make_env(scenario="multi").unwrapped
+    u.reset(seed=10)
+    state = MULTI_SEED10_STEP100
+    u.data.qpos[:] = state["qpos"]
+    u.data.qvel[:] = state["qvel"]
+    u.obstacle_pos[:4] = state["obstacle_pos"]
+    u.obstacle_vel[:4] = state["obstacle_vel"]
+    refresh(u)
+    hook = hook_for(u)
+    tau = hook(np.asarray(state["tau_nom"]) * u.torque_limit)
+    assert hook.last.status == "relaxed" and not hook.last.feasible
+    A, b, *_ = hook.rows()
+    residual = (A @ tau - b) / np.linalg.norm(A, axis=1).clip(1e-12)
+    n = u.model.nv
+    speed_upper, speed_lower = residual[-2 * n : -n], residual[-n:]
+    # the conflict: joints 0 and 1 (their lower speed rows) against the cone rows
+    assert np.all(speed_upper >= -1e-6), speed_upper
+    assert np.all(speed_lower[2:] >= -1e-6), speed_lower
+    # at most the conflicting rows are violated: obstacle 3's row on link2 and joints 0-1
+    assert np.count_nonzero(residual < -1e-6) <= 3
+    assert np.all(np.abs(tau) <= u.torque_limit + 1e-9)

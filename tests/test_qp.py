@@ -251,3 +251,45 @@ def test_impossible_rows_are_solved_in_bounded_iterations(scale):
         assert np.all(np.abs(result.tau) <= 1.0)
         normalized_violation = np.max((b - A @ result.tau) / np.linalg.norm(A, axis=1))
         assert result.slack == pytest.approx(normalized_violation, rel=1e-9)
+
+
+def test_relaxed_rows_outside_the_conflict_keep_holding():
+    """x0 >= 1 and x0 <= 0 conflict; x1 >= -0.5 takes no part in it. One shared slack (the min-max
+    torque) let the nominal torque push x1 to -1.0 (violated by the same 0.5); the per-row repair
+    keeps x1 >= -0.5 and splits the conflict evenly (equal weights)."""
+    qp = TorqueQP(4, 8, -2.0, 2.0)
+    A = np.array([[1.0, 0, 0, 0], [-1.0, 0, 0, 0], [0, 1.0, 0, 0]])
+    b = np.array([1.0, 0.0, -0.5])
+    res = qp.solve(np.array([0.3, -1.9, 0.1, 0.0]), A, b)
+    assert res.status == "relaxed" and not res.feasible
+    assert res.tau[1] == pytest.approx(-0.5, abs=1e-6)
+    assert res.tau[0] == pytest.approx(0.5, abs=1e-3)
+    np.testing.assert_allclose(res.tau[2:], [0.1, 0.0], atol=1e-6)
+    # weights: a unit of violation of row 0 costs 10 times more, so row 1 gives way
+    res = qp.solve(np.array([0.3, -1.9, 0.1, 0.0]), A, b, weights=np.array([10.0, 1.0, 1.0]))
+    assert res.tau[0] > 0.95 and res.tau[1] == pytest.approx(-0.5, abs=1e-6)
+
+
+def test_solved_result_is_the_optimum_after_warm_starts():
+    """Warm-started solves of a changing problem return the unique optimum (a fresh, tightly
+    converged solve), not a feasible point with wrong-signed multipliers."""
+    import proxsuite
+
+    rng = np.random.default_rng(11)
+    n, M = 6, 40
+    qp = TorqueQP(n, M, -np.ones(n), np.ones(n))
+    worst = 0.0
+    for _ in range(300):
+        m = int(rng.integers(4, M + 1))
+        A = rng.normal(size=(m, n))
+        tau_nom = rng.uniform(-1.5, 1.5, n)
+        b = A @ rng.uniform(-0.5, 0.5, n) - rng.uniform(0, 0.3, m) * np.linalg.norm(A, axis=1)
+        res = qp.solve(tau_nom, A, b)
+        assert res.feasible
+        nrm = np.linalg.norm(A, axis=1)
+        ref = proxsuite.proxqp.dense.QP(n, 0, m, True)
+        ref.settings.eps_abs, ref.settings.eps_rel, ref.settings.max_iter = 1e-12, 0.0, 100000
+        ref.init(np.eye(n), -tau_nom, None, None, A / nrm[:, None], b / nrm, np.full(m, 1e20), -np.ones(n), np.ones(n))
+        ref.solve()
+        worst = max(worst, float(np.abs(res.tau - ref.results.x).max()))
+    assert worst < 1e-5
