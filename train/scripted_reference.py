@@ -1,11 +1,12 @@
-"""A scripted reference for the RL baselines: head straight for the goal through the impedance
-action (target = tool + clip(goal - tool, +-0.1 m)), ignoring obstacles, with each filter.
+"""A scripted reference for the RL baselines: head straight for the goal, ignoring obstacles,
+with each filter. It is the zero action of ``--action residual`` (target = tool + clip(goal -
+tool, +-0.1 m)), i.e. the prior the residual agents start from.
 
-It bounds what the learned agents are compared with: how often a policy that only ever heads
+It tells what the learned agents are compared with: how often a policy that only ever heads
 for the goal ends an episode at it (is_success at the last step), and how often it collides,
-on the same environment, wrappers and evaluation seeds as `c3bf-gym evaluate`.
+on the same environment, wrappers, policy rate and evaluation seeds as `c3bf-gym evaluate`.
 
-    python train/scripted_reference.py --episodes 20
+    python train/scripted_reference.py --episodes 50
 """
 
 from __future__ import annotations
@@ -15,35 +16,35 @@ import json
 
 import numpy as np
 
-from c3bf_gym.training import FILTERS, FINAL_EVAL_SEED, make_env
+from c3bf_gym.training import DEFAULT_TRAIN_HZ, FILTERS, FINAL_EVAL_SEED, POLICY_RATES, make_env, policy_rate_kwargs
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--episodes", type=int, default=20)
+    parser.add_argument("--episodes", type=int, default=50)
     parser.add_argument("--scenario", default="random")
     parser.add_argument("--seed", type=int, default=FINAL_EVAL_SEED, help="seed of episode 0 (as c3bf-gym evaluate)")
+    parser.add_argument("--policy-hz", type=int, choices=POLICY_RATES, default=DEFAULT_TRAIN_HZ)
     parser.add_argument("--filters", nargs="+", choices=FILTERS, default=list(FILTERS))
     args = parser.parse_args()
-    results = []
     for filter_name in args.filters:
-        env = make_env(args.scenario, filter_name, "impedance", seed=args.seed)()
+        env = make_env(args.scenario, filter_name, "residual", seed=args.seed, **policy_rate_kwargs(args.policy_hz))()
+        straight = np.zeros(env.action_space.shape, dtype=np.float32)  # no correction: straight for the goal
         success, collided = [], []
         for episode in range(args.episodes):
-            obs, _ = env.reset(seed=args.seed + episode)
+            env.reset(seed=args.seed + episode)
             done, info = False, {}
             while not done:
-                action = np.clip(obs[18:21] / 0.1, -1.0, 1.0).astype(np.float32)  # goal - tool, per 0.1 m
-                obs, _, terminated, truncated, info = env.step(action)
+                _, _, terminated, truncated, info = env.step(straight)
                 done = terminated or truncated
             success.append(float(info["is_success"]))
             collided.append(float(info["episode_cost"] > 0))
         env.close()
-        results.append(
-            {"filter": filter_name, "episodes": args.episodes, "success_rate": float(np.mean(success)),
-             "collision_episodes": int(sum(collided))}
-        )  # fmt: skip
-        print(json.dumps(results[-1]), flush=True)
+        result = {
+            "filter": filter_name, "policy_hz": args.policy_hz, "episodes": args.episodes,
+            "success_rate": float(np.mean(success)), "collision_episodes": int(sum(collided)),
+        }  # fmt: skip
+        print(json.dumps(result), flush=True)
 
 
 if __name__ == "__main__":
