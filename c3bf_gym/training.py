@@ -347,6 +347,15 @@ def train(config: TrainConfig) -> Path:
     return run_dir
 
 
+def _run_dir(model_path: Path) -> Path | None:
+    """The run directory of a saved model: ``model.zip``'s own, or the parent of ``best/`` and
+    ``checkpoints/`` (the first with a ``config.json``); None for a model outside a run."""
+    for directory in (model_path.parent, model_path.parent.parent):
+        if (directory / "config.json").exists():
+            return directory
+    return None
+
+
 def _load_normalizer(path: Path):
     """The run's saved ``VecNormalize`` statistics (frozen), or None when the run has none."""
     import pickle
@@ -370,8 +379,10 @@ def evaluate(
     """Roll out a saved model for ``episodes`` seeded episodes.
 
     ``filter`` and ``scenario`` default to the run's own (from its ``config.json``); pass a
-    filter to evaluate, e.g., an unfiltered agent with the C3BF filter on. A run trained with
-    ``normalize_obs`` has its observation statistics beside the model; they are applied.
+    filter to evaluate, e.g., an unfiltered agent with the C3BF filter on. The action mode and
+    policy rate are the run's too (also for ``best/`` and ``checkpoints/`` models). A run
+    trained with ``normalize_obs`` has its final observation statistics in the run directory;
+    they are applied (to a ``best/`` or checkpoint model too, an approximation).
     """
     from stable_baselines3 import PPO, SAC
 
@@ -380,14 +391,14 @@ def evaluate(
         raise FileNotFoundError(f"no model at {model_path}")
     if isinstance(episodes, bool) or not isinstance(episodes, int) or episodes < 1:
         raise ValueError(f"episodes must be an integer >= 1, got {episodes!r}")
-    config_path = model_path.parent / "config.json"
-    config = json.loads(config_path.read_text()) if config_path.exists() else {}
+    run_dir = _run_dir(model_path)
+    config = json.loads((run_dir / "config.json").read_text()) if run_dir else {}
     algo = config.get("algo", "sac")
     action = config.get("action", "impedance")
     filter = config.get("filter", "none") if filter is None else filter
     scenario = config.get("scenario", "random") if scenario is None else scenario
     model = {"sac": SAC, "ppo": PPO}[algo].load(model_path, device="cpu")
-    normalizer = _load_normalizer(model_path.parent / NORMALIZATION_FILE)
+    normalizer = _load_normalizer(run_dir / NORMALIZATION_FILE) if run_dir else None
     returns, successes, costs, collided, interventions = [], [], [], [], []
     env = make_env(scenario, filter, action, seed=seed, **policy_rate_kwargs(config.get("policy_hz", DEFAULT_POLICY_HZ)))()
     for episode in range(episodes):

@@ -47,6 +47,8 @@ def test_train_save_reload_evaluate(algo, filter_name, tmp_path):
     assert final["episodes"] == 2 and final["filter"] == filter_name and summary["final_eval"] == final
     result = evaluate(run / "model.zip", episodes=1)
     assert result["filter"] == filter_name and result["episodes"] == 1
+    best = evaluate(run / "best" / "best_model.zip", episodes=1)  # the run's config from one level up
+    assert best["filter"] == filter_name and best["scenario"] == "head_on"
     assert 0.0 <= result["success_rate"] <= 1.0
     if filter_name == "c3bf":
         assert result["collision_episodes"] == 0
