@@ -5,7 +5,9 @@ One run = one (algorithm, action mode, filter, scenario, seed). Its directory ho
 * ``config.json``: everything needed to reproduce it, including the command line;
 * ``model.zip`` (final), ``checkpoints/``, ``best/`` (best evaluation), ``tb/`` (tensorboard);
 * ``episodes.csv``: one row per finished training episode: ``timesteps, return, length, success,
-  cost, interventions, cumulative_cost`` (the headline: collisions summed over all training);
+  cost, interventions, infeasible, cumulative_cost`` (the headline: collisions summed over all
+  training; ``infeasible``: the episode's steps whose QP had no solution, where the filter's
+  guarantee does not hold);
 * ``evaluations.npz``: SB3's periodic evaluation (returns and successes).
 
 The wrapping order is explicit, not ``make_vec_env(wrapper_class=...)``: SB3 puts ``Monitor``
@@ -179,7 +181,7 @@ def _filter_name(name: str | None) -> str | None:
 def info_keywords(filter_name: str | None) -> tuple[str, ...]:
     """The per-episode keys ``Monitor`` records for a run with this filter."""
     keys = ("is_success", "episode_cost")
-    return keys + ("episode_interventions",) if _filter_name(filter_name) else keys
+    return keys + ("episode_interventions", "episode_infeasible") if _filter_name(filter_name) else keys
 
 
 def make_env(
@@ -230,7 +232,7 @@ def _episode_logger():
             self._file = open(self.path, "w", newline="")
             self._writer = csv.writer(self._file)
             self._writer.writerow(
-                ["timesteps", "return", "length", "success", "cost", "interventions", "cumulative_cost"]
+                ["timesteps", "return", "length", "success", "cost", "interventions", "infeasible", "cumulative_cost"]
             )
 
         def _on_step(self) -> bool:
@@ -248,6 +250,7 @@ def _episode_logger():
                         float(info.get("is_success", False)),
                         float(info.get("episode_cost", 0.0)),
                         float(info.get("episode_interventions", 0)),
+                        float(info.get("episode_infeasible", 0)),
                         self.cumulative_cost,
                     ]
                 )
@@ -399,7 +402,7 @@ def evaluate(
     scenario = config.get("scenario", "random") if scenario is None else scenario
     model = {"sac": SAC, "ppo": PPO}[algo].load(model_path, device="cpu")
     normalizer = _load_normalizer(run_dir / NORMALIZATION_FILE) if run_dir else None
-    returns, successes, costs, collided, interventions = [], [], [], [], []
+    returns, successes, costs, collided, interventions, infeasible = [], [], [], [], [], []
     env = make_env(scenario, filter, action, seed=seed, **policy_rate_kwargs(config.get("policy_hz", DEFAULT_POLICY_HZ)))()
     for episode in range(episodes):
         obs, _ = env.reset(seed=seed + episode)
@@ -415,6 +418,7 @@ def evaluate(
         costs.append(float(info.get("episode_cost", 0.0)))
         collided.append(float(info.get("episode_cost", 0.0) > 0))
         interventions.append(float(info.get("episode_interventions", 0)))
+        infeasible.append(float(info.get("episode_infeasible", 0)))
     env.close()
     return {
         "model": str(model_path),
@@ -427,4 +431,5 @@ def evaluate(
         "collision_episodes": int(np.sum(collided)),
         "collision_steps": float(np.sum(costs)),
         "interventions_per_episode": float(np.mean(interventions)),
+        "infeasible_steps": float(np.sum(infeasible)),
     }

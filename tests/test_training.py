@@ -42,7 +42,7 @@ def test_train_save_reload_evaluate(algo, filter_name, tmp_path):
     assert summary["training_cost"] >= cumulative[-1]
     if filter_name == "c3bf":
         assert summary["training_cost"] == 0.0
-        assert all(float(r["interventions"]) >= 0 for r in rows)
+        assert all(float(r["interventions"]) >= 0 and float(r["infeasible"]) >= 0 for r in rows)
     final = json.loads((run / "final_eval.json").read_text())
     assert final["episodes"] == 2 and final["filter"] == filter_name and summary["final_eval"] == final
     result = evaluate(run / "model.zip", episodes=1)
@@ -100,7 +100,7 @@ def test_policy_rate_keeps_five_second_episodes(hz):
 def test_make_env_puts_monitor_outside_the_filter():
     env = make_env("static", "c3bf", "impedance", seed=0)()
     assert type(env).__name__ == "Monitor"
-    assert "episode_interventions" in env.info_keywords
+    assert "episode_interventions" in env.info_keywords and "episode_infeasible" in env.info_keywords
     env.close()
 
 
