@@ -11,7 +11,10 @@ At every physics step (``C3BFReachEnv`` calls the hook between ``mj_step1`` and 
    ``W``) that satisfies all rows and the actuator limits, or reports that none does. Then it
    applies a repaired least-violating torque: only rows that conflict give way, each with its
    own slack; rows the conflict does not involve (e.g. the speed limit of an uninvolved joint)
-   keep holding (:mod:`c3bf_gym.qp`, "Relaxation").
+   keep holding (:mod:`c3bf_gym.qp`, "Relaxation"). All rows weigh the same there: letting
+   the speed rows give way first (obstacle rows weighted 30×) let joint speeds run to 11× their
+   limit, after which the cone rows alone had no solution and 3 of 20 random-torque multi
+   episodes collided. The speed limits keep the cone rows satisfiable.
 """
 
 from __future__ import annotations
@@ -109,15 +112,6 @@ class SafetyHook:
         on_infeasible: ``"relax"`` (apply the least-violating torque and report it) or
             ``"raise"`` (raise :class:`SafetyInfeasibleError`).
         intervention_tol: ‖τ − τ_nom‖ above which a step counts as an intervention [N m].
-        priority: relaxation weight (> 0) of the obstacle and joint-position rows relative to the
-            joint-speed rows. It only matters when no torque satisfies every row: then each row
-            the min-max torque violates gets its own slack (:mod:`c3bf_gym.qp`, "Relaxation"),
-            and a unit of violation of an obstacle or position row costs ``priority`` times one
-            of a speed row. Default 1 (all rows alike). Measured on the multi scenario (20 seeds
-            per policy): ``priority=30`` (speed limits give way first) let joint speeds run to
-            11x their limit, after which the cone rows alone had no solution and 3 of 20
-            random-torque episodes collided; 1 and 1/30 had none. The speed limits are what keep
-            the cone rows satisfiable (README), so they are not the rows to give up first.
 
     Attributes:
         solve_times: when a list (set ``record_times=True``), every physics step's filter wall
@@ -136,7 +130,6 @@ class SafetyHook:
         weight: Literal["limits", "identity"],
         on_infeasible: Literal["relax", "raise"],
         intervention_tol: float = 1e-3,
-        priority: float = 1.0,
     ) -> None:
         self.env = env
         self.barrier = barrier
@@ -161,10 +154,6 @@ class SafetyHook:
         self._limit = limit
         self._A = np.zeros((max_rows, n))
         self._b = np.zeros(max_rows)
-        if not (math.isfinite(priority) and priority > 0.0):
-            raise ValueError(f"priority must be a finite number > 0, got {priority!r}")
-        self.priority = float(priority)
-        self._weights = np.full(max_rows, self.priority)  # per-row relaxation weights (see rows())
         self._capsule_radius = self.arm.capsule_radius
         self.last: QPResult | None = None
         self.report = StepSafety()
@@ -221,21 +210,11 @@ class SafetyHook:
             m += self._n_joint_rows
         return self._A[:m], self._b[:m], min_h, inside, len(sensed)
 
-    def weights(self, m: int) -> np.ndarray:
-        """Relaxation weights of the ``m`` rows of the last :meth:`rows` call: ``priority`` for the
-        obstacle rows and the joint-position rows, 1 for the joint-speed rows (the last 2n rows)."""
-        w = self._weights[:m]
-        w.fill(self.priority)
-        if self.joint_limits is not None:
-            w[m - self._n_joint_rows // 2:] = 1.0
-        return w
-
     def __call__(self, tau_nom: np.ndarray) -> np.ndarray:
         start = time.perf_counter()
         A, b, min_h, inside, n_sensed = self.rows()
         A *= self._scale  # rows in u = τ / s: (A s) u ≥ b
-        weights = None if self.priority == 1.0 else self.weights(len(b))
-        result = self.qp.solve(tau_nom / self._scale, A, b, weights)
+        result = self.qp.solve(tau_nom / self._scale, A, b)
         tau = result.tau * self._scale
         residual = float((A @ result.tau - b).min()) if len(b) else np.inf
         elapsed = time.perf_counter() - start
