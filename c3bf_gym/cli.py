@@ -72,6 +72,8 @@ def _add_train(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--policy-hz", type=int, default=DEFAULT_TRAIN_HZ, choices=POLICY_RATES,
                    help="actions per second (the physics and the filter stay at 500 Hz; episodes stay 5 s)")  # fmt: skip
+    p.add_argument("--distance-weight", type=_nonnegative_float, default=0.0,
+                   help="weight of the reward's dense -distance term (C3BFReachEnv's distance_weight; 0: off)")  # fmt: skip
     p.add_argument("--normalize-obs", action="store_true",
                    help="normalise observations with running statistics (SB3 VecNormalize, saved with the model)")  # fmt: skip
     p.add_argument("--hyperparams", type=json.loads, default={},
@@ -86,7 +88,7 @@ def _run_train(args: argparse.Namespace) -> int:
         algo=args.algo, action=args.action, filter=args.filter, scenario=args.scenario,
         timesteps=args.timesteps, seed=args.seed, n_envs=args.n_envs, eval_freq=args.eval_freq,
         eval_episodes=args.eval_episodes, final_eval_episodes=args.final_eval_episodes, checkpoint_freq=args.checkpoint_freq, out=args.out,
-        progress_bar=not args.no_progress, normalize_obs=args.normalize_obs, policy_hz=args.policy_hz, hyperparams=args.hyperparams,
+        progress_bar=not args.no_progress, normalize_obs=args.normalize_obs, policy_hz=args.policy_hz, distance_weight=args.distance_weight, hyperparams=args.hyperparams,
     )  # fmt: skip
     run_dir = train(config)
     print(f"run written to {run_dir}")

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import csv
 import json
+import math
 import os
 import sys
 import time
@@ -122,6 +123,7 @@ class TrainConfig:
     progress_bar: bool = True
     normalize_obs: bool = False
     policy_hz: int = DEFAULT_TRAIN_HZ
+    distance_weight: float = 0.0
     hyperparams: dict[str, Any] = field(default_factory=dict)
 
     def validate(self) -> None:
@@ -136,6 +138,10 @@ class TrainConfig:
                 raise ValueError(f"unknown {name} {value!r}; valid choices: {', '.join(map(repr, choices))}")
         get_scenario(self.scenario)
         policy_rate_kwargs(self.policy_hz)
+        if isinstance(self.distance_weight, bool) or not (
+            isinstance(self.distance_weight, (int, float)) and math.isfinite(self.distance_weight) and self.distance_weight >= 0
+        ):
+            raise ValueError(f"distance_weight must be a finite number >= 0, got {self.distance_weight!r}")
         if not isinstance(self.normalize_obs, bool):
             raise ValueError(f"normalize_obs must be True or False, got {self.normalize_obs!r}")
         for name in ("timesteps", "n_envs", "eval_freq", "eval_episodes", "checkpoint_freq"):
@@ -151,14 +157,21 @@ class TrainConfig:
     def name(self) -> str:
         norm = "_norm" if self.normalize_obs else ""
         rate = "" if self.policy_hz == DEFAULT_POLICY_HZ else f"_{self.policy_hz}hz"
-        return f"{self.algo}_{self.action}{norm}{rate}_{self.filter}_{self.scenario}_s{self.seed}"
+        dense = f"_dw{self.distance_weight:g}" if self.distance_weight else ""
+        return f"{self.algo}_{self.action}{norm}{rate}{dense}_{self.filter}_{self.scenario}_s{self.seed}"
 
-    def env_kwargs(self) -> dict[str, int]:
-        """``gym.make`` keywords for the policy rate (the episode stays ``EPISODE_SECONDS`` long)."""
-        return policy_rate_kwargs(self.policy_hz)
+    def env_kwargs(self) -> dict[str, float]:
+        """``gym.make`` keywords: the policy rate (the episode stays ``EPISODE_SECONDS`` long) and
+        the reward's dense distance term."""
+        return env_kwargs(self.policy_hz, self.distance_weight)
 
     def resolved_hyperparams(self) -> dict[str, Any]:
         return {**HYPERPARAMS[(self.algo, self.action)], **self.hyperparams}
+
+
+def env_kwargs(policy_hz: int, distance_weight: float = 0.0) -> dict[str, float]:
+    """``gym.make`` keywords of a run: :func:`policy_rate_kwargs` plus ``distance_weight`` when set."""
+    return {**policy_rate_kwargs(policy_hz), **({"distance_weight": distance_weight} if distance_weight else {})}
 
 
 def policy_rate_kwargs(hz: int) -> dict[str, int]:
@@ -403,7 +416,8 @@ def evaluate(
     model = {"sac": SAC, "ppo": PPO}[algo].load(model_path, device="cpu")
     normalizer = _load_normalizer(run_dir / NORMALIZATION_FILE) if run_dir else None
     returns, successes, costs, collided, interventions, infeasible = [], [], [], [], [], []
-    env = make_env(scenario, filter, action, seed=seed, **policy_rate_kwargs(config.get("policy_hz", DEFAULT_POLICY_HZ)))()
+    run_env = env_kwargs(config.get("policy_hz", DEFAULT_POLICY_HZ), config.get("distance_weight", 0.0))
+    env = make_env(scenario, filter, action, seed=seed, **run_env)()
     for episode in range(episodes):
         obs, _ = env.reset(seed=seed + episode)
         total, done, info = 0.0, False, {}

@@ -282,8 +282,9 @@ def test_reward_terms_sum_to_reward_and_follow_the_spec(make_env):
     for step in range(1, 251):
         action = rng.uniform(-1.0, 1.0, 6).astype(np.float32)
         _, reward, terminated, truncated, info = env.step(action)
-        total = info["reward_progress"] + info["reward_success"] + info["reward_effort"]
+        total = info["reward_progress"] + info["reward_success"] + info["reward_distance"] + info["reward_effort"]
         assert abs(total - reward) <= 1e-12
+        assert info["reward_distance"] == 0.0, "the dense distance term is off by default"
         d = float(np.linalg.norm(goal - u.data.site_xpos[u.ee_site_id]))
         assert info["distance"] == pytest.approx(d, abs=1e-12)
         assert info["reward_progress"] == pytest.approx(w_progress * (d_prev - d), abs=1e-9)
@@ -292,6 +293,18 @@ def test_reward_terms_sum_to_reward_and_follow_the_spec(make_env):
         assert info["reward_effort"] == pytest.approx(-w_effort * np.mean(action.astype(float) ** 2), rel=1e-9)
         assert not terminated
         assert truncated == (step == 250), "episodes are truncated at exactly 250 steps"
+
+
+def test_distance_weight_adds_a_dense_term_that_prefers_the_goal_centre(make_env):
+    plain, dense = make_env(scenario="none"), make_env(scenario="none", distance_weight=2.0)
+    plain.reset(seed=3)
+    dense.reset(seed=3)
+    action = np.full(6, 0.1, dtype=np.float32)
+    _, r_plain, *_, info_plain = plain.step(action)
+    _, r_dense, *_, info = dense.step(action)
+    assert info["distance"] == info_plain["distance"] > 0.0
+    assert info["reward_distance"] == pytest.approx(-2.0 * info["distance"], abs=1e-12)
+    assert r_dense == pytest.approx(r_plain - 2.0 * info["distance"], abs=1e-12)
 
 
 def test_success_bonus_when_tool_at_goal(make_env):
@@ -528,6 +541,7 @@ def test_unknown_scenario_lists_valid_choices():
         ({"success_tolerance": 0.0}, "success_tolerance"),
         ({"effort_weight": -1.0}, "effort_weight"),
         ({"progress_weight": np.nan}, "progress_weight"),
+        ({"distance_weight": -1.0}, "distance_weight"),
     ],
 )
 def test_bad_constructor_arguments_rejected(kwargs, message):

@@ -69,17 +69,22 @@ def test_normalized_run_saves_and_applies_its_statistics(tmp_path, monkeypatch):
     from stable_baselines3 import SAC
 
     run = train(TrainConfig(timesteps=300, filter="none", scenario="head_on", normalize_obs=True, policy_hz=10, eval_freq=10_000,
-                            final_eval_episodes=1, out=str(tmp_path), progress_bar=False,
+                            final_eval_episodes=1, out=str(tmp_path), progress_bar=False, distance_weight=2.0,
                             hyperparams={"learning_starts": 100}))  # fmt: skip
-    assert run.name == "sac_impedance_norm_10hz_none_head_on_s0"
+    assert run.name == "sac_impedance_norm_10hz_dw2_none_head_on_s0"
     stats = _load_normalizer(run / NORMALIZATION_FILE)
     assert stats is not None and stats.obs_rms.count >= 300 and not stats.training
     obs = np.ones(stats.obs_rms.mean.shape, np.float32)
     assert not np.allclose(stats.normalize_obs(obs), obs)
+    import c3bf_gym.training as training
+
+    built = []
+    monkeypatch.setattr(training, "make_env", lambda *a, **kw: (built.append(kw), make_env(*a, **kw))[1])
     seen = []
     original = SAC.predict
     monkeypatch.setattr(SAC, "predict", lambda self, o, **kw: (seen.append(o.copy()), original(self, o, **kw))[1])
     assert evaluate(run / "model.zip", episodes=1, seed=7)["episodes"] == 1
+    assert built[-1]["distance_weight"] == 2.0  # the run's reward, read from its config
     raw, _ = make_env("head_on", "none", "impedance", seed=7, **policy_rate_kwargs(10))().reset(seed=7)
     np.testing.assert_allclose(seen[0], stats.normalize_obs(raw), rtol=1e-6)  # the policy saw normalised obs
     assert len(seen) == 50  # one 5-s episode at the run's 10 Hz
@@ -94,6 +99,16 @@ def test_policy_rate_keeps_five_second_episodes(hz):
         _, _, terminated, truncated, _ = env.step(env.action_space.sample())
         steps, done = steps + 1, terminated or truncated
     assert steps == 5 * hz and env.unwrapped.data.time == pytest.approx(5.0)
+    env.close()
+
+
+def test_distance_weight_reaches_the_env_and_names_the_run():
+    config = TrainConfig(action="residual", distance_weight=5.0, policy_hz=10)
+    assert config.name == "sac_residual_10hz_dw5_c3bf_random_s0"
+    assert TrainConfig(action="residual", policy_hz=10).env_kwargs() == policy_rate_kwargs(10)
+    env = make_env("none", "none", "residual", seed=0, **config.env_kwargs())()
+    _, reward, *_, info = env.step(np.zeros(3, np.float32))
+    assert info["reward_distance"] == pytest.approx(-5.0 * info["distance"])
     env.close()
 
 
@@ -127,6 +142,8 @@ def test_make_env_action_modes(action, shape):
         ({"normalize_obs": 1}, "normalize_obs must be True or False"),
         ({"policy_hz": 30}, "policy_hz must be one of 10, 20, 25, 50, 100"),
         ({"policy_hz": 10.0}, "policy_hz must be one of"),
+        ({"distance_weight": -1.0}, "distance_weight must be a finite number >= 0"),
+        ({"distance_weight": float("nan")}, "distance_weight must be a finite number >= 0"),
     ],
 )
 def test_bad_training_options(kwargs, message):

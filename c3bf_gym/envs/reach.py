@@ -97,13 +97,17 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
     ``sensing_radius`` of some arm geom; unsensed and unused slots are all zeros.
 
     ## Rewards
-    ``reward = progress + success - effort`` with, per step,
+    ``reward = progress + success - distance - effort`` with, per step,
     ``progress = progress_weight * (d_prev - d)`` (d: tool-to-goal distance in m),
-    ``success = success_bonus`` if ``d < success_tolerance`` else 0, and
+    ``success = success_bonus`` if ``d < success_tolerance`` else 0,
+    ``distance = distance_weight * d`` (0 by default; Reacher's dense term) and
     ``effort = effort_weight * mean_j (u_j / limit_j)^2`` averaged over the physics steps, where
-    ``u`` is the torque applied on top of gravity compensation. ``info`` carries the three terms as
-    ``reward_progress``, ``reward_success`` and ``reward_effort`` (the latter negative); they sum
-    to the reward. ``info["is_success"]`` is ``d < success_tolerance``.
+    ``u`` is the torque applied on top of gravity compensation. The progress term only rewards
+    net approach and the success term is flat inside the tolerance, so neither prefers the
+    goal's centre to its rim: ``distance_weight > 0`` does (a learned policy that hovers near the
+    rim drifts out of it). ``info`` carries the four terms as ``reward_progress``,
+    ``reward_success``, ``reward_distance`` and ``reward_effort`` (the last two negative or zero);
+    they sum to the reward. ``info["is_success"]`` is ``d < success_tolerance``.
 
     ## Cost and safety signals
     Computed from MuJoCo's geometry at every physics step, independent of any filter:
@@ -137,7 +141,7 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
     ``scenario``, ``frame_skip``, ``gravity_compensation``, ``sensing_radius`` (m),
     ``terminate_on_collision``, ``success_tolerance`` (m), ``obstacle_speed_range`` (m/s),
     ``obstacle_radius_range`` (m), ``progress_weight``, ``success_bonus``, ``effort_weight``,
-    ``render_mode`` (``human``, ``rgb_array``, ``depth_array``), ``width``, ``height``,
+    ``distance_weight``, ``render_mode`` (``human``, ``rgb_array``, ``depth_array``), ``width``, ``height``,
     ``camera_name``.
     """
 
@@ -156,6 +160,7 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
         progress_weight: float = 50.0,
         success_bonus: float = 1.0,
         effort_weight: float = 0.05,
+        distance_weight: float = 0.0,
         render_mode: str | None = None,
         width: int = 480,
         height: int = 480,
@@ -164,7 +169,7 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
         utils.EzPickle.__init__(
             self, scenario, frame_skip, gravity_compensation, sensing_radius, terminate_on_collision,
             success_tolerance, obstacle_speed_range, obstacle_radius_range, progress_weight,
-            success_bonus, effort_weight, render_mode, width, height, camera_name,
+            success_bonus, effort_weight, distance_weight, render_mode, width, height, camera_name,
         )  # fmt: skip
         self.scenario = scenario if isinstance(scenario, Scenario) else get_scenario(scenario)
         self._check_scenario(self.scenario)
@@ -180,6 +185,7 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
             ("progress_weight", progress_weight),
             ("success_bonus", success_bonus),
             ("effort_weight", effort_weight),
+            ("distance_weight", distance_weight),
         ):
             if not (isinstance(value, (int, float)) and np.isfinite(value) and value >= 0):
                 raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
@@ -196,7 +202,7 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
         self.terminate_on_collision = bool(terminate_on_collision)
         self.success_tolerance = float(success_tolerance)
         self.gravity_compensation = bool(gravity_compensation)
-        self._weights = (float(progress_weight), float(success_bonus), float(effort_weight))
+        self._weights = (float(progress_weight), float(success_bonus), float(effort_weight), float(distance_weight))
 
         self.metadata = {**self.metadata, "render_fps": int(round(1.0 / (0.002 * frame_skip)))}
         observation_space = spaces.Box(-np.inf, np.inf, shape=(_OBS_SIZE,), dtype=np.float32)
@@ -337,16 +343,17 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
 
         to_goal = self.data.mocap_pos[self._goal_mocap] - self.data.site_xpos[self.ee_site_id]
         distance = float(np.sqrt(to_goal @ to_goal))
-        w_progress, w_success, w_effort = self._weights
+        w_progress, w_success, w_effort, w_distance = self._weights
         progress = w_progress * (self._goal_distance - distance)
         self._goal_distance = distance
         success = distance < self.success_tolerance
         terms = {
             "reward_progress": progress,
             "reward_success": w_success if success else 0.0,
+            "reward_distance": -w_distance * distance,
             "reward_effort": -w_effort * effort,
         }
-        reward = terms["reward_progress"] + terms["reward_success"] + terms["reward_effort"]
+        reward = sum(terms.values())
         cost = 1.0 if min_distance <= 0.0 else 0.0
         self._episode_cost += cost
         info = {
