@@ -6,8 +6,13 @@ At every physics step (``C3BFReachEnv`` calls the hook between ``mj_step1`` and 
 2. every *sensed* obstacle (active, surface within ``sensing_radius`` of the arm) contributes one
    row per protected point (``whole_arm``: the closest point of every link capsule, with the
    capsule radius added to the obstacle's; ``ee``: the tool site with ``ee_radius``);
-3. joint position and velocity limits contribute ``4 n`` rows;
-4. :class:`~c3bf_gym.qp.TorqueQP` returns the torque closest to the nominal one (weighted by
+3. the floor contributes one row per capsule end (``2 S``): every capsule stays ``margin`` above
+   it. The floor is the one fixed thing the arm can touch, and its contact forces are not in the
+   filter's model (``ẍ = G τ + c``): a link pressed into it is pushed by an unmodelled force,
+   which can drive another link through its obstacle row (found by a seed search: the tool
+   touched the floor and link 5 hit an obstacle 0.19 s later, every QP solved);
+4. joint position and velocity limits contribute ``4 n`` rows;
+5. :class:`~c3bf_gym.qp.TorqueQP` returns the torque closest to the nominal one (weighted by
    ``W``) that satisfies all rows and the actuator limits, or reports that none does. Then it
    applies a repaired least-violating torque: only rows that conflict give way, each with its
    own slack; rows the conflict does not involve (e.g. the speed limit of an uninvolved joint)
@@ -24,6 +29,7 @@ import time
 from dataclasses import dataclass
 from typing import Literal
 
+import mujoco
 import numpy as np
 
 from c3bf_gym.barriers import Barrier, JointLimits, Rows, make_barrier
@@ -38,6 +44,8 @@ WEIGHTS = ("limits", "identity")
 
 #: UR5e joint speed limit, 180 deg/s on every joint (UR5e technical specifications).
 UR5E_JOINT_SPEED = np.pi
+#: Gain [1/s] of the floor rows' second-order barrier (both stages), as the joint position limits'.
+FLOOR_GAMMA = 10.0
 
 
 class SafetyInfeasibleError(RuntimeError):
@@ -146,7 +154,9 @@ class SafetyHook:
         self._per_obstacle = len(self.arm.capsule_ids) if points == "whole_arm" else 1
         n_obstacles = len(env.obstacle_radius)
         self._n_joint_rows = 0 if joint_limits is None else 4 * n
-        max_rows = n_obstacles * self._per_obstacle + self._n_joint_rows
+        self._floor_ends, self._floor_min = self._floor_setup(env.model)
+        self._n_floor_rows = len(self._floor_ends)
+        max_rows = n_obstacles * self._per_obstacle + self._n_floor_rows + self._n_joint_rows
         # The QP runs in normalised torque u = τ / s with s = τ_max ("limits": W = diag(1/τ_max²)
         # becomes the identity, box ±1) or s = 1 ("identity"): a well-conditioned problem either way.
         self._scale = limit.copy() if weight == "limits" else np.ones(n)
@@ -203,12 +213,47 @@ class SafetyHook:
                 self._b[:m] -= np.vecdot(terms.grad_p, slide_p)
             min_h = float(terms.h.min())
             inside = bool(terms.inside.any())
+        if self._n_floor_rows:
+            m += self._floor_rows(self._A[m:], self._b[m:])
         if self.joint_limits is not None:
             self.joint_limits.rows(
                 data.qpos, data.qvel, arm.Minv, arm.qacc_free, out=Rows(self._A[m:], self._b[m:])
             )
             m += self._n_joint_rows
         return self._A[:m], self._b[:m], min_h, inside, len(sensed)
+
+    def _floor_setup(self, model: mujoco.MjModel) -> tuple[np.ndarray, np.ndarray]:
+        """Which capsule ends get a floor row, and their lowest allowed height (floor + capsule
+        radius + margin). None without an upright plane geom in the world body. Capsules moved
+        only by joints about vertical axes (link 1, on the base's pan joint) keep their height
+        and get no row: theirs could only be a constant, possibly unsatisfiable, 0 ≥ b."""
+        plane = mujoco.mjtGeom.mjGEOM_PLANE
+        floors = [g for g in range(model.ngeom) if model.geom_type[g] == plane and model.geom_bodyid[g] == 0]
+        floors = [g for g in floors if np.allclose(model.geom_quat[g], (1.0, 0.0, 0.0, 0.0))]
+        if not floors:
+            return np.zeros(0, dtype=int), np.zeros(0)
+        scratch = mujoco.MjData(model)
+        mujoco.mj_kinematics(model, scratch)
+        vertical = np.abs(scratch.xaxis[:, 2]) > 1.0 - 1e-12  # (njnt,) joint axis along world z
+        moving = []
+        for chain in self.arm.capsule_chain:
+            joints = model.dof_jntid[np.flatnonzero(chain)]
+            moving.append(not vertical[joints].all())
+        ends = np.flatnonzero(np.tile(moving, 2))
+        radius = np.tile(self.arm.capsule_radius, 2)[ends]
+        return ends, model.geom_pos[floors[0], 2] + radius + self.margin
+
+    def _floor_rows(self, A: np.ndarray, b: np.ndarray) -> int:
+        """Rows keeping every capsule end ``z ≥ z_min`` (floor + radius + margin): the
+        second-order barrier ``z̈ + 2γ ż + γ² (z − z_min) ≥ 0`` with ``z̈ = G_z τ + c_z``."""
+        ends = self.arm.end_dynamics()
+        idx, k, g = self._floor_ends, self._n_floor_rows, FLOOR_GAMMA
+        A[:k] = ends.G[idx, 2]
+        np.subtract(ends.pos[idx, 2], self._floor_min, out=b[:k])
+        b[:k] *= -g * g
+        b[:k] -= 2.0 * g * ends.vel[idx, 2]
+        b[:k] -= ends.c[idx, 2]
+        return k
 
     def __call__(self, tau_nom: np.ndarray) -> np.ndarray:
         start = time.perf_counter()

@@ -202,6 +202,15 @@ class ArmModel:
         np.subtract(ends[s:], ends[:s], out=self._ends_ab)
         self._a_dot_ab = (self._ends_a[:, :, 0] * self._ends_ab[:, :, 0]).sum(axis=1)
 
+    def end_dynamics(self) -> PointDynamics:
+        """:class:`PointDynamics` (views) of both ends of every capsule axis: rows ``0 … S-1``
+        are the ends a, rows ``S … 2S-1`` the ends b; ``jac`` is None. The lowest point of a
+        capsule over a horizontal plane is always at one of its ends (the floor rows use this).
+        Call :meth:`update` first in the same physics step."""
+        if not self._ends_current:
+            self._update_ends()
+        return self._unpack(self._ends[None])
+
     def _capsule_axes(self, data: mujoco.MjData) -> tuple[np.ndarray, np.ndarray]:
         """Centres and half-axis vectors (S, 3), (S, 3) of the protected capsules [m]."""
         ids = self._capsule_index

@@ -134,6 +134,17 @@ def barrier_values(u, hook):
     return np.array(values)
 
 
+#: rows present whatever is sensed: 12 floor rows (both ends of the 6 capsules the pan joint
+#: does not keep level) and 24 joint-limit rows
+FIXED_ROWS = 12 + 24
+
+
+def end_heights(u):
+    """Heights of both ends of every capsule but link 1, ends a then ends b (the filter's order)."""
+    ends = [capsule_frame(u, gid) for gid in u.arm.capsule_ids[1:]]
+    return np.array([a[2] for a, _ in ends] + [b[2] for _, b in ends])
+
+
 def sensed_slots(u, hook):
     return [k for k in range(len(u.obstacle_active))
             if u.obstacle_active[k] and u.obstacle_distances()[k] <= hook.sensing_radius]  # fmt: skip
@@ -143,12 +154,16 @@ def expected_rows(u, hook, qacc, delta=1e-5):
     """The filter's rows' ``A τ − b`` for the torque giving joint acceleration ``qacc``, evaluated
     independently: ``ḣ + γ h`` of every (obstacle, point) pair, with ``ḣ`` the central finite
     difference of ``h`` along the motion (joints at ``q̈``, obstacles at their velocity; the
-    closest points found anew at each instant), then the 24 joint-limit conditions."""
+    closest points found anew at each instant), then the floor conditions
+    ``z̈ + 2γ ż + γ² (z − r − margin)`` (γ = 10) of both ends of every capsule but link 1 (which
+    the vertical pan joint keeps at one height), ``ż`` and ``z̈`` differenced the same way, then
+    the 24 joint-limit conditions."""
     m, d = u.model, u.data
     q0, qd0, pos0, version = d.qpos.copy(), d.qvel.copy(), u.obstacle_pos.copy(), u.state_version
     slots = sensed_slots(u, hook)
     h_now = barrier_values(u, hook)
-    shifted = []
+    z_now = end_heights(u)
+    shifted, z_shifted = [], []
     for sign in (1.0, -1.0):
         dt = sign * delta
         d.qpos[:] = q0 + dt * qd0 + 0.5 * dt**2 * qacc
@@ -157,11 +172,16 @@ def expected_rows(u, hook, qacc, delta=1e-5):
         mujoco.mj_forward(m, d)
         assert sensed_slots(u, hook) == slots
         shifted.append(barrier_values(u, hook))
+        z_shifted.append(end_heights(u))
     d.qpos[:], d.qvel[:], u.obstacle_pos[:] = q0, qd0, pos0
     mujoco.mj_forward(m, d)
     u.state_version = version
     h_dot = (shifted[0] - shifted[1]) / (2 * delta)
     values = list(h_dot + hook.barrier.gamma * h_now)
+    z_dot = (z_shifted[0] - z_shifted[1]) / (2 * delta)
+    z_ddot = (z_shifted[0] - 2.0 * z_now + z_shifted[1]) / delta**2
+    radius = np.tile(m.geom_size[u.arm.capsule_ids[1:], 0], 2)
+    values += list(z_ddot + 20.0 * z_dot + 100.0 * (z_now - radius - hook.margin))
     # joint limits (JointLimits docstring; defaults γ₁ = γ₂ = 10, γ_v = 20)
     q, qd = d.qpos, d.qvel
     q_lo, q_hi = u.joint_range.T
@@ -225,7 +245,7 @@ def toward_obstacles(u, scale=1.0):
 )
 def test_rows_equal_independent_barrier_condition(env, seed, barrier, points):
     """For any torque τ, the filter's ``A τ − b`` is ``ḣ + γ h`` of every (obstacle, point) pair
-    followed by the 24 joint-limit conditions. ``ḣ`` is the true rate of ``h`` at the closest
+    followed by the 12 floor and 24 joint-limit conditions. ``ḣ`` is the true rate of ``h`` at the closest
     point, which slides along the link as the arm moves (not the rate of a material point)."""
     u = env
     rng = np.random.default_rng(seed)
@@ -235,7 +255,7 @@ def test_rows_equal_independent_barrier_condition(env, seed, barrier, points):
     A, b = A.copy(), b.copy()
     assert not inside and n_sensed == 1 + seed % 3
     per = len(u.arm.capsule_ids) if points == "whole_arm" else 1
-    assert A.shape == (n_sensed * per + 24, 6)
+    assert A.shape == (n_sensed * per + FIXED_ROWS, 6)
     for _ in range(3):
         tau = rng.uniform(-0.3, 0.3, 6) * u.torque_limit + u.data.qfrc_gravcomp
         qacc = mujoco_accelerations(u, tau)
@@ -300,12 +320,12 @@ def test_far_obstacle_pushing_nominal_is_not_filtered(env):
     tau_nom = toward_obstacles(u, scale=0.2)
     near = hook_for(u, sensing_radius=0.1)
     A, b, *_ = near.rows()
-    assert len(b) == 24
+    assert len(b) == FIXED_ROWS
     out = near(tau_nom.copy())
     np.testing.assert_allclose(out, tau_nom, rtol=1e-14, atol=1e-12)
     far = hook_for(u, sensing_radius=0.5)
     A, b, *_ = far.rows()
-    assert len(b) == 24 + len(u.arm.capsule_ids)
+    assert len(b) == FIXED_ROWS + len(u.arm.capsule_ids)
     far.begin_step()
     out = far(tau_nom.copy())
     assert far.report.sensed == 1
@@ -328,17 +348,17 @@ def test_obstacles_beyond_sensing_radius_add_no_row(env):
     n_near = int(np.sum(distances[: len(clearances)] <= 0.15))
     assert n_near == 3  # by construction (nothing else is nearer than the chosen link)
     A, b, _, _, n_sensed = hook.rows()
-    assert n_sensed == n_near and len(b) == n_near * s + 24
+    assert n_sensed == n_near and len(b) == n_near * s + FIXED_ROWS
     A, b, _, _, n_sensed = hook_ee.rows()
-    assert n_sensed == n_near and len(b) == n_near + 24
+    assert n_sensed == n_near and len(b) == n_near + FIXED_ROWS
     # inactive (retired) obstacles add no row even when near
     u.obstacle_active[0] = False
     A, b, _, _, n_sensed = hook.rows()
-    assert n_sensed == n_near - 1 and len(b) == (n_near - 1) * s + 24
-    # none sensed: only the joint-limit rows
+    assert n_sensed == n_near - 1 and len(b) == (n_near - 1) * s + FIXED_ROWS
+    # none sensed: only the floor and joint-limit rows
     u.obstacle_active[:] = False
     A, b, _, _, n_sensed = hook.rows()
-    assert n_sensed == 0 and len(b) == 24
+    assert n_sensed == 0 and len(b) == FIXED_ROWS
 
 
 # ----------------------------------------------------------------------------- QP
@@ -396,12 +416,13 @@ def test_torque_limits_are_never_exceeded(env):
     hook = hook_for(u)
     tau = hook(big)
     assert np.all(np.abs(tau) <= u.torque_limit + 1e-12)
-    # without joint-limit rows and obstacles, the box alone acts: plain saturation, which is not
-    # counted as a safety intervention
+    # without joint-limit rows and obstacles, and lifting the arm (so the floor rows do not
+    # bind; ``big`` itself would slam the arm down), the box alone acts: plain saturation, which
+    # is not counted as a safety intervention
     bare = SafetyHook(u, C3BF(), "whole_arm", 0.02, 1.0, 0.05, None, "limits", "raise")
     bare.begin_step()
-    tau = bare(big)
-    np.testing.assert_allclose(tau, np.clip(big, -u.torque_limit, u.torque_limit), atol=1e-12)
+    tau = bare(-big)
+    np.testing.assert_allclose(tau, np.clip(-big, -u.torque_limit, u.torque_limit), atol=1e-12)
     assert bare.report.correction < 1e-9 and not bare.report.intervened
 
 
