@@ -1,15 +1,16 @@
 """Cost of the safety filter: per physics step (the hook) and per env step (throughput).
 
 (a) **Hook latency.** The whole-arm C3BF filter hook, timed call by call while it filters a real
-rollout at 500 Hz: the environment (scenario ``none``) gets 1, 4 or 8 obstacles placed by hand
-around the arm (0.07-0.3 m from it, drifting slowly, all within the sensing radius so every one
-adds a row per link; re-placed every 50 steps), and an adversarial policy drives the arm point
-nearest to an obstacle straight at it, so the rows bind and the QP has work to do
-(``--policy random``: uniformly random torques instead). Every ``hook(tau)`` call is
-timed as a whole, and split (same call, no second evaluation) into building the rows
+rollout at 500 Hz (after 5 untimed warm-up steps): the environment (scenario ``none``) gets 1, 4
+or 8 obstacles placed by hand around the arm (0.07-0.3 m from it, drifting slowly, all within the
+sensing radius so every one adds a row per link; re-placed every 50 steps), and an adversarial
+policy drives the arm point nearest to an obstacle straight at it, so the rows bind and the QP
+has work to do (``--policy random``: uniformly random torques instead). Every ``hook(tau)`` call
+is timed as a whole, and split (same call, no second evaluation) into building the rows
 (``SafetyHook.rows``: arm dynamics, barrier, joint limits) and the QP solve
-(``TorqueQP.solve``). Median, p99 and max in µs, the share of calls the QP answered on its fast
-path (nominal already safe), and the QP's status counts.
+(``TorqueQP.solve_scaled``: the data step, proxsuite and the bookkeeping around it). Median, p99
+and max in µs, the share of calls the QP answered on its fast path (nominal already safe), and
+the QP's status counts.
 
 (b) **Throughput.** Env steps/s of unfiltered ``C3BFReach-v0``, filtered
 (``SafetyFilter(barrier="c3bf")``) and Gymnasium's ``Pusher-v5``, all from ``gymnasium.make``,
@@ -18,7 +19,10 @@ order) so machine noise hits all three alike; the ratios filtered/unfiltered and
 filtered/Pusher are per round, the headline is their median.
 
 Usage: ``python benchmarks/filter_speed.py [--calls 3000] [--obstacles 1 4 8] [--policy adversarial]
-[--rounds 5] [--steps 1000] [--profile]``
+[--rounds 5] [--steps 1000] [--profile] [--no-throughput] [--json PATH]``. The script also times
+other versions of the package (``PYTHONPATH=/path/to/other/checkout``): it prints which
+``c3bf_gym`` it imported, and the QP timer wraps ``TorqueQP.solve_scaled`` (the hook's call) or, in
+older versions, ``TorqueQP.solve``.
 """
 
 from __future__ import annotations
@@ -26,6 +30,7 @@ from __future__ import annotations
 import argparse
 import cProfile
 import io
+import json
 import pstats
 import statistics
 import time
@@ -112,25 +117,33 @@ class TimedHook:
         self.fast: list[bool] = []
         self.status: dict[str, int] = {}
         self.sensed: list[int] = []
-        rows, solve = hook.rows, hook.qp.solve
+        self.n_rows: list[int] = []
+        rows = hook.rows
 
         def timed_rows():
             start = time.perf_counter()
             out = rows()
             self.rows.append(time.perf_counter() - start)
             self.sensed.append(out[4])
+            self.n_rows.append(len(out[1]))
             return out
 
-        def timed_solve(*args):
-            start = time.perf_counter()
-            result = solve(*args)
-            self.qp.append(time.perf_counter() - start)
-            self.fast.append(result.iterations == 0)
-            self.status[result.status] = self.status.get(result.status, 0) + 1
-            return result
+        def timed(solve):
+            def timed_solve(*args):
+                start = time.perf_counter()
+                result = solve(*args)
+                self.qp.append(time.perf_counter() - start)
+                self.fast.append(result.iterations == 0)
+                self.status[result.status] = self.status.get(result.status, 0) + 1
+                return result
+
+            return timed_solve
 
         hook.rows = timed_rows  # instance attributes shadow the methods for this hook only
-        hook.qp.solve = timed_solve
+        # the hook calls TorqueQP.solve_scaled (TorqueQP.solve in older versions of the filter)
+        for name in ("solve", "solve_scaled"):
+            if hasattr(hook.qp, name):
+                setattr(hook.qp, name, timed(getattr(hook.qp, name)))
 
     def __call__(self, tau: np.ndarray) -> np.ndarray:
         if self.profiler is not None:
@@ -148,6 +161,10 @@ def hook_latency(count: int, calls: int, seed: int, policy: str = "adversarial",
     env = SafetyFilter(gym.make("C3BFReach-v0", scenario="none"), barrier="c3bf")
     u = env.unwrapped
     rng = np.random.default_rng(seed)
+    env.reset(seed=seed)
+    place_obstacles(u, count, rng)
+    for _ in range(5):  # warm-up, untimed: first calls load compiled kernels and build solver data
+        env.step(adversarial_action(u) if policy == "adversarial" else rng.uniform(-1, 1, 6).astype(np.float32))
     env.reset(seed=seed)
     place_obstacles(u, count, rng)
     profiler = cProfile.Profile() if profile else None
@@ -199,11 +216,14 @@ def main(argv: list[str] | None = None) -> dict:
                         help="policy during the latency runs (default adversarial: the rows bind)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--profile", action="store_true", help="print a cProfile top-15 of the filtered steps (4 obstacles)")
+    parser.add_argument("--no-throughput", action="store_true", help="skip (b), the env throughput rounds")
+    parser.add_argument("--json", metavar="PATH", help="also write the results as JSON to PATH")
     args = parser.parse_args(argv)
     if args.calls < 1 or args.rounds < 1 or args.steps < 1 or any(not 1 <= k <= 8 for k in args.obstacles):
         parser.error("--calls, --rounds, --steps must be >= 1 and obstacle counts in 1..8")
 
-    out: dict = {"hook": {}, "throughput": {}}
+    out: dict = {"hook": {}, "throughput": {}, "package": c3bf_gym.__file__}
+    print(f"c3bf_gym from {c3bf_gym.__file__}")
     print(f"(a) filter hook per physics step, whole-arm C3BF, {args.policy} policy, {args.calls} calls each [µs]")
     header = (f"{'obst':>4} {'sensed':>6} {'rows':>4} | {'total med':>9} {'p99':>7} {'max':>8} | "
               f"{'rows med':>8} {'p99':>6} | {'QP med':>7} {'p99':>7} {'max':>8} | {'fast path':>9}  QP status")  # fmt: skip
@@ -211,7 +231,7 @@ def main(argv: list[str] | None = None) -> dict:
     print("-" * len(header))
     for count in args.obstacles:
         t = hook_latency(count, args.calls, args.seed, args.policy)
-        n_rows = 7 * int(np.median(t.sensed)) + 24
+        n_rows = int(np.median(t.n_rows))
         row = {
             "total_median_us": us(t.total, 50), "total_p99_us": us(t.total, 99), "total_max_us": us(t.total, 100),
             "rows_median_us": us(t.rows, 50), "rows_p99_us": us(t.rows, 99),
@@ -227,6 +247,8 @@ def main(argv: list[str] | None = None) -> dict:
     if args.profile:
         hook_latency(4, min(args.calls, 2000), args.seed, args.policy, profile=True)
 
+    if args.no_throughput:
+        return _write(out, args.json)
     print(f"\n(b) env steps/s, {args.rounds} interleaved rounds x {args.steps} steps, random actions")
     names = ("unfiltered", "filtered", "pusher")
     runners = {name: make_runner(name, args.steps, args.seed) for name in names}
@@ -248,6 +270,13 @@ def main(argv: list[str] | None = None) -> dict:
     for env, _ in runners.values():
         env.close()
     out["throughput"] = {"steps_per_s": rates, "filtered_over_unfiltered": ratio_fu, "filtered_over_pusher": ratio_fp}
+    return _write(out, args.json)
+
+
+def _write(out: dict, path: str | None) -> dict:
+    if path:
+        with open(path, "w") as f:
+            json.dump(out, f, indent=1, default=str)
     return out
 
 

@@ -20,11 +20,17 @@ At every physics step (``C3BFReachEnv`` calls the hook between ``mj_step1`` and 
    the speed rows give way first (obstacle rows weighted 30×) let joint speeds run to 11× their
    limit, after which the cone rows alone had no solution and 3 of 20 random-torque multi
    episodes collided. The speed limits keep the cone rows satisfiable.
+
+Steps 1–4 for ``whole_arm`` with the built-in barriers (:class:`~c3bf_gym.barriers.C3BF`,
+:class:`~c3bf_gym.barriers.DistanceHOCBF`) are one compiled kernel,
+:func:`c3bf_gym._kernels.hook_rows_whole_arm`, built from the same per-point functions the
+barrier classes and :class:`~c3bf_gym.robot.ArmModel` call; other barriers (or ``points="ee"``)
+go through ``Barrier.terms`` and ``rows_from_terms``. The barrier, ``margin``, ``sensing_radius``
+and ``joint_limits`` are read when the hook is built.
 """
 
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import dataclass
 from typing import Literal
@@ -32,6 +38,7 @@ from typing import Literal
 import mujoco
 import numpy as np
 
+from c3bf_gym import _kernels
 from c3bf_gym.barriers import Barrier, JointLimits, Rows, make_barrier
 from c3bf_gym.qp import QPResult, TorqueQP
 from c3bf_gym.robot import ArmModel
@@ -165,6 +172,21 @@ class SafetyHook:
         self._A = np.zeros((max_rows, n))
         self._b = np.zeros(max_rows)
         self._capsule_radius = self.arm.capsule_radius
+        # The whole-arm rows of the built-in barriers come from one compiled kernel
+        # (c3bf_gym._kernels.hook_rows_whole_arm, sharing the barrier classes' per-point code);
+        # any other barrier or points="ee" goes through Barrier.terms / rows_from_terms.
+        spec = getattr(barrier, "fused_spec", None)
+        spec = spec() if spec is not None and points == "whole_arm" else None
+        self._fused = spec is not None
+        self._kind, params = spec if spec is not None else (-1, np.zeros(3))
+        if joint_limits is not None:
+            jl = [np.array(joint_limits.gains), joint_limits.q_lo, joint_limits.q_hi, joint_limits.qd_max]
+        else:
+            jl = [np.ones(3), np.zeros(n), np.ones(n), np.ones(n)]
+        # the fused kernel's float parameters (c3bf_gym._kernels.hook_rows_whole_arm)
+        self._hook_f = np.concatenate([[self.sensing_radius, self.margin, FLOOR_GAMMA], params, *jl])
+        self._floor_idx = self._floor_ends.astype(np.int64)
+        self._work = np.zeros((3, 6 + n))
         self.last: QPResult | None = None
         self.report = StepSafety()
         self.solve_times: list[float] | None = None
@@ -181,6 +203,17 @@ class SafetyHook:
         """Assemble the rows for the current state: (A, b, min h, any inside, sensed count)."""
         env, arm = self.env, self.arm
         data = env.data
+        if self._fused:
+            v = arm.views(data)
+            m, min_h, inside, n_sensed = _kernels.hook_rows_whole_arm(
+                arm.claim(data, env.state_version), v.M, v.qfrc_passive, v.qfrc_bias, v.geom_xpos, v.geom_xmat,
+                v.cdof, v.cdof_dot, v.com, v.qpos, v.qvel, arm._arm_i, arm._arm_f, arm.capsule_chain, arm._scratch,
+                arm.Minv, arm.qacc_free, arm._ends, arm._ends_ab, arm._a_dot_ab, env.obstacle_active, env.distances,
+                env.obstacle_pos, env.obstacle_vel, env.obstacle_acc, env.obstacle_radius, self._kind,
+                self._floor_idx, self._floor_min, self.joint_limits is not None, self._hook_f, self._work,
+                self._A, self._b,
+            )
+            return self._A[:m], self._b[:m], min_h, inside, n_sensed
         arm.update(data, env.state_version)
         sensed = np.flatnonzero(env.obstacle_active & (env.obstacle_distances() <= self.sensing_radius))
         m = 0
@@ -245,23 +278,21 @@ class SafetyHook:
 
     def _floor_rows(self, A: np.ndarray, b: np.ndarray) -> int:
         """Rows keeping every capsule end ``z ≥ z_min`` (floor + radius + margin): the
-        second-order barrier ``z̈ + 2γ ż + γ² (z − z_min) ≥ 0`` with ``z̈ = G_z τ + c_z``."""
-        ends = self.arm.end_dynamics()
-        idx, k, g = self._floor_ends, self._n_floor_rows, FLOOR_GAMMA
-        A[:k] = ends.G[idx, 2]
-        np.subtract(ends.pos[idx, 2], self._floor_min, out=b[:k])
-        b[:k] *= -g * g
-        b[:k] -= 2.0 * g * ends.vel[idx, 2]
-        b[:k] -= ends.c[idx, 2]
+        second-order barrier ``z̈ + 2γ ż + γ² (z − z_min) ≥ 0`` with ``z̈ = G_z τ + c_z``.
+        (The fused kernel's :func:`c3bf_gym._kernels.floor_rows`.)"""
+        self.arm.end_dynamics()  # the ends, current
+        k = self._n_floor_rows
+        _kernels.floor_rows(self.arm._ends, self._floor_idx, self._floor_min, FLOOR_GAMMA, A[:k], b[:k])
         return k
 
     def __call__(self, tau_nom: np.ndarray) -> np.ndarray:
         start = time.perf_counter()
         A, b, min_h, inside, n_sensed = self.rows()
-        A *= self._scale  # rows in u = τ / s: (A s) u ≥ b
-        result = self.qp.solve(tau_nom / self._scale, A, b)
-        tau = result.tau * self._scale
-        residual = float((A @ result.tau - b).min()) if len(b) else np.inf
+        tau_nom = np.ascontiguousarray(tau_nom, dtype=np.float64)
+        result = self.qp.solve_scaled(tau_nom, A, b, self._scale)  # rows in u = τ / s: (A s) u ≥ b
+        tau = np.empty_like(tau_nom)
+        # τ = u s, the smallest row residual A u − b and ‖τ − clip(τ_nom)‖ (the filter's change)
+        residual, correction = _kernels.hook_post(A, b, result.tau, self._scale, tau_nom, self._limit, tau)
         elapsed = time.perf_counter() - start
         if self.solve_times is not None:
             self.solve_times.append(elapsed)
@@ -275,10 +306,6 @@ class SafetyHook:
         report.inside |= inside
         report.sensed = max(report.sensed, n_sensed)
         report.active_rows = max(report.active_rows, result.active_rows)
-        change = np.minimum(tau_nom, self._limit)  # τ_nom clipped to the torque limits ...
-        np.maximum(change, -self._limit, out=change)
-        np.subtract(tau, change, out=change)  # ... and the filter's change to it
-        correction = math.sqrt(float(change @ change))
         report.correction = max(report.correction, correction)
         report.intervened |= correction > self.intervention_tol
         if not result.feasible:

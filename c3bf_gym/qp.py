@@ -11,7 +11,10 @@ Design (all numbers below measured with proxsuite 0.8.0, see ``benchmarks/qp_mic
 * **Fast path.** If τ_nom is inside the box and already satisfies every row it
   is the exact optimum (the unconstrained minimiser is feasible); it is returned
   without calling the solver (``iterations == 0``).  This is the common case of
-  a safety filter (≈15–22 µs here, mostly numpy call overhead).
+  a safety filter. The data step before it (validation, row normalisation, the
+  residuals, and without the fast path the reach check and the gradient) is one
+  compiled kernel (:func:`c3bf_gym._kernels.qp_prepare`, ≈2 µs), as is the
+  bookkeeping after proxsuite (dual sign check, clipping, residuals).
 * **Row normalisation.** Rows are divided by ‖A_k‖₂ before they reach the
   solver (an equivalent problem).  Tolerances, ``slack`` and ``active_rows``
   are therefore in *normalised* units: the signed distance, in torque space
@@ -89,8 +92,14 @@ Design (all numbers below measured with proxsuite 0.8.0, see ``benchmarks/qp_mic
   optimum (the worst with an 11% larger cost); every one had a wrong sign, and
   no correct solve had one. Such a solve is repeated once from scratch (which fixed all of
   them: largest error 3e-8); the check costs a few µs per solver call.
-* **Solver data in place.** Both proxsuite QPs are built once with exactly
-  ``max_rows`` inequality rows plus native box constraints
+* **Row-count sizes.** The elastic QP exists in sizes of 16, 32, 48, 64, 96, ...
+  rows up to ``max_rows`` (one proxsuite QP each, made on first use and
+  warm-started from its own last result); a call uses the smallest size that
+  holds its rows. proxsuite's cost grows with its row count, padding rows
+  included: 31 filter rows took ≈25% less time in a 32-row QP than in an 80-row
+  one. The results are the same (padding rows are never active).
+* **Solver data in place.** The proxsuite QPs are built with a fixed number of
+  inequality rows (``max_rows``, or the size above) plus native box constraints
   (``box_constraints=True`` is required in the constructor for ``l_box``/``u_box``).
   Unused rows are zero rows with ``l = -sqrt(DBL_MAX)`` (proxsuite's own
   ``helpers::infinite_bound``) and ``u = +sqrt(DBL_MAX)``.  Each call does
@@ -118,6 +127,8 @@ from typing import NamedTuple
 import numpy as np
 import proxsuite
 
+from c3bf_gym import _kernels
+
 __all__ = ["QPResult", "TorqueQP", "build_qp", "PROXSUITE_INF"]
 
 _pq = proxsuite.proxqp
@@ -128,6 +139,7 @@ PROXSUITE_INF: float = float(np.sqrt(np.finfo(np.float64).max))
 _ROW_NORM_MIN = 1e-12
 _MU_IN_RESET = 1e-3  # reset proxsuite mu_in on every update (see module docstring)
 _DUAL_SIGN_TOL = 1e-6  # wrong-signed multipliers above this (relative to 1 + max |z|) reject a solve
+_NO_SCALE = np.empty(0)  # solve(): the rows are used as given
 
 
 class QPResult(NamedTuple):
@@ -225,6 +237,13 @@ def build_qp(tau_nom, A, b, W, tau_min, tau_max):
 # ----------------------------------------------------------------------------- layer
 
 
+def _plain(x: np.ndarray) -> np.ndarray:
+    """``x`` as a C-contiguous, writeable float64 array (one type for the compiled kernels)."""
+    if x.flags.c_contiguous and x.flags.writeable:
+        return x
+    return np.array(x, order="C")
+
+
 def _make_qp(nvar: int, nrows: int, eps_abs: float, max_iter: int, max_iter_in: int | None = None):
     qp = _pq.dense.QP(nvar, 0, nrows, True, _pq.dense.HessianType.Dense, _pq.dense.DenseBackend.PrimalDualLDLT)
     s = qp.settings
@@ -307,7 +326,8 @@ class TorqueQP:
         self._r = np.zeros(M + 2 * n)                 # residuals G·(τ, 0) − h
         self._xe = np.zeros(n + 1)                    # (τ, 0); τ part is the returned buffer
         self._tau = self._xe[:n]
-        self._mask = np.zeros(M, dtype=bool)
+        self._nom = np.zeros(n)                       # the nominal (in u with solve_scaled)
+        self._reach = np.zeros(M)                     # max over the box of each normalised row
         self._H = np.zeros((n + 1, n + 1))            # elastic Hessian blockdiag(W, 1) (ρ s² = t²)
         self._H[n, n] = 1.0
         self._negW = np.zeros((n, n))                 # −W, contiguous (g = −W τ_nom)
@@ -316,15 +336,12 @@ class TorqueQP:
         self._g[n] = self.slack_linear_weight / self._sigma
         self._Ch = np.zeros((M, n))                   # Â for the rare hard solve
         self._y = np.zeros(M)
-        self._v = np.zeros(n)
-        self._vlo = np.zeros(n)
-        self._vhi = np.zeros(n)
         self._lbox = np.concatenate([self.tau_min, [0.0]])
         self._ubox = np.concatenate([self.tau_max, [PROXSUITE_INF]])
         self._m_prev = 0
         self._m_prev_hard = 0
         self._diag_W = True
-        self._el_h_dirty = self._hard_h_dirty = False
+        self._hard_h_dirty = False
 
         # The per-row repair of relaxed solves (_relax_rows): one QP per slack-count bucket.
         self.row_slack_weight = float(row_slack_weight)
@@ -341,13 +358,20 @@ class TorqueQP:
         #: neither the elastic nor the hard solve could confirm.
         self.retries = self.relax_calls = self.relax_fallbacks = self.suboptimal = 0
 
-        self._el = _make_qp(n + 1, M, self.eps_abs, self.max_iter)
+        # The elastic QP comes in row-count sizes (one proxsuite QP per size, made on first use, each
+        # warm-started from its own last result): proxsuite's cost grows with its row count, padding
+        # rows included (a 31-row problem took ~25% less time in a 32-row QP than in an 80-row one).
+        # A size change comes with a change of rows anyway (the rows of one obstacle appear or go),
+        # after which the previous result was no useful warm start for the old size either.
+        self._el_sizes = sorted({min(M, c) for c in (16, 32, 48, 64, 96, 128, 192, 256)} | {M})
+        self._el_qps: dict = {}
+        self._el_dirty: set = set()
         self._hard = _make_qp(n, M, self.eps_abs, self.hard_max_iter, self.hard_max_iter_in)
         self.set_weight(W)
-        self._el.init(self._H, self._g, None, None, self._Ce, self._l, self._u, self._lbox, self._ubox)
+        self._elastic(M)
         self._hard.init(self._Wc, self._g[:n], None, None, self._Ch, self._l, self._u,
                         self.tau_min, self.tau_max)
-        self._el_h_dirty = self._hard_h_dirty = False
+        self._hard_h_dirty = False
 
     # ------------------------------------------------------------------ weight
     def set_weight(self, W) -> None:
@@ -360,7 +384,8 @@ class TorqueQP:
         self._Wc[...] = Wm
         np.negative(Wm, out=self._negW)
         self._diag_W = bool(np.count_nonzero(Wm - np.diag(np.diag(Wm))) == 0)
-        self._el_h_dirty = self._hard_h_dirty = True
+        self._el_dirty = set(getattr(self, "_el_qps", ()))
+        self._hard_h_dirty = True
         for cap, H in getattr(self, "_relax_H", {}).items():
             H[:self.n, :self.n] = Wm
             self._relax_dirty[cap] = True
@@ -384,7 +409,7 @@ class TorqueQP:
             ValueError: wrong shapes, m > max_rows, or non-finite input.
         """
         t0 = time.perf_counter()
-        n, M, lo, hi = self.n, self.max_rows, self.tau_min, self.tau_max
+        n, M = self.n, self.max_rows
         tau_nom = np.asarray(tau_nom, dtype=np.float64)
         A = np.asarray(A, dtype=np.float64)
         b = np.asarray(b, dtype=np.float64)
@@ -399,37 +424,38 @@ class TorqueQP:
             raise ValueError(f"too many rows: m={m} > max_rows={M}")
         if weights is not None and np.shape(weights) != (m,):
             raise ValueError(f"weights must have shape ({m},) to match A; got {np.shape(weights)}")
-        # Finiteness: a sum of squares (one BLAS dot each) is finite iff every entry is
-        # finite and below ~1e150 in magnitude (so the row norms below cannot overflow).
-        with np.errstate(over="ignore", invalid="ignore"):
-            ok_tau = math.isfinite(np.dot(tau_nom, tau_nom))
-            ok_rows = m == 0 or (math.isfinite(np.dot(b, b)) and math.isfinite(np.dot(A.ravel(), A.ravel())))
-        if not ok_tau:
-            raise ValueError("tau_nom contains NaN or inf")
-        if not ok_rows:
-            raise ValueError("A or b contains NaN or inf (or entries beyond ~1e150)")
+        return self._solve(t0, _plain(tau_nom), _plain(A), _plain(b), weights, _NO_SCALE)
 
-        # ---- rows: normalise into G / h, pad the rows left over from the previous call
-        G, h, r, xe = self._G, self._h, self._r, self._xe
-        if m:
-            nrm = self._nrm[:m]
-            np.vecdot(A, A, out=nrm)
-            np.sqrt(nrm, out=nrm)
-            if nrm.min() < _ROW_NORM_MIN:           # (near-)zero rows stay unscaled
-                np.less(nrm, _ROW_NORM_MIN, out=self._mask[:m])
-                np.copyto(nrm, 1.0, where=self._mask[:m])
-            np.divide(b, nrm, out=h[:m])
-            np.divide(A, nrm[:, None], out=G[:m, :n])
-        if self._m_prev > m:
-            G[m:self._m_prev, :n] = 0.0
-            h[m:self._m_prev] = -PROXSUITE_INF
+    def solve_scaled(self, tau_nom, A, b, scale) -> QPResult:
+        """:meth:`solve` in the normalised torque ``u = τ / scale``, for a caller that owns ``A``.
+
+        Solves :meth:`solve`'s problem for ``(τ_nom / scale, A diag(scale), b)``: the weight and
+        box given to the constructor are in ``u``. ``A`` ((m, n) C-contiguous float64, m ≤
+        ``max_rows``) is scaled **in place** (``A *= scale``); ``tau_nom``, ``b``, ``scale`` are
+        contiguous float64 of shapes (n,), (m,), (n,). Shapes are not checked (NaN and inf in the
+        data still raise ValueError). The result's ``tau`` is ``u``. (The safety filter's call.)
+        """
+        return self._solve(time.perf_counter(), tau_nom, A, b, None, scale)
+
+    def _solve(self, t0, tau_nom, A, b, weights, scale) -> QPResult:
+        n, m = self.n, A.shape[0]
+        # ---- data step (compiled): finiteness, row normalisation into G / h (padding the rows left
+        # over from the previous call), the fast-path residuals and, when they fail, the reach check
+        # and the elastic gradient g = (−W τ_nom, c/σ). A sum of squares is finite iff every entry
+        # is finite and below ~1e150 in magnitude (so the row norms cannot overflow).
+        code, rmin, impossible = _kernels.qp_prepare(
+            tau_nom, A, b, scale, self._G, self._h, self._nrm, self._r, self._xe, self._nom, self._m_prev,
+            _ROW_NORM_MIN, PROXSUITE_INF, self.tau_min, self.tau_max, self.active_tol, self._l, self._l_clipped,
+            self._reach, self._negW, self._g)
+        if code == -1:
+            raise ValueError("tau_nom contains NaN or inf")
+        if code == -2:
+            raise ValueError("A or b contains NaN or inf (or entries beyond ~1e150)")
         self._m_prev = m
+        tau_nom = self._nom
 
         # ---- fast path: τ_nom inside the box and satisfying every row ⇒ it is the optimum
-        xe[:n] = tau_nom
-        np.dot(G, xe, out=r)
-        np.subtract(r, h, out=r)
-        if r.min() >= 0.0:
+        if rmin >= 0.0:
             return self._result(m, 0.0, True, "solved", 0, t0, residuals_ready=True)
         if m == 0 and self._diag_W:                 # W-metric box projection of a diagonal W = clip
             self._clip(tau_nom)
@@ -439,27 +465,20 @@ class TorqueQP:
         # Their violation is certain; proxsuite sees them clipped to that reach, which keeps the
         # elastic problem well scaled (rows asking for 1e4 times more than the motors can give
         # otherwise cost proxsuite 1e5-1e6 iterations) without changing where the least-violating
-        # torque lies. The slack is still measured against the original rows.
-        l = self._l
-        impossible = False
-        if m:
-            Gm = G[:m, :n]
-            reach = np.maximum(Gm * lo, Gm * hi).sum(axis=1)
-            if (h[:m] > reach + self.active_tol).any():
-                impossible = True
-                l = self._l_clipped
-                np.copyto(l, self._l)
-                np.minimum(l[:m], reach, out=l[:m])
+        # torque lies. The slack is still measured against the original rows. (The data step
+        # found them and wrote every row's bound, clipped to its reach, into _l_clipped.)
+        l = self._l_clipped if impossible else self._l
 
         # ---- elastic solve (warm-started)
         g = self._g
-        np.dot(self._negW, tau_nom, out=g[:n])
-        el = self._el
-        if self._el_h_dirty:
-            el.update(H=self._H, g=g, C=self._Ce, l=l, update_preconditioner=True, mu_in=_MU_IN_RESET)
-            self._el_h_dirty = False
+        size = next(s for s in self._el_sizes if s >= m)
+        el, C, l_all, l_clip = self._elastic(size)
+        l_size = l_clip if impossible else l_all  # the first `size` rows of l
+        if size in self._el_dirty:
+            el.update(H=self._H, g=g, C=C, l=l_size, update_preconditioner=True, mu_in=_MU_IN_RESET)
+            self._el_dirty.discard(size)
         else:
-            el.update(g=g, C=self._Ce, l=l, mu_in=_MU_IN_RESET)
+            el.update(g=g, C=C, l=l_size, mu_in=_MU_IN_RESET)
         el.solve()
         info = el.results.info
         iters = int(info.iter)
@@ -493,7 +512,7 @@ class TorqueQP:
 
         # ---- not certified (hard multipliers beyond c in l1): solve the hard problem
         hard = self._hard
-        np.copyto(self._Ch[:m], G[:m, :n])
+        np.copyto(self._Ch[:m], self._G[:m, :n])
         if self._m_prev_hard > m:
             self._Ch[m:self._m_prev_hard] = 0.0
         self._m_prev_hard = m
@@ -564,6 +583,23 @@ class TorqueQP:
             self._tau[:] = tau_star
         return self._result(m, None, False, "relaxed", iters, t0)
 
+    def _elastic(self, size):
+        """``(qp, C, l, l_clipped)``: the elastic proxsuite QP with ``size`` rows (made and
+        initialised on first use) and the first ``size`` rows of its data buffers."""
+        if size not in self._el_qps:
+            n = self.n
+            qp = _make_qp(n + 1, size, self.eps_abs, self.max_iter)
+            # initialised (and its preconditioner computed) from the same data whatever the rows
+            # are at first use: padding rows (0 | 1/σ) with l = −inf, and g = (0, c/σ)
+            C0 = np.zeros((size, n + 1))
+            C0[:, n] = 1.0 / self._sigma
+            g0 = np.zeros(n + 1)
+            g0[n] = self.slack_linear_weight / self._sigma
+            qp.init(self._H, g0, None, None, C0, np.full(size, -PROXSUITE_INF), self._u[:size], self._lbox,
+                    self._ubox)
+            self._el_qps[size] = (qp, self._G[:size], self._h[:size], self._l_clipped[:size])
+        return self._el_qps[size]
+
     def _relax_qp(self, cap):
         """The proxsuite QP of the per-row repair with ``cap`` slack variables (built on first use)."""
         if cap not in self._relax:
@@ -591,39 +627,20 @@ class TorqueQP:
         residuals) does not check this, and after a warm start it can stop at such a point:
         feasible, but not the optimum (module docstring, "Dual sign check").
         """
-        z = qp.results.z
-        x = qp.results.x
-        nv = len(x)
-        M = self.max_rows
-        tol = _DUAL_SIGN_TOL * (1.0 + float(np.abs(z).max()))
-        if m and float(z[:m].max()) > tol:
-            return False
-        zb = z[M:M + nv]
-        upper = x - lo > hi - x  # nearer the upper bound (never, for an infinite one)
-        if np.any((zb > tol) & ~upper) or np.any((zb < -tol) & upper):
-            return False
-        return True
+        res = qp.results
+        return _kernels.dual_signs_ok(res.z, res.x, m, lo, hi, _DUAL_SIGN_TOL)
 
     # ------------------------------------------------------------------ helpers
     def _clip(self, x) -> None:
-        """``self._tau = clip(x, τ_min, τ_max)`` (two ufuncs: cheaper than ``np.clip``)."""
-        np.maximum(x, self.tau_min, out=self._tau)
-        np.minimum(self._tau, self.tau_max, out=self._tau)
+        """``self._tau = clip(x, τ_min, τ_max)``."""
+        _kernels.clip(x, self.tau_min, self.tau_max, self._tau)
 
     def _result(self, m, slack, feasible, status, iters, t0, residuals_ready=False) -> QPResult:
         """Pack a QPResult for the τ in the buffer; slack=None → recompute max row violation."""
-        r = self._r
-        if not residuals_ready:
-            np.dot(self._G, self._xe, out=r)
-            np.subtract(r, self._h, out=r)
-        active = 0
-        if m:
-            np.less_equal(r[:m], self.active_tol, out=self._mask[:m])
-            active = int(np.count_nonzero(self._mask[:m]))
-            if slack is None:
-                slack = max(0.0, -float(r[:m].min()))
+        active, violation = _kernels.result_stats(self._G, self._xe, self._h, self._r, m, self.active_tol,
+                                                  not residuals_ready)
         if slack is None:
-            slack = 0.0
+            slack = violation
         return QPResult(self._tau, float(slack), feasible, status, iters, active, time.perf_counter() - t0)
 
     def _infeasibility_bound(self, m: int, z) -> float:
@@ -633,16 +650,4 @@ class TorqueQP:
         """
         if m == 0:
             return -math.inf
-        y = self._y[:m]
-        np.negative(z[:m], out=y)
-        np.maximum(y, 0.0, out=y)
-        tot = float(y.sum())
-        if not tot > 0.0:
-            return -math.inf
-        y /= tot
-        v = self._v
-        np.dot(y, self._G[:m, :self.n], out=v)
-        np.multiply(v, self.tau_min, out=self._vlo)
-        np.multiply(v, self.tau_max, out=self._vhi)
-        np.maximum(self._vlo, self._vhi, out=self._vlo)
-        return float(np.dot(y, self._h[:m])) - float(self._vlo.sum())
+        return _kernels.infeasibility_bound(z, self._G, self._h, m, self.tau_min, self.tau_max, self._y)

@@ -8,8 +8,9 @@ gives the translational Jacobian column of dof ``j`` on the body's chain as
     ẋ      = Σ_j q̇_j (v_j + ω_j × r)                          r = x − c
     J̇ q̇   = Σ_j q̇_j (v̇_j + ω̇_j × r) + ω_x × ẋ            ω_x = Σ_j q̇_j ω_j
 
-(the same expressions as ``mj_jac`` and ``mj_jacDot``, which the tests compare against). With the
-chain mask folded into ``q̇``, every sum is one small matrix product for all points at once.
+(the same expressions as ``mj_jac`` and ``mj_jacDot``, which the tests compare against). The
+per-step work (these sums, the factorisation of ``M + h D``, the closest points) runs in compiled
+kernels (:mod:`c3bf_gym._kernels`): at this size the cost of numpy is its per-call overhead.
 
 The joint acceleration is the one the next physics step integrates, not the continuous-time
 ``M⁻¹ f``. MuJoCo's Euler integrator treats joint damping ``D`` implicitly (unless
@@ -30,6 +31,8 @@ from typing import NamedTuple
 
 import mujoco
 import numpy as np
+
+from c3bf_gym import _kernels
 
 __all__ = ["ArmModel", "PointDynamics", "segment_closest_points"]
 
@@ -52,17 +55,20 @@ class PointDynamics(NamedTuple):
     c: np.ndarray
 
 
-def _levi_civita() -> np.ndarray:
-    eps = np.zeros((3, 3, 3))
-    for i, j, k in ((0, 1, 2), (1, 2, 0), (2, 0, 1)):
-        eps[i, j, k], eps[i, k, j] = 1.0, -1.0
-    return eps
+class _DataViews(NamedTuple):
+    """Numpy views of the ``MjData`` arrays :class:`ArmModel` reads (``com``: the kinematic
+    tree's subtree centre of mass, the origin of ``cdof``)."""
 
-
-#: ``(u ⊗ r).reshape(P, 9) @ _CROSS = u × r`` for (P, 3) arrays u, r (row 3i + k is ε_{jik}).
-_CROSS = np.einsum("jik->ikj", _levi_civita()).reshape(9, 3)
-#: ``_OMEGA_CROSS @ ω`` stacks ``ω × e_k`` for k = 0, 1, 2 (row 3k + i is ε_{ilk}).
-_OMEGA_CROSS = np.einsum("ilk->kil", _levi_civita()).reshape(9, 3)
+    M: np.ndarray
+    qfrc_passive: np.ndarray
+    qfrc_bias: np.ndarray
+    qpos: np.ndarray
+    qvel: np.ndarray
+    cdof: np.ndarray
+    cdof_dot: np.ndarray
+    com: np.ndarray
+    geom_xpos: np.ndarray
+    geom_xmat: np.ndarray
 
 
 def segment_closest_points(a: np.ndarray, b: np.ndarray, centres: np.ndarray) -> np.ndarray:
@@ -115,28 +121,42 @@ class ArmModel:
         self._root = roots.pop()
         self.capsule_chain = np.array([self._chain_mask(model, model.geom_bodyid[g]) for g in self.capsule_ids])
         self.site_chain = self._chain_mask(model, model.site_bodyid[self.site_id])
-        self._length2 = (2.0 * self.capsule_half) ** 2
-        self._end_chain = np.concatenate([self.capsule_chain, self.capsule_chain])
-        s = len(self.capsule_ids)
-        self._ends = np.zeros((2 * s, 3, 3 + self.nv))  # ends a then b, packed [pos | vel | c | G]
+        s, nv = len(self.capsule_ids), self.nv
+        #: ``h D``, the implicit damping the integrator adds to the mass matrix's diagonal (nv,).
+        implicit_damping = self._implicit_damping(model)
+        # The model's constants as the compiled kernels read them, packed into one int and one
+        # float array (fewer arguments per kernel call); the attributes below are views of them.
+        self._arm_i = np.concatenate(
+            [self.capsule_ids, model.M_rowadr, model.M_rownnz, model.M_colind]
+        ).astype(np.int64)
+        self._arm_f = np.concatenate(
+            [implicit_damping, self.capsule_half, (2.0 * self.capsule_half) ** 2, self.capsule_radius]
+        )
+        self._capsule_ids = self._arm_i[:s]
+        self._M_rowadr = self._arm_i[s : s + nv]
+        self._M_rownnz = self._arm_i[s + nv : s + 2 * nv]
+        self._M_colind = self._arm_i[s + 2 * nv :]
+        self.implicit_damping = self._arm_f[:nv]
+        self.capsule_half = self._arm_f[nv : nv + s]
+        self._length2 = self._arm_f[nv + s : nv + 2 * s]
+        self.capsule_radius = self._arm_f[nv + 2 * s :]
+        self._ends = np.zeros((2 * s, 3, 3 + nv))  # ends a then b, packed [pos | vel | c | G]
         self._ends_a = self._ends[:s]
-        self._ends_ab = np.zeros((s, 3, 3 + self.nv))
-        self._end_jac = np.zeros((2 * s, 3, self.nv))
-        self._eye = np.eye(self.nv)
+        self._ends_ab = np.zeros((s, 3, 3 + nv))
+        self._a_dot_ab = np.zeros(s)
+        # scratch: the L'DL factorisation of M + h D (nv, nv), then the ends' Jacobians (2S, 3, nv).
+        # M + h D is factored (from the last dof up, as mj_factorM) here, never in the env's data:
+        # mj_step2 still needs that one's own factorisation of M.
+        self._scratch = np.zeros(nv * nv + 2 * s * 3 * nv)
+        self._factor = self._scratch[: nv * nv].reshape(nv, nv)
+        self._end_jac = self._scratch[nv * nv :].reshape(2 * s, 3, nv)
         #: ``(M + h D)⁻¹``: the map from joint torque to the joint acceleration the next physics
         #: step integrates (module docstring); ``M⁻¹`` when the integrator has no implicit damping.
-        self.Minv = np.zeros((self.nv, self.nv))
-        self.qacc_free = np.zeros(self.nv)  # Minv (τ_passive − b): joint acceleration at zero torque
-        #: ``h D``, the implicit damping the integrator adds to the mass matrix's diagonal (nv,).
-        self.implicit_damping = self._implicit_damping(model)
-        # M + h D is factored in a scratch MjData (MuJoCo's sparse L'DL of the tree), never in the
-        # env's data: mj_step2 still needs that one's own factorisation of M.
-        self._scratch = mujoco.MjData(model)
-        self._step_M = self._scratch.M  # lower-triangular CSR, same layout as data.M
-        self._M_damping = np.zeros(model.nM)  # h D at the diagonal entries of that layout
-        self._M_damping[model.M_rowadr + model.M_rownnz - 1] = self.implicit_damping
+        self.Minv = np.zeros((nv, nv))
+        self.qacc_free = np.zeros(nv)  # Minv (τ_passive − b): joint acceleration at zero torque
         self._version: int | None = None
         self._ends_current = False
+        self._views_of: mujoco.MjData | None = None
         self._site_body = int(model.site_bodyid[self.site_id])
         self._site_jac = np.zeros((1, 3, self.nv))
         self._site_jac_dot = np.zeros((3, self.nv))
@@ -177,11 +197,20 @@ class ArmModel:
         self._version = version
         self._ends_current = False
         self._data = data
-        scratch = self._scratch
-        np.add(data.M, self._M_damping, out=self._step_M)
-        mujoco.mj_factorM(self.model, scratch)
-        mujoco.mj_solveM(self.model, scratch, self.Minv, self._eye)
-        np.matmul(self.Minv, data.qfrc_passive - data.qfrc_bias, out=self.qacc_free)
+        v = self.views(data)
+        _kernels.step_inverse(v.M, self._M_rowadr, self._M_rownnz, self._M_colind, self.implicit_damping,
+                              v.qfrc_passive, v.qfrc_bias, self._factor, self.Minv, self.qacc_free)
+
+    def views(self, data: mujoco.MjData) -> _DataViews:
+        """The arrays of ``data`` the kernels read, fetched once per ``MjData`` (MuJoCo never
+        reallocates them; every attribute access would build a new numpy view)."""
+        if data is not self._views_of:
+            self._views = _DataViews(
+                data.M, data.qfrc_passive, data.qfrc_bias, data.qpos, data.qvel, data.cdof, data.cdof_dot,
+                data.subtree_com[self._root], data.geom_xpos, data.geom_xmat,
+            )
+            self._views_of = data
+        return self._views
 
     def _update_ends(self) -> None:
         """The capsule end points' dynamics, computed on first use after :meth:`update`.
@@ -191,16 +220,11 @@ class ArmModel:
         end b, packed as (S, 3, 3 + nv) arrays ``[pos | vel | c | G]`` so that one broadcast
         product evaluates all of them at any points of the axes (:meth:`_closest`).
         """
-        data = self._data
+        v = self.views(self._data)
         self._ends_current = True
-        s = len(self.capsule_ids)
-        centre, axis = self._capsule_axes(data)
-        ends = self._ends
-        np.subtract(centre, axis, out=ends[:s, :, 0])
-        np.add(centre, axis, out=ends[s:, :, 0])
-        self._packed_dynamics(data, self._end_chain, ends, self._end_jac)
-        np.subtract(ends[s:], ends[:s], out=self._ends_ab)
-        self._a_dot_ab = (self._ends_a[:, :, 0] * self._ends_ab[:, :, 0]).sum(axis=1)
+        _kernels.capsule_ends(v.geom_xpos, v.geom_xmat, self._capsule_ids, self.capsule_half, self.capsule_chain,
+                              v.cdof, v.cdof_dot, v.com, v.qvel, self.Minv, self.qacc_free,
+                              self._ends, self._ends_ab, self._a_dot_ab, self._end_jac)
 
     def end_dynamics(self) -> PointDynamics:
         """:class:`PointDynamics` (views) of both ends of every capsule axis: rows ``0 … S-1``
@@ -210,6 +234,22 @@ class ArmModel:
         if not self._ends_current:
             self._update_ends()
         return self._unpack(self._ends[None])
+
+    def claim(self, data: mujoco.MjData, version: int | None = None) -> int:
+        """For a fused kernel (:func:`c3bf_gym._kernels.hook_rows_whole_arm`) that refreshes the
+        dynamics itself, in this object's arrays: which parts are stale, 2 (``Minv``,
+        ``qacc_free`` and the capsule ends), 1 (the ends) or 0 (none), with :meth:`update`'s
+        caching on ``version``. Marks them current: the caller must compute them now."""
+        if version is None or version != self._version:
+            stage = 2
+        elif not self._ends_current:
+            stage = 1
+        else:
+            return 0
+        self._version = version
+        self._data = data
+        self._ends_current = True
+        return stage
 
     def _capsule_axes(self, data: mujoco.MjData) -> tuple[np.ndarray, np.ndarray]:
         """Centres and half-axis vectors (S, 3), (S, 3) of the protected capsules [m]."""
@@ -314,45 +354,24 @@ class ArmModel:
             ``c = (material c) − a_o + ṫ (ḃ − ȧ)`` (the sliding term of ``v̇`` included);
             ``slide_p = ṫ (b − a)`` (K * S, 3), the sliding term of ``ṗ``.
         """
-        packed, t = self._closest(centres)
-        p = np.subtract(packed[:, :, :, 0], centres[:, None, :])
-        v = np.subtract(packed[:, :, :, 1], velocities[:, None, :])
-        c = np.subtract(packed[:, :, :, 2], accelerations[:, None, :])
-        rate = self._sliding_rate(t, p, v)
-        ab = self._ends_ab
-        c += rate * ab[:, :, 1]
-        slide_p = rate * ab[:, :, 0]
-        flat = packed.reshape(-1, *packed.shape[2:])
-        return PointDynamics(p.reshape(-1, 3), v.reshape(-1, 3), None, flat[:, :, 3:], c.reshape(-1, 3)), slide_p.reshape(-1, 3)
+        if not self._ends_current:
+            self._update_ends()
+        k, s, nv = len(centres), len(self.capsule_ids), self.nv
+        as_f64 = np.ascontiguousarray
+        p, v, c, slide_p = np.empty((4, k * s, 3))
+        G = np.empty((k * s, 3, nv))
+        _kernels.closest_relative(self._ends_a, self._ends_ab, self._a_dot_ab, self._length2,
+                                  as_f64(centres, dtype=np.float64), as_f64(velocities, dtype=np.float64),
+                                  as_f64(accelerations, dtype=np.float64), p, v, c, G, slide_p, np.empty((k, s)))
+        return PointDynamics(p, v, None, G, c), slide_p
 
     def _packed_dynamics(self, data: mujoco.MjData, chain: np.ndarray, packed: np.ndarray, jac: np.ndarray) -> None:
         """Fill ``packed[:, :, 1:]`` (velocity, ``c``, ``G``) of the points in ``packed[:, :, 0]``
         (P, 3, 3 + nv) moving with bodies whose dof masks are ``chain`` (P, nv), and their
         Jacobians ``jac`` (P, 3, nv). ``Minv`` and ``qacc_free`` must be current."""
-        n, nv = len(chain), self.nv
-        cdof = data.cdof
-        r = packed[:, :, 0] - data.subtree_com[self._root]
-        # J[p, :, j] = chain[p, j] (v_j + ω_j × r_p);  ω_j × r = Σ_k r_k (ω_j × e_k)
-        omega_cross = _OMEGA_CROSS @ cdof[:, :3].T  # (9, nv): row 3k + i is (ω_j × e_k)_i
-        flat = jac.reshape(n, 3 * nv)
-        np.matmul(r, omega_cross.reshape(3, 3 * nv), out=flat)
-        jac += cdof[:, 3:].T
-        jac *= chain[:, None, :]
-        jac2 = jac.reshape(3 * n, nv)
-        rows = packed.reshape(3 * n, 3 + nv)  # a view: the products below write into packed
-        np.matmul(jac2, data.qvel, out=rows[:, 1])
-        vel = packed[:, :, 1]
-        qd_masked = chain * data.qvel
-        omega = qd_masked @ cdof[:, :3]
-        # J̇q̇ = Σ q̇_j v̇_j + (Σ q̇_j ω̇_j) × r + ω × ẋ, both cross products from one sum of outer products
-        rates = qd_masked @ data.cdof_dot  # (P, 6): Σ q̇_j ω̇_j, Σ q̇_j v̇_j
-        outer = rates[:, :3, None] * r[:, None, :]
-        outer += omega[:, :, None] * vel[:, None, :]
-        bias = outer.reshape(n, 9) @ _CROSS
-        bias += rates[:, 3:]
-        np.matmul(jac2, self.qacc_free, out=rows[:, 2])
-        packed[:, :, 2] += bias
-        np.matmul(jac2, self.Minv, out=rows[:, 3:])
+        v = self.views(data)
+        _kernels.point_dynamics(np.ascontiguousarray(chain, dtype=np.float64), v.cdof, v.cdof_dot, v.com, v.qvel,
+                                self.Minv, self.qacc_free, packed, jac)
 
     def point_dynamics(self, data: mujoco.MjData, points: np.ndarray, chain: np.ndarray) -> PointDynamics:
         """:class:`PointDynamics` for ``points`` (P, 3) moving with bodies whose dof masks are

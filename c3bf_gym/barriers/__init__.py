@@ -6,7 +6,8 @@ Obstacle barriers (per arm point, see :mod:`.base`):
 - :class:`DistanceHOCBF` — second-order CBF on the squared distance (``"hocbf"``),
 
 and :class:`JointLimits` for joint position/velocity boxes. All produce
-:class:`Rows` ``A @ tau >= b``. Pure numpy.
+:class:`Rows` ``A @ tau >= b``. The arithmetic runs in compiled kernels
+(:mod:`c3bf_gym._kernels`).
 """
 
 from __future__ import annotations

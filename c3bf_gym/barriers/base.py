@@ -15,7 +15,8 @@ Subclasses only implement :meth:`Barrier.terms` and :attr:`Barrier.gamma`; the r
 assembly lives once, vectorised, in :meth:`Barrier.rows`.
 
 Units: positions in m, velocities in m/s, accelerations in m/s², torques in N·m
-(or whatever unit ``G`` maps from). Everything here is pure numpy.
+(or whatever unit ``G`` maps from). The per-point arithmetic runs in compiled kernels
+(:mod:`c3bf_gym._kernels`), which the filter's fused kernel shares.
 """
 
 from __future__ import annotations
@@ -27,12 +28,16 @@ from typing import ClassVar, NamedTuple
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from .. import _kernels
+
 __all__ = [
     "Barrier",
     "BarrierTerms",
     "Rows",
     "check_points",
+    "contiguous",
     "distance_barrier",
+    "radii",
     "require_positive",
     "row_buffers",
 ]
@@ -128,6 +133,16 @@ def check_points(
     return p, v, r
 
 
+def contiguous(a: FloatArray) -> FloatArray:
+    """``a`` as a C-contiguous float64 array (no copy when it already is one)."""
+    return np.ascontiguousarray(a, dtype=np.float64)
+
+
+def radii(r: FloatArray, n_pts: int) -> FloatArray:
+    """Combined radii as a contiguous (P,) array (a scalar is repeated)."""
+    return np.full(n_pts, float(r)) if r.ndim == 0 else contiguous(r)
+
+
 def distance_barrier(p: ArrayLike, r: ArrayLike, out: FloatArray | None = None) -> FloatArray:
     """Squared-distance barrier ``h0 = ‖p‖² − r²`` [m²], shape (P,).
 
@@ -215,11 +230,7 @@ class Barrier(abc.ABC):
         n = G.shape[2]
 
         A, b = row_buffers(out, n_pts, n)
-
-        np.matmul(grad_v[:, None, :], G, out=A[:, None, :])
-        # b = −(⟨grad_v, c⟩ + drift + γ h), built in place.
-        np.vecdot(grad_v, c, out=b)
-        b += drift
-        b += self.gamma * h
-        np.negative(b, out=b)
+        # compiled: A_k = grad_v_k G_k, b_k = −(⟨grad_v_k, c_k⟩ + drift_k + γ h_k)
+        _kernels.rows_from_terms(contiguous(grad_v), contiguous(drift), contiguous(h), float(self.gamma),
+                                 contiguous(G), contiguous(c), A, b)
         return Rows(A, b)

@@ -7,7 +7,8 @@ from typing import ClassVar
 import numpy as np
 from numpy.typing import ArrayLike
 
-from .base import Barrier, BarrierTerms, FloatArray, check_points, require_positive
+from .. import _kernels
+from .base import Barrier, BarrierTerms, FloatArray, check_points, contiguous, radii, require_positive
 
 __all__ = ["C3BF"]
 
@@ -76,22 +77,6 @@ class C3BF(Barrier):
     def __repr__(self) -> str:
         return f"C3BF(gamma={self._gamma!r}, eps={self._eps!r})"
 
-    def _core(
-        self, p: ArrayLike, v: ArrayLike, r: ArrayLike
-    ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, np.ndarray]:
-        """Shared intermediate quantities: ``p, v, ⟨p,v⟩, ‖v‖², ‖p‖² − r², s, ‖v‖_ε, inside``."""
-        p, v, r = check_points(p, v, r)
-        h0 = np.vecdot(p, p)
-        h0 -= np.square(r)  # ‖p‖² − r²
-        inside = h0 <= 0.0
-        s = np.maximum(h0, self.delta**2)
-        np.sqrt(s, out=s)
-        vv = np.vecdot(v, v)
-        vn = vv + self._eps**2
-        np.sqrt(vn, out=vn)
-        pv = np.vecdot(p, v)
-        return p, v, pv, vv, h0, s, vn, inside
-
     def terms(self, p: ArrayLike, v: ArrayLike, r: ArrayLike) -> BarrierTerms:
         """C3BF terms for P points (the recovery barrier for points inside the ball).
 
@@ -104,20 +89,20 @@ class C3BF(Barrier):
             :class:`BarrierTerms`: ``h`` (P,) [m²/s], ``grad_v`` (P, 3) [m],
             ``drift`` (P,) [m²/s²], ``inside`` (P,) bool, ``grad_p`` (P, 3) [m/s].
         """
-        p, v, pv, vv, h0, s, vn, inside = self._core(p, v, r)
-        h = vn * s
-        h += pv
-        grad_v = v * (s / vn)[:, None]
-        grad_v += p
-        grad_p = p * (vn / s)[:, None]
-        grad_p += v
-        if inside.any():
-            g = self._gamma
-            h[inside] = pv[inside] + 0.5 * g * h0[inside]
-            grad_v[inside] = p[inside]
-            grad_p[inside] = v[inside] + g * p[inside]
-        drift = np.vecdot(grad_p, v)
+        p, v, r = check_points(p, v, r)
+        n_pts = p.shape[0]
+        h, drift, inside = np.empty(n_pts), np.empty(n_pts), np.empty(n_pts, dtype=bool)
+        grad_v, grad_p = np.empty((n_pts, 3)), np.empty((n_pts, 3))
+        _kernels.c3bf_terms(contiguous(p), contiguous(v), radii(r, n_pts), self._gamma, self._eps, self.delta,
+                            h, grad_v, drift, inside, grad_p)
         return BarrierTerms(h, grad_v, drift, inside, grad_p)
+
+    def fused_spec(self) -> tuple[int, np.ndarray] | None:
+        """``(kind, params)`` of the filter's fused kernel (:mod:`c3bf_gym._kernels`), or None
+        for a subclass that changes :meth:`terms`."""
+        if type(self).terms is not C3BF.terms:
+            return None
+        return _kernels.C3BF_KIND, np.array([self._gamma, self._eps, self.delta])
 
     def partials(
         self, p: ArrayLike, v: ArrayLike, r: ArrayLike

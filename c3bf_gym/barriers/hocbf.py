@@ -7,12 +7,15 @@ from typing import ClassVar
 import numpy as np
 from numpy.typing import ArrayLike
 
+from .. import _kernels
 from .base import (
     Barrier,
     BarrierTerms,
     FloatArray,
     check_points,
+    contiguous,
     distance_barrier,
+    radii,
     require_positive,
 )
 
@@ -85,25 +88,19 @@ class DistanceHOCBF(Barrier):
             (P, 3) [m/s].
         """
         p, v, r = check_points(p, v, r)
-        g1 = self._gamma1
-        h0 = distance_barrier(p, r)
-        inside = h0 <= 0.0
-        pv2 = np.vecdot(p, v)
-        pv2 *= 2.0  # 2⟨p, v⟩ = ḣ0
-
-        h = h0  # ψ₁ = 2⟨p, v⟩ + γ₁ h0, reusing h0's storage
-        h *= g1
-        h += pv2
-
-        drift = np.vecdot(v, v)
-        drift *= 2.0
-        pv2 *= g1  # 2γ₁⟨p, v⟩
-        drift += pv2
-
-        grad_v = 2.0 * p
-        grad_p = p * (2.0 * g1)
-        grad_p += 2.0 * v
+        n_pts = p.shape[0]
+        h, drift, inside = np.empty(n_pts), np.empty(n_pts), np.empty(n_pts, dtype=bool)
+        grad_v, grad_p = np.empty((n_pts, 3)), np.empty((n_pts, 3))
+        _kernels.hocbf_terms(contiguous(p), contiguous(v), radii(r, n_pts), self._gamma1,
+                             h, grad_v, drift, inside, grad_p)
         return BarrierTerms(h, grad_v, drift, inside, grad_p)
+
+    def fused_spec(self) -> tuple[int, np.ndarray] | None:
+        """``(kind, params)`` of the filter's fused kernel (:mod:`c3bf_gym._kernels`), or None
+        for a subclass that changes :meth:`terms`."""
+        if type(self).terms is not DistanceHOCBF.terms:
+            return None
+        return _kernels.HOCBF_KIND, np.array([self._gamma2, self._gamma1, 0.0])
 
     def partials(
         self, p: ArrayLike, v: ArrayLike, r: ArrayLike

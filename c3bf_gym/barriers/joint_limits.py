@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike
 
-from .base import FloatArray, Rows, require_positive, row_buffers
+from .. import _kernels
+from .base import FloatArray, Rows, contiguous, require_positive, row_buffers
 
 __all__ = ["JointLimits"]
 
@@ -42,9 +43,6 @@ class JointLimits:
         ValueError: on inconsistent shapes, non-finite limits, ``q_lo >= q_hi``,
             ``qd_max <= 0`` or a gain that is not finite and > 0.
 
-    Note:
-        :meth:`rows` uses an internal (3, n) scratch buffer: one instance must not
-        be shared between threads.
     """
 
     def __init__(
@@ -85,14 +83,9 @@ class JointLimits:
         for arr in (q_lo, q_hi, qd_arr):
             arr.flags.writeable = False
         self._q_lo, self._q_hi, self._qd_max = q_lo, q_hi, qd_arr
-        # The four row blocks of b, expanded, are one linear map of (q, q̇, c_q) plus a constant:
+        # The four row blocks of b, expanded (the kernel's formulas):
         #   b_pu =  γ₁γ₂ (q − q_hi) + (γ₁ + γ₂) q̇ + c_q      b_vu =  γ_v (q̇ − qd_max) + c_q
         #   b_pl = −γ₁γ₂ (q − q_lo) − (γ₁ + γ₂) q̇ − c_q      b_vl = −γ_v (q̇ + qd_max) − c_q
-        g12, g1p2, gv = self._g1 * self._g2, self._g1 + self._g2, self._gv
-        self._b_coef = np.array([[g12, g1p2, 1.0], [-g12, -g1p2, -1.0], [0.0, gv, 1.0], [0.0, -gv, -1.0]])
-        self._b_const = np.stack([-g12 * q_hi, g12 * q_lo, -gv * qd_arr, -gv * qd_arr])
-        self._sign = np.array([-1.0, 1.0, -1.0, 1.0])[:, None, None]  # A blocks: ∓Minv
-        self._state = np.empty((3, n))  # (q, q̇, c_q)
 
     @property
     def n(self) -> int:
@@ -170,18 +163,7 @@ class JointLimits:
             if arr.shape != shape:
                 raise ValueError(f"{name} must have shape {shape}; got {arr.shape}")
         A, b = row_buffers(out, m, n)
-        # Upper-type rows constrain −q̈, lower-type rows +q̈: A = [−Minv; Minv; −Minv; Minv].
-        if A.flags.c_contiguous:
-            np.multiply(self._sign, Minv, out=A.reshape(4, n, n))
-        else:
-            for k in range(4):
-                np.multiply(self._sign[k], Minv, out=A[k * n : (k + 1) * n])
-        state = self._state
-        state[0], state[1], state[2] = q, qd, c_q
-        if b.flags.c_contiguous:
-            b4 = b.reshape(4, n)  # a view: written in place
-            np.matmul(self._b_coef, state, out=b4)
-            b4 += self._b_const
-        else:
-            b[:] = (self._b_coef @ state + self._b_const).reshape(-1)
+        # compiled: A = [−Minv; Minv; −Minv; Minv], b from the expansions in __init__'s comment
+        _kernels.joint_limit_rows(q, qd, contiguous(Minv), c_q, self._q_lo, self._q_hi, self._qd_max,
+                                  self._g1, self._g2, self._gv, A, b)
         return Rows(A, b)

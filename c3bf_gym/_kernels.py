@@ -1,0 +1,598 @@
+"""Compiled (numba) kernels of the safety filter's hot path.
+
+The filter runs at every physics step (500 Hz), and its numpy version spent most of its time in
+the overhead of many small array calls (0.3–4 µs each), not in arithmetic: the arm has 6 joints
+and 7 capsules, so every array holds tens of numbers. These kernels do the same arithmetic in
+plain loops, compiled once by numba (``cache=True``: the machine code is cached on disk next to
+this file, or in numba's user-wide cache when that folder is read-only, so later processes load
+it instead of compiling).
+
+Each piece of math lives once, in an inner ``@njit`` function that works on one point or one row;
+the public classes call it through small vectorised kernels, and the filter's fused kernel
+(:func:`hook_rows_whole_arm`) calls the same inner functions directly:
+
+* :func:`step_inverse`: ``(M + h D)⁻¹`` and ``qacc_free`` (:class:`~c3bf_gym.robot.ArmModel`).
+* :func:`point_dynamics` / :func:`capsule_ends`: position, velocity, ``c``, ``G`` and Jacobian of
+  points on the arm, from ``cdof`` and ``cdof_dot`` (the formulas of :mod:`c3bf_gym.robot`).
+* :func:`closest_relative`: closest points on the capsule axes, relative to moving obstacles,
+  with their sliding terms.
+* :func:`c3bf_terms`, :func:`hocbf_terms`, :func:`rows_from_terms`, :func:`joint_limit_rows`: the
+  barriers of :mod:`c3bf_gym.barriers`.
+* :func:`qp_prepare`, :func:`qp_residuals`, ...: the bookkeeping of :class:`~c3bf_gym.qp.TorqueQP`
+  around proxsuite (row normalisation, the fast path, residuals, dual sign check).
+
+The floating-point operations follow the numpy code they replace (same formulas, same order where
+it matters), so results agree with it to rounding (~1e-15 relative).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+#: barrier kinds of the fused kernel
+C3BF_KIND = 0
+HOCBF_KIND = 1
+
+_opts = {"cache": True, "nogil": True, "error_model": "numpy", "boundscheck": False}
+
+
+# ----------------------------------------------------------------------------- dynamics
+
+
+@njit(**_opts)
+def step_inverse(M, rowadr, rownnz, colind, damping, qfrc_passive, qfrc_bias, work, Minv, qacc_free):
+    """``Minv = (M + h D)⁻¹`` and ``qacc_free = Minv (τ_passive − b)``.
+
+    ``M`` is MuJoCo's lower-triangular CSR mass matrix (``data.M`` with ``M_rowadr``,
+    ``M_rownnz``, ``M_colind``; the diagonal is the last entry of each row) and ``damping`` the
+    (nv,) ``h D`` added to its diagonal. The matrix is factored as ``Lᵀ D L`` from the last dof
+    up (MuJoCo's ``mj_factorM`` order; no fill-in for a kinematic tree) in the (nv, nv) scratch
+    ``work``, then solved for the identity.
+    """
+    nv = Minv.shape[0]
+    for i in range(nv):
+        for j in range(nv):
+            work[i, j] = 0.0
+    for i in range(nv):
+        adr = rowadr[i]
+        for k in range(rownnz[i]):
+            work[i, colind[adr + k]] = M[adr + k]
+        work[i, i] += damping[i]
+    # L'DL: work[k, k] = D_k, work[k, i < k] = L_ki
+    for k in range(nv - 1, -1, -1):
+        inv_d = 1.0 / work[k, k]
+        for i in range(k - 1, -1, -1):
+            lki = work[k, i]
+            if lki != 0.0:
+                scl = -lki * inv_d
+                for j in range(i + 1):
+                    work[i, j] += work[k, j] * scl
+                work[k, i] = lki * inv_d
+    # Minv column c solves Lᵀ D L x = e_c
+    for c in range(nv):
+        for i in range(nv):
+            Minv[i, c] = 1.0 if i == c else 0.0
+        for k in range(nv - 1, -1, -1):  # Lᵀ w = e
+            wk = Minv[k, c]
+            if wk != 0.0:
+                for i in range(k):
+                    Minv[i, c] -= work[k, i] * wk
+        for k in range(nv):  # z = w / D
+            Minv[k, c] /= work[k, k]
+        for k in range(nv):  # L x = z
+            acc = Minv[k, c]
+            for i in range(k):
+                acc -= work[k, i] * Minv[i, c]
+            Minv[k, c] = acc
+    for i in range(nv):
+        acc = 0.0
+        for j in range(nv):
+            acc += Minv[i, j] * (qfrc_passive[j] - qfrc_bias[j])
+        qacc_free[i] = acc
+
+
+@njit(**_opts)
+def _one_point(p, x, chain, cdof, cdof_dot, com, qvel, Minv, qacc_free, packed, jac):
+    """Fill ``packed[p, :, 1:]`` (velocity, ``c``, ``G``) and ``jac[p]`` of the point ``x`` (3,)
+    moving with the dofs where ``chain`` (nv,) is nonzero (:mod:`c3bf_gym.robot`'s formulas:
+    ``J_j = chain_j (v_j + ω_j × r)``, ``J̇q̇ = Σ q̇_j v̇_j + (Σ q̇_j ω̇_j) × r + ω × ẋ``)."""
+    nv = qvel.shape[0]
+    r0 = x[0] - com[0]
+    r1 = x[1] - com[1]
+    r2 = x[2] - com[2]
+    om0 = om1 = om2 = 0.0  # Σ q̇_j ω_j
+    ra0 = ra1 = ra2 = ra3 = ra4 = ra5 = 0.0  # Σ q̇_j (ω̇_j, v̇_j)
+    for j in range(nv):
+        ch = chain[j]
+        w0, w1, w2 = cdof[j, 0], cdof[j, 1], cdof[j, 2]
+        jac[p, 0, j] = (r1 * (-w2) + r2 * w1 + cdof[j, 3]) * ch
+        jac[p, 1, j] = (r0 * w2 + r2 * (-w0) + cdof[j, 4]) * ch
+        jac[p, 2, j] = (r0 * (-w1) + r1 * w0 + cdof[j, 5]) * ch
+        qd = ch * qvel[j]
+        om0 += qd * w0
+        om1 += qd * w1
+        om2 += qd * w2
+        ra0 += qd * cdof_dot[j, 0]
+        ra1 += qd * cdof_dot[j, 1]
+        ra2 += qd * cdof_dot[j, 2]
+        ra3 += qd * cdof_dot[j, 3]
+        ra4 += qd * cdof_dot[j, 4]
+        ra5 += qd * cdof_dot[j, 5]
+    for i in range(3):
+        vel = 0.0
+        cc = 0.0
+        for j in range(nv):
+            vel += jac[p, i, j] * qvel[j]
+            cc += jac[p, i, j] * qacc_free[j]
+        packed[p, i, 1] = vel
+        packed[p, i, 2] = cc
+        for k in range(nv):
+            g = 0.0
+            for j in range(nv):
+                g += jac[p, i, j] * Minv[j, k]
+            packed[p, i, 3 + k] = g
+    v0, v1, v2 = packed[p, 0, 1], packed[p, 1, 1], packed[p, 2, 1]
+    packed[p, 0, 2] += ((ra1 * r2 + om1 * v2) - (ra2 * r1 + om2 * v1)) + ra3
+    packed[p, 1, 2] += ((ra2 * r0 + om2 * v0) - (ra0 * r2 + om0 * v2)) + ra4
+    packed[p, 2, 2] += ((ra0 * r1 + om0 * v1) - (ra1 * r0 + om1 * v0)) + ra5
+
+
+@njit(**_opts)
+def point_dynamics(chain, cdof, cdof_dot, com, qvel, Minv, qacc_free, packed, jac):
+    """Velocity, ``c``, ``G`` (``packed[:, :, 1:]``, (P, 3, 3 + nv)) and Jacobians ``jac``
+    (P, 3, nv) of the points ``packed[:, :, 0]`` with dof masks ``chain`` (P, nv)."""
+    x = np.empty(3)
+    for p in range(packed.shape[0]):
+        x[0], x[1], x[2] = packed[p, 0, 0], packed[p, 1, 0], packed[p, 2, 0]
+        _one_point(p, x, chain[p], cdof, cdof_dot, com, qvel, Minv, qacc_free, packed, jac)
+
+
+@njit(**_opts)
+def capsule_ends(geom_xpos, geom_xmat, ids, half, chain, cdof, cdof_dot, com, qvel, Minv, qacc_free,
+                 ends, ends_ab, a_dot_ab, jac):
+    """The capsule axes' end points (a = centre − half z, b = centre + half z), packed
+    ``[pos | vel | c | G]`` in ``ends`` (2S, 3, 3 + nv; a's then b's), their differences
+    ``ends_ab = b − a`` (S, 3, 3 + nv) and ``a_dot_ab = ⟨a, b − a⟩`` (S,)."""
+    s_count = ids.shape[0]
+    ncol = ends.shape[2]
+    x = np.empty(3)
+    for s in range(s_count):
+        g = ids[s]
+        for i in range(3):
+            axis = geom_xmat[g, 3 * i + 2] * half[s]
+            ends[s, i, 0] = geom_xpos[g, i] - axis
+            ends[s_count + s, i, 0] = geom_xpos[g, i] + axis
+    for p in range(2 * s_count):
+        x[0], x[1], x[2] = ends[p, 0, 0], ends[p, 1, 0], ends[p, 2, 0]
+        _one_point(p, x, chain[p % s_count], cdof, cdof_dot, com, qvel, Minv, qacc_free, ends, jac)
+    for s in range(s_count):
+        dot = 0.0
+        for i in range(3):
+            for c in range(ncol):
+                ends_ab[s, i, c] = ends[s_count + s, i, c] - ends[s, i, c]
+            dot += ends[s, i, 0] * ends_ab[s, i, 0]
+        a_dot_ab[s] = dot
+
+
+@njit(**_opts)
+def _closest_pair(ends_a, ends_ab, a_dot_ab, length2, s, o, vo, ao, p, v, c, G, slide):
+    """Closest point of capsule ``s``'s axis to the centre ``o`` (moving with ``vo``, ``ao``):
+    ``p = x* − o``, ``v = ẋ − vo``, ``c = (material c) − ao + ṫ (ḃ − ȧ)``, ``G`` (3, nv) and
+    ``slide = ṫ (b − a)`` (:meth:`ArmModel.closest_relative`). Returns the unclamped axis
+    parameter ``t``."""
+    nv = G.shape[1]
+    t = (o[0] * ends_ab[s, 0, 0] + o[1] * ends_ab[s, 1, 0] + o[2] * ends_ab[s, 2, 0]) - a_dot_ab[s]
+    t /= length2[s]
+    tc = min(max(t, 0.0), 1.0)
+    for i in range(3):
+        p[i] = (tc * ends_ab[s, i, 0] + ends_a[s, i, 0]) - o[i]
+        v[i] = (tc * ends_ab[s, i, 1] + ends_a[s, i, 1]) - vo[i]
+        c[i] = (tc * ends_ab[s, i, 2] + ends_a[s, i, 2]) - ao[i]
+        for j in range(nv):
+            G[i, j] = tc * ends_ab[s, i, 3 + j] + ends_a[s, i, 3 + j]
+    rate = (v[0] * ends_ab[s, 0, 0] + v[1] * ends_ab[s, 1, 0] + v[2] * ends_ab[s, 2, 0]) + (
+        p[0] * ends_ab[s, 0, 1] + p[1] * ends_ab[s, 1, 1] + p[2] * ends_ab[s, 2, 1]
+    )
+    rate /= -length2[s]
+    if not (t > 0.0 and t < 1.0):
+        rate *= 0.0  # clamped to an end: the point does not slide
+    for i in range(3):
+        c[i] += rate * ends_ab[s, i, 1]
+        slide[i] = rate * ends_ab[s, i, 0]
+    return t
+
+
+@njit(**_opts)
+def closest_relative(ends_a, ends_ab, a_dot_ab, length2, centres, velocities, accelerations,
+                     p, v, c, G, slide, t):
+    """:func:`_closest_pair` for every (obstacle k, capsule s), obstacle-major (row k S + s):
+    ``p, v, c, slide`` (K S, 3), ``G`` (K S, 3, nv), ``t`` (K, S)."""
+    s_count = ends_a.shape[0]
+    for k in range(centres.shape[0]):
+        for s in range(s_count):
+            row = k * s_count + s
+            t[k, s] = _closest_pair(ends_a, ends_ab, a_dot_ab, length2, s, centres[k], velocities[k],
+                                    accelerations[k], p[row], v[row], c[row], G[row], slide[row])
+
+
+# ----------------------------------------------------------------------------- barriers
+
+
+@njit(**_opts)
+def _c3bf_point(p, v, r, gamma, eps, delta, grad_v, grad_p):
+    """C3BF at one point (:class:`~c3bf_gym.barriers.C3BF`): fills ``grad_v``, ``grad_p`` (3,)
+    and returns ``(h, drift, inside)``."""
+    h0 = (p[0] * p[0] + p[1] * p[1] + p[2] * p[2]) - r * r
+    inside = h0 <= 0.0
+    pv = p[0] * v[0] + p[1] * v[1] + p[2] * v[2]
+    if inside:
+        h = pv + 0.5 * gamma * h0
+        for i in range(3):
+            grad_v[i] = p[i]
+            grad_p[i] = v[i] + gamma * p[i]
+    else:
+        s = math.sqrt(max(h0, delta * delta))
+        vv = v[0] * v[0] + v[1] * v[1] + v[2] * v[2]
+        vn = math.sqrt(vv + eps * eps)
+        h = vn * s + pv
+        sv = s / vn
+        vs = vn / s
+        for i in range(3):
+            grad_v[i] = v[i] * sv + p[i]
+            grad_p[i] = p[i] * vs + v[i]
+    drift = grad_p[0] * v[0] + grad_p[1] * v[1] + grad_p[2] * v[2]
+    return h, drift, inside
+
+
+@njit(**_opts)
+def _hocbf_point(p, v, r, gamma1, grad_v, grad_p):
+    """Distance HOCBF at one point (:class:`~c3bf_gym.barriers.DistanceHOCBF`): fills ``grad_v``,
+    ``grad_p`` (3,) and returns ``(ψ₁, drift, inside)``."""
+    h0 = (p[0] * p[0] + p[1] * p[1] + p[2] * p[2]) - r * r
+    pv2 = (p[0] * v[0] + p[1] * v[1] + p[2] * v[2]) * 2.0
+    h = h0 * gamma1 + pv2
+    drift = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]) * 2.0 + pv2 * gamma1
+    g2 = 2.0 * gamma1
+    for i in range(3):
+        grad_v[i] = 2.0 * p[i]
+        grad_p[i] = p[i] * g2 + 2.0 * v[i]
+    return h, drift, h0 <= 0.0
+
+
+@njit(**_opts)
+def c3bf_terms(p, v, r, gamma, eps, delta, h, grad_v, drift, inside, grad_p):
+    """:func:`_c3bf_point` for P points: ``p, v`` (P, 3), ``r`` (P,) into the outputs."""
+    for k in range(p.shape[0]):
+        h[k], drift[k], inside[k] = _c3bf_point(p[k], v[k], r[k], gamma, eps, delta, grad_v[k], grad_p[k])
+
+
+@njit(**_opts)
+def hocbf_terms(p, v, r, gamma1, h, grad_v, drift, inside, grad_p):
+    """:func:`_hocbf_point` for P points: ``p, v`` (P, 3), ``r`` (P,) into the outputs."""
+    for k in range(p.shape[0]):
+        h[k], drift[k], inside[k] = _hocbf_point(p[k], v[k], r[k], gamma1, grad_v[k], grad_p[k])
+
+
+@njit(**_opts)
+def _row(grad_v, G, c, drift, h, gamma, A_row):
+    """One torque row: ``A_row = grad_vᵀ G`` and returns ``b = −(⟨grad_v, c⟩ + drift + γ h)``."""
+    for j in range(G.shape[1]):
+        A_row[j] = grad_v[0] * G[0, j] + grad_v[1] * G[1, j] + grad_v[2] * G[2, j]
+    return -(((grad_v[0] * c[0] + grad_v[1] * c[1] + grad_v[2] * c[2]) + drift) + gamma * h)
+
+
+@njit(**_opts)
+def rows_from_terms(grad_v, drift, h, gamma, G, c, A, b):
+    """:func:`_row` for P points: ``G`` (P, 3, n), ``c`` (P, 3) into ``A`` (P, n), ``b`` (P,)."""
+    for k in range(h.shape[0]):
+        b[k] = _row(grad_v[k], G[k], c[k], drift[k], h[k], gamma, A[k])
+
+
+@njit(**_opts)
+def joint_limit_rows(q, qd, Minv, c_q, q_lo, q_hi, qd_max, g1, g2, gv, A, b):
+    """The ``4n`` rows of :class:`~c3bf_gym.barriers.JointLimits` into ``A`` (4n, n), ``b`` (4n,)
+    (row blocks: position upper, position lower, speed upper, speed lower)."""
+    n = q.shape[0]
+    g12 = g1 * g2
+    g1p2 = g1 + g2
+    for i in range(n):
+        for j in range(n):
+            mij = Minv[i, j]
+            A[i, j] = -mij
+            A[n + i, j] = mij
+            A[2 * n + i, j] = -mij
+            A[3 * n + i, j] = mij
+        b[i] = ((g12 * q[i] + g1p2 * qd[i]) + c_q[i]) + (-g12 * q_hi[i])
+        b[n + i] = ((-g12 * q[i] + -g1p2 * qd[i]) + -c_q[i]) + g12 * q_lo[i]
+        b[2 * n + i] = (gv * qd[i] + c_q[i]) + (-gv * qd_max[i])
+        b[3 * n + i] = (-gv * qd[i] + -c_q[i]) + (-gv * qd_max[i])
+
+
+@njit(**_opts)
+def floor_rows(ends, idx, z_min, gamma, A, b):
+    """Floor rows of :class:`~c3bf_gym.filter.SafetyHook`: capsule end ``idx[k]`` of the packed
+    ``ends`` (2S, 3, 3 + nv) stays at ``z ≥ z_min[k]``, as the second-order barrier
+    ``z̈ + 2γ ż + γ² (z − z_min) ≥ 0`` with ``z̈ = G_z τ + c_z``: ``A_k = G_z``,
+    ``b_k = −γ² (z − z_min) − 2γ ż − c_z``."""
+    nv = A.shape[1]
+    for k in range(idx.shape[0]):
+        e = idx[k]
+        for j in range(nv):
+            A[k, j] = ends[e, 2, 3 + j]
+        b[k] = ((ends[e, 2, 0] - z_min[k]) * (-gamma * gamma) - 2.0 * gamma * ends[e, 2, 1]) - ends[e, 2, 2]
+
+
+# ----------------------------------------------------------------------------- the fused filter rows
+
+
+@njit(**_opts)
+def hook_rows_whole_arm(stage, M, qfrc_passive, qfrc_bias, geom_xpos, geom_xmat, cdof, cdof_dot, com, qpos, qvel,
+                        arm_i, arm_f, chain, scratch, Minv, qacc_free, ends, ends_ab, a_dot_ab,
+                        active, distances, obs_pos, obs_vel, obs_acc, obs_radius, kind, floor_idx, floor_min,
+                        joint_rows, hook_f, work, A, b):
+    """All rows of the whole-arm filter (:meth:`~c3bf_gym.filter.SafetyHook.rows`) in one call.
+
+    1. ``stage`` 2: ``Minv``, ``qacc_free`` (:func:`step_inverse`), then (``stage`` ≥ 1) the
+       capsule ends (:func:`capsule_ends`), into the :class:`~c3bf_gym.robot.ArmModel`'s arrays
+       (``arm_i``, ``arm_f``, ``scratch``: its packed constants and scratch).
+    2. For every sensed obstacle (active and ``distances[k].min() <= sensing_radius``), one row
+       per capsule: closest point (:func:`_closest_pair`), barrier ``kind`` (:func:`_c3bf_point`
+       or :func:`_hocbf_point`), row (:func:`_row`) with the sliding term ``−⟨grad_p, ṫ (b − a)⟩``.
+    3. The floor rows of the capsule ends ``floor_idx`` (:func:`floor_rows`, heights
+       ``floor_min``).
+    4. With ``joint_rows``, the ``4n`` joint-limit rows (:func:`joint_limit_rows`).
+
+    ``hook_f`` = ``[sensing_radius, margin, floor γ, γ, barrier params (2), γ₁, γ₂, γ_v,
+    q_lo (n), q_hi (n), qd_max (n)]``; ``work`` a (3, 6 + nv) scratch. Returns ``(rows, min h, any
+    inside, sensed count)``.
+    """
+    s_count = ends_ab.shape[0]
+    nv = Minv.shape[0]
+    ids = arm_i[:s_count]
+    length2 = arm_f[nv + s_count:nv + 2 * s_count]
+    capsule_radius = arm_f[nv + 2 * s_count:nv + 3 * s_count]
+    if stage >= 2:
+        step_inverse(M, arm_i[s_count:s_count + nv], arm_i[s_count + nv:s_count + 2 * nv], arm_i[s_count + 2 * nv:],
+                     arm_f[:nv], qfrc_passive, qfrc_bias, scratch[:nv * nv].reshape((nv, nv)), Minv, qacc_free)
+    if stage >= 1:
+        capsule_ends(geom_xpos, geom_xmat, ids, arm_f[nv:nv + s_count], chain, cdof, cdof_dot, com, qvel, Minv,
+                     qacc_free, ends, ends_ab, a_dot_ab, scratch[nv * nv:].reshape((2 * s_count, 3, nv)))
+    ends_a = ends[:s_count]
+    sensing_radius = hook_f[0]
+    margin = hook_f[1]
+    floor_gamma = hook_f[2]
+    gamma = hook_f[3]
+    p = work[0, :3]
+    v = work[1, :3]
+    c = work[2, :3]
+    grad_v = work[0, 3:6]
+    grad_p = work[1, 3:6]
+    slide = work[2, 3:6]
+    G = work[:, 6:6 + nv]
+    m = 0
+    n_sensed = 0
+    min_h = np.inf
+    inside_any = False
+    for k in range(active.shape[0]):
+        if not active[k]:
+            continue
+        dmin = np.inf
+        for g in range(distances.shape[1]):
+            dmin = min(dmin, distances[k, g])
+        if not dmin <= sensing_radius:
+            continue
+        n_sensed += 1
+        for s in range(s_count):
+            _closest_pair(ends_a, ends_ab, a_dot_ab, length2, s, obs_pos[k], obs_vel[k], obs_acc[k],
+                          p, v, c, G, slide)
+            r = (obs_radius[k] + capsule_radius[s]) + margin
+            if kind == C3BF_KIND:
+                h, drift, inside = _c3bf_point(p, v, r, gamma, hook_f[4], hook_f[5], grad_v, grad_p)
+            else:
+                h, drift, inside = _hocbf_point(p, v, r, hook_f[4], grad_v, grad_p)
+            bk = _row(grad_v, G, c, drift, h, gamma, A[m])
+            b[m] = bk - (grad_p[0] * slide[0] + grad_p[1] * slide[1] + grad_p[2] * slide[2])
+            min_h = min(min_h, h)
+            inside_any = inside_any or inside
+            m += 1
+    n_floor = floor_idx.shape[0]
+    floor_rows(ends, floor_idx, floor_min, floor_gamma, A[m:m + n_floor], b[m:m + n_floor])
+    m += n_floor
+    if joint_rows:
+        joint_limit_rows(qpos, qvel, Minv, qacc_free, hook_f[9:9 + nv], hook_f[9 + nv:9 + 2 * nv],
+                         hook_f[9 + 2 * nv:9 + 3 * nv], hook_f[6], hook_f[7], hook_f[8],
+                         A[m:m + 4 * nv], b[m:m + 4 * nv])
+        m += 4 * nv
+    return m, min_h, inside_any, n_sensed
+
+
+# ----------------------------------------------------------------------------- QP layer
+
+
+@njit(**_opts)
+def qp_prepare(tau_nom, A, b, scale, G, h, nrm, r, xe, nom, m_prev, row_norm_min, inf, lo, hi, tol,
+               l, l_clipped, reach, negW, g):
+    """The data step of :meth:`~c3bf_gym.qp.TorqueQP.solve`, before proxsuite.
+
+    With ``scale`` (n,) nonempty, first ``A *= scale`` (in place) and the nominal is
+    ``tau_nom / scale``. Checks finiteness, writes the nominal into ``nom`` and ``xe[:n]``, the
+    row-normalised rows into ``G[:m, :n]`` and ``h[:m]`` (norms in ``nrm``; rows below
+    ``row_norm_min`` unscaled), pads rows ``m .. m_prev`` with ``(0, −inf)`` and puts the
+    residuals ``G xe − h`` into ``r``. If one is negative (no fast path), also the rows' reach
+    over the box (:func:`row_reach`, bounds ``l``, ``l_clipped``, ``reach``, tolerance ``tol``)
+    and the elastic gradient ``g[:n] = negW nom``.
+
+    Returns ``(code, min residual, impossible rows)``: code −1 if the nominal is not finite, −2
+    if the rows are not (or beyond ~1e150), else 0.
+    """
+    m, n = A.shape
+    scaled = scale.shape[0] > 0
+    if scaled:
+        for i in range(m):
+            for j in range(n):
+                A[i, j] *= scale[j]
+    tt = 0.0
+    for j in range(n):
+        u = tau_nom[j] / scale[j] if scaled else tau_nom[j]
+        nom[j] = u
+        xe[j] = u
+        tt += u * u
+    if not math.isfinite(tt):
+        return -1, 0.0, False
+    if m:
+        bb = 0.0
+        aa = 0.0
+        for i in range(m):
+            bb += b[i] * b[i]
+            for j in range(n):
+                aa += A[i, j] * A[i, j]
+        if not (math.isfinite(bb) and math.isfinite(aa)):
+            return -2, 0.0, False
+    for i in range(m):
+        s = 0.0
+        for j in range(n):
+            s += A[i, j] * A[i, j]
+        s = math.sqrt(s)
+        if s < row_norm_min:
+            s = 1.0
+        nrm[i] = s
+        h[i] = b[i] / s
+        for j in range(n):
+            G[i, j] = A[i, j] / s
+    for i in range(m, m_prev):
+        for j in range(n):
+            G[i, j] = 0.0
+        h[i] = -inf
+    rmin = residuals(G, xe, h, r)
+    if rmin >= 0.0:
+        return 0, rmin, False
+    impossible = row_reach(G, m, lo, hi, h, tol, l, l_clipped, reach)
+    for i in range(n):
+        acc = 0.0
+        for j in range(n):
+            acc += negW[i, j] * nom[j]
+        g[i] = acc
+    return 0, rmin, impossible
+
+
+@njit(**_opts)
+def residuals(G, x, h, r):
+    """``r = G x − h`` (all rows); returns ``min r``."""
+    rmin = np.inf
+    for i in range(G.shape[0]):
+        acc = 0.0
+        for j in range(G.shape[1]):
+            acc += G[i, j] * x[j]
+        r[i] = acc - h[i]
+        rmin = min(rmin, r[i])
+    return rmin
+
+
+@njit(**_opts)
+def result_stats(G, x, h, r, m, tol, recompute):
+    """``(rows k < m with r_k <= tol, max(0, −min_k r_k))`` of the residuals ``r = G x − h``
+    (recomputed first if ``recompute``): the active rows and the largest violation."""
+    if recompute:
+        residuals(G, x, h, r)
+    active = 0
+    rmin = np.inf
+    for i in range(m):
+        if r[i] <= tol:
+            active += 1
+        rmin = min(rmin, r[i])
+    return active, max(0.0, -rmin) if m else 0.0
+
+
+@njit(**_opts)
+def infeasibility_bound(z, G, h, m, lo, hi, y):
+    """Farkas lower bound on ``min_{τ ∈ [lo, hi]} max_k (h_k − G_k τ)`` from the row multipliers
+    ``z[:m]`` (``y = max(−z, 0) / Σ``; −inf when they are all zero), ``y`` (m,) scratch."""
+    n = lo.shape[0]
+    tot = 0.0
+    for i in range(m):
+        y[i] = max(-z[i], 0.0)
+        tot += y[i]
+    if not tot > 0.0:
+        return -np.inf
+    yh = 0.0
+    for i in range(m):
+        y[i] /= tot
+        yh += y[i] * h[i]
+    bound = 0.0
+    for j in range(n):
+        v = 0.0
+        for i in range(m):
+            v += y[i] * G[i, j]
+        bound += max(v * lo[j], v * hi[j])
+    return yh - bound
+
+
+@njit(**_opts)
+def row_reach(G, m, lo, hi, h, tol, l, l_clipped, reach):
+    """Rows no torque in the box ``[lo, hi]`` can satisfy: ``h_k > reach_k + tol`` with
+    ``reach_k = Σ_j max(G_kj lo_j, G_kj hi_j)`` (in ``reach`` (m,)). If there is one, fills
+    ``l_clipped = l`` with every row's bound lowered to its reach, and returns True."""
+    n = lo.shape[0]
+    impossible = False
+    for i in range(m):
+        acc = 0.0
+        for j in range(n):
+            acc += max(G[i, j] * lo[j], G[i, j] * hi[j])
+        reach[i] = acc
+        if h[i] > acc + tol:
+            impossible = True
+    if impossible:
+        for k in range(l.shape[0]):
+            l_clipped[k] = l[k]
+        for i in range(m):
+            l_clipped[i] = min(l[i], reach[i])
+    return impossible
+
+
+@njit(**_opts)
+def clip(x, lo, hi, out):
+    """``out = min(max(x, lo), hi)`` over ``len(out)`` entries."""
+    for j in range(out.shape[0]):
+        out[j] = min(max(x[j], lo[j]), hi[j])
+
+
+@njit(**_opts)
+def dual_signs_ok(z, x, m, lo, hi, rel_tol):
+    """:meth:`~c3bf_gym.qp.TorqueQP._dual_signs_ok`: row multipliers ``z[:m]`` ≤ tol, box
+    multipliers (the last ``len(x)`` entries of ``z``) pointing to the nearer bound."""
+    M = z.shape[0] - x.shape[0]
+    zmax = 0.0
+    for i in range(z.shape[0]):
+        zmax = max(zmax, abs(z[i]))
+    tol = rel_tol * (1.0 + zmax)
+    for i in range(m):
+        if z[i] > tol:
+            return False
+    for i in range(x.shape[0]):
+        zb = z[M + i]
+        upper = x[i] - lo[i] > hi[i] - x[i]
+        if (zb > tol and not upper) or (zb < -tol and upper):
+            return False
+    return True
+
+
+@njit(**_opts)
+def hook_post(A, b, u, scale, tau_nom, limit, tau):
+    """The filter's bookkeeping after the QP: ``tau = u · scale``; returns ``(min_k A_k u − b_k``
+    (inf without rows), ``‖tau − clip(tau_nom, ±limit)‖``)."""
+    m, n = A.shape
+    residual = np.inf
+    for i in range(m):
+        acc = 0.0
+        for j in range(n):
+            acc += A[i, j] * u[j]
+        residual = min(residual, acc - b[i])
+    sq = 0.0
+    for j in range(n):
+        tau[j] = u[j] * scale[j]
+        d = tau[j] - max(min(tau_nom[j], limit[j]), -limit[j])
+        sq += d * d
+    return residual, math.sqrt(sq)

@@ -1,0 +1,397 @@
+"""Tests for c3bf_gym/_kernels.py: the compiled kernels against plain numpy reference math.
+
+The references here are written independently of the kernels (vectorised numpy, the formulas of
+the barrier and robot docstrings, the numpy code the kernels replaced), so a wrong index, sign or
+operand in a kernel shows as a mismatch. Where the kernels follow the same operation order the
+agreement is to rounding (1e-12 relative); the filter's rows are also checked end to end against
+a numpy assembly of the same rows.
+"""
+
+from __future__ import annotations
+
+import mujoco
+import numpy as np
+import pytest
+from numba.core.caching import NullCache
+
+from c3bf_gym import _kernels as K
+from c3bf_gym.barriers import C3BF, DistanceHOCBF, JointLimits
+from c3bf_gym.filter import FLOOR_GAMMA, SafetyHook
+from c3bf_gym.qp import PROXSUITE_INF, TorqueQP
+from c3bf_gym.robot import ArmModel
+from c3bf_gym.scenarios import ObstacleSample, ObstacleSpec
+
+RTOL = 1e-12
+
+
+def close(got, want, rtol=RTOL):
+    """Equal to ``rtol`` relative to the largest magnitude of ``want`` (scale-aware)."""
+    got, want = np.asarray(got, dtype=float), np.asarray(want, dtype=float)
+    assert got.shape == want.shape
+    np.testing.assert_allclose(got, want, rtol=0, atol=rtol * max(1.0, float(np.abs(want).max(initial=0.0))))
+
+
+# ----------------------------------------------------------------------------- numpy references
+
+
+def c3bf_reference(p, v, r, gamma, eps, delta=1e-6):
+    """The C3BF terms in vectorised numpy (the formulas of :class:`C3BF`'s docstring)."""
+    h0 = (p * p).sum(1) - r**2
+    inside = h0 <= 0
+    s = np.sqrt(np.maximum(h0, delta**2))
+    vn = np.sqrt((v * v).sum(1) + eps**2)
+    pv = (p * v).sum(1)
+    h = pv + vn * s
+    grad_v = p + v * (s / vn)[:, None]
+    grad_p = v + p * (vn / s)[:, None]
+    h = np.where(inside, pv + 0.5 * gamma * h0, h)
+    grad_v = np.where(inside[:, None], p, grad_v)
+    grad_p = np.where(inside[:, None], v + gamma * p, grad_p)
+    return h, grad_v, (grad_p * v).sum(1), inside, grad_p
+
+
+def hocbf_reference(p, v, r, gamma1):
+    h0 = (p * p).sum(1) - r**2
+    pv = (p * v).sum(1)
+    return 2 * pv + gamma1 * h0, 2 * p, 2 * (v * v).sum(1) + 2 * gamma1 * pv, h0 <= 0, 2 * v + 2 * gamma1 * p
+
+
+def random_points(rng, n, inside_share=0.3):
+    r = rng.uniform(0.05, 0.3, n)
+    direction = rng.normal(size=(n, 3))
+    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+    dist = np.where(rng.random(n) < inside_share, rng.uniform(0.0, 1.0, n), rng.uniform(1.0, 4.0, n)) * r
+    return direction * dist[:, None], rng.normal(size=(n, 3)), r
+
+
+# ----------------------------------------------------------------------------- barriers
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_c3bf_and_hocbf_terms_match_numpy(seed):
+    rng = np.random.default_rng(seed)
+    p, v, r = random_points(rng, 50)
+    got = C3BF(gamma=4.0, eps=0.02).terms(p, v, r)
+    want = c3bf_reference(p, v, r, 4.0, 0.02)
+    assert got.inside.any() and not got.inside.all()  # both branches exercised
+    for g, w in zip(got, want):
+        close(g, w)
+    got = DistanceHOCBF(gamma1=3.0, gamma2=7.0).terms(p, v, r)
+    for g, w in zip(got, hocbf_reference(p, v, r, 3.0)):
+        close(g, w)
+
+
+def test_terms_accept_scalar_radius_and_strided_inputs():
+    rng = np.random.default_rng(1)
+    p, v, _ = random_points(rng, 6)
+    big = np.zeros((6, 6))
+    big[:, ::2] = p  # a strided (non-contiguous) view
+    got = C3BF().terms(big[:, ::2], v, 0.1)
+    close(got.h, c3bf_reference(p, v, np.full(6, 0.1), 5.0, 1e-2)[0])
+
+
+@pytest.mark.parametrize("barrier", [C3BF(gamma=3.0), DistanceHOCBF(gamma1=2.0, gamma2=6.0)])
+def test_rows_from_terms_match_numpy(barrier):
+    rng = np.random.default_rng(2)
+    p, v, r = random_points(rng, 9)
+    G = rng.normal(size=(9, 3, 6))
+    c = rng.normal(size=(9, 3))
+    terms = barrier.terms(p, v, r)
+    A, b = barrier.rows(p, v, r, G, c)
+    close(A, np.einsum("pi,pij->pj", terms.grad_v, G))
+    close(b, -((terms.grad_v * c).sum(1) + terms.drift + barrier.gamma * terms.h))
+
+
+def test_joint_limit_rows_match_numpy():
+    rng = np.random.default_rng(3)
+    n = 6
+    lo, hi = -rng.uniform(1, 3, n), rng.uniform(1, 3, n)
+    jl = JointLimits(lo, hi, rng.uniform(1, 3, n), gamma1=4.0, gamma2=9.0, gamma_v=15.0)
+    q, qd, c = rng.uniform(-2, 2, n), rng.normal(size=n), rng.normal(size=n)
+    Minv = rng.normal(size=(n, n))
+    A, b = jl.rows(q, qd, Minv, c)
+    close(A, np.concatenate([-Minv, Minv, -Minv, Minv]))
+    g1, g2, gv = 4.0, 9.0, 15.0
+    close(b, np.concatenate([
+        -(-c - g1 * qd + g2 * (-qd + g1 * (hi - q))),
+        -(c + g1 * qd + g2 * (qd + g1 * (q - lo))),
+        -(-c + gv * (jl.qd_max - qd)),
+        -(c + gv * (qd + jl.qd_max)),
+    ]))  # fmt: skip
+
+
+# ----------------------------------------------------------------------------- dynamics
+
+
+def test_step_inverse_inverts_a_random_spd_matrix_in_mujoco_layout(make_env):
+    u = make_env(scenario="none").unwrapped
+    m = u.model
+    rng = np.random.default_rng(4)
+    nv = m.nv
+    B = rng.normal(size=(nv, nv))
+    full = B @ B.T + nv * np.eye(nv)
+    csr = np.array([full[i, m.M_colind[m.M_rowadr[i] + k]] for i in range(nv) for k in range(m.M_rownnz[i])])
+    damping = rng.uniform(0, 0.5, nv)
+    passive, bias = rng.normal(size=nv), rng.normal(size=nv)
+    Minv, free, work = np.zeros((nv, nv)), np.zeros(nv), np.zeros((nv, nv))
+    K.step_inverse(csr, m.M_rowadr.astype(np.int64), m.M_rownnz.astype(np.int64), m.M_colind.astype(np.int64),
+                   damping, passive, bias, work, Minv, free)
+    want = np.linalg.inv(full + np.diag(damping))
+    close(Minv, want, 1e-10)
+    close(free, want @ (passive - bias), 1e-10)
+
+
+def put_obstacle(u, slot, centre, radius, velocity=(0.0, 0.0, 0.0)):
+    u._place(slot, ObstacleSample(np.asarray(centre, float), np.asarray(velocity, float), radius))
+    u._obstacle_specs[slot] = ObstacleSpec("static")
+
+
+def scene(u, rng, count):
+    """A random arm state with ``count`` obstacles near the links (some beyond the capsule ends)."""
+    m, d = u.model, u.data
+    d.qpos[:] = m.key_qpos[0] + rng.uniform(-1.0, 1.0, m.nq)
+    d.qvel[:] = rng.uniform(-1.5, 1.5, m.nv)
+    mujoco.mj_forward(m, d)
+    for slot in range(count):
+        gid = rng.choice(u.arm.capsule_ids[1:])
+        axis = d.geom_xmat[gid].reshape(3, 3)[:, 2] * m.geom_size[gid, 1]
+        side = rng.normal(size=3)
+        side -= (side @ axis) / (axis @ axis) * axis
+        side /= np.linalg.norm(side)
+        centre = d.geom_xpos[gid] + rng.uniform(-1.4, 1.4) * axis + side * rng.uniform(0.12, 0.3)
+        put_obstacle(u, slot, centre, 0.05, rng.uniform(-0.3, 0.3, 3))
+        u.obstacle_acc[slot] = rng.uniform(-1, 1, 3)
+    mujoco.mj_forward(m, d)
+    u.state_version += 1
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_closest_relative_matches_closest_dynamics_and_sliding(make_env, seed):
+    """The compiled closest_relative against the numpy closest_dynamics + closest_sliding."""
+    u = make_env(scenario="none").unwrapped
+    u.reset(seed=seed)
+    rng = np.random.default_rng(seed)
+    scene(u, rng, 3)
+    arm = u.arm
+    arm.update(u.data, u.state_version)
+    centres, vel, acc = u.obstacle_pos[:3].copy(), u.obstacle_vel[:3].copy(), u.obstacle_acc[:3].copy()
+    s = len(arm.capsule_ids)
+    rel, slide_p = arm.closest_relative(centres, vel, acc)
+    mat = arm.closest_dynamics(centres)
+    p = mat.pos - np.repeat(centres, s, axis=0)
+    v = mat.vel - np.repeat(vel, s, axis=0)
+    slide_p_ref, slide_v_ref = arm.closest_sliding(centres, p, v)
+    close(rel.pos, p)
+    close(rel.vel, v)
+    close(rel.G, mat.G)
+    close(rel.c, mat.c - np.repeat(acc, s, axis=0) + slide_v_ref)
+    close(slide_p, slide_p_ref)
+    assert np.abs(slide_p).max() > 1e-3  # the sliding terms are exercised
+
+
+def test_point_dynamics_kernel_matches_mj_jac(make_env):
+    u = make_env(scenario="none").unwrapped
+    u.reset(seed=5)
+    m, d = u.model, u.data
+    d.qvel[:] = np.random.default_rng(6).uniform(-2, 2, m.nv)  # J̇q̇ needs motion
+    mujoco.mj_forward(m, d)
+    u.state_version += 1
+    arm = u.arm
+    arm.update(d, u.state_version)
+    body = int(m.geom_bodyid[arm.capsule_ids[4]])
+    points = d.xpos[body] + np.random.default_rng(5).normal(scale=0.1, size=(4, 3))
+    chain = np.repeat(ArmModel._chain_mask(m, body)[None], 4, axis=0)
+    got = arm.point_dynamics(d, points, chain)
+    for k, x in enumerate(points):
+        jac, jdot = np.zeros((3, m.nv)), np.zeros((3, m.nv))
+        mujoco.mj_jac(m, d, jac, None, x, body)
+        mujoco.mj_jacDot(m, d, jdot, None, x, body)
+        close(got.jac[k], jac, 1e-10)
+        close(got.vel[k], jac @ d.qvel, 1e-10)
+        close(got.G[k], jac @ arm.Minv, 1e-10)
+        close(got.c[k], jac @ arm.qacc_free + jdot @ d.qvel, 1e-9)
+
+
+# ----------------------------------------------------------------------------- the fused filter rows
+
+
+class _NumpyC3BF(C3BF):
+    """C3BF with numpy terms: the filter cannot fuse it and takes the per-class path."""
+
+    def terms(self, p, v, r):
+        from c3bf_gym.barriers import BarrierTerms
+
+        r = np.broadcast_to(r, len(p))
+        return BarrierTerms(*c3bf_reference(np.asarray(p), np.asarray(v), r, self.gamma, self.eps))
+
+
+def numpy_rows(u, hook):
+    """SafetyHook.rows assembled in numpy from closest_dynamics / closest_sliding (numpy code in
+    robot.py), the reference barrier terms and the joint-limit formulas."""
+    arm = u.arm
+    arm.update(u.data, u.state_version)
+    sensed = np.flatnonzero(u.obstacle_active & (u.obstacle_distances() <= hook.sensing_radius))
+    s = len(arm.capsule_ids)
+    centres, vel, acc = u.obstacle_pos[sensed], u.obstacle_vel[sensed], u.obstacle_acc[sensed]
+    mat = arm.closest_dynamics(centres)
+    p = mat.pos - np.repeat(centres, s, axis=0)
+    v = mat.vel - np.repeat(vel, s, axis=0)
+    slide_p, slide_v = arm.closest_sliding(centres, p, v)
+    c = mat.c - np.repeat(acc, s, axis=0) + slide_v
+    r = (u.obstacle_radius[sensed][:, None] + arm.capsule_radius[None] + hook.margin).reshape(-1)
+    bar = hook.barrier
+    if isinstance(bar, DistanceHOCBF):
+        h, gv, drift, inside, gp = hocbf_reference(p, v, r, bar.gamma1)
+    else:
+        h, gv, drift, inside, gp = c3bf_reference(p, v, r, bar.gamma, bar.eps)
+    A = np.einsum("pi,pij->pj", gv, mat.G)
+    b = -((gv * c).sum(1) + drift + bar.gamma * h) - (gp * slide_p).sum(1)
+    # floor rows: z'' + 2γ z' + γ² (z − z_min) ≥ 0 at the capsule ends the filter protects
+    ends = arm.end_dynamics()
+    idx, g = hook._floor_ends, FLOOR_GAMMA
+    A_floor = ends.G[idx, 2]
+    b_floor = -(ends.c[idx, 2] + 2 * g * ends.vel[idx, 2] + g * g * (ends.pos[idx, 2] - hook._floor_min))
+    jl = hook.joint_limits.rows(u.data.qpos, u.data.qvel, arm.Minv, arm.qacc_free)
+    A_all, b_all = np.concatenate([A, A_floor, jl.A]), np.concatenate([b, b_floor, jl.b])
+    return A_all, b_all, h.min(initial=np.inf), inside.any(), len(sensed)
+
+
+@pytest.mark.parametrize("barrier", ["c3bf", "hocbf"])
+@pytest.mark.parametrize("seed", range(4))
+def test_fused_hook_rows_match_numpy_assembly(make_env, barrier, seed):
+    from c3bf_gym.filter import build_hook
+
+    u = make_env(scenario="none").unwrapped
+    u.reset(seed=seed)
+    rng = np.random.default_rng(10 + seed)
+    scene(u, rng, 1 + seed % 4)
+    hook = build_hook(u, barrier, "whole_arm", None, 0.01, None, 0.05, 1.0, "limits", "relax")
+    assert hook._fused
+    A, b, min_h, inside, n_sensed = hook.rows()
+    A_ref, b_ref, h_ref, inside_ref, sensed_ref = numpy_rows(u, hook)
+    assert n_sensed == sensed_ref >= 1 and inside == inside_ref
+    assert len(hook._floor_ends) == 12 and len(b) == 7 * n_sensed + 12 + 24
+    close(A, A_ref, 1e-10)
+    close(b, b_ref, 1e-10)
+    assert min_h == pytest.approx(h_ref, rel=1e-10)
+
+
+def test_fused_rows_equal_the_per_class_path(make_env):
+    """A barrier the filter cannot fuse (a subclass changing terms) takes the per-class path;
+    with the same math it must give the fused kernel's rows."""
+    u = make_env(scenario="none").unwrapped
+    u.reset(seed=3)
+    scene(u, np.random.default_rng(3), 3)
+    q_lo, q_hi = u.joint_range.T
+    args = dict(points="whole_arm", margin=0.02, sensing_radius=0.5, ee_radius=0.05,
+                joint_limits=JointLimits(q_lo, q_hi, np.pi), weight="limits", on_infeasible="relax")  # fmt: skip
+    fused = SafetyHook(u, C3BF(gamma=5.0, eps=1e-2), **args)
+    generic = SafetyHook(u, _NumpyC3BF(gamma=5.0, eps=1e-2), **args)
+    assert fused._fused and not generic._fused
+    A1, b1, h1, in1, n1 = (x.copy() if isinstance(x, np.ndarray) else x for x in fused.rows())
+    A2, b2, h2, in2, n2 = generic.rows()
+    assert n1 == n2 == 3 and in1 == in2
+    close(A1, A2, 1e-10)
+    close(b1, b2, 1e-10)
+
+
+# ----------------------------------------------------------------------------- QP layer
+
+
+def test_qp_prepare_normalises_rows_and_pads_the_previous_ones():
+    rng = np.random.default_rng(6)
+    n, M = 6, 12
+    qp = TorqueQP(n, M, -np.ones(n), np.ones(n))
+    A = rng.normal(size=(10, n))
+    A[3] = 0.0  # a zero row stays unscaled
+    b = rng.normal(size=10)
+    qp.solve(np.zeros(n), A, b)
+    G, h = qp._G, qp._h
+    norms = np.linalg.norm(A, axis=1)
+    norms[3] = 1.0
+    close(G[:10, :n], A / norms[:, None])
+    close(h[:10], b / norms)
+    A2 = rng.normal(size=(4, n))
+    scale = rng.uniform(0.5, 2, n)
+    A2_scaled = A2 * scale
+    tau = rng.uniform(-0.9, 0.9, n) * scale  # inside the box in u = τ / scale
+    res = qp.solve_scaled(tau, A2.copy(), np.full(4, -100.0), scale)  # loose rows: fast path
+    assert res.iterations == 0 and res.status == "solved"
+    close(res.tau, tau / scale)
+    close(G[:4, :n], A2_scaled / np.linalg.norm(A2_scaled, axis=1)[:, None])
+    assert np.all(G[4:10, :n] == 0.0) and np.all(h[4:10] == -PROXSUITE_INF)  # old rows padded
+
+
+def test_solve_scaled_equals_solve_of_the_scaled_problem():
+    rng = np.random.default_rng(7)
+    n = 6
+    scale = np.array([150, 150, 150, 28, 28, 28.0])
+    A = rng.normal(size=(20, n))
+    b = A @ rng.uniform(-50, 50, n) - rng.uniform(0, 5, 20)
+    tau_nom = rng.uniform(-150, 150, n)
+    q1, q2 = TorqueQP(n, 30, -1.0, 1.0), TorqueQP(n, 30, -1.0, 1.0)
+    r1 = q1.solve(tau_nom / scale, A * scale, b)
+    r2 = q2.solve_scaled(tau_nom, A.copy(), b, scale)
+    assert r1.status == r2.status and r1.iterations == r2.iterations > 0
+    np.testing.assert_allclose(r2.tau, r1.tau, atol=1e-12)
+
+
+def test_row_reach_and_infeasibility_bound_match_numpy():
+    rng = np.random.default_rng(8)
+    n, m = 6, 15
+    G = rng.normal(size=(m, n + 1))
+    lo, hi = -rng.uniform(0.5, 1, n), rng.uniform(0.5, 1, n)
+    reach_ref = np.maximum(G[:, :n] * lo, G[:, :n] * hi).sum(1)
+    h = reach_ref + np.where(np.arange(m) % 4 == 0, 0.5, -0.5)  # every 4th row impossible
+    l = np.concatenate([h, np.full(3, -PROXSUITE_INF)])
+    l_clipped, reach = np.zeros(m + 3), np.zeros(m)
+    assert K.row_reach(G, m, lo, hi, h, 1e-6, l, l_clipped, reach)
+    close(reach, reach_ref)
+    close(l_clipped[:m], np.minimum(h, reach_ref))
+    assert np.all(l_clipped[m:] == -PROXSUITE_INF)
+    assert not K.row_reach(G, m, lo, hi, h - 1.0, 1e-6, l, l_clipped, reach)
+    z = np.concatenate([-rng.uniform(0, 1, m) * (rng.random(m) < 0.5), rng.normal(size=n)])
+    y = np.maximum(-z[:m], 0)
+    y /= y.sum()
+    v = y @ G[:m, :n]
+    want = y @ h - np.maximum(v * lo, v * hi).sum()
+    assert K.infeasibility_bound(z, G, h, m, lo, hi, np.zeros(m)) == pytest.approx(want, rel=1e-12)
+    assert K.infeasibility_bound(np.zeros(m + n), G, h, m, lo, hi, np.zeros(m)) == -np.inf
+
+
+def test_dual_signs_ok():
+    M, n = 4, 2
+    lo, hi = np.array([-1.0, -1.0]), np.array([1.0, 1.0])
+    x = np.array([0.9, -0.9])  # nearer the upper bound on joint 0, the lower on joint 1
+    good = np.array([-1.0, 0.0, 0.0, 0.0, 0.5, -0.5])
+    assert K.dual_signs_ok(good, x, 2, lo, hi, 1e-6)
+    bad_row = good.copy()
+    bad_row[1] = 0.2
+    assert not K.dual_signs_ok(bad_row, x, 2, lo, hi, 1e-6)
+    assert K.dual_signs_ok(bad_row, x, 1, lo, hi, 1e-6)  # row 1 unused (m = 1)
+    bad_box = good.copy()
+    bad_box[4] = -0.5
+    assert not K.dual_signs_ok(bad_box, x, 2, lo, hi, 1e-6)
+
+
+def test_hook_post():
+    rng = np.random.default_rng(9)
+    A, b, u = rng.normal(size=(5, 3)), rng.normal(size=5), rng.normal(size=3)
+    scale, limit = np.array([2.0, 3.0, 4.0]), np.array([1.0, 1.0, 1.0])
+    tau_nom = np.array([3.0, -0.5, -2.0])
+    tau = np.zeros(3)
+    residual, correction = K.hook_post(A, b, u, scale, tau_nom, limit, tau)
+    close(tau, u * scale)
+    assert residual == pytest.approx((A @ u - b).min(), rel=1e-14)
+    assert correction == pytest.approx(np.linalg.norm(u * scale - np.clip(tau_nom, -limit, limit)), rel=1e-14)
+    assert K.hook_post(np.zeros((0, 3)), np.zeros(0), u, scale, tau_nom, limit, tau)[0] == np.inf
+
+
+def test_kernels_are_cached_on_disk():
+    """Every kernel caches its machine code (cache=True): test and SubprocVecEnv worker processes
+    load it instead of compiling again."""
+    from numba.core.registry import CPUDispatcher
+
+    dispatchers = [f for f in vars(K).values() if isinstance(f, CPUDispatcher)]
+    assert len(dispatchers) >= 15
+    assert all(not isinstance(f._cache, NullCache) for f in dispatchers)
