@@ -257,7 +257,7 @@ class SafetyHook:
 
     def _floor_setup(self, model: mujoco.MjModel) -> tuple[np.ndarray, np.ndarray]:
         """Which capsule ends get a floor row, and their lowest allowed height (floor + capsule
-        radius + margin). None without an upright plane geom in the world body. Capsules moved
+        radius + margin); both empty without an upright plane geom in the world body. Capsules moved
         only by joints about vertical axes (link 1, on the base's pan joint) keep their height
         and get no row: theirs could only be a constant, possibly unsatisfiable, 0 ≥ b."""
         plane = mujoco.mjtGeom.mjGEOM_PLANE
@@ -280,7 +280,7 @@ class SafetyHook:
         """Rows keeping every capsule end ``z ≥ z_min`` (floor + radius + margin): the
         second-order barrier ``z̈ + 2γ ż + γ² (z − z_min) ≥ 0`` with ``z̈ = G_z τ + c_z``.
         (The fused kernel's :func:`c3bf_gym._kernels.floor_rows`.)"""
-        self.arm.end_dynamics()  # the ends, current
+        self.arm.end_dynamics()  # refreshes the packed capsule ends (arm._ends) if stale
         k = self._n_floor_rows
         _kernels.floor_rows(self.arm._ends, self._floor_idx, self._floor_min, FLOOR_GAMMA, A[:k], b[:k])
         return k
