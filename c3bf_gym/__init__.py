@@ -9,9 +9,10 @@ from c3bf_gym.controllers import CartesianImpedance
 from c3bf_gym.envs import C3BFReachEnv
 from c3bf_gym.filter import SafetyInfeasibleError
 from c3bf_gym.scenarios import SCENARIOS, Envelope, ObstacleSpec, Scenario
-from c3bf_gym.wrappers import CartesianImpedanceAction, SafetyFilter
+from c3bf_gym.wrappers import ActionPenalty, CartesianImpedanceAction, SafetyFilter
 
 __all__ = [
+    "ActionPenalty",
     "C3BFReachEnv",
     "CartesianImpedance",
     "CartesianImpedanceAction",

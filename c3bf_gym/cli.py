@@ -74,6 +74,8 @@ def _add_train(sub: argparse._SubParsersAction) -> None:
                    help="actions per second (the physics and the filter stay at 500 Hz; episodes stay 5 s)")  # fmt: skip
     p.add_argument("--distance-weight", type=_nonnegative_float, default=0.0,
                    help="weight of the reward's dense -distance term (C3BFReachEnv's distance_weight; 0: off)")  # fmt: skip
+    p.add_argument("--action-weight", type=_nonnegative_float, default=0.0,
+                   help="weight of a -mean(action^2) reward term (ActionPenalty; keeps a residual policy near its prior; 0: off)")  # fmt: skip
     p.add_argument("--normalize-obs", action="store_true",
                    help="normalise observations with running statistics (SB3 VecNormalize, saved with the model)")  # fmt: skip
     p.add_argument("--hyperparams", type=json.loads, default={},
@@ -88,7 +90,7 @@ def _run_train(args: argparse.Namespace) -> int:
         algo=args.algo, action=args.action, filter=args.filter, scenario=args.scenario,
         timesteps=args.timesteps, seed=args.seed, n_envs=args.n_envs, eval_freq=args.eval_freq,
         eval_episodes=args.eval_episodes, final_eval_episodes=args.final_eval_episodes, checkpoint_freq=args.checkpoint_freq, out=args.out,
-        progress_bar=not args.no_progress, normalize_obs=args.normalize_obs, policy_hz=args.policy_hz, distance_weight=args.distance_weight, hyperparams=args.hyperparams,
+        progress_bar=not args.no_progress, normalize_obs=args.normalize_obs, policy_hz=args.policy_hz, distance_weight=args.distance_weight, action_weight=args.action_weight, hyperparams=args.hyperparams,
     )  # fmt: skip
     run_dir = train(config)
     print(f"run written to {run_dir}")

@@ -29,7 +29,7 @@ from typing import Any, Callable, Literal
 import gymnasium as gym
 import numpy as np
 
-from c3bf_gym.wrappers import SAFETY_FILTERS, CartesianImpedanceAction, SafetyFilter
+from c3bf_gym.wrappers import SAFETY_FILTERS, ActionPenalty, CartesianImpedanceAction, SafetyFilter
 
 __all__ = [
     "ACTIONS",
@@ -124,6 +124,7 @@ class TrainConfig:
     normalize_obs: bool = False
     policy_hz: int = DEFAULT_TRAIN_HZ
     distance_weight: float = 0.0
+    action_weight: float = 0.0
     hyperparams: dict[str, Any] = field(default_factory=dict)
 
     def validate(self) -> None:
@@ -138,10 +139,10 @@ class TrainConfig:
                 raise ValueError(f"unknown {name} {value!r}; valid choices: {', '.join(map(repr, choices))}")
         get_scenario(self.scenario)
         policy_rate_kwargs(self.policy_hz)
-        if isinstance(self.distance_weight, bool) or not (
-            isinstance(self.distance_weight, (int, float)) and math.isfinite(self.distance_weight) and self.distance_weight >= 0
-        ):
-            raise ValueError(f"distance_weight must be a finite number >= 0, got {self.distance_weight!r}")
+        for name in ("distance_weight", "action_weight"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
+                raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
         if not isinstance(self.normalize_obs, bool):
             raise ValueError(f"normalize_obs must be True or False, got {self.normalize_obs!r}")
         for name in ("timesteps", "n_envs", "eval_freq", "eval_episodes", "checkpoint_freq"):
@@ -158,7 +159,8 @@ class TrainConfig:
         norm = "_norm" if self.normalize_obs else ""
         rate = "" if self.policy_hz == DEFAULT_POLICY_HZ else f"_{self.policy_hz}hz"
         dense = f"_dw{self.distance_weight:g}" if self.distance_weight else ""
-        return f"{self.algo}_{self.action}{norm}{rate}{dense}_{self.filter}_{self.scenario}_s{self.seed}"
+        penalty = f"_aw{self.action_weight:g}" if self.action_weight else ""
+        return f"{self.algo}_{self.action}{norm}{rate}{dense}{penalty}_{self.filter}_{self.scenario}_s{self.seed}"
 
     def env_kwargs(self) -> dict[str, float]:
         """``gym.make`` keywords: the policy rate (the episode stays ``EPISODE_SECONDS`` long) and
@@ -203,10 +205,12 @@ def make_env(
     action: str = "impedance",
     seed: int = 0,
     monitor_file: str | None = None,
+    action_weight: float = 0.0,
     **env_kwargs: Any,
 ) -> Callable[[], gym.Env]:
-    """A thunk building ``Monitor(SafetyFilter(CartesianImpedanceAction(C3BFReach-v0)))`` (the
-    parts the options ask for), for SB3 vector envs. The env is seeded on its first reset."""
+    """A thunk building ``Monitor(ActionPenalty(SafetyFilter(CartesianImpedanceAction(C3BFReach-v0))))``
+    (the parts the options ask for; ``ActionPenalty`` when ``action_weight > 0``), for SB3 vector
+    envs. The env is seeded on its first reset."""
     from stable_baselines3.common.monitor import Monitor
 
     filter_name = _filter_name(filter)
@@ -219,6 +223,8 @@ def make_env(
             env = CartesianImpedanceAction(env, residual=action == "residual")
         if filter_name is not None:
             env = SafetyFilter(env, barrier=filter_name)
+        if action_weight:
+            env = ActionPenalty(env, action_weight)
         env = Monitor(env, monitor_file, info_keywords=info_keywords(filter_name))
         env.reset(seed=seed)
         env.action_space.seed(seed)
@@ -312,13 +318,15 @@ def train(config: TrainConfig) -> Path:
         )
     )
     filter_name = _filter_name(config.filter)
-    rate = config.env_kwargs()
+    rate, penalty = config.env_kwargs(), config.action_weight
     thunks = [
-        make_env(config.scenario, filter_name, config.action, seed=config.seed * 1000 + i, **rate)
+        make_env(config.scenario, filter_name, config.action, seed=config.seed * 1000 + i, action_weight=penalty, **rate)
         for i in range(config.n_envs)
     ]
     venv = SubprocVecEnv(thunks) if config.n_envs > 1 else DummyVecEnv(thunks)
-    eval_env = DummyVecEnv([make_env(config.scenario, filter_name, config.action, seed=10_000 + config.seed, **rate)])
+    eval_env = DummyVecEnv(
+        [make_env(config.scenario, filter_name, config.action, seed=10_000 + config.seed, action_weight=penalty, **rate)]
+    )
     if config.normalize_obs:
         # Running mean/std of the observations (not of the rewards); EvalCallback copies the
         # statistics into the evaluation env, and they are saved beside the model.
@@ -417,7 +425,7 @@ def evaluate(
     normalizer = _load_normalizer(run_dir / NORMALIZATION_FILE) if run_dir else None
     returns, successes, costs, collided, interventions, infeasible = [], [], [], [], [], []
     run_env = env_kwargs(config.get("policy_hz", DEFAULT_POLICY_HZ), config.get("distance_weight", 0.0))
-    env = make_env(scenario, filter, action, seed=seed, **run_env)()
+    env = make_env(scenario, filter, action, seed=seed, action_weight=config.get("action_weight", 0.0), **run_env)()
     for episode in range(episodes):
         obs, _ = env.reset(seed=seed + episode)
         total, done, info = 0.0, False, {}

@@ -22,7 +22,15 @@ from c3bf_gym.envs.reach import C3BFReachEnv
 from c3bf_gym.filter import SafetyHook, StepSafety, build_hook
 from c3bf_gym.robot import ArmModel
 
-__all__ = ["CartesianImpedanceAction", "ImpedanceHook", "SAFETY_FILTERS", "SafetyFilter", "make_reach", "reach_env"]
+__all__ = [
+    "ActionPenalty",
+    "CartesianImpedanceAction",
+    "ImpedanceHook",
+    "SAFETY_FILTERS",
+    "SafetyFilter",
+    "make_reach",
+    "reach_env",
+]
 
 #: (position, velocity, acceleration) of the desired tool motion at a time [s].
 Trajectory = Callable[[float], tuple[np.ndarray, np.ndarray, np.ndarray]]
@@ -225,6 +233,36 @@ class CartesianImpedanceAction(gym.ActionWrapper):
     def close(self) -> None:
         self._base.remove_torque_hook("nominal")
         super().close()
+
+
+class ActionPenalty(gym.Wrapper):
+    """Adds ``-weight * mean(a²)`` to the reward, ``a`` being the policy's action as it arrives.
+
+    A training aid for residual policies (``CartesianImpedanceAction(residual=True)``): ``a = 0``
+    is the prior (straight for the goal), and the penalty makes a correction pay for itself, so
+    the agent keeps the prior where it already works instead of drifting from it wherever the
+    other reward terms are flat. The term is in ``info["reward_action"]`` (negative or zero);
+    the task, its success and its cost do not change. Put it outside wrappers that change the
+    action's meaning, so that it sees the policy's own action.
+
+    Args:
+        env: any environment with a ``Box`` action space.
+        weight: the penalty's weight (finite, >= 0; 0 adds nothing but the info key).
+    """
+
+    def __init__(self, env: gym.Env, weight: float) -> None:
+        super().__init__(env)
+        if not isinstance(env.action_space, gym.spaces.Box):
+            raise TypeError(f"ActionPenalty needs a Box action space, got {env.action_space}")
+        if isinstance(weight, bool) or not (isinstance(weight, (int, float)) and np.isfinite(weight) and weight >= 0):
+            raise ValueError(f"weight must be a finite number >= 0, got {weight!r}")
+        self.weight = float(weight)
+
+    def step(self, action: Any) -> tuple[Any, float, bool, bool, dict[str, Any]]:
+        obs, reward, terminated, truncated, info = self.env.step(action)  # validates the action
+        penalty = -self.weight * float(np.mean(np.square(action, dtype=np.float64)))
+        info["reward_action"] = penalty
+        return obs, float(reward) + penalty, terminated, truncated, info
 
 
 SAFETY_FILTERS = (None, "c3bf", "hocbf")

@@ -112,6 +112,17 @@ def test_distance_weight_reaches_the_env_and_names_the_run():
     env.close()
 
 
+def test_action_weight_penalises_the_policy_action_and_names_the_run():
+    config = TrainConfig(action="residual", distance_weight=10.0, action_weight=0.5, policy_hz=10)
+    assert config.name == "sac_residual_10hz_dw10_aw0.5_c3bf_random_s0"
+    env = make_env("none", "c3bf", "residual", seed=0, action_weight=0.5, **config.env_kwargs())()
+    assert [type(w).__name__ for w in (env, env.env)] == ["Monitor", "ActionPenalty"]
+    _, reward, *_, info = env.step(np.ones(3, np.float32))
+    assert info["reward_action"] == pytest.approx(-0.5)
+    assert reward == pytest.approx(sum(v for k, v in info.items() if k.startswith("reward_")))
+    env.close()
+
+
 def test_make_env_puts_monitor_outside_the_filter():
     env = make_env("static", "c3bf", "impedance", seed=0)()
     assert type(env).__name__ == "Monitor"
@@ -144,6 +155,7 @@ def test_make_env_action_modes(action, shape):
         ({"policy_hz": 10.0}, "policy_hz must be one of"),
         ({"distance_weight": -1.0}, "distance_weight must be a finite number >= 0"),
         ({"distance_weight": float("nan")}, "distance_weight must be a finite number >= 0"),
+        ({"action_weight": -0.1}, "action_weight must be a finite number >= 0"),
     ],
 )
 def test_bad_training_options(kwargs, message):

@@ -7,7 +7,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
-from c3bf_gym import CartesianImpedanceAction, SafetyFilter
+from c3bf_gym import ActionPenalty, CartesianImpedanceAction, SafetyFilter
 from c3bf_gym.barriers import C3BF, DistanceHOCBF
 
 from conftest import ENV_ID
@@ -399,3 +399,31 @@ def test_hooks_removed_by_close_no_longer_act(make_env):
         a, *_ = raw.step(action)
         b, *_ = filtered.unwrapped.step(action)
     np.testing.assert_array_equal(a, b)
+
+
+def test_action_penalty_adds_its_term_and_nothing_else(make_env):
+    plain = CartesianImpedanceAction(make_env(scenario="static"), residual=True)
+    penalised = ActionPenalty(CartesianImpedanceAction(make_env(scenario="static"), residual=True), weight=2.0)
+    for env in (plain, penalised):
+        env.reset(seed=3)
+    action = np.array([0.5, -1.0, 0.0], np.float32)
+    obs_a, reward_a, *_, info_a = plain.step(action)
+    obs_b, reward_b, *_, info_b = penalised.step(action)
+    assert info_b["reward_action"] == pytest.approx(-2.0 * (0.25 + 1.0) / 3)
+    assert reward_b == pytest.approx(reward_a + info_b["reward_action"])
+    np.testing.assert_array_equal(obs_a, obs_b)  # the task is the same: only the reward changes
+    _, _, *_, info_zero = penalised.step(np.zeros(3, np.float32))
+    assert info_zero["reward_action"] == 0.0  # the prior costs nothing
+
+
+@pytest.mark.parametrize("weight", [-1.0, float("nan"), float("inf"), True, "1"])
+def test_action_penalty_bad_weight_rejected(make_env, weight):
+    with pytest.raises(ValueError, match="weight must be a finite number >= 0"):
+        ActionPenalty(make_env(), weight)
+
+
+def test_action_penalty_passes_bad_actions_to_the_env_check(make_env):
+    env = ActionPenalty(CartesianImpedanceAction(make_env(), residual=True), weight=1.0)
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match="NaN or inf"):
+        env.step(np.array([np.nan, 0.0, 0.0], np.float32))

@@ -31,6 +31,7 @@ def main() -> int:
     parser.add_argument("--policy-hz", type=int, choices=POLICY_RATES, default=DEFAULT_TRAIN_HZ)
     parser.add_argument("--normalize-obs", action="store_true")
     parser.add_argument("--distance-weight", type=float, default=0.0, help="the reward's dense -distance term")
+    parser.add_argument("--action-weight", type=float, default=0.0, help="the reward's -mean(action^2) term")
     parser.add_argument("--hyperparams", default=None, help="JSON overriding the defaults (passed to every run)")
     parser.add_argument("--jobs", type=int, default=2)
     parser.add_argument("--out", default="runs")
@@ -43,6 +44,7 @@ def main() -> int:
         name = TrainConfig(
             algo=args.algo, action=args.action, filter=filter_name, scenario=args.scenario, seed=seed,
             policy_hz=args.policy_hz, normalize_obs=args.normalize_obs, distance_weight=args.distance_weight,
+            action_weight=args.action_weight,
         ).name  # fmt: skip
         if (out / name / "summary.json").exists():
             print(f"skip {name}: finished")
@@ -51,7 +53,7 @@ def main() -> int:
             sys.executable, "-m", "c3bf_gym.cli", "train", "--algo", args.algo, "--action", args.action,
             "--filter", filter_name, "--scenario", args.scenario, "--seed", str(seed),
             "--timesteps", str(args.timesteps), "--out", str(out), "--no-progress", "--policy-hz", str(args.policy_hz),
-            "--distance-weight", str(args.distance_weight),
+            "--distance-weight", str(args.distance_weight), "--action-weight", str(args.action_weight),
         ] + (["--normalize-obs"] if args.normalize_obs else []) + (["--hyperparams", args.hyperparams] if args.hyperparams else [])  # fmt: skip
         jobs.append((name, command))
 
