@@ -212,14 +212,17 @@ class ArmModel:
             self._views_of = data
         return self._views
 
-    def _update_ends(self) -> None:
-        """The capsule end points' dynamics, computed on first use after :meth:`update`.
+    def _ensure_ends(self) -> None:
+        """The capsule end points' dynamics, computed on first use after :meth:`update` (a no-op
+        while they are current).
 
         Each capsule's axis lies on one rigid body, so position, velocity, ``c`` and ``G`` are
         all affine along it: ``_ends_a`` holds them at end a and ``_ends_ab`` the difference to
         end b, packed as (S, 3, 3 + nv) arrays ``[pos | vel | c | G]`` so that one broadcast
         product evaluates all of them at any points of the axes (:meth:`_closest`).
         """
+        if self._ends_current:
+            return
         v = self.views(self._data)
         self._ends_current = True
         _kernels.capsule_ends(v.geom_xpos, v.geom_xmat, self._capsule_ids, self.capsule_half, self.capsule_chain,
@@ -231,8 +234,7 @@ class ArmModel:
         are the ends a, rows ``S … 2S-1`` the ends b; ``jac`` is None. The lowest point of a
         capsule over a horizontal plane is always at one of its ends (the floor rows use this).
         Call :meth:`update` first in the same physics step."""
-        if not self._ends_current:
-            self._update_ends()
+        self._ensure_ends()
         return self._unpack(self._ends[None])
 
     def claim(self, data: mujoco.MjData, version: int | None = None) -> int:
@@ -272,8 +274,7 @@ class ArmModel:
     def _closest(self, centres: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The packed ``[pos | vel | c | G]`` (K, S, 3, 3 + nv) of the closest points, and the
         unclamped axis parameter (K, S)."""
-        if not self._ends_current:
-            self._update_ends()
+        self._ensure_ends()
         t = self._axis_parameter(centres)
         clamped = np.maximum(t, 0.0)
         np.minimum(clamped, 1.0, out=clamped)
@@ -332,8 +333,7 @@ class ArmModel:
         Returns:
             ``(ṫ (b − a), ṫ (ḃ − ȧ))``: the sliding terms of ``ṗ`` and ``v̇``, both (K * S, 3).
         """
-        if not self._ends_current:
-            self._update_ends()
+        self._ensure_ends()
         k, s = len(centres), len(self.capsule_ids)
         rate = self._sliding_rate(self._axis_parameter(centres), p.reshape(k, s, 3), v.reshape(k, s, 3))
         ab = self._ends_ab
@@ -354,8 +354,7 @@ class ArmModel:
             ``c = (material c) − a_o + ṫ (ḃ − ȧ)`` (the sliding term of ``v̇`` included);
             ``slide_p = ṫ (b − a)`` (K * S, 3), the sliding term of ``ṗ``.
         """
-        if not self._ends_current:
-            self._update_ends()
+        self._ensure_ends()
         k, s, nv = len(centres), len(self.capsule_ids), self.nv
         as_f64 = np.ascontiguousarray
         p, v, c, slide_p = np.empty((4, k * s, 3))
