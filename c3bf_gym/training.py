@@ -38,6 +38,7 @@ __all__ = [
     "FINAL_EVAL_SEED",
     "HYPERPARAMS",
     "TrainConfig",
+    "by_scenario",
     "evaluate",
     "make_env",
     "train",
@@ -423,11 +424,12 @@ def evaluate(
     scenario = config.get("scenario", "random") if scenario is None else scenario
     model = {"sac": SAC, "ppo": PPO}[algo].load(model_path, device="cpu")
     normalizer = _load_normalizer(run_dir / NORMALIZATION_FILE) if run_dir else None
-    returns, successes, costs, collided, interventions, infeasible = [], [], [], [], [], []
+    returns, successes, costs, collided, interventions, infeasible, kinds = [], [], [], [], [], [], []
     run_env = env_kwargs(config.get("policy_hz", DEFAULT_POLICY_HZ), config.get("distance_weight", 0.0))
     env = make_env(scenario, filter, action, seed=seed, action_weight=config.get("action_weight", 0.0), **run_env)()
     for episode in range(episodes):
         obs, _ = env.reset(seed=seed + episode)
+        kinds.append(env.unwrapped.episode_scenario.name)
         total, done, info = 0.0, False, {}
         while not done:
             policy_obs = obs if normalizer is None else normalizer.normalize_obs(obs)
@@ -454,4 +456,19 @@ def evaluate(
         "collision_steps": float(np.sum(costs)),
         "interventions_per_episode": float(np.mean(interventions)),
         "infeasible_steps": float(np.sum(infeasible)),
+        "by_scenario": by_scenario(kinds, successes, collided),
     }
+
+
+def by_scenario(kinds: list[str], successes: list[float], collided: list[float]) -> dict[str, dict[str, float]]:
+    """Episodes, success rate and collision episodes per concrete scenario (the components of a
+    ``random`` evaluation), in order of first appearance."""
+    table: dict[str, dict[str, float]] = {}
+    for kind, success, collision in zip(kinds, successes, collided):
+        row = table.setdefault(kind, {"episodes": 0, "success_rate": 0.0, "collision_episodes": 0})
+        row["episodes"] += 1
+        row["success_rate"] += success
+        row["collision_episodes"] += int(collision)
+    for row in table.values():
+        row["success_rate"] /= row["episodes"]
+    return table

@@ -335,3 +335,17 @@ def test_custom_scenario_in_the_env(make_env):
     for slot in range(2):
         cos_angle = u.obstacle_vel[slot] @ direction / np.linalg.norm(u.obstacle_vel[slot])
         assert abs(cos_angle) < math.sin(math.radians(1.0)) + 1e-9
+
+
+def test_env_names_the_mixture_component_of_each_episode(make_env):
+    env = make_env(scenario="random")
+    u = env.unwrapped
+    assert u.episode_scenario is SCENARIOS["random"]  # before the first reset
+    counts = {"static": 1, "head_on": 1, "crossing": 1, "multi": 4}
+    seen = set()
+    for seed in range(30):
+        env.reset(seed=seed)
+        name = u.episode_scenario.name
+        seen.add(name)
+        assert u.obstacle_active.sum() == counts[name]  # the obstacles placed are that component's
+    assert seen == set(SCENARIOS["random"].mixture)

@@ -13,6 +13,7 @@ from c3bf_gym.training import (
     NORMALIZATION_FILE,
     TrainConfig,
     _load_normalizer,
+    by_scenario,
     evaluate,
     make_env,
     policy_rate_kwargs,
@@ -47,6 +48,7 @@ def test_train_save_reload_evaluate(algo, filter_name, tmp_path):
     assert final["episodes"] == 2 and final["filter"] == filter_name and summary["final_eval"] == final
     result = evaluate(run / "model.zip", episodes=1)
     assert result["filter"] == filter_name and result["episodes"] == 1
+    assert list(final["by_scenario"]) == ["head_on"] and final["by_scenario"]["head_on"]["episodes"] == 2
     best = evaluate(run / "best" / "best_model.zip", episodes=1)  # the run's config from one level up
     assert best["filter"] == filter_name and best["scenario"] == "head_on"
     assert 0.0 <= result["success_rate"] <= 1.0
@@ -121,6 +123,13 @@ def test_action_weight_penalises_the_policy_action_and_names_the_run():
     assert info["reward_action"] == pytest.approx(-0.5)
     assert reward == pytest.approx(sum(v for k, v in info.items() if k.startswith("reward_")))
     env.close()
+
+
+def test_by_scenario_splits_an_evaluation_by_its_concrete_scenarios():
+    table = by_scenario(["multi", "static", "multi", "multi"], [1.0, 0.0, 0.0, 1.0], [0.0, 1.0, 0.0, 0.0])
+    assert list(table) == ["multi", "static"]
+    assert table["multi"] == {"episodes": 3, "success_rate": pytest.approx(2 / 3), "collision_episodes": 0}
+    assert table["static"] == {"episodes": 1, "success_rate": 0.0, "collision_episodes": 1}
 
 
 def test_make_env_puts_monitor_outside_the_filter():

@@ -16,7 +16,15 @@ import json
 
 import numpy as np
 
-from c3bf_gym.training import DEFAULT_TRAIN_HZ, FILTERS, FINAL_EVAL_SEED, POLICY_RATES, make_env, policy_rate_kwargs
+from c3bf_gym.training import (
+    DEFAULT_TRAIN_HZ,
+    FILTERS,
+    FINAL_EVAL_SEED,
+    POLICY_RATES,
+    by_scenario,
+    make_env,
+    policy_rate_kwargs,
+)
 
 
 def main() -> None:
@@ -30,9 +38,10 @@ def main() -> None:
     for filter_name in args.filters:
         env = make_env(args.scenario, filter_name, "residual", seed=args.seed, **policy_rate_kwargs(args.policy_hz))()
         straight = np.zeros(env.action_space.shape, dtype=np.float32)  # no correction: straight for the goal
-        success, collided = [], []
+        success, collided, kinds = [], [], []
         for episode in range(args.episodes):
             env.reset(seed=args.seed + episode)
+            kinds.append(env.unwrapped.episode_scenario.name)
             done, info = False, {}
             while not done:
                 _, _, terminated, truncated, info = env.step(straight)
@@ -43,6 +52,7 @@ def main() -> None:
         result = {
             "filter": filter_name, "policy_hz": args.policy_hz, "episodes": args.episodes,
             "success_rate": float(np.mean(success)), "collision_episodes": int(sum(collided)),
+            "by_scenario": by_scenario(kinds, success, collided),
         }  # fmt: skip
         print(json.dumps(result), flush=True)
 

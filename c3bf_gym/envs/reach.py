@@ -173,6 +173,9 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
         )  # fmt: skip
         self.scenario = scenario if isinstance(scenario, Scenario) else get_scenario(scenario)
         self._check_scenario(self.scenario)
+        #: The concrete scenario of the current episode: ``scenario`` itself, or the mixture
+        #: component ``reset`` drew (``random`` draws one of the paper's four per episode).
+        self.episode_scenario: Scenario = self.scenario
         if isinstance(frame_skip, bool) or not isinstance(frame_skip, (int, np.integer)) or frame_skip < 1:
             raise ValueError(f"frame_skip must be an integer >= 1, got {frame_skip!r}")
         for name, value, low in (
@@ -453,7 +456,7 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
         self._park_all()
         mujoco.mj_forward(m, d)
         start = d.site_xpos[self.ee_site_id].copy()
-        scenario = self.scenario.resolve(rng)
+        scenario = self.episode_scenario = self.scenario.resolve(rng)
         for _ in range(100):
             goal = self._sample_goal(start, rng)
             samples = [self._sampler.sample(spec, start, goal, rng) for spec in scenario.obstacles]
