@@ -208,6 +208,37 @@ def _final_success(run: Path) -> tuple[float, float, int] | None:
     return None
 
 
+def _final_by_scenario(run: Path) -> dict[str, dict[str, float]]:
+    """``final_eval.json``'s success per concrete scenario (empty for runs evaluated before it
+    was recorded, or without a final evaluation)."""
+    final = run / "final_eval.json"
+    return json.loads(final.read_text()).get("by_scenario", {}) if final.exists() else {}
+
+
+def _scenario_table(keys: Sequence[tuple[str, str, str]], groups: Mapping[tuple[str, str, str], list]) -> list[str]:
+    """Markdown rows: each group's final success per concrete scenario, mean (per seed), with
+    the number of episodes of that scenario per model. Empty if no run recorded the split."""
+    from c3bf_gym.scenarios import SCENARIOS
+
+    seen = {name for entries in groups.values() for config, _ in entries for name in config["_by_scenario"]}
+    if not seen:
+        return []
+    names = [n for n in SCENARIOS if n in seen] + sorted(seen - set(SCENARIOS))
+    lines = ["| algo | action | filter | " + " | ".join(names) + " |", "|---" * (3 + len(names)) + "|"]
+    for key in keys:
+        cells = []
+        for name in names:
+            rows = [c["_by_scenario"][name] for c, _ in groups[key] if name in c["_by_scenario"]]
+            if not rows:
+                cells.append("n/a")
+                continue
+            rates = [r["success_rate"] for r in rows]
+            episodes = ", ".join(sorted({str(r["episodes"]) for r in rows}))
+            cells.append(f"{np.mean(rates):.2f} ({', '.join(f'{x:.2f}' for x in rates)}; {episodes} ep.)")
+        lines.append(f"| {' | '.join(key)} | " + " | ".join(cells) + " |")
+    return lines
+
+
 #: Line styles of the action modes when one figure holds several.
 ACTION_STYLES = {"impedance": "-", "residual": "--", "torque": ":"}
 
@@ -217,7 +248,8 @@ def plot_training(runs: Sequence[Path], path: Path, window: int = 20) -> str:
 
     Returns a markdown table, one row per group: training collision steps (total and per seed)
     and the final models' success rate and return (per seed and mean) with the number of
-    evaluation episodes per model.
+    evaluation episodes per model; then, when the final evaluations recorded it, a second table
+    of the final success per concrete scenario (the components of ``random``).
     """
     plt = _pyplot()
     groups: dict[tuple[str, str, str], list[tuple[dict, dict[str, np.ndarray]]]] = {}
@@ -232,6 +264,7 @@ def plot_training(runs: Sequence[Path], path: Path, window: int = 20) -> str:
         summary = run / "summary.json"
         config["_summary"] = json.loads(summary.read_text()) if summary.exists() else {}
         config["_final"] = _final_success(run)
+        config["_by_scenario"] = _final_by_scenario(run)
         groups.setdefault((config["algo"], config["action"], config["filter"]), []).append((config, data))
     if not groups:
         raise ValueError("no run has a finished training episode to plot")
@@ -276,4 +309,5 @@ def plot_training(runs: Sequence[Path], path: Path, window: int = 20) -> str:
     axes[0].legend(fontsize=8)
     fig.suptitle(f"Training curves (moving average over {window} episodes; band: min-max over seeds)")
     _save(fig, path)
-    return "\n".join(lines)
+    by_scenario = _scenario_table(keys, groups)
+    return "\n".join(lines + ([""] + by_scenario if by_scenario else []))

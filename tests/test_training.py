@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from c3bf_gym.cli import main
+from c3bf_gym.plots import plot_training
 from c3bf_gym.training import (
     NORMALIZATION_FILE,
     TrainConfig,
@@ -177,7 +178,7 @@ def test_evaluate_missing_model(tmp_path):
         evaluate(tmp_path / "model.zip")
 
 
-def _fake_run(root, name, filter_name, action, costs, final=None):
+def _fake_run(root, name, filter_name, action, costs, final=None, by_scenario=None):
     """A run directory as `train` writes it, with made-up numbers (tests the table, not RL)."""
     run = root / name
     run.mkdir()
@@ -189,7 +190,10 @@ def _fake_run(root, name, filter_name, action, costs, final=None):
             writer.writerow([250 * (i + 1), 10.0 * i, 250, float(i % 2), cost, 0, sum(costs[: i + 1])])
     (run / "summary.json").write_text(json.dumps({"training_cost": float(sum(costs))}))
     if final is not None:
-        (run / "final_eval.json").write_text(json.dumps({"success_rate": final, "return_mean": 5.0, "episodes": 50}))
+        record = {"success_rate": final, "return_mean": 5.0, "episodes": 50}
+        if by_scenario is not None:
+            record["by_scenario"] = by_scenario
+        (run / "final_eval.json").write_text(json.dumps(record))
     return run
 
 
@@ -207,6 +211,16 @@ def test_plot_training_table_groups_by_mode_and_filter(tmp_path):
     assert "| sac | impedance | none | 2 | 750 | 7 (5, 2) | 0.38 (0.50, 0.25) | 5.0 | 50 |" in rows
     assert "| sac | impedance | c3bf | 1 | 750 | 0 (0) | n/a | n/a | n/a |" in rows
     assert "| sac | residual | c3bf | 1 | 750 | 0 (0) | 1.00 (1.00) | 5.0 | 50 |" in rows
+    assert not any("multi" in row for row in rows)  # no run recorded the split by scenario
+
+
+def test_plot_training_splits_final_success_by_scenario(tmp_path):
+    split = [{"multi": {"episodes": 3, "success_rate": s, "collision_episodes": 0},
+              "static": {"episodes": 2, "success_rate": 1.0, "collision_episodes": 0}} for s in (1 / 3, 2 / 3)]  # fmt: skip
+    runs = [_fake_run(tmp_path, name, "c3bf", "residual", [0, 0, 0], final=0.8, by_scenario=b) for name, b in zip("ab", split)]
+    table = plot_training(runs, tmp_path / "curves.png").splitlines()
+    assert "| algo | action | filter | static | multi |" in table  # the paper's order
+    assert "| sac | residual | c3bf | 1.00 (1.00, 1.00; 2 ep.) | 0.50 (0.33, 0.67; 3 ep.) |" in table
 
 
 def test_plot_training_rejects_a_non_run(tmp_path, capsys):
