@@ -10,7 +10,14 @@ is timed as a whole, and split (same call, no second evaluation) into building t
 (``SafetyHook.rows``: arm dynamics, barrier, joint limits) and the QP solve
 (``TorqueQP.solve_scaled``: the data step, proxsuite and the bookkeeping around it). Median, p99
 and max in µs, the share of calls the QP answered on its fast path (nominal already safe), and
-the QP's status counts.
+the QP's status counts (and the calls the active-set solver handed to proxsuite, "fallback").
+
+``--qp-solver active_set proxsuite`` compares :class:`~c3bf_gym.qp.TorqueQP` solvers: the hook's
+QP is replaced by one with that ``solver`` (same rows, box and weight), and each obstacle count
+runs ``--latency-rounds`` rounds (default 2) of ``--calls / rounds`` calls per solver, the order
+rotating per round and round r using seed ``--seed + r`` for both, so machine noise and the
+arrangements hit the solvers alike. One line per solver (calls pooled over the rounds), then the
+ratios of the first solver over the second (total and QP, median and p99).
 
 (b) **Throughput.** Env steps/s of unfiltered ``C3BFReach-v0``, filtered
 (``SafetyFilter(barrier="c3bf")``) and Gymnasium's ``Pusher-v5``, all from ``gymnasium.make``,
@@ -19,7 +26,8 @@ order) so machine noise hits all three alike; the ratios filtered/unfiltered and
 filtered/Pusher are per round, the headline is their median.
 
 Usage: ``python benchmarks/filter_speed.py [--calls 3000] [--obstacles 1 4 8] [--policy adversarial]
-[--rounds 5] [--steps 1000] [--profile] [--no-throughput] [--json PATH]``. The script also times
+[--qp-solver S [S ...]] [--latency-rounds R] [--rounds 5] [--steps 1000] [--profile] [--no-throughput]
+[--json PATH]``. The script also times
 other versions of the package (``PYTHONPATH=/path/to/other/checkout``): it prints which
 ``c3bf_gym`` it imported, and the QP timer wraps ``TorqueQP.solve_scaled`` (the hook's call) or, in
 older versions, ``TorqueQP.solve``.
@@ -42,6 +50,7 @@ import numpy as np
 import c3bf_gym  # noqa: F401  (registers C3BFReach-v0)
 from c3bf_gym import SafetyFilter
 from c3bf_gym.envs.reach import DISTANCE_CUTOFF
+from c3bf_gym.qp import TorqueQP
 from c3bf_gym.scenarios import ObstacleSample, ObstacleSpec
 from env_speed import runner_for  # this folder's shared timing loop
 
@@ -118,6 +127,7 @@ class TimedHook:
         self.status: dict[str, int] = {}
         self.sensed: list[int] = []
         self.n_rows: list[int] = []
+        self._fallbacks0 = getattr(hook.qp, "active_set_fallbacks", 0)
         rows = hook.rows
 
         def timed_rows():
@@ -145,6 +155,11 @@ class TimedHook:
             if hasattr(hook.qp, name):
                 setattr(hook.qp, name, timed(getattr(hook.qp, name)))
 
+    @property
+    def fallbacks(self) -> int:
+        """Calls the active-set solver handed to proxsuite since this timer was installed."""
+        return getattr(self.hook.qp, "active_set_fallbacks", 0) - self._fallbacks0
+
     def __call__(self, tau: np.ndarray) -> np.ndarray:
         if self.profiler is not None:
             self.profiler.enable()
@@ -157,8 +172,18 @@ class TimedHook:
         return out
 
 
-def hook_latency(count: int, calls: int, seed: int, policy: str = "adversarial", profile: bool = False) -> TimedHook:
+def use_solver(hook, solver: str) -> None:
+    """Give the hook a TorqueQP with ``solver`` (same size and box; the filter's W is the default)."""
+    qp = hook.qp
+    if getattr(qp, "solver", "proxsuite") != solver:
+        hook.qp = TorqueQP(qp.n, qp.max_rows, qp.tau_min, qp.tau_max, solver=solver)
+
+
+def hook_latency(count: int, calls: int, seed: int, policy: str = "adversarial", profile: bool = False,
+                 qp_solver: str | None = None) -> TimedHook:
     env = SafetyFilter(gym.make("C3BFReach-v0", scenario="none"), barrier="c3bf")
+    if qp_solver is not None:
+        use_solver(env.hook, qp_solver)
     u = env.unwrapped
     rng = np.random.default_rng(seed)
     env.reset(seed=seed)
@@ -193,6 +218,24 @@ def us(values: list[float], q: float) -> float:
     return float(np.percentile(np.asarray(values) * 1e6, q))
 
 
+def summary(timed: list[TimedHook]) -> dict:
+    """The table row of the hook timers ``timed`` (calls pooled)."""
+    pool = {key: [v for t in timed for v in getattr(t, key)] for key in ("total", "rows", "qp", "fast", "sensed")}
+    status: dict[str, int] = {}
+    for t in timed:
+        for k, v in t.status.items():
+            status[k] = status.get(k, 0) + v
+    return {
+        "total_median_us": us(pool["total"], 50), "total_p99_us": us(pool["total"], 99),
+        "total_max_us": us(pool["total"], 100),
+        "rows_median_us": us(pool["rows"], 50), "rows_p99_us": us(pool["rows"], 99),
+        "qp_median_us": us(pool["qp"], 50), "qp_p99_us": us(pool["qp"], 99), "qp_max_us": us(pool["qp"], 100),
+        "fast_path": float(np.mean(pool["fast"])), "status": status, "fallbacks": sum(t.fallbacks for t in timed),
+        "sensed_median": float(np.median(pool["sensed"])),
+        "rows_count": int(np.median([n for t in timed for n in t.n_rows])),
+    }  # fmt: skip
+
+
 # ----------------------------------------------------------------------------- (b) throughput
 
 
@@ -214,6 +257,10 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--steps", type=int, default=1000, help="env steps per environment per round (default 1000)")
     parser.add_argument("--policy", choices=("adversarial", "random"), default="adversarial",
                         help="policy during the latency runs (default adversarial: the rows bind)")
+    parser.add_argument("--qp-solver", nargs="+", choices=("active_set", "proxsuite"),
+                        help="TorqueQP solver(s) of the latency runs (default: the filter's own); two are compared")
+    parser.add_argument("--latency-rounds", type=int,
+                        help="interleaved latency rounds per obstacle count (default 1, or 2 with several solvers)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--profile", action="store_true", help="print a cProfile top-15 of the filtered steps (4 obstacles)")
     parser.add_argument("--no-throughput", action="store_true", help="skip (b), the env throughput rounds")
@@ -221,29 +268,43 @@ def main(argv: list[str] | None = None) -> dict:
     args = parser.parse_args(argv)
     if args.calls < 1 or args.rounds < 1 or args.steps < 1 or any(not 1 <= k <= 8 for k in args.obstacles):
         parser.error("--calls, --rounds, --steps must be >= 1 and obstacle counts in 1..8")
+    solvers = args.qp_solver or [None]
+    rounds = args.latency_rounds or (2 if len(solvers) > 1 else 1)
+    if rounds < 1 or args.calls < rounds:
+        parser.error("--latency-rounds must be >= 1 and <= --calls")
 
     out: dict = {"hook": {}, "throughput": {}, "package": c3bf_gym.__file__}
     print(f"c3bf_gym from {c3bf_gym.__file__}")
-    print(f"(a) filter hook per physics step, whole-arm C3BF, {args.policy} policy, {args.calls} calls each [µs]")
-    header = (f"{'obst':>4} {'sensed':>6} {'rows':>4} | {'total med':>9} {'p99':>7} {'max':>8} | "
+    print(f"(a) filter hook per physics step, whole-arm C3BF, {args.policy} policy, {args.calls} calls each [µs]"
+          + (f", solvers {' vs '.join(solvers)} in {rounds} interleaved rounds" if len(solvers) > 1 else ""))
+    label = len(solvers) > 1 or rounds > 1  # one line per solver, headed by its name
+    header = (f"{'obst':>4} {'solver':>10} " if label else f"{'obst':>4} ") + (
+              f"{'sensed':>6} {'rows':>4} | {'total med':>9} {'p99':>7} {'max':>8} | "
               f"{'rows med':>8} {'p99':>6} | {'QP med':>7} {'p99':>7} {'max':>8} | {'fast path':>9}  QP status")  # fmt: skip
     print(header)
     print("-" * len(header))
     for count in args.obstacles:
-        t = hook_latency(count, args.calls, args.seed, args.policy)
-        n_rows = int(np.median(t.n_rows))
-        row = {
-            "total_median_us": us(t.total, 50), "total_p99_us": us(t.total, 99), "total_max_us": us(t.total, 100),
-            "rows_median_us": us(t.rows, 50), "rows_p99_us": us(t.rows, 99),
-            "qp_median_us": us(t.qp, 50), "qp_p99_us": us(t.qp, 99), "qp_max_us": us(t.qp, 100),
-            "fast_path": float(np.mean(t.fast)), "status": t.status, "sensed_median": float(np.median(t.sensed)),
-        }  # fmt: skip
-        out["hook"][count] = row
-        status = ", ".join(f"{k} {v}" for k, v in sorted(t.status.items()))
-        print(f"{count:>4} {row['sensed_median']:>6.0f} {n_rows:>4} | {row['total_median_us']:>9.0f} {row['total_p99_us']:>7.0f} "
-              f"{row['total_max_us']:>8.0f} | {row['rows_median_us']:>8.0f} {row['rows_p99_us']:>6.0f} | "
-              f"{row['qp_median_us']:>7.0f} {row['qp_p99_us']:>7.0f} {row['qp_max_us']:>8.0f} | "
-              f"{100 * row['fast_path']:>8.0f}%  {status}")  # fmt: skip
+        timed: dict = {s: [] for s in solvers}
+        per_round = args.calls // rounds
+        for r in range(rounds):
+            for s in solvers[r % len(solvers):] + solvers[: r % len(solvers)]:  # rotate who goes first
+                timed[s].append(hook_latency(count, per_round, args.seed + r, args.policy, qp_solver=s))
+        rows_by_solver = {s: summary(timed[s]) for s in solvers}
+        out["hook"][count] = rows_by_solver if len(solvers) > 1 else rows_by_solver[solvers[0]]
+        for s, row in rows_by_solver.items():
+            status = ", ".join(f"{k} {v}" for k, v in sorted(row["status"].items()))
+            if row["fallbacks"]:
+                status += f"; fallback {row['fallbacks']}"
+            head = f"{count:>4} {s or 'default':>10} " if label else f"{count:>4} "
+            print(f"{head}{row['sensed_median']:>6.0f} {row['rows_count']:>4} | {row['total_median_us']:>9.0f} "
+                  f"{row['total_p99_us']:>7.0f} {row['total_max_us']:>8.0f} | {row['rows_median_us']:>8.0f} "
+                  f"{row['rows_p99_us']:>6.0f} | {row['qp_median_us']:>7.0f} {row['qp_p99_us']:>7.0f} "
+                  f"{row['qp_max_us']:>8.0f} | {100 * row['fast_path']:>8.0f}%  {status}")  # fmt: skip
+        if len(solvers) > 1:
+            a, b = (rows_by_solver[s] for s in solvers[:2])
+            print(f"{count:>4} {'ratio':>10} {'':>11} | {a['total_median_us'] / b['total_median_us']:>9.2f} "
+                  f"{a['total_p99_us'] / b['total_p99_us']:>7.2f} {'':>8} | {'':>15} | "
+                  f"{a['qp_median_us'] / b['qp_median_us']:>7.2f} {a['qp_p99_us'] / b['qp_p99_us']:>7.2f}")
     if args.profile:
         hook_latency(4, min(args.calls, 2000), args.seed, args.policy, profile=True)
 

@@ -5,9 +5,10 @@ import itertools
 import numpy as np
 import pytest
 
-from c3bf_gym.qp import PROXSUITE_INF, TorqueQP, build_qp
+from c3bf_gym.qp import PROXSUITE_INF, SOLVERS, TorqueQP, build_qp
 
 TOL = 1e-6
+both_solvers = pytest.mark.parametrize("solver", SOLVERS)
 
 
 def _brute_force(tau_nom, A, b, W, lo, hi):
@@ -64,14 +65,15 @@ def test_build_qp_tiny():
     np.testing.assert_array_equal(H2, np.eye(2))
 
 
+@both_solvers
 @pytest.mark.parametrize("W_kind", ["diag", "dense"])
-def test_random_feasible_matches_brute_force(W_kind):
+def test_random_feasible_matches_brute_force(W_kind, solver):
     rng = np.random.default_rng(1 if W_kind == "diag" else 2)
     n, M = 3, 4
     for _ in range(25):
         m = int(rng.integers(1, M + 1))
         tau_nom, A, b, W, Wm, lo, hi = _random_feasible(rng, n, m, W_kind)
-        qp = TorqueQP(n, M, lo, hi, W=W)
+        qp = TorqueQP(n, M, lo, hi, W=W, solver=solver)
         res = qp.solve(tau_nom, A, b)
         assert res.feasible and res.status == "solved" and res.slack == 0.0
         tau = res.tau
@@ -81,12 +83,13 @@ def test_random_feasible_matches_brute_force(W_kind):
         np.testing.assert_allclose(tau, ref, atol=1e-5 * (1 + np.abs(ref).max()))
 
 
-def test_random_feasible_6dof_sequence_warm():
+@both_solvers
+def test_random_feasible_6dof_sequence_warm(solver):
     """n=6, many rows, slowly changing: feasible and as good as a fresh solve."""
     rng = np.random.default_rng(3)
     n, M = 6, 48
     tau_nom, A, b, W, Wm, lo, hi = _random_feasible(rng, n, 30)
-    qp = TorqueQP(n, M, lo, hi, W=W)
+    qp = TorqueQP(n, M, lo, hi, W=W, solver=solver)
     for k in range(30):
         A = A + 0.01 * rng.normal(size=A.shape)
         tau_star = np.clip(rng.normal(size=n), lo, hi) * 0.1
@@ -97,7 +100,7 @@ def test_random_feasible_6dof_sequence_warm():
         assert res.feasible and res.status == "solved"
         if Ak.shape[0]:
             assert np.all((Ak @ res.tau - bk) / np.linalg.norm(Ak, axis=1) >= -TOL)
-        fresh = TorqueQP(n, M, lo, hi, W=W).solve(tau_nom, Ak, bk)
+        fresh = TorqueQP(n, M, lo, hi, W=W, solver=solver).solve(tau_nom, Ak, bk)
         f = lambda t: 0.5 * (t - tau_nom) @ Wm @ (t - tau_nom)
         assert f(res.tau) <= f(fresh.tau) + 1e-6 * (1 + f(fresh.tau))
 
@@ -131,8 +134,9 @@ def _max_violation(A, b, tau):
     return max(0.0, float(np.max((b - A @ tau) / np.linalg.norm(A, axis=1))))
 
 
+@both_solvers
 @pytest.mark.parametrize("case", ["rows", "box", "random"])
-def test_infeasible_relaxed(case):
+def test_infeasible_relaxed(case, solver):
     n = 4
     lo, hi = -np.full(n, 2.0), np.full(n, 2.0)
     tau_nom = np.array([0.3, -0.2, 0.1, 0.0])
@@ -147,7 +151,7 @@ def test_infeasible_relaxed(case):
         A = rng.normal(size=(8, n))
         A = np.vstack([A, -A])
         b = np.full(16, 0.5)
-    qp = TorqueQP(n, 16, lo, hi)
+    qp = TorqueQP(n, 16, lo, hi, solver=solver)
     res = qp.solve(tau_nom, A, b)
     assert not res.feasible and res.status == "relaxed" and res.slack > 0
     assert np.all(res.tau >= lo) and np.all(res.tau <= hi)
@@ -270,14 +274,15 @@ def test_relaxed_rows_outside_the_conflict_keep_holding():
     assert res.tau[0] > 0.95 and res.tau[1] == pytest.approx(-0.5, abs=1e-6)
 
 
-def test_solved_result_is_the_optimum_after_warm_starts():
+@both_solvers
+def test_solved_result_is_the_optimum_after_warm_starts(solver):
     """Warm-started solves of a changing problem return the unique optimum (a fresh, tightly
     converged solve), not a feasible point with wrong-signed multipliers."""
     import proxsuite
 
     rng = np.random.default_rng(11)
     n, M = 6, 40
-    qp = TorqueQP(n, M, -np.ones(n), np.ones(n))
+    qp = TorqueQP(n, M, -np.ones(n), np.ones(n), solver=solver)
     worst = 0.0
     for _ in range(300):
         m = int(rng.integers(4, M + 1))

@@ -1,0 +1,208 @@
+"""Tests for c3bf_gym._active_set (the Goldfarb–Idnani solver) and its use in TorqueQP."""
+
+import numpy as np
+import pytest
+
+from c3bf_gym import _active_set
+from c3bf_gym.qp import TorqueQP
+
+N, MAX_ROWS = 6, 92
+
+
+def _problem(rng, m, W_kind, kind):
+    """A random feasible problem with n = 6; ``kind`` adds duplicate / parallel rows or puts τ_nom
+    far outside the box."""
+    lo, hi = -rng.uniform(1, 10, N), rng.uniform(1, 10, N)
+    tau_star = rng.uniform(0.9 * lo, 0.9 * hi)
+    A = rng.normal(size=(m, N)) * rng.uniform(0.1, 10, (m, 1))
+    b = A @ tau_star - rng.uniform(0, 1, m) * np.linalg.norm(A, axis=1) * (rng.uniform(size=m) < 0.7)
+    if kind == "parallel" and m >= 4:
+        k = m // 4
+        A[-k:] = A[:k] * rng.uniform(0.1, 5, (k, 1))      # scaled copies (some bound exactly)
+        b[-k:] = b[:k] * (A[-k:, 0] / A[:k, 0]) - rng.uniform(0, 0.1, k) * (rng.uniform(size=k) < 0.5)
+        A[1], b[1] = A[0], b[0]                              # an exact duplicate
+        A[2], b[2] = -A[3], -(A[3] @ tau_star)               # anti-parallel: together an equality
+        b[3] = A[3] @ tau_star
+    scale = 10.0 if kind == "far" else 2.0
+    tau_nom = rng.uniform(scale * lo, scale * hi)
+    if W_kind == "diag":
+        W = rng.uniform(0.2, 5, N)
+        Wm = np.diag(W)
+    else:
+        L = rng.normal(size=(N, N))
+        W = Wm = L @ L.T + 0.5 * np.eye(N)
+    return tau_nom, A, b, W, Wm, lo, hi
+
+
+def _kkt_error(qp, tau_nom, A, b, Wm, lo, hi):
+    """Largest KKT violation of the layer's last active-set solve, checked in numpy from its
+    multipliers and active rows (a certificate: independent of how they were found)."""
+    m = A.shape[0]
+    q = int(qp._as_iwork[0])
+    rows = qp._as_iwork[1:1 + q]
+    u = qp._as_work[2 * N + 4, :q]
+    tau = qp._as_x
+    nrm = np.linalg.norm(A, axis=1)
+    G = np.vstack([A / nrm[:, None], np.zeros((qp.max_rows - m, N)), np.eye(N), -np.eye(N)])
+    h = np.concatenate([b / nrm, np.full(qp.max_rows - m, -np.inf), lo, -hi])
+    primal = max(0.0, float(np.max(h - G @ tau)))
+    dual = max(0.0, float(-u.min())) if q else 0.0
+    complementarity = float(np.abs(G[rows] @ tau - h[rows]).max()) if q else 0.0
+    stationarity = float(np.abs(Wm @ (tau - tau_nom) - G[rows].T @ u).max())
+    return max(primal, dual, complementarity, stationarity / (1 + np.abs(Wm @ (tau - tau_nom)).max()))
+
+
+@pytest.mark.parametrize("W_kind", ["diag", "dense"])
+@pytest.mark.parametrize("kind", ["plain", "parallel", "far"])
+def test_matches_proxsuite_and_kkt(W_kind, kind):
+    """The active-set optimum passes an independent KKT check and equals proxsuite's "solved"
+    torque. proxsuite's path reports some of these feasible problems "relaxed" (large multipliers:
+    the elastic slack is not exact and its capped hard solve does not converge, module docstring
+    of c3bf_gym.qp): its torque then violates rows, or costs no less."""
+    rng = np.random.default_rng(10 * ["diag", "dense"].index(W_kind) + ["plain", "parallel", "far"].index(kind))
+    checked = compared = 0
+    for trial in range(40):
+        m = int(rng.choice([0, 1, 5, 12, 30, 60, MAX_ROWS])) if trial else MAX_ROWS
+        tau_nom, A, b, W, Wm, lo, hi = _problem(rng, m, W_kind, kind)
+        qa = TorqueQP(N, MAX_ROWS, lo, hi, W=W)
+        qp = TorqueQP(N, MAX_ROWS, lo, hi, W=W, solver="proxsuite")
+        ra = qa.solve(tau_nom, A, b)
+        if ra.iterations == 0:      # fast path (τ_nom feasible): nothing to check here
+            continue
+        checked += 1
+        assert ra.status == "solved" and ra.feasible and qa.active_set_fallbacks == 0
+        assert _kkt_error(qa, tau_nom, A, b, Wm, lo, hi) < 1e-9
+        np.testing.assert_array_equal(ra.tau, np.clip(qa._as_x, lo, hi))
+        rp = qp.solve(tau_nom, A, b)
+        if rp.status == "solved":
+            compared += 1
+            np.testing.assert_allclose(ra.tau, rp.tau, atol=1e-5 * (1 + np.abs(rp.tau).max()))
+        elif rp.slack <= 1e-6:
+            cost = lambda t: 0.5 * (t - tau_nom) @ Wm @ (t - tau_nom)  # noqa: E731
+            assert cost(ra.tau) <= cost(rp.tau) * (1 + 1e-6)
+    assert checked >= 30 and compared >= checked - 3
+
+
+def test_warm_start_across_changing_rows_matches_cold():
+    """Warm starts (the previous active rows, box rows included, padding rows skipped when m
+    shrinks) give the cold start's answer, in fewer steps on slowly varying problems."""
+    rng = np.random.default_rng(7)
+    tau_nom, A, _, W, Wm, lo, hi = _problem(rng, MAX_ROWS, "diag", "plain")
+    tau_star, delta = 0.5 * (lo + hi), rng.uniform(0, 1, MAX_ROWS)
+    qa = TorqueQP(N, MAX_ROWS, lo, hi, W=W)
+    cold = TorqueQP(N, MAX_ROWS, lo, hi, W=W)
+    warm_steps, cold_steps = [], []
+    for k in range(60):
+        A = A + 0.01 * rng.normal(size=A.shape)
+        b = A @ tau_star - delta * np.linalg.norm(A, axis=1)   # τ* stays feasible
+        tau_nom = tau_nom + 0.05 * rng.normal(size=N)
+        m = MAX_ROWS if k % 10 < 7 else int(rng.integers(0, MAX_ROWS))
+        ra = qa.solve(tau_nom, A[:m], b[:m])
+        cold._as_iwork[0] = 0                                # forget the previous active set
+        rc = cold.solve(tau_nom, A[:m], b[:m])
+        assert ra.status == rc.status == "solved"
+        np.testing.assert_allclose(ra.tau, rc.tau, atol=1e-9)
+        assert _kkt_error(qa, tau_nom, A[:m], b[:m], Wm, lo, hi) < 1e-9
+        warm_steps.append(ra.iterations)
+        cold_steps.append(rc.iterations)
+    assert qa.active_set_fallbacks == 0
+    assert np.median(warm_steps) < np.median(cold_steps)
+
+
+def _kernel(G, h, m, x0, W, max_iter=50):
+    n = x0.size
+    work, iwork = _active_set.work_arrays(n, G.shape[0] - 2 * n)
+    code, steps = _active_set.solve(G, h, m, x0, _active_set.weight_data(W), 1e-10, 1e-8, max_iter, False,
+                                    work, iwork)
+    return code, steps, work[2 * n, :n].copy()
+
+
+def _stack(A, b, lo, hi, M):
+    """G, h of the kernel: A, b padded to M rows, then the box rows."""
+    m, n = A.shape
+    G = np.zeros((M + 2 * n, n))
+    h = np.full(M + 2 * n, -1e154)
+    G[:m], h[:m] = A, b
+    G[M:M + n], h[M:M + n] = np.eye(n), lo
+    G[M + n:], h[M + n:] = -np.eye(n), -hi
+    return G, h
+
+
+@pytest.mark.parametrize("case", ["contradiction", "with_box", "cone"])
+def test_infeasible_is_reported_and_layer_relaxes(case):
+    n = 4
+    lo, hi = -np.full(n, 2.0), np.full(n, 2.0)
+    tau_nom = np.array([0.3, -0.2, 0.1, 0.0])
+    if case == "contradiction":   # x0 >= 1 and x0 <= 0
+        A, b = np.array([[1.0, 0, 0, 0], [-1.0, 0, 0, 0]]), np.array([1.0, 0.0])
+    elif case == "with_box":      # each row reachable in the box, together x0 >= 2.7 > 2
+        s = 1 / np.sqrt(2)
+        A, b = np.array([[s, s, 0, 0], [s, -s, 0, 0]]), np.array([3.5, 1.9]) * s
+    else:                         # rows ±a_k >= 0.5: no point satisfies a row and its mirror
+        A = np.random.default_rng(5).normal(size=(8, n))
+        A /= np.linalg.norm(A, axis=1)[:, None]
+        A, b = np.vstack([A, -A]), np.full(16, 0.5)
+    G, h = _stack(A, b, lo, hi, 16)
+    code, _, _ = _kernel(G, h, A.shape[0], tau_nom, np.eye(n))
+    assert code == _active_set.INFEASIBLE
+    qa = TorqueQP(n, 16, lo, hi)
+    qp = TorqueQP(n, 16, lo, hi, solver="proxsuite")
+    ra = qa.solve(tau_nom, A, b)
+    assert ra.status == "relaxed" and not ra.feasible and ra.slack > 0
+    assert qa.active_set_fallbacks == 1 and qa.active_set_troubles == 0
+    rp = qp.solve(tau_nom, A, b)
+    assert rp.status == "relaxed"
+    np.testing.assert_allclose(ra.tau, rp.tau, atol=1e-12)   # the same proxsuite path decided both
+    assert ra.iterations > rp.iterations                     # + the active-set steps
+
+
+def test_kernel_degenerate_duplicates_and_dense_box_projection():
+    # ten copies of one binding row, a ridge of ties: the optimum is the projection on the row
+    n = 3
+    A = np.tile([[1.0, 1.0, 0.0]], (10, 1)) / np.sqrt(2)
+    b = np.full(10, 1.0 / np.sqrt(2))
+    G, h = _stack(A, b, -np.full(n, 5.0), np.full(n, 5.0), 12)
+    code, steps, x = _kernel(G, h, 10, np.zeros(n), np.eye(n))
+    assert code == _active_set.OPTIMAL and steps == 1
+    np.testing.assert_allclose(x, [0.5, 0.5, 0.0], atol=1e-14)
+    # no rows, dense W: the W-metric projection onto the box. With x0 = 1 at its bound,
+    # x1 = argmin (x0 − 3)² + (x0 − 3) x1 + x1² = 1, exactly at its bound too (zero multiplier)
+    Wd = np.array([[2.0, 1.0], [1.0, 2.0]])
+    G, h = _stack(np.zeros((0, 2)), np.zeros(0), -np.ones(2), np.ones(2), 0)
+    code, _, x = _kernel(G, h, 0, np.array([3.0, 0.0]), Wd)
+    assert code == _active_set.OPTIMAL
+    np.testing.assert_allclose(x, [1.0, 1.0], atol=1e-14)
+
+
+def test_step_cap_falls_back_to_proxsuite():
+    rng = np.random.default_rng(8)
+    tau_nom, A, b, W, Wm, lo, hi = _problem(rng, 40, "diag", "far")
+    qa = TorqueQP(N, MAX_ROWS, lo, hi, W=W)
+    qa.active_set_max_iter = 1
+    ra = qa.solve(tau_nom, A, b)
+    assert ra.status == "solved" and qa.active_set_fallbacks == qa.active_set_troubles == 1
+    ref = TorqueQP(N, MAX_ROWS, lo, hi, W=W).solve(tau_nom, A, b)
+    np.testing.assert_allclose(ra.tau, ref.tau, atol=1e-5 * (1 + np.abs(ref.tau).max()))
+
+
+def test_fast_path_and_proxsuite_solver_do_not_call_the_kernel(monkeypatch):
+    def boom(*args):
+        raise AssertionError("active-set kernel called")
+
+    rng = np.random.default_rng(9)
+    tau_nom, A, b, W, Wm, lo, hi = _problem(rng, 30, "diag", "plain")
+    qa = TorqueQP(N, MAX_ROWS, lo, hi, W=W)
+    qp = TorqueQP(N, MAX_ROWS, lo, hi, W=W, solver="proxsuite")
+    monkeypatch.setattr(_active_set, "solve", boom)
+    tau_safe = np.clip(tau_nom, lo, hi)
+    res = qa.solve(tau_safe, A, np.minimum(b, A @ tau_safe - 0.1))   # τ_nom feasible: fast path
+    assert res.iterations == 0 and res.status == "solved"
+    np.testing.assert_array_equal(res.tau, tau_safe)
+    res = qp.solve(tau_nom, A, b)                                    # binding: proxsuite only
+    assert res.status == "solved" and res.iterations > 0 and qp.active_set_fallbacks == 0
+
+
+def test_solver_name_is_validated():
+    with pytest.raises(ValueError, match="'active_set', 'proxsuite'"):
+        TorqueQP(N, 4, -1, 1, solver="qpoases")
+    assert TorqueQP(N, 4, -1, 1).solver == "active_set"
