@@ -1,9 +1,13 @@
 """Compiled dense dual active-set QP solver (Goldfarb & Idnani 1983) for :class:`~c3bf_gym.qp.TorqueQP`.
 
 Solves the *hard* filter problem (n small, rows already normalised by
-:func:`c3bf_gym._kernels.qp_prepare`)::
+:func:`c3bf_gym._kernels.qp_prepare`), and on infeasible calls the elastic and per-row repair
+problems (module docstring of :mod:`c3bf_gym.qp`)::
 
-    minimise  ½ (x − x₀)ᵀ W (x − x₀)   s.t.   G_k x ≥ h_k   for the m rows and the 2n box rows
+    minimise  ½ (x − x₀)ᵀ W (x − x₀)   s.t.   G_k x ≥ h_k   for the m rows and the bound rows
+
+(hard: x = τ, bound rows = the 2n box rows; elastic and repair: x = (τ, t), W = blockdiag(W, I),
+x₀ = (τ_nom, −1, …), bound rows = box and t ≥ 0).
 
 GI starts at the unconstrained minimiser x₀ and adds violated constraints one at a time while
 keeping every multiplier ≥ 0 (dual feasible), so the first primal-feasible iterate is the optimum.
@@ -17,8 +21,12 @@ Design:
 
 * **Box = 2n rows.** The box is the rows ``G[M:M+2n]`` that :class:`~c3bf_gym.qp.TorqueQP`
   already keeps for its residuals (``(I | 0) ≥ τ_min``, ``(−I | 0) ≥ −τ_max``); the safety rows
-  are ``G[:m]`` (column n, the elastic slack column, is ignored). One code path, and a box row
-  costs n multiplications in the scan like any other.
+  are ``G[:m]`` (columns past n, e.g. the elastic slack column, are ignored). One code path, and a
+  box row costs n multiplications in the scan like any other. The slacks' t ≥ 0 are more such
+  bound rows (``G[M:M+nbox]``).
+* **Variable count.** n = len(x₀) may be less than the work arrays and ``[W; J₀]`` hold: the
+  solver uses their leading blocks, so one set serves repairs with any number of slacks (the
+  leading blocks of blockdiag(W, I) and of its J₀ = blockdiag(L⁻ᵀ, I) are those of fewer slacks).
 * **Factorisation.** ``J = L⁻ᵀ Q`` and the upper-triangular ``R`` with ``Jᵀ N = [R; 0]``
   (N = active normals), updated by Givens reflections on each add and drop (GI's section 4).
   ``J₀ = L⁻ᵀ`` (W = L Lᵀ) is computed once per weight by the caller; a diagonal W gives a
@@ -45,10 +53,10 @@ Design:
   ``TROUBLE``; ``max_iter`` steps without an answer give ``ITER_CAP``. The caller falls back to
   proxsuite on all three non-optimal outcomes.
 
-Work arrays (no allocation per call): ``work`` (2n + 5, n + 1) float64 holds J, R, x, d, z, r
-and the multipliers u (n + 1 entries: the active ones and the candidate's); ``iwork``
-(n + 2 + max_rows + 2n) int64 holds the warm start's row count, the active rows (n + 1) and
-per-row "active" flags indexed like G.
+Work arrays (no allocation per call), for up to N variables: ``work`` (2N + 5, N + 1) float64
+holds J, R, x, d, z, r and the multipliers u (N + 1 entries: the active ones and the
+candidate's); ``iwork`` (N + 2 + len(G)) int64 holds the warm start's row count, the active rows
+(N + 1) and per-row "active" flags indexed like G.
 """
 
 from __future__ import annotations
@@ -69,16 +77,23 @@ _STAT_TOL = 1e-8   # relative stationarity error accepted by the final KKT check
 _opts = {"cache": True, "nogil": True, "error_model": "numpy", "boundscheck": False}
 
 
-def work_arrays(n: int, max_rows: int) -> tuple[np.ndarray, np.ndarray]:
-    """``(work, iwork)`` for :func:`solve` with n variables and up to ``max_rows`` rows."""
-    return np.zeros((2 * n + 5, n + 1)), np.zeros(n + 2 + max_rows + 2 * n, dtype=np.int64)
+def work_arrays(n: int, n_rows: int) -> tuple[np.ndarray, np.ndarray]:
+    """``(work, iwork)`` for :func:`solve` with up to n variables and a G of ``n_rows`` rows."""
+    return np.zeros((2 * n + 5, n + 1)), np.zeros(n + 2 + n_rows, dtype=np.int64)
 
 
-def weight_data(W: np.ndarray) -> np.ndarray:
-    """``(2n, n)`` array ``[W; J₀]`` with ``J₀ = L⁻ᵀ``, W = L Lᵀ (W symmetric positive definite)."""
+def weight_data(W: np.ndarray, extra: int = 0) -> np.ndarray:
+    """``(2N, N)`` array ``[W̃; J₀]`` for ``W̃ = blockdiag(W, I_extra)`` (N = n + extra) and
+    ``J₀ = L⁻ᵀ`` (W̃ = L Lᵀ; W symmetric positive definite). Its leading blocks serve any problem
+    in the first n + k ≤ N variables (:func:`solve`)."""
     n = W.shape[0]
-    L = np.linalg.cholesky(W)
-    return np.ascontiguousarray(np.vstack([W, np.linalg.solve(L, np.eye(n)).T]))
+    N = n + extra
+    out = np.zeros((2 * N, N))
+    out[:N, :N] = np.eye(N)
+    out[N:, :N] = np.eye(N)
+    out[:n, :n] = W
+    out[N:N + n, :n] = np.linalg.solve(np.linalg.cholesky(W), np.eye(n)).T
+    return out
 
 
 @njit(**_opts)
@@ -171,9 +186,9 @@ def _transformed(J, G, k, q, d):
 
 
 @njit(**_opts)
-def _most_violated(G, h, x, m, M, flags, tol):
-    """``(row, slack)`` of the inactive row (safety rows ``[0, m)``, box rows ``[M, M+2n)``) with
-    the smallest slack below −tol; row −1 if there is none."""
+def _most_violated(G, h, x, m, M, nbox, flags, tol):
+    """``(row, slack)`` of the inactive row (safety rows ``[0, m)``, bound rows ``[M, M+nbox)``)
+    with the smallest slack below −tol; row −1 if there is none."""
     p = -1
     sp = -tol
     for k in range(m):
@@ -182,7 +197,7 @@ def _most_violated(G, h, x, m, M, flags, tol):
             if s < sp:
                 sp = s
                 p = k
-    for k in range(M, M + 2 * x.shape[0]):
+    for k in range(M, M + nbox):
         if flags[k] == 0:
             s = _slack(G, h, k, x)
             if s < sp:
@@ -261,43 +276,48 @@ def _kkt_ok(G, h, x0, W, q, act, u, x, z, vtol):
 
 
 @njit(**_opts)
-def solve(G, h, m, x0, WJ, tol, vtol, max_iter, warm, work, iwork):
-    """Goldfarb–Idnani on the rows ``G[:m]`` and the box rows ``G[M:M+2n]`` (M = len(G) − 2n).
+def solve(G, h, m, M, nbox, x0, WJ, tol, vtol, max_iter, warm, work, iwork):
+    """Goldfarb–Idnani on the rows ``G[:m]`` and the bound rows ``G[M:M+nbox]``, n = len(x0) variables.
 
     Args:
-        G, h: (M + 2n, ≥ n) rows and (M + 2n,) bounds, ``G_k x ≥ h_k`` (first n columns used).
+        G, h: (≥ M + nbox, ≥ n) rows and bounds, ``G_k x ≥ h_k`` (first n columns used).
         m: number of safety rows.
-        x0: (n,) unconstrained minimiser (the nominal torque).
-        WJ: ``[W; J₀]`` from :func:`weight_data`.
+        M, nbox: the bound rows (box, slack ≥ 0) are ``G[M:M+nbox]``.
+        x0: (n,) unconstrained minimiser (the nominal torque; (τ_nom, −1, …) for the elastic and
+            repair problems, whose slack costs ½t² + t).
+        WJ: ``[W; J₀]`` from :func:`weight_data` for N ≥ n variables (its leading n×n blocks are used).
         tol: a row is violated when ``G_k x − h_k < −tol``.
         vtol: active rows must hold with equality to within ``vtol`` at the end.
         max_iter: cap on steps (adds + drops, + 1 for an accepted warm start).
         warm: start from the active rows of the last ``OPTIMAL`` solve with these work arrays
             (module docstring); otherwise from x₀ with no active row.
-        work, iwork: from :func:`work_arrays`; the solution is ``work[2n, :n]``.
+        work, iwork: from :func:`work_arrays` for N ≥ n variables and len(G) rows; the solution
+            is ``work[2N, :n]``, the multipliers ``work[2N + 4, :q]`` of the active rows
+            ``iwork[1:1+q]``, q = ``iwork[0]``.
 
     Returns:
         ``(status, steps)``: status ``OPTIMAL``, ``INFEASIBLE``, ``ITER_CAP`` or ``TROUBLE``.
     """
     n = x0.shape[0]
-    M = G.shape[0] - 2 * n
-    W = WJ[:n]
+    N = work.shape[1] - 1
+    NW = WJ.shape[1]
+    W = WJ[:n, :n]
     J = work[:n, :n]
-    R = work[n:2 * n, :n]
-    x = work[2 * n, :n]
-    d = work[2 * n + 1, :n]
-    z = work[2 * n + 2, :n]
-    r = work[2 * n + 3, :n]
-    u = work[2 * n + 4]
-    act = iwork[1:n + 2]
-    flags = iwork[n + 2:]
+    R = work[N:N + n, :n]
+    x = work[2 * N, :n]
+    d = work[2 * N + 1, :n]
+    z = work[2 * N + 2, :n]
+    r = work[2 * N + 3, :n]
+    u = work[2 * N + 4]
+    act = iwork[1:N + 2]
+    flags = iwork[N + 2:]
     for i in range(n):
         x[i] = x0[i]
         for j in range(n):
-            J[i, j] = WJ[n + i, j]
+            J[i, j] = WJ[NW + i, j]
     for k in range(m):
         flags[k] = 0
-    for k in range(M, M + 2 * n):
+    for k in range(M, M + nbox):
         flags[k] = 0
     q = 0
     if warm and iwork[0] > 0:
@@ -305,12 +325,12 @@ def solve(G, h, m, x0, WJ, tol, vtol, max_iter, warm, work, iwork):
         if q == 0:
             for i in range(n):
                 for j in range(n):
-                    J[i, j] = WJ[n + i, j]
+                    J[i, j] = WJ[NW + i, j]
     iwork[0] = 0
     steps = 1 if q else 0  # the warm start counts as one step
     while True:
         # ---- step 1: the most violated row (none: x is optimal)
-        p, sp = _most_violated(G, h, x, m, M, flags, tol)
+        p, sp = _most_violated(G, h, x, m, M, nbox, flags, tol)
         if p < 0:
             if _kkt_ok(G, h, x0, W, q, act, u, x, z, vtol):
                 iwork[0] = q

@@ -553,6 +553,39 @@ def row_reach(G, m, lo, hi, h, tol, l, l_clipped, reach):
 
 
 @njit(**_opts)
+def repair_rows(r, m, tol, G, l, weights, row_slack_weight, K, k_prev, Gr, hr, iwork):
+    """Rows of the per-row repair QP (:meth:`~c3bf_gym.qp.TorqueQP._relax_rows`) for the active-set
+    solver: ``K`` = the rows k < m with residual ``r_k < tol``; ``Gr[:m] = (G[:m, :n] | slack
+    columns)`` with ``1 / (row_slack_weight · weights_k)`` (weights empty: all 1) in column
+    n + i for the i-th row of K, ``hr[:m] = l[:m]``. ``K[:k_prev]`` are the previous call's slack
+    rows (their entries are cleared first). Unless K is the previous K and ``iwork`` holds the
+    optimal active rows of its solve (:func:`~c3bf_gym._active_set.solve`), ``iwork`` gets the
+    solver's warm start "every slack at its bound t = 0": rows ``Gr[len(Gr) − len(K) + i]``.
+    Returns len(K)."""
+    n = G.shape[1] - 1
+    for i in range(k_prev):
+        Gr[K[i], n + i] = 0.0
+    k = 0
+    same = True
+    for i in range(m):
+        for j in range(n):
+            Gr[i, j] = G[i, j]
+        hr[i] = l[i]
+        if r[i] < tol:
+            same = same and k < k_prev and K[k] == i
+            K[k] = i
+            w = 1.0 if weights.shape[0] == 0 else weights[i]
+            Gr[i, n + k] = 1.0 / (row_slack_weight * w)
+            k += 1
+    if not (same and k == k_prev and iwork[0] > 0):
+        first = Gr.shape[0] - K.shape[0]
+        iwork[0] = k
+        for i in range(k):
+            iwork[1 + i] = first + i
+    return k
+
+
+@njit(**_opts)
 def clip(x, lo, hi, out):
     """``out = min(max(x, lo), hi)`` over ``len(out)`` entries."""
     for j in range(out.shape[0]):

@@ -21,24 +21,42 @@ Design (all numbers below measured with proxsuite 0.8.0, see ``benchmarks/qp_mic
   rows) solves the *hard* problem on the data step's normalised rows. It returns
   either the exact optimum, accepted only after a KKT check (rows, box,
   complementarity, stationarity), and proxsuite is not called; or a proof that
-  the rows and box have no common point, or (not seen on filter data) a step cap
-  or failed check: then everything below runs unchanged
-  (``active_set_fallbacks``). Rows no torque in the box can reach skip it.
-  ``solver="proxsuite"`` is the layer without it. Why: proxsuite's update and
+  the rows and box have no common point (then "Infeasible calls" below); or (not
+  seen on filter data) a step cap or failed check: then everything below runs
+  unchanged (``active_set_fallbacks``). Rows no torque in the box can reach skip
+  it. ``solver="proxsuite"`` is the layer without it. Why: proxsuite's update and
   solve cost 50–300 µs per call, and its "solved" answers can be off the optimum
   (on a recorded 4-obstacle rollout, one by 1e-3 against a 1e-13 reference, where
   the active set was within 1e-15). Measured side by side, same calls
   interleaved (``PYTHONPATH=. python benchmarks/qp_micro.py``, binding case,
   median / p99 of ``solve`` per call, active set vs proxsuite): 24 rows 14 / 23
   vs 92 / 277 µs, 92 rows 18 / 44 vs 242 / 680 µs, largest torque difference
-  6e-7. Whole filter hook per physics step, 4 obstacles, random torques
-  (``PYTHONPATH=. python benchmarks/filter_speed.py --no-throughput --policy random
-  --qp-solver active_set proxsuite``): median 47 vs 164 µs (QP part 17 vs 126);
-  the p99 (≈1.5 ms both) is set by the infeasible steps, which still go to
-  proxsuite. Warm starts end most solves in one step (filter rollouts: median 1,
+  6e-7. (Whole filter hook: "Infeasible calls" below.) Warm starts end most
+  solves in one step (filter rollouts: median 1,
   p99 ≤ 12 steps; cold: median 5–11). On 60000 filter calls over the four
-  scenarios (random and adversarial torques) 3% went to proxsuite, all with an
-  infeasibility proof.
+  scenarios (random and adversarial torques) 3% had an infeasibility proof.
+* **Infeasible calls, active set.** After that proof the elastic QP and the
+  per-row repair (both below, same semantics) are solved by the same compiled
+  solver: both are always feasible and have its form ½(x − x₀)ᵀW̃(x − x₀) with
+  W̃ = blockdiag(W, I), x₀ = (τ_nom, −1, …) (the slack cost ½t² + t), the
+  slack columns in the rows and t ≥ 0 as bound rows. Only "s ≤ tol → solved"
+  is kept of the elastic decision rules: the proof already certifies
+  infeasibility, so the Farkas bound and the hard disambiguation solve (which
+  only tell a feasible problem with multipliers beyond c from an infeasible
+  one) are not needed; s > tol goes straight to the repair. The elastic solve is
+  warm-started like the hard one (own work arrays); the repair from its last
+  optimal active rows when K is unchanged, else from "every slack at t = 0"
+  (multipliers 1: a valid start, saving the k steps that bring the slacks
+  from −1 to 0). Work arrays for up to K = ``max_rows`` slacks are made once,
+  each solve uses their leading blocks. A step cap or failed KKT check
+  (``active_set_troubles``) hands that QP to proxsuite as before; seen only on
+  repairs with ~50 slacks (8 obstacles, 4 of 6000 calls: ≈150 steps, ~1 ms).
+  Whole filter hook per physics step, median / p99 µs, active set vs proxsuite,
+  interleaved (``PYTHONPATH=. python benchmarks/filter_speed.py --calls 3000
+  --obstacles 1 4 8 --no-throughput --qp-solver active_set proxsuite --policy P``):
+  adversarial 1 / 4 / 8 obstacles 30 / 93 vs 115 / 444, 38 / 182 vs
+  319 / 1402 (53% relaxed), 29 / 813 vs 141 / 7086; random 34 / 125 vs
+  112 / 692, 43 / 171 vs 153 / 1388, 30 / 1226 vs 201 / 12159.
 * **Row normalisation.** Rows are divided by ‖A_k‖₂ before they reach the
   solver (an equivalent problem).  Tolerances, ``slack`` and ``active_rows``
   are therefore in *normalised* units: the signed distance, in torque space
@@ -308,9 +326,10 @@ class TorqueQP:
         hard_max_iter, hard_max_iter_in: outer and inner iteration caps of the (rare)
             disambiguating hard solve.
         active_set_max_iter: step cap of the active-set solver (50; the most seen on filter
-            rollouts was 22).
-        active_set_fallbacks, active_set_troubles: calls the active-set solver handed to
-            proxsuite, and those of them without an infeasibility certificate.
+            rollouts was 22), plus 2 per slack for the per-row repair (≈ 3 steps per slack seen).
+        active_set_fallbacks, active_set_troubles: QPs (hard or elastic, repair) the active-set
+            solver handed to proxsuite, and its solves that ended in a step cap or failed check
+            (the same count, since infeasible calls no longer go to proxsuite).
     """
 
     def __init__(self, n: int, max_rows: int, tau_min, tau_max, W=None,
@@ -352,16 +371,23 @@ class TorqueQP:
         # G[:M] / h[:M] are contiguous row blocks and are handed to proxsuite as C / l.
         self._sigma = math.sqrt(self.slack_weight)    # slack scaling: QP variable t = σ s
         self.slack_linear_weight = math.sqrt(self.slack_weight)
-        self._G = np.zeros((M + 2 * n, n + 1))
+        # (The elastic active-set solve uses one more row, t ≥ 0: _Gx / _hx, of which _G / _h are
+        # the leading rows.)
+        self._Gx = np.zeros((M + 2 * n + 1, n + 1))
+        self._Gx[M + 2 * n, n] = 1.0
+        self._G = self._Gx[:M + 2 * n]
         self._G[:M, n] = 1.0 / self._sigma
         self._G[M:M + n, :n] = np.eye(n)
         self._G[M + n:, :n] = -np.eye(n)
         self._nrm = np.zeros(M)                       # row norms ‖A_k‖
-        self._h = np.full(M + 2 * n, -PROXSUITE_INF)
+        self._hx = np.full(M + 2 * n + 1, -PROXSUITE_INF)
+        self._hx[M + 2 * n] = 0.0
+        self._h = self._hx[:M + 2 * n]
         self._h[M:M + n] = self.tau_min
         self._h[M + n:] = -self.tau_max
         self._Ce, self._l = self._G[:M], self._h[:M]
-        self._l_clipped = np.empty(M)  # lower bounds with impossible rows clipped to their reach
+        self._hcx = self._hx.copy()      # _hx with impossible rows clipped to their reach (_l_clipped)
+        self._l_clipped = self._hcx[:M]
         self._u = np.full(M, PROXSUITE_INF)
         self._r = np.zeros(M + 2 * n)                 # residuals G·(τ, 0) − h
         self._xe = np.zeros(n + 1)                    # (τ, 0); τ part is the returned buffer
@@ -400,9 +426,29 @@ class TorqueQP:
 
         # The active-set solver (module docstring, "Active-set solver first"): its work arrays, the
         # weight data [W; L⁻ᵀ] (set_weight), its tolerances and step cap.
-        self._as_work, self._as_iwork = _active_set.work_arrays(n, M)
+        self._as_work, self._as_iwork = _active_set.work_arrays(n, M + 2 * n)
         self._as_x = self._as_work[2 * n, :n]
         self._WJ = np.zeros((2 * n, n))
+        # ... and for the elastic and per-row repair problems ("Infeasible calls"): x₀ = (τ_nom, −1, …)
+        # and [W̃; J₀] for up to n + K variables (K = max_rows slack columns; each solve uses the
+        # leading blocks); the repair rows (Â_k | e_i / σ_k) in _Gr / _hr, then the box rows and
+        # the K rows t_i ≥ 0.
+        K = max(M, 1)
+        self._x0r = np.full(n + K, -1.0)
+        self._x0n, self._x0e = self._x0r[:n], self._x0r[:n + 1]
+        self._WJx = np.zeros((2 * (n + K), n + K))
+        self._el_work, self._el_iwork = _active_set.work_arrays(n + 1, M + 2 * n + 1)
+        self._el_x = self._el_work[2 * (n + 1), :n + 1]
+        self._Gr = np.zeros((M + 2 * n + K, n + K))
+        self._Gr[M:M + 2 * n, :n] = self._G[M:, :n]
+        self._Gr[M + 2 * n:, n:] = np.eye(K)
+        self._hr = np.zeros(M + 2 * n + K)
+        self._hr[M:M + 2 * n] = self._h[M:]
+        self._Kr = np.zeros(K, dtype=np.int64)        # the repair's slack rows (first _kr entries)
+        self._kr = 0
+        self._rep_work, self._rep_iwork = _active_set.work_arrays(n + K, M + 2 * n + K)
+        self._rep_x = self._rep_work[2 * (n + K), :n]
+        self._tau_star = np.zeros(n)
         box_scale = 1.0 + float(max(np.abs(self.tau_min).max(), np.abs(self.tau_max).max()))
         self._as_tol, self._as_vtol = _AS_TOL * box_scale, _AS_VTOL * box_scale
         self.active_set_max_iter = 50
@@ -423,9 +469,11 @@ class TorqueQP:
                         self.tau_min, self.tau_max)
         self._hard_h_dirty = False
         if solver == "active_set":  # load the compiled solver now, not in a control loop's first binding call (~20 ms)
-            _active_set.solve(self._G, self._h, 0, self._nom, self._WJ, self._as_tol, self._as_vtol, 1, False,
-                              self._as_work, self._as_iwork)
+            _active_set.solve(self._G, self._h, 0, M, 2 * n, self._nom, self._WJ, self._as_tol, self._as_vtol, 1,
+                              False, self._as_work, self._as_iwork)
             self._as_iwork[0] = 0
+            _kernels.repair_rows(self._r, 0, 0.0, self._G, self._l, _NO_SCALE, 1.0, self._Kr, 0, self._Gr,
+                                 self._hr, self._rep_iwork)
 
     # ------------------------------------------------------------------ weight
     def set_weight(self, W) -> None:
@@ -438,6 +486,7 @@ class TorqueQP:
         self._Wc[...] = Wm
         np.negative(Wm, out=self._negW)
         self._WJ[...] = _active_set.weight_data(Wm)
+        self._WJx[...] = _active_set.weight_data(Wm, self._WJx.shape[1] - self.n)
         self._diag_W = bool(np.count_nonzero(Wm - np.diag(np.diag(Wm))) == 0)
         self._el_dirty = set(getattr(self, "_el_qps", ()))
         self._hard_h_dirty = True
@@ -524,17 +573,33 @@ class TorqueQP:
         # found them and wrote every row's bound, clipped to its reach, into _l_clipped.)
         l = self._l_clipped if impossible else self._l
 
-        # ---- the active-set solver: the exact optimum, or a proof that there is none (then, and
-        # on its rare step cap or failed KKT check, proxsuite below decides as before).
+        # ---- the active-set solver: the exact optimum, or a proof that there is none; then the
+        # elastic QP by the active-set solver too ("Infeasible calls"). On a step cap or failed KKT
+        # check (rare), proxsuite below decides as before.
         as_steps = 0
-        if self.solver == "active_set" and not impossible:
-            code, as_steps = _active_set.solve(self._G, self._h, m, tau_nom, self._WJ, self._as_tol, self._as_vtol,
-                                               self.active_set_max_iter, True, self._as_work, self._as_iwork)
-            if code == _active_set.OPTIMAL:
-                self._clip(self._as_x)
-                return self._result(m, 0.0, True, "solved", as_steps, t0)
+        if self.solver == "active_set":
+            infeasible = impossible
+            if not impossible:
+                code, as_steps = _active_set.solve(self._G, self._h, m, self.max_rows, 2 * n, tau_nom, self._WJ,
+                                                   self._as_tol, self._as_vtol, self.active_set_max_iter, True,
+                                                   self._as_work, self._as_iwork)
+                if code == _active_set.OPTIMAL:
+                    self._clip(self._as_x)
+                    return self._result(m, 0.0, True, "solved", as_steps, t0)
+                infeasible = code == _active_set.INFEASIBLE
+            if infeasible:
+                np.copyto(self._x0n, tau_nom)
+                code, steps = _active_set.solve(self._Gx, self._hcx if impossible else self._hx, m, self.max_rows,
+                                                2 * n + 1, self._x0e, self._WJx, self._as_tol, self._as_vtol,
+                                                self.active_set_max_iter, True, self._el_work, self._el_iwork)
+                as_steps += steps
+                if code == _active_set.OPTIMAL:
+                    self._clip(self._el_x)
+                    if impossible or self._el_x[n] / self._sigma > self.active_tol:
+                        return self._relax_rows(m, weights, l, tau_nom, as_steps, t0)
+                    return self._result(m, 0.0, True, "solved", as_steps, t0)
             self.active_set_fallbacks += 1
-            self.active_set_troubles += code != _active_set.INFEASIBLE
+            self.active_set_troubles += 1
 
         # ---- elastic solve (warm-started)
         g = self._g
@@ -606,13 +671,31 @@ class TorqueQP:
         Rows τ* satisfies (normalised residual ≥ ``active_tol``) stay hard; every other row k
         gets its own slack s_k, costed σ_k s_k + ½ σ_k² s_k² with σ_k = ``row_slack_weight`` ·
         weights[k] (module docstring, "Relaxation"). τ* with its violations is a feasible point of
-        this QP, so it always has a solution; if proxsuite does not deliver it, τ* is applied.
+        this QP, so it always has a solution. The active-set solver tries first (``solver=
+        "active_set"``); if neither it nor proxsuite delivers it, τ* is applied.
         """
         n, M = self.n, self.max_rows
-        tau_star = self._tau.copy()
         r = self._r
-        np.dot(self._G, self._xe, out=r)            # residuals of τ* (original, unclipped rows)
-        np.subtract(r, self._h, out=r)
+        _kernels.residuals(self._G, self._xe, self._h, r)  # of τ* (original, unclipped rows)
+        if self.solver == "active_set" and m:
+            w = _NO_SCALE if weights is None else _plain(np.asarray(weights, dtype=np.float64))
+            k = _kernels.repair_rows(r, m, self.active_tol, self._G, l, w, self.row_slack_weight, self._Kr, self._kr,
+                                     self._Gr, self._hr, self._rep_iwork)
+            self._kr = k
+            if k == 0:
+                return self._result(m, None, False, "relaxed", iters, t0)
+            code, steps = _active_set.solve(self._Gr, self._hr, m, M, 2 * n + k, self._x0r[:n + k], self._WJx,
+                                            self._as_tol, self._as_vtol, self.active_set_max_iter + 2 * k, True,
+                                            self._rep_work, self._rep_iwork)
+            iters += steps
+            if code == _active_set.OPTIMAL:
+                self.relax_calls += 1
+                self._clip(self._rep_x)
+                return self._result(m, None, False, "relaxed", iters, t0)
+            self.active_set_fallbacks += 1
+            self.active_set_troubles += 1
+        tau_star = self._tau_star
+        np.copyto(tau_star, self._tau)
         K = np.flatnonzero(r[:m] < self.active_tol)
         k = len(K)
         cap = next((c for c in self._relax_caps if c >= k), None)
