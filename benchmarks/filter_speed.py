@@ -6,11 +6,12 @@ or 8 obstacles placed by hand around the arm (0.07-0.3 m from it, drifting slowl
 sensing radius so every one adds a row per link; re-placed every 50 steps), and an adversarial
 policy drives the arm point nearest to an obstacle straight at it, so the rows bind and the QP
 has work to do (``--policy random``: uniformly random torques instead). Every ``hook(tau)`` call
-is timed as a whole, and split (same call, no second evaluation) into building the rows
-(``SafetyHook.rows``: arm dynamics, barrier, joint limits) and the QP solve
-(``TorqueQP.solve_scaled``: the data step, proxsuite and the bookkeeping around it). Median, p99
-and max in µs, the share of calls the QP answered on its fast path (nominal already safe), and
-the QP's status counts (and the calls the active-set solver handed to proxsuite, "fallback").
+is timed as a whole; with ``--split`` also (same call, no second evaluation) its rows
+(``SafetyHook.rows``: arm dynamics, barrier, joint limits) and QP solve (``TorqueQP.solve_scaled``),
+for a hook that calls them: the whole-arm hook runs both in one kernel (``_kernels.hook_step``),
+so its split columns stay empty ("nan"). Median, p99 and max in µs, the share of calls the QP
+answered on its fast path (nominal already safe), and the QP's status counts (and the calls the
+active-set solver handed to proxsuite, "fallback").
 
 ``--qp-solver active_set proxsuite`` compares :class:`~c3bf_gym.qp.TorqueQP` solvers: the hook's
 QP is replaced by one with that ``solver`` (same rows, box and weight), and each obstacle count
@@ -26,7 +27,7 @@ order) so machine noise hits all three alike; the ratios filtered/unfiltered and
 filtered/Pusher are per round, the headline is their median.
 
 Usage: ``python benchmarks/filter_speed.py [--calls 3000] [--obstacles 1 4 8] [--policy adversarial]
-[--qp-solver S [S ...]] [--latency-rounds R] [--rounds 5] [--steps 1000] [--profile] [--no-throughput]
+[--qp-solver S [S ...]] [--latency-rounds R] [--rounds 5] [--steps 1000] [--split] [--profile] [--no-throughput]
 [--json PATH]``. The script also times
 other versions of the package (``PYTHONPATH=/path/to/other/checkout``): it prints which
 ``c3bf_gym`` it imported, and the QP timer wraps ``TorqueQP.solve_scaled`` (the hook's call) or, in
@@ -39,6 +40,7 @@ import argparse
 import cProfile
 import io
 import json
+import math
 import pstats
 import statistics
 import time
@@ -115,11 +117,14 @@ def adversarial_action(u) -> np.ndarray:
 
 
 class TimedHook:
-    """Installed in place of the filter hook: times each call, and its rows / QP parts."""
+    """Installed in place of the filter hook: times each call and, with ``split``, its rows / QP
+    parts (timers wrapped around ``SafetyHook.rows`` and the QP's solve; they see only a hook that
+    calls them, not the fused whole-arm kernel, and cost the timed calls ~1 µs)."""
 
-    def __init__(self, hook, profiler: cProfile.Profile | None = None) -> None:
+    def __init__(self, hook, profiler: cProfile.Profile | None = None, split: bool = False) -> None:
         self.hook = hook
         self.profiler = profiler
+        self.calls = 0
         self.total: list[float] = []
         self.rows: list[float] = []
         self.qp: list[float] = []
@@ -128,14 +133,14 @@ class TimedHook:
         self.sensed: list[int] = []
         self.n_rows: list[int] = []
         self._fallbacks0 = getattr(hook.qp, "active_set_fallbacks", 0)
+        if not split:
+            return
         rows = hook.rows
 
         def timed_rows():
             start = time.perf_counter()
             out = rows()
             self.rows.append(time.perf_counter() - start)
-            self.sensed.append(out[4])
-            self.n_rows.append(len(out[1]))
             return out
 
         def timed(solve):
@@ -143,8 +148,6 @@ class TimedHook:
                 start = time.perf_counter()
                 result = solve(*args)
                 self.qp.append(time.perf_counter() - start)
-                self.fast.append(result.iterations == 0)
-                self.status[result.status] = self.status.get(result.status, 0) + 1
                 return result
 
             return timed_solve
@@ -154,6 +157,16 @@ class TimedHook:
         for name in ("solve", "solve_scaled"):
             if hasattr(hook.qp, name):
                 setattr(hook.qp, name, timed(getattr(hook.qp, name)))
+
+    def _record(self) -> None:
+        """The call's QP outcome, sensed obstacles (the policy step's largest) and row count."""
+        hook = self.hook
+        result = hook.last
+        self.calls += 1
+        self.fast.append(result.iterations == 0)
+        self.status[result.status] = self.status.get(result.status, 0) + 1
+        self.sensed.append(hook.report.sensed)
+        self.n_rows.append(hook.qp._m_prev)
 
     @property
     def fallbacks(self) -> int:
@@ -165,10 +178,11 @@ class TimedHook:
             self.profiler.enable()
             out = self.hook(tau)
             self.profiler.disable()
-            return out
-        start = time.perf_counter()
-        out = self.hook(tau)
-        self.total.append(time.perf_counter() - start)
+        else:
+            start = time.perf_counter()
+            out = self.hook(tau)
+            self.total.append(time.perf_counter() - start)
+        self._record()
         return out
 
 
@@ -180,7 +194,7 @@ def use_solver(hook, solver: str) -> None:
 
 
 def hook_latency(count: int, calls: int, seed: int, policy: str = "adversarial", profile: bool = False,
-                 qp_solver: str | None = None) -> TimedHook:
+                 qp_solver: str | None = None, split: bool = False) -> TimedHook:
     env = SafetyFilter(gym.make("C3BFReach-v0", scenario="none"), barrier="c3bf")
     if qp_solver is not None:
         use_solver(env.hook, qp_solver)
@@ -193,11 +207,11 @@ def hook_latency(count: int, calls: int, seed: int, policy: str = "adversarial",
     env.reset(seed=seed)
     place_obstacles(u, count, rng)
     profiler = cProfile.Profile() if profile else None
-    timed = TimedHook(env.hook, profiler)
+    timed = TimedHook(env.hook, profiler, split)
     u.remove_torque_hook("filter")
     u.add_torque_hook(timed, "filter")
     steps = 0
-    while len(timed.rows) < calls:
+    while timed.calls < calls:
         if steps and steps % 50 == 0:  # a fresh arrangement now and then (obstacles drift away)
             env.reset(seed=seed + steps)
             place_obstacles(u, count, rng)
@@ -209,13 +223,13 @@ def hook_latency(count: int, calls: int, seed: int, policy: str = "adversarial",
         stream = io.StringIO()
         stats = pstats.Stats(profiler, stream=stream).sort_stats("tottime")
         stats.print_stats(15)
-        print(f"\ncProfile of {len(timed.rows)} filter hook calls with {count} obstacles (top 15 by own time):")
+        print(f"\ncProfile of {timed.calls} filter hook calls with {count} obstacles (top 15 by own time):")
         print(stream.getvalue())
     return timed
 
 
 def us(values: list[float], q: float) -> float:
-    return float(np.percentile(np.asarray(values) * 1e6, q))
+    return float(np.percentile(np.asarray(values) * 1e6, q)) if values else math.nan
 
 
 def summary(timed: list[TimedHook]) -> dict:
@@ -262,6 +276,8 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--latency-rounds", type=int,
                         help="interleaved latency rounds per obstacle count (default 1, or 2 with several solvers)")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--split", action="store_true",
+                        help="also time the rows and the QP apart (only a hook that calls them: not the fused whole-arm kernel)")
     parser.add_argument("--profile", action="store_true", help="print a cProfile top-15 of the filtered steps (4 obstacles)")
     parser.add_argument("--no-throughput", action="store_true", help="skip (b), the env throughput rounds")
     parser.add_argument("--json", metavar="PATH", help="also write the results as JSON to PATH")
@@ -288,7 +304,8 @@ def main(argv: list[str] | None = None) -> dict:
         per_round = args.calls // rounds
         for r in range(rounds):
             for s in solvers[r % len(solvers):] + solvers[: r % len(solvers)]:  # rotate who goes first
-                timed[s].append(hook_latency(count, per_round, args.seed + r, args.policy, qp_solver=s))
+                timed[s].append(hook_latency(count, per_round, args.seed + r, args.policy, qp_solver=s,
+                                            split=args.split))
         rows_by_solver = {s: summary(timed[s]) for s in solvers}
         out["hook"][count] = rows_by_solver if len(solvers) > 1 else rows_by_solver[solvers[0]]
         for s, row in rows_by_solver.items():

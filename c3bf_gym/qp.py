@@ -600,8 +600,14 @@ class TorqueQP:
                     return self._result(m, 0.0, True, "solved", as_steps, t0)
             self.active_set_fallbacks += 1
             self.active_set_troubles += 1
+        return self._proxsuite_elastic(m, weights, impossible, as_steps, t0)
 
-        # ---- elastic solve (warm-started)
+    def _proxsuite_elastic(self, m, weights, impossible, iters, t0) -> QPResult:
+        """The elastic QP by proxsuite and the decisions after it (module docstring): the layer
+        with ``solver="proxsuite"``, or what the active-set solver handed over (``iters`` steps)."""
+        n = self.n
+        tau_nom = self._nom
+        l = self._l_clipped if impossible else self._l
         g = self._g
         size = next(s for s in self._el_sizes if s >= m)
         el, C, l_all, l_clip = self._elastic(size)
@@ -613,7 +619,7 @@ class TorqueQP:
             el.update(g=g, C=C, l=l_size, mu_in=_MU_IN_RESET)
         el.solve()
         info = el.results.info
-        iters = as_steps + int(info.iter)
+        iters += int(info.iter)
         # A bad warm start can stall proxsuite, or end "solved" at a point whose multipliers
         # have the wrong sign (not optimal: see "Dual sign check"): retry once from scratch.
         suspect = False
@@ -694,6 +700,13 @@ class TorqueQP:
                 return self._result(m, None, False, "relaxed", iters, t0)
             self.active_set_fallbacks += 1
             self.active_set_troubles += 1
+        return self._proxsuite_repair(m, weights, l, tau_nom, iters, t0)
+
+    def _proxsuite_repair(self, m, weights, l, tau_nom, iters, t0) -> QPResult:
+        """:meth:`_relax_rows` by proxsuite, from τ* in the result buffer and its residuals in
+        ``_r``; τ* itself if that fails too."""
+        n, M = self.n, self.max_rows
+        r = self._r
         tau_star = self._tau_star
         np.copyto(tau_star, self._tau)
         K = np.flatnonzero(r[:m] < self.active_tol)

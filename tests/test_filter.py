@@ -592,3 +592,56 @@ def test_relaxed_solve_keeps_rows_outside_the_conflict(make_env):
     # at most the conflicting rows are violated: obstacle 3's row on link2 and joints 0-1
     assert np.count_nonzero(residual < -1e-6) <= 3
     assert np.all(np.abs(tau) <= u.torque_limit + 1e-9)
+
+
+def _unfused_call(hook, tau_nom):
+    """The hook's step as separate calls (rows, ``TorqueQP.solve_scaled``, ``hook_post``): the
+    path :func:`c3bf_gym._kernels.hook_step` fuses."""
+    from c3bf_gym import _kernels
+
+    A, b, *_ = hook.rows()
+    tau_nom = np.ascontiguousarray(tau_nom, dtype=np.float64)
+    result = hook.qp.solve_scaled(tau_nom, A, b, hook._scale)
+    tau = np.empty_like(tau_nom)
+    _kernels.hook_post(A, b, result.tau, hook._scale, tau_nom, hook._limit, tau)
+    return tau, result
+
+
+@pytest.mark.parametrize("scenario", ["multi", "crossing"])
+def test_fused_step_replays_the_unfused_path(make_env, scenario):
+    """A seeded filtered rollout: the fused kernel gives the torques, outcomes and solver counters
+    of the unfused calls bit for bit. (With the active-set solves capped, so that proxsuite runs,
+    two proxsuite QP objects differed by 2e-8 even on the unfused path alone: not compared.)"""
+    envs = [SafetyFilter(make_env(scenario=scenario), barrier="c3bf") for _ in range(2)]
+    hooks = [e.hook for e in envs]
+    assert hooks[0]._fused
+    seen = [[], []]
+    fused, plain = hooks
+
+    def fused_call(tau_nom):
+        tau = fused(tau_nom)
+        seen[0].append((tau.copy(), fused.last[1:-1]))
+        return tau
+
+    def plain_call(tau_nom):
+        tau, result = _unfused_call(plain, tau_nom)
+        seen[1].append((tau, result[1:-1]))
+        return tau
+
+    for e, call in zip(envs, (fused_call, plain_call)):
+        e.unwrapped.remove_torque_hook("filter")
+        e.unwrapped.add_torque_hook(call, "filter")
+        e.reset(seed=3)
+    rng = np.random.default_rng(3)
+    for _ in range(60):
+        action = rng.uniform(-1, 1, 6).astype(np.float32)
+        for e in envs:
+            e.step(action)
+    assert len(seen[0]) == len(seen[1]) > 0
+    for (tau_f, res_f), (tau_p, res_p) in zip(*seen):
+        np.testing.assert_array_equal(tau_f, tau_p)
+        assert res_f == res_p
+    statuses = {res[2] for _, res in seen[0]}
+    assert "solved" in statuses and (scenario == "crossing" or "relaxed" in statuses)
+    for name in ("relax_calls", "active_set_fallbacks", "active_set_troubles", "retries", "_kr", "_m_prev"):
+        assert getattr(fused.qp, name) == getattr(plain.qp, name), name
