@@ -43,8 +43,7 @@ Design:
   this is a GI state (x optimal on its active set, dual feasible) and GI continues from it;
   usually no row is then violated and the solve ends after this one step. A negative multiplier
   means the set is no GI state: the solve starts cold from x₀.
-  (``benchmarks/qp_micro.py``, 48 drifting rows: median 1 step, p99 19; the same calls with
-  the warm start disabled: median 18, p99 26.)
+  (``benchmarks/qp_micro.py`` prints the step counts: with 48 drifting rows, median 1 step.)
 * **Ties.** A full step wins a tie with a partial one (p is added and the blocking row keeps a
   zero multiplier); multipliers are clamped at 0 against rounding.
 * **Acceptance.** ``OPTIMAL`` only after a KKT check of the final point: finite, every row and

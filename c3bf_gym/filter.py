@@ -297,7 +297,9 @@ class SafetyHook:
         """The buffers :func:`c3bf_gym._kernels.hook_step` works in (env, arm, hook and ``qp``;
         all allocated once by their constructors and updated in place), gathered once per QP
         object: fetching them attribute by attribute on every call cost more than the kernel's
-        dispatch. The QP's settings (step cap, tolerances, weight) are read on every call."""
+        dispatch. The step cap, ``active_tol``, ``row_slack_weight`` and whether W is diagonal are
+        read on every call; the solver tolerances and the slack scaling (fixed by the QP's
+        constructor) are copied here."""
         env, arm = self.env, self.arm
         v = arm.views(env.data)
         self._bound = (

@@ -1,4 +1,4 @@
-"""Joint-torque safety-filter QP layer (compiled active-set solver; proxsuite for infeasible cases).
+"""Joint-torque safety-filter QP layer (compiled active-set solver; proxsuite as its fallback).
 
 Problem solved at every control step (n joints, m safety rows, torques in N·m)::
 
@@ -6,7 +6,10 @@ Problem solved at every control step (n joints, m safety rows, torques in N·m):
     subject to  A τ ≥ b                 (m ≤ max_rows rows)
                 τ_min ≤ τ ≤ τ_max       (hard actuator box)
 
-Design (all numbers below measured with proxsuite 0.8.0, see ``benchmarks/qp_micro.py``):
+Design (numbers measured with proxsuite 0.8.0, see ``benchmarks/qp_micro.py``). With the
+default ``solver="active_set"`` every call goes fast path → active set (hard problem, then on an
+infeasibility proof the elastic and repair QPs), and the proxsuite bullets below describe the
+calls it hands over (a step cap or a failed check) and ``solver="proxsuite"``:
 
 * **Fast path.** If τ_nom is inside the box and already satisfies every row it
   is the exact optimum (the unconstrained minimiser is feasible); it is returned
@@ -32,9 +35,7 @@ Design (all numbers below measured with proxsuite 0.8.0, see ``benchmarks/qp_mic
   median / p99 of ``solve`` per call, active set vs proxsuite): 24 rows 14 / 23
   vs 92 / 277 µs, 92 rows 18 / 44 vs 242 / 680 µs, largest torque difference
   6e-7. (Whole filter hook: "Infeasible calls" below.) Warm starts end most
-  solves in one step (filter rollouts: median 1,
-  p99 ≤ 12 steps; cold: median 5–11). On 60000 filter calls over the four
-  scenarios (random and adversarial torques) 3% had an infeasibility proof.
+  solves in one step (the same benchmark prints the step counts).
 * **Infeasible calls, active set.** After that proof the elastic QP and the
   per-row repair (both below, same semantics) are solved by the same compiled
   solver: both are always feasible and have its form ½(x − x₀)ᵀW̃(x − x₀) with
@@ -66,8 +67,8 @@ Design (all numbers below measured with proxsuite 0.8.0, see ``benchmarks/qp_mic
   reliably report ``PROXQP_PRIMAL_INFEASIBLE``: on contradicting rows, or rows
   contradicting the box, it runs to ``max_iter`` and returns
   ``PROXQP_MAX_ITER_REACHED`` (≈5–14 ms for max_iter=1000 on n=6), so waiting
-  for its verdict is useless at 500 Hz.  The layer always solves the elastic
-  problem (n+1 variables, x = (τ, s))::
+  for its verdict is useless at 500 Hz.  Without the active set's proof the
+  layer therefore always solves the elastic problem (n+1 variables, x = (τ, s))::
 
       minimise  ½ (τ − τ_nom)ᵀ W (τ − τ_nom) + c s + ½ ρ s²
       s.t.      Â τ + s·1 ≥ b̂,  τ_min ≤ τ ≤ τ_max,  s ≥ 0      (Â, b̂ row-normalised)
@@ -122,9 +123,9 @@ Design (all numbers below measured with proxsuite 0.8.0, see ``benchmarks/qp_mic
   satisfies stay satisfied, and the ℓ1 part is an exact penalty (σ_k exceeds the
   rows' multipliers), so a violated row that is not needed for the conflict is
   brought back to its bound. The violation is spread over the conflicting rows
-  in proportion to 1/weights (as least squares for large s). If proxsuite does
-  not solve it (rare), τ* itself is applied. It costs one cold solve (≈ 20
-  iterations, ≈ 0.5–1 ms) on relaxed calls only.
+  in proportion to 1/weights (as least squares for large s). If neither the
+  active set nor proxsuite solves it (rare), τ* itself is applied. By proxsuite
+  it costs one cold solve (≈ 20 iterations, ≈ 0.5–1 ms).
 * **Dual sign check.** Every row is a lower bound with an infinite upper one, so
   its multiplier must be ≤ 0; box multipliers must point to the nearer bound.
   proxsuite's stopping test checks the primal and dual residuals only, and after
@@ -325,8 +326,9 @@ class TorqueQP:
             for deciding s ≈ 0; max(1e-6, 100·eps_abs).
         hard_max_iter, hard_max_iter_in: outer and inner iteration caps of the (rare)
             disambiguating hard solve.
-        active_set_max_iter: step cap of the active-set solver (50; the most seen on filter
-            rollouts was 22), plus 2 per slack for the per-row repair (≈ 3 steps per slack seen).
+        active_set_max_iter: step cap of the active-set solver (50), plus 2 per slack for the
+            per-row repair: a repair with many slack rows (about 50, at 8 obstacles) can reach
+            it and is then handed to proxsuite (``benchmarks/filter_speed.py`` counts these).
         active_set_fallbacks, active_set_troubles: QPs (hard or elastic, repair) the active-set
             solver handed to proxsuite, and its solves that ended in a step cap or failed check
             (the same count, since infeasible calls no longer go to proxsuite).
@@ -526,8 +528,12 @@ class TorqueQP:
             raise ValueError(f"b must have shape ({m},) to match A; got {b.shape}")
         if m > M:
             raise ValueError(f"too many rows: m={m} > max_rows={M}")
-        if weights is not None and np.shape(weights) != (m,):
-            raise ValueError(f"weights must have shape ({m},) to match A; got {np.shape(weights)}")
+        if weights is not None:
+            if np.shape(weights) != (m,):
+                raise ValueError(f"weights must have shape ({m},) to match A; got {np.shape(weights)}")
+            w = np.asarray(weights, dtype=np.float64)
+            if not (np.all(np.isfinite(w)) and np.all(w > 0)):
+                raise ValueError(f"weights must be finite and > 0; got {w}")
         return self._solve(t0, _plain(tau_nom), _plain(A), _plain(b), weights, _NO_SCALE)
 
     def solve_scaled(self, tau_nom, A, b, scale) -> QPResult:
@@ -690,6 +696,7 @@ class TorqueQP:
             self._kr = k
             if k == 0:
                 return self._result(m, None, False, "relaxed", iters, t0)
+            np.copyto(self._x0n, tau_nom)  # also after a hard solve handed to proxsuite: not yet set
             code, steps = _active_set.solve(self._Gr, self._hr, m, M, 2 * n + k, self._x0r[:n + k], self._WJx,
                                             self._as_tol, self._as_vtol, self.active_set_max_iter + 2 * k, True,
                                             self._rep_work, self._rep_iwork)

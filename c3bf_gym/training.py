@@ -404,8 +404,10 @@ def evaluate(
     """Roll out a saved model for ``episodes`` seeded episodes.
 
     ``filter`` and ``scenario`` default to the run's own (from its ``config.json``); pass a
-    filter to evaluate, e.g., an unfiltered agent with the C3BF filter on. The action mode and
-    policy rate are the run's too (also for ``best/`` and ``checkpoints/`` models). A run
+    filter to evaluate, e.g., an unfiltered agent with the C3BF filter on. The action mode,
+    policy rate and reward (``distance_weight``, ``action_weight``) are the run's too (also for
+    ``best/`` and ``checkpoints/`` models), so returns compare only between runs with the same
+    reward; success and collisions do not depend on it. A run
     trained with ``normalize_obs`` has its final observation statistics in the run directory;
     they are applied (to a ``best/`` or checkpoint model too, an approximation).
     """

@@ -259,6 +259,29 @@ def test_infeasible_step_caps_fall_back_to_proxsuite():
         np.testing.assert_allclose(ra.tau, rp.tau, atol=1e-12)
 
 
+def test_repair_after_a_capped_hard_solve_uses_this_calls_nominal():
+    """The hard solve reaches its cap (handed to proxsuite), the repair does not: the repair must
+    pull towards this call's nominal, not the previous infeasible call's (a regression: joint 1,
+    free of the rows, followed the old nominal)."""
+    A = np.array([[1.0, 0.0], [-1.0, 0.0]])  # τ0 ≥ 0.5 and τ0 ≤ 0.2: no torque satisfies both
+    b = np.array([0.5, -0.2])
+    qa = TorqueQP(2, 4, -1.0, 1.0)
+    qa.solve(np.array([0.0, -0.7]), A, b)  # an infeasible call: the repair's nominal is (0, -0.7)
+    qa.active_set_max_iter = 1  # the hard solve needs 2 steps to prove infeasibility; the repair gets 1 + 2k
+    ra = qa.solve(np.array([0.0, 0.9]), A, b)
+    rp = TorqueQP(2, 4, -1.0, 1.0, solver="proxsuite").solve(np.array([0.0, 0.9]), A, b)
+    assert ra.status == rp.status == "relaxed" and qa.active_set_fallbacks >= 1
+    np.testing.assert_allclose(ra.tau, rp.tau, atol=1e-6)
+    assert ra.tau[1] == pytest.approx(0.9)
+
+
+@pytest.mark.parametrize("weights", [[np.nan, 1.0], [0.0, 1.0], [-1.0, 1.0], [np.inf, 1.0]])
+def test_bad_relaxation_weights_rejected(weights):
+    A = np.array([[1.0, 0.0], [-1.0, 0.0]])
+    with pytest.raises(ValueError, match="weights must be finite and > 0"):
+        TorqueQP(2, 4, -1.0, 1.0).solve(np.zeros(2), A, np.array([0.5, -0.2]), weights)
+
+
 def test_kernel_degenerate_duplicates_and_dense_box_projection():
     # ten copies of one binding row, a ridge of ties: the optimum is the projection on the row
     n = 3

@@ -645,3 +645,34 @@ def test_fused_step_replays_the_unfused_path(make_env, scenario):
     assert "solved" in statuses and (scenario == "crossing" or "relaxed" in statuses)
     for name in ("relax_calls", "active_set_fallbacks", "active_set_troubles", "retries", "_kr", "_m_prev"):
         assert getattr(fused.qp, name) == getattr(plain.qp, name), name
+
+
+def test_fused_hand_over_to_proxsuite_matches_the_unfused_path(make_env):
+    """The fused kernel's hand-overs (hard or repair solve capped → proxsuite in Python) give the
+    unfused path's torque and status. Two envs step in lockstep, uncapped (so they stay identical);
+    at each step both hooks are also called directly with the cap at 1 on the same state."""
+    envs = [SafetyFilter(make_env(scenario="multi"), barrier="c3bf") for _ in range(2)]
+    fused, plain = (e.hook for e in envs)
+    for e in envs:
+        e.reset(seed=7)
+    rng = np.random.default_rng(7)
+    handed, statuses = 0, set()
+    for _ in range(25):
+        action = np.sign(rng.uniform(-1, 1, 6)).astype(np.float32)
+        for e in envs:
+            e.step(action)
+        tau_nom = np.sign(rng.uniform(-1, 1, 6)) * fused._limit
+        before = fused.qp.active_set_fallbacks
+        for hook in (fused, plain):
+            hook.qp.active_set_max_iter = 1
+        tau_f = fused(tau_nom)
+        result_f = fused.last
+        tau_p, result_p = _unfused_call(plain, tau_nom)
+        for hook in (fused, plain):
+            hook.qp.active_set_max_iter = 50
+        handed += fused.qp.active_set_fallbacks > before
+        statuses.add(result_f.status)
+        assert result_f.status == result_p.status and result_f.feasible == result_p.feasible
+        np.testing.assert_allclose(tau_f, tau_p, rtol=0, atol=1e-6 * fused._limit.max())
+    assert handed > 0 and "relaxed" in statuses  # the hand-over paths ran
+    assert fused.qp.active_set_fallbacks == plain.qp.active_set_fallbacks
