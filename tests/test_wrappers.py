@@ -441,15 +441,21 @@ print(digest.hexdigest(), env.hook.qp.active_set_fallbacks)
 """
 
 
-def test_filtered_rollout_repeats_bit_for_bit_across_processes():
+def test_filtered_rollout_repeats_bit_for_bit_across_processes(tmp_path):
     """The compiled path (rows, active-set QP) depends on nothing but its inputs, so a seeded
     filtered rollout is the same in a new process, to the last bit (training runs can be
     replayed). Full torques make the QP decide from the first step."""
+    import os
     import subprocess
     import sys
 
-    runs = [subprocess.run([sys.executable, "-c", _ROLLOUT_HASH], capture_output=True, text=True, check=True)
+    import c3bf_gym
+
+    # the package this process tested (installed or not), not whatever the working directory holds
+    env = {**os.environ, "PYTHONPATH": os.path.dirname(os.path.dirname(c3bf_gym.__file__))}
+    runs = [subprocess.run([sys.executable, "-c", _ROLLOUT_HASH], capture_output=True, text=True, cwd=tmp_path, env=env)
             for _ in range(2)]  # fmt: skip
+    assert all(r.returncode == 0 for r in runs), runs[0].stderr[-2000:]
     first, second = (r.stdout.split() for r in runs)
     assert first[1] == "0", "a call went to proxsuite, whose results are not bit-reproducible"
     assert first == second
