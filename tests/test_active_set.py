@@ -25,31 +25,27 @@ def _problem(rng, m, W_kind, kind):
         b[3] = A[3] @ tau_star
     scale = 10.0 if kind == "far" else 2.0
     tau_nom = rng.uniform(scale * lo, scale * hi)
+    return (tau_nom, A, b, *_weight(rng, W_kind), lo, hi)
+
+
+def _weight(rng, W_kind):
+    """``(W as given to TorqueQP, W as a matrix)``: a positive diagonal, or a dense SPD matrix."""
     if W_kind == "diag":
         W = rng.uniform(0.2, 5, N)
-        Wm = np.diag(W)
-    else:
-        L = rng.normal(size=(N, N))
-        W = Wm = L @ L.T + 0.5 * np.eye(N)
-    return tau_nom, A, b, W, Wm, lo, hi
+        return W, np.diag(W)
+    L = rng.normal(size=(N, N))
+    W = L @ L.T + 0.5 * np.eye(N)
+    return W, W
 
 
 def _kkt_error(qp, tau_nom, A, b, Wm, lo, hi):
     """Largest KKT violation of the layer's last active-set solve, checked in numpy from its
     multipliers and active rows (a certificate: independent of how they were found)."""
     m = A.shape[0]
-    q = int(qp._as_iwork[0])
-    rows = qp._as_iwork[1:1 + q]
-    u = qp._as_work[2 * N + 4, :q]
-    tau = qp._as_x
     nrm = np.linalg.norm(A, axis=1)
     G = np.vstack([A / nrm[:, None], np.zeros((qp.max_rows - m, N)), np.eye(N), -np.eye(N)])
     h = np.concatenate([b / nrm, np.full(qp.max_rows - m, -np.inf), lo, -hi])
-    primal = max(0.0, float(np.max(h - G @ tau)))
-    dual = max(0.0, float(-u.min())) if q else 0.0
-    complementarity = float(np.abs(G[rows] @ tau - h[rows]).max()) if q else 0.0
-    stationarity = float(np.abs(Wm @ (tau - tau_nom) - G[rows].T @ u).max())
-    return max(primal, dual, complementarity, stationarity / (1 + np.abs(Wm @ (tau - tau_nom)).max()))
+    return _gi_kkt_error(G, h, Wm, tau_nom, qp._as_work, qp._as_iwork, N)
 
 
 @pytest.mark.parametrize("W_kind", ["diag", "dense"])
@@ -172,12 +168,7 @@ def _infeasible_problem(rng, m, W_kind):
         A[0] = rng.normal(size=N)
         b[0] = 2 * np.abs(A[0]) @ np.maximum(-lo, hi)
     tau_nom = rng.uniform(2 * lo, 2 * hi)
-    if W_kind == "diag":
-        W = rng.uniform(0.2, 5, N)
-        Wm = np.diag(W)
-    else:
-        L = rng.normal(size=(N, N))
-        W = Wm = L @ L.T + 0.5 * np.eye(N)
+    W, Wm = _weight(rng, W_kind)
     weights = rng.uniform(0.5, 5, m) if rng.uniform() < 0.3 else None
     return tau_nom, A, b, W, Wm, lo, hi, weights
 
