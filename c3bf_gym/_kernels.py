@@ -41,7 +41,7 @@ from c3bf_gym import _active_set
 C3BF_KIND = 0
 HOCBF_KIND = 1
 
-#: outcomes of :func:`hook_step`: done (the hard optimum; a repaired relaxed torque; relaxed with
+#: outcomes of :func:`qp_step` and :func:`hook_step`: done (the hard optimum; a repaired relaxed torque; relaxed with
 #: no row to repair), or where the Python layer takes over (the elastic QP or the per-row repair by
 #: proxsuite, with or without rows beyond the box's reach), or invalid data
 STEP_SOLVED, STEP_RELAXED, STEP_RELAXED_AS_IS = 0, 1, 2
@@ -647,43 +647,52 @@ def hook_post(A, b, u, scale, tau_nom, limit, tau):
 
 
 @njit(**_opts)
-def hook_step(stage, tau_nom, m_prev, k_prev, max_iter, tol, row_slack_weight, diag_W, tau,
-              M, qfrc_passive, qfrc_bias, geom_xpos, geom_xmat, cdof, cdof_dot, com, qpos, qvel,
-              arm_i, arm_f, chain, scratch, Minv, qacc_free, ends, ends_ab, a_dot_ab,
-              active, distances, obs_pos, obs_vel, obs_acc, obs_radius, kind, floor_idx, floor_min,
-              joint_rows, hook_f, work, A, b, scale, limit,
-              Gx, hx, hcx, nrm, r, xe, nom, lo, hi, reach, negW, g, qp_f,
-              WJ, as_work, as_iwork, x0r, WJx, el_work, el_iwork, Kr, Gr, hr, rep_work, rep_iwork):
-    """One whole-arm filter step in one call (:meth:`~c3bf_gym.filter.SafetyHook.__call__`): the
-    rows (:func:`hook_rows_whole_arm`), :meth:`~c3bf_gym.qp.TorqueQP.solve_scaled`'s data step
-    (:func:`qp_prepare`), fast path, active-set hard solve and, after an infeasibility proof, its
-    elastic and repair solves, then the result's statistics and :func:`hook_post`. The same
-    kernels in the same order as the layer's Python code, so the results are identical; what
-    saves time is one dispatch instead of six and no Python in between.
-
-    ``M`` … ``b`` are :func:`hook_rows_whole_arm`'s arguments (``M`` here is MuJoCo's mass
-    matrix; the QP's row capacity is ``len(nrm)``); ``Gx`` … ``rep_iwork`` the
-    :class:`~c3bf_gym.qp.TorqueQP`'s buffers, ``qp_f`` = ``[row norm min, inf, active-set tol,
-    active-set vtol, σ]``. Writes the torque into ``tau`` when done. Returns ``(status, rows,
-    min h, any inside, sensed count, steps, repair slack count, active rows, slack, min row
-    residual, correction)``, status one of ``STEP_*``; the last four are only set when done.
-    """
-    m, min_h, inside, n_sensed = hook_rows_whole_arm(
-        stage, M, qfrc_passive, qfrc_bias, geom_xpos, geom_xmat, cdof, cdof_dot, com, qpos, qvel, arm_i, arm_f,
-        chain, scratch, Minv, qacc_free, ends, ends_ab, a_dot_ab, active, distances, obs_pos, obs_vel, obs_acc,
-        obs_radius, kind, floor_idx, floor_min, joint_rows, hook_f, work, A, b)
+def repair_step(G, xe, h, r, m, tol, l, weights, row_slack_weight, K, k_prev, Gr, hr, rep_iwork, x0r, nom, WJx,
+                as_tol, as_vtol, max_iter, rep_work, lo, hi, u):
+    """The per-row repair of the elastic torque τ* in ``xe`` (:meth:`~c3bf_gym.qp.TorqueQP._relax_rows`)
+    by the active-set solver: τ*'s residuals into ``r``, the repair rows (:func:`repair_rows`),
+    x₀ = (``nom``, −1, …) and the solve; the repaired torque, clipped, into ``u``. Returns
+    ``(code, steps, k)``: code 0 repaired, 1 no row to repair (k = 0), 2 the solver stopped at
+    its cap or failed its check (hand over to proxsuite)."""
     n = nom.shape[0]
+    residuals(G, xe, h, r)
+    k = repair_rows(r, m, tol, G, l, weights, row_slack_weight, K, k_prev, Gr, hr, rep_iwork)
+    if k == 0:
+        return 1, 0, k
+    for j in range(n):
+        x0r[j] = nom[j]
+    c, steps = _active_set.solve(Gr, hr, m, G.shape[0] - 2 * n, 2 * n + k, x0r[:n + k], WJx, as_tol, as_vtol,
+                                 max_iter + 2 * k, True, rep_work, rep_iwork)
+    if c != _active_set.OPTIMAL:
+        return 2, steps, k
+    clip(rep_work[2 * (rep_work.shape[1] - 1)], lo, hi, u)
+    return 0, steps, k
+
+
+@njit(**_opts)
+def qp_step(tau_nom, A, b, scale, weights, m_prev, k_prev, max_iter, tol, row_slack_weight, diag_W,
+            Gx, hx, hcx, nrm, r, xe, nom, lo, hi, reach, negW, g, qp_f,
+            WJ, as_work, as_iwork, x0r, WJx, el_work, el_iwork, Kr, Gr, hr, rep_work, rep_iwork):
+    """:class:`~c3bf_gym.qp.TorqueQP`'s active-set call (``solver="active_set"``): the data step
+    (:func:`qp_prepare`), the fast path, the hard solve and, after an infeasibility proof, the
+    elastic solve and the per-row repair (:func:`repair_step`), then the result's statistics.
+
+    ``Gx`` … ``rep_iwork`` are the layer's buffers, ``qp_f`` = ``[row norm min, inf, active-set
+    tol, active-set vtol, σ]``, ``weights`` the relaxation weights (empty: all 1). The torque (in
+    the scaled units) is ``xe[:n]``. Returns ``(status, steps, repair slack count, active rows,
+    slack)``, status one of ``STEP_*``; the last two only when it is ≤ ``STEP_RELAXED_AS_IS``.
+    """
+    n = nom.shape[0]
+    m = A.shape[0]
     cap = nrm.shape[0]
-    Am = A[:m]
-    bm = b[:m]
     G = Gx[:cap + 2 * n]
     h = hx[:cap + 2 * n]
     as_tol = qp_f[2]
     as_vtol = qp_f[3]
-    code, rmin, impossible = qp_prepare(tau_nom, Am, bm, scale, G, h, nrm, r, xe, nom, m_prev, qp_f[0], qp_f[1],
+    code, rmin, impossible = qp_prepare(tau_nom, A, b, scale, G, h, nrm, r, xe, nom, m_prev, qp_f[0], qp_f[1],
                                         lo, hi, tol, h[:cap], hcx[:cap], reach, negW, g)
     if code < 0:
-        return code, m, min_h, inside, n_sensed, 0, k_prev, 0, 0.0, 0.0, 0.0
+        return code, 0, k_prev, 0, 0.0
     u = xe[:n]
     status = STEP_SOLVED
     steps = 0
@@ -700,7 +709,7 @@ def hook_step(stage, tau_nom, m_prev, k_prev, max_iter, tol, row_slack_weight, d
         elif c == _active_set.INFEASIBLE:
             elastic = True
         else:
-            return STEP_TO_ELASTIC, m, min_h, inside, n_sensed, steps, k, 0, 0.0, 0.0, 0.0
+            return STEP_TO_ELASTIC, steps, k, 0, 0.0
     if elastic:
         for j in range(n):
             x0r[j] = nom[j]
@@ -708,27 +717,53 @@ def hook_step(stage, tau_nom, m_prev, k_prev, max_iter, tol, row_slack_weight, d
                                  as_vtol, max_iter, True, el_work, el_iwork)
         steps += s
         if c != _active_set.OPTIMAL:
-            out = STEP_TO_ELASTIC_IMPOSSIBLE if impossible else STEP_TO_ELASTIC
-            return out, m, min_h, inside, n_sensed, steps, k, 0, 0.0, 0.0, 0.0
+            return (STEP_TO_ELASTIC_IMPOSSIBLE if impossible else STEP_TO_ELASTIC), steps, k, 0, 0.0
         el_x = el_work[2 * (el_work.shape[1] - 1)]
         clip(el_x, lo, hi, u)
         if impossible or el_x[n] / qp_f[4] > tol:  # the per-row repair (TorqueQP._relax_rows)
-            residuals(G, xe, h, r)
             out = STEP_TO_REPAIR_IMPOSSIBLE if impossible else STEP_TO_REPAIR
             if m == 0:
-                return out, m, min_h, inside, n_sensed, steps, k, 0, 0.0, 0.0, 0.0
-            k = repair_rows(r, m, tol, G, hcx[:cap] if impossible else h[:cap], nrm[:0], row_slack_weight, Kr,
-                            k_prev, Gr, hr, rep_iwork)
-            status = STEP_RELAXED_AS_IS
-            if k:
-                c, s = _active_set.solve(Gr, hr, m, cap, 2 * n + k, x0r[:n + k], WJx, as_tol, as_vtol,
-                                         max_iter + 2 * k, True, rep_work, rep_iwork)
-                steps += s
-                if c != _active_set.OPTIMAL:
-                    return out, m, min_h, inside, n_sensed, steps, k, 0, 0.0, 0.0, 0.0
-                clip(rep_work[2 * (rep_work.shape[1] - 1)], lo, hi, u)
-                status = STEP_RELAXED
+                residuals(G, xe, h, r)
+                return out, steps, k, 0, 0.0
+            c, s, k = repair_step(G, xe, h, r, m, tol, hcx[:cap] if impossible else h[:cap], weights,
+                                  row_slack_weight, Kr, k_prev, Gr, hr, rep_iwork, x0r, nom, WJx, as_tol, as_vtol,
+                                  max_iter, rep_work, lo, hi, u)
+            steps += s
+            if c == 2:
+                return out, steps, k, 0, 0.0
+            status = STEP_RELAXED if c == 0 else STEP_RELAXED_AS_IS
     n_active, violation = result_stats(G, xe, h, r, m, tol, rmin < 0.0)
-    residual, correction = hook_post(Am, bm, u, scale, tau_nom, limit, tau)
-    slack = 0.0 if status == STEP_SOLVED else violation
+    return status, steps, k, n_active, 0.0 if status == STEP_SOLVED else violation
+
+
+@njit(**_opts)
+def hook_step(stage, tau_nom, m_prev, k_prev, max_iter, tol, row_slack_weight, diag_W, tau,
+              M, qfrc_passive, qfrc_bias, geom_xpos, geom_xmat, cdof, cdof_dot, com, qpos, qvel,
+              arm_i, arm_f, chain, scratch, Minv, qacc_free, ends, ends_ab, a_dot_ab,
+              active, distances, obs_pos, obs_vel, obs_acc, obs_radius, kind, floor_idx, floor_min,
+              joint_rows, hook_f, work, A, b, scale, limit,
+              Gx, hx, hcx, nrm, r, xe, nom, lo, hi, reach, negW, g, qp_f,
+              WJ, as_work, as_iwork, x0r, WJx, el_work, el_iwork, Kr, Gr, hr, rep_work, rep_iwork):
+    """One whole-arm filter step in one call (:meth:`~c3bf_gym.filter.SafetyHook.__call__`): the
+    rows (:func:`hook_rows_whole_arm`), :meth:`~c3bf_gym.qp.TorqueQP.solve_scaled`'s active-set
+    call (:func:`qp_step`, the same code the layer runs) and :func:`hook_post`; what saves time
+    is one dispatch instead of three and no Python in between.
+
+    ``M`` … ``b`` are :func:`hook_rows_whole_arm`'s arguments (``M`` here is MuJoCo's mass
+    matrix); ``Gx`` … ``rep_iwork`` and ``qp_f`` are :func:`qp_step`'s. Writes the torque into
+    ``tau`` when done. Returns ``(status, rows, min h, any inside, sensed count, steps, repair
+    slack count, active rows, slack, min row residual, correction)``, status one of ``STEP_*``;
+    the last four are only set when done.
+    """
+    m, min_h, inside, n_sensed = hook_rows_whole_arm(
+        stage, M, qfrc_passive, qfrc_bias, geom_xpos, geom_xmat, cdof, cdof_dot, com, qpos, qvel, arm_i, arm_f,
+        chain, scratch, Minv, qacc_free, ends, ends_ab, a_dot_ab, active, distances, obs_pos, obs_vel, obs_acc,
+        obs_radius, kind, floor_idx, floor_min, joint_rows, hook_f, work, A, b)
+    status, steps, k, n_active, slack = qp_step(
+        tau_nom, A[:m], b[:m], scale, nrm[:0], m_prev, k_prev, max_iter, tol, row_slack_weight, diag_W, Gx, hx, hcx,
+        nrm, r, xe, nom, lo, hi, reach, negW, g, qp_f, WJ, as_work, as_iwork, x0r, WJx, el_work, el_iwork, Kr, Gr,
+        hr, rep_work, rep_iwork)
+    if status < 0 or status > STEP_RELAXED_AS_IS:
+        return status, m, min_h, inside, n_sensed, steps, k, 0, 0.0, 0.0, 0.0
+    residual, correction = hook_post(A[:m], b[:m], xe[:nom.shape[0]], scale, tau_nom, limit, tau)
     return status, m, min_h, inside, n_sensed, steps, k, n_active, slack, residual, correction

@@ -46,7 +46,7 @@ import numpy as np
 
 from c3bf_gym import _kernels
 from c3bf_gym.barriers import Barrier, JointLimits, Rows, make_barrier
-from c3bf_gym.qp import _ROW_NORM_MIN, PROXSUITE_INF, QPResult, TorqueQP
+from c3bf_gym.qp import QPResult, TorqueQP
 from c3bf_gym.robot import ArmModel
 
 __all__ = ["ON_INFEASIBLE", "POINTS", "WEIGHTS", "SafetyHook", "SafetyInfeasibleError", "StepSafety", "build_hook"]
@@ -294,12 +294,10 @@ class SafetyHook:
         return k
 
     def _bind(self, qp: TorqueQP) -> tuple:
-        """The buffers :func:`c3bf_gym._kernels.hook_step` works in (env, arm, hook and ``qp``;
-        all allocated once by their constructors and updated in place), gathered once per QP
-        object: fetching them attribute by attribute on every call cost more than the kernel's
-        dispatch. The step cap, ``active_tol``, ``row_slack_weight`` and whether W is diagonal are
-        read on every call; the solver tolerances and the slack scaling (fixed by the QP's
-        constructor) are copied here."""
+        """The buffers :func:`c3bf_gym._kernels.hook_step` works in (env, arm and hook, then
+        ``qp``'s :meth:`~c3bf_gym.qp.TorqueQP.step_buffers`; all allocated once by their
+        constructors and updated in place), gathered once per QP object: fetching them attribute
+        by attribute on every call cost more than the kernel's dispatch."""
         env, arm = self.env, self.arm
         v = arm.views(env.data)
         self._bound = (
@@ -308,45 +306,25 @@ class SafetyHook:
             arm._ends_ab, arm._a_dot_ab, env.obstacle_active, env.distances, env.obstacle_pos, env.obstacle_vel,
             env.obstacle_acc, env.obstacle_radius, self._kind, self._floor_idx, self._floor_min,
             self.joint_limits is not None, self._hook_f, self._work, self._A, self._b, self._scale, self._limit,
-            qp._Gx, qp._hx, qp._hcx, qp._nrm, qp._r, qp._xe, qp._nom, qp.tau_min, qp.tau_max, qp._reach,
-            qp._negW, qp._g, np.array([_ROW_NORM_MIN, PROXSUITE_INF, qp._as_tol, qp._as_vtol, qp._sigma]),
-            qp._WJ, qp._as_work, qp._as_iwork, qp._x0r, qp._WJx, qp._el_work, qp._el_iwork, qp._Kr,
-            qp._Gr, qp._hr, qp._rep_work, qp._rep_iwork,
+            *qp.step_buffers(),
         )
         self._bound_qp = qp
         return self._bound
 
     def _step(self, tau_nom: np.ndarray, tau: np.ndarray, start: float) -> tuple[QPResult, float, bool, int, float, float]:
         """Rows, QP and :func:`~c3bf_gym._kernels.hook_post` through the fused kernel
-        (:func:`~c3bf_gym._kernels.hook_step`); Python only for what it hands back: proxsuite for
-        the QPs the active-set solver did not solve (as in :meth:`TorqueQP.solve_scaled`)."""
+        (:func:`~c3bf_gym._kernels.hook_step`); Python only for what it hands back, through the
+        layer's own :meth:`~c3bf_gym.qp.TorqueQP.finish_step` (proxsuite where the active-set
+        solver did not finish)."""
         qp, env = self.qp, self.env
         bound = self._bound if qp is self._bound_qp else self._bind(qp)
         status, m, min_h, inside, n_sensed, steps, k, active, slack, residual, correction = _kernels.hook_step(
             self.arm.claim(env.data, env.state_version), tau_nom, qp._m_prev, qp._kr, qp.active_set_max_iter,
             qp.active_tol, qp.row_slack_weight, qp._diag_W, tau, *bound)
-        if status < 0:
-            raise ValueError("tau_nom contains NaN or inf" if status == _kernels.STEP_BAD_NOMINAL
-                             else "A or b contains NaN or inf (or entries beyond ~1e150)")
-        qp._m_prev, qp._kr = m, k
-        if status <= _kernels.STEP_RELAXED_AS_IS:
-            qp.relax_calls += status == _kernels.STEP_RELAXED
-            solved = status == _kernels.STEP_SOLVED
-            result = QPResult(qp._tau, slack, solved, "solved" if solved else "relaxed", steps, active,
-                              time.perf_counter() - start)
-            return result, min_h, inside, n_sensed, residual, correction
-        impossible = status in (_kernels.STEP_TO_ELASTIC_IMPOSSIBLE, _kernels.STEP_TO_REPAIR_IMPOSSIBLE)
-        if status >= _kernels.STEP_TO_REPAIR:
-            if m:
-                qp.active_set_fallbacks += 1
-                qp.active_set_troubles += 1
-            result = qp._proxsuite_repair(m, None, qp._l_clipped if impossible else qp._l, qp._nom, steps, start)
-        else:
-            qp.active_set_fallbacks += 1
-            qp.active_set_troubles += 1
-            result = qp._proxsuite_elastic(m, None, impossible, steps, start)
-        residual, correction = _kernels.hook_post(self._A[:m], self._b[:m], result.tau, self._scale, tau_nom,
-                                                  self._limit, tau)
+        result = qp.finish_step(status, m, steps, k, active, slack, None, start)
+        if status > _kernels.STEP_RELAXED_AS_IS:  # proxsuite's torque: the kernel did not finish the step
+            residual, correction = _kernels.hook_post(self._A[:m], self._b[:m], result.tau, self._scale, tau_nom,
+                                                      self._limit, tau)
         return result, min_h, inside, n_sensed, residual, correction
 
     def __call__(self, tau_nom: np.ndarray) -> np.ndarray:

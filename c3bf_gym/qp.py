@@ -190,6 +190,14 @@ _AS_TOL = 1e-10  # active set: a row is violated below −_AS_TOL (1 + max |box|
 _AS_VTOL = 1e-8  # active set: active rows must hold to _AS_VTOL (1 + max |box|) in its KKT check
 
 
+def _raise_bad_data(code: int) -> None:
+    """The data step's verdict on non-finite input (:func:`c3bf_gym._kernels.qp_prepare`)."""
+    if code == _kernels.STEP_BAD_NOMINAL:
+        raise ValueError("tau_nom contains NaN or inf")
+    if code == _kernels.STEP_BAD_ROWS:
+        raise ValueError("A or b contains NaN or inf (or entries beyond ~1e150)")
+
+
 class QPResult(NamedTuple):
     """Result of :meth:`TorqueQP.solve`.
 
@@ -437,7 +445,6 @@ class TorqueQP:
         # the K rows t_i ≥ 0.
         K = max(M, 1)
         self._x0r = np.full(n + K, -1.0)
-        self._x0n, self._x0e = self._x0r[:n], self._x0r[:n + 1]
         self._WJx = np.zeros((2 * (n + K), n + K))
         self._el_work, self._el_iwork = _active_set.work_arrays(n + 1, M + 2 * n + 1)
         self._el_x = self._el_work[2 * (n + 1), :n + 1]
@@ -470,12 +477,10 @@ class TorqueQP:
         self._hard.init(self._Wc, self._g[:n], None, None, self._Ch, self._l, self._u,
                         self.tau_min, self.tau_max)
         self._hard_h_dirty = False
+        self._step_buffers: tuple | None = None
         if solver == "active_set":  # load the compiled solver now, not in a control loop's first binding call (~20 ms)
-            _active_set.solve(self._G, self._h, 0, M, 2 * n, self._nom, self._WJ, self._as_tol, self._as_vtol, 1,
-                              False, self._as_work, self._as_iwork)
-            self._as_iwork[0] = 0
-            _kernels.repair_rows(self._r, 0, 0.0, self._G, self._l, _NO_SCALE, 1.0, self._Kr, 0, self._Gr,
-                                 self._hr, self._rep_iwork)
+            _kernels.qp_step(np.zeros(n), np.zeros((0, n)), _NO_SCALE, _NO_SCALE, _NO_SCALE, 0, 0, 1, self.active_tol,
+                             self.row_slack_weight, self._diag_W, *self.step_buffers())
 
     # ------------------------------------------------------------------ weight
     def set_weight(self, W) -> None:
@@ -548,7 +553,14 @@ class TorqueQP:
         return self._solve(time.perf_counter(), tau_nom, A, b, None, scale)
 
     def _solve(self, t0, tau_nom, A, b, weights, scale) -> QPResult:
-        n, m = self.n, A.shape[0]
+        m = A.shape[0]
+        if self.solver == "active_set":  # one compiled call (module docstring), Python for hand-overs
+            w = _NO_SCALE if weights is None else _plain(np.asarray(weights, dtype=np.float64))
+            status, steps, k, active, slack = _kernels.qp_step(
+                tau_nom, A, b, scale, w, self._m_prev, self._kr, self.active_set_max_iter, self.active_tol,
+                self.row_slack_weight, self._diag_W, *self.step_buffers())
+            return self.finish_step(status, m, steps, k, active, slack, weights, t0)
+
         # ---- data step (compiled): finiteness, row normalisation into G / h (padding the rows left
         # over from the previous call), the fast-path residuals and, when they fail, the reach check
         # and the elastic gradient g = (−W τ_nom, c/σ). A sum of squares is finite iff every entry
@@ -557,18 +569,14 @@ class TorqueQP:
             tau_nom, A, b, scale, self._G, self._h, self._nrm, self._r, self._xe, self._nom, self._m_prev,
             _ROW_NORM_MIN, PROXSUITE_INF, self.tau_min, self.tau_max, self.active_tol, self._l, self._l_clipped,
             self._reach, self._negW, self._g)
-        if code == -1:
-            raise ValueError("tau_nom contains NaN or inf")
-        if code == -2:
-            raise ValueError("A or b contains NaN or inf (or entries beyond ~1e150)")
+        _raise_bad_data(code)
         self._m_prev = m
-        tau_nom = self._nom
 
         # ---- fast path: τ_nom inside the box and satisfying every row ⇒ it is the optimum
         if rmin >= 0.0:
             return self._result(m, 0.0, True, "solved", 0, t0, residuals_ready=True)
         if m == 0 and self._diag_W:                 # W-metric box projection of a diagonal W = clip
-            self._clip(tau_nom)
+            self._clip(self._nom)
             return self._result(0, 0.0, True, "solved", 0, t0)
 
         # ---- rows no torque in the box can satisfy: max_{τ∈box} Â_k τ = Σ_j max(Â_kj lo_j, Â_kj hi_j).
@@ -577,36 +585,41 @@ class TorqueQP:
         # otherwise cost proxsuite 1e5-1e6 iterations) without changing where the least-violating
         # torque lies. The slack is still measured against the original rows. (The data step
         # found them and wrote every row's bound, clipped to its reach, into _l_clipped.)
-        l = self._l_clipped if impossible else self._l
+        return self._proxsuite_elastic(m, weights, impossible, 0, t0)
 
-        # ---- the active-set solver: the exact optimum, or a proof that there is none; then the
-        # elastic QP by the active-set solver too ("Infeasible calls"). On a step cap or failed KKT
-        # check (rare), proxsuite below decides as before.
-        as_steps = 0
-        if self.solver == "active_set":
-            infeasible = impossible
-            if not impossible:
-                code, as_steps = _active_set.solve(self._G, self._h, m, self.max_rows, 2 * n, tau_nom, self._WJ,
-                                                   self._as_tol, self._as_vtol, self.active_set_max_iter, True,
-                                                   self._as_work, self._as_iwork)
-                if code == _active_set.OPTIMAL:
-                    self._clip(self._as_x)
-                    return self._result(m, 0.0, True, "solved", as_steps, t0)
-                infeasible = code == _active_set.INFEASIBLE
-            if infeasible:
-                np.copyto(self._x0n, tau_nom)
-                code, steps = _active_set.solve(self._Gx, self._hcx if impossible else self._hx, m, self.max_rows,
-                                                2 * n + 1, self._x0e, self._WJx, self._as_tol, self._as_vtol,
-                                                self.active_set_max_iter, True, self._el_work, self._el_iwork)
-                as_steps += steps
-                if code == _active_set.OPTIMAL:
-                    self._clip(self._el_x)
-                    if impossible or self._el_x[n] / self._sigma > self.active_tol:
-                        return self._relax_rows(m, weights, l, tau_nom, as_steps, t0)
-                    return self._result(m, 0.0, True, "solved", as_steps, t0)
-            self.active_set_fallbacks += 1
-            self.active_set_troubles += 1
-        return self._proxsuite_elastic(m, weights, impossible, as_steps, t0)
+    def step_buffers(self) -> tuple:
+        """The buffers and constants :func:`c3bf_gym._kernels.qp_step` works in, in its order
+        (allocated once by the constructor, updated in place; the solver tolerances and the slack
+        scaling are fixed by it)."""
+        if self._step_buffers is None:
+            self._step_buffers = (
+                self._Gx, self._hx, self._hcx, self._nrm, self._r, self._xe, self._nom, self.tau_min, self.tau_max,
+                self._reach, self._negW, self._g,
+                np.array([_ROW_NORM_MIN, PROXSUITE_INF, self._as_tol, self._as_vtol, self._sigma]),
+                self._WJ, self._as_work, self._as_iwork, self._x0r, self._WJx, self._el_work, self._el_iwork,
+                self._Kr, self._Gr, self._hr, self._rep_work, self._rep_iwork,
+            )  # fmt: skip
+        return self._step_buffers
+
+    def finish_step(self, status, m, steps, k, active, slack, weights, t0) -> QPResult:
+        """The result of a :func:`c3bf_gym._kernels.qp_step` call (also run inside the filter's fused
+        kernel): raise on bad data, keep the warm-start state, and run proxsuite where it handed over."""
+        _raise_bad_data(status)
+        self._m_prev, self._kr = m, k
+        if status <= _kernels.STEP_RELAXED_AS_IS:
+            self.relax_calls += status == _kernels.STEP_RELAXED
+            solved = status == _kernels.STEP_SOLVED
+            return QPResult(self._tau, slack, solved, "solved" if solved else "relaxed", steps, active,
+                            time.perf_counter() - t0)
+        impossible = status in (_kernels.STEP_TO_ELASTIC_IMPOSSIBLE, _kernels.STEP_TO_REPAIR_IMPOSSIBLE)
+        if status >= _kernels.STEP_TO_REPAIR:  # residuals of τ* are in _r
+            if m:
+                self.active_set_fallbacks += 1
+                self.active_set_troubles += 1
+            return self._proxsuite_repair(m, weights, self._l_clipped if impossible else self._l, self._nom, steps, t0)
+        self.active_set_fallbacks += 1
+        self.active_set_troubles += 1
+        return self._proxsuite_elastic(m, weights, impossible, steps, t0)
 
     def _proxsuite_elastic(self, m, weights, impossible, iters, t0) -> QPResult:
         """The elastic QP by proxsuite and the decisions after it (module docstring): the layer
@@ -684,29 +697,23 @@ class TorqueQP:
         gets its own slack s_k, costed σ_k s_k + ½ σ_k² s_k² with σ_k = ``row_slack_weight`` ·
         weights[k] (module docstring, "Relaxation"). τ* with its violations is a feasible point of
         this QP, so it always has a solution. The active-set solver tries first (``solver=
-        "active_set"``); if neither it nor proxsuite delivers it, τ* is applied.
+        "active_set"``, :func:`c3bf_gym._kernels.repair_step`); if neither it nor proxsuite
+        delivers it, τ* is applied.
         """
-        n, M = self.n, self.max_rows
-        r = self._r
-        _kernels.residuals(self._G, self._xe, self._h, r)  # of τ* (original, unclipped rows)
         if self.solver == "active_set" and m:
             w = _NO_SCALE if weights is None else _plain(np.asarray(weights, dtype=np.float64))
-            k = _kernels.repair_rows(r, m, self.active_tol, self._G, l, w, self.row_slack_weight, self._Kr, self._kr,
-                                     self._Gr, self._hr, self._rep_iwork)
-            self._kr = k
-            if k == 0:
-                return self._result(m, None, False, "relaxed", iters, t0)
-            np.copyto(self._x0n, tau_nom)  # also after a hard solve handed to proxsuite: not yet set
-            code, steps = _active_set.solve(self._Gr, self._hr, m, M, 2 * n + k, self._x0r[:n + k], self._WJx,
-                                            self._as_tol, self._as_vtol, self.active_set_max_iter + 2 * k, True,
-                                            self._rep_work, self._rep_iwork)
+            code, steps, self._kr = _kernels.repair_step(
+                self._G, self._xe, self._h, self._r, m, self.active_tol, l, w, self.row_slack_weight, self._Kr,
+                self._kr, self._Gr, self._hr, self._rep_iwork, self._x0r, tau_nom, self._WJx, self._as_tol,
+                self._as_vtol, self.active_set_max_iter, self._rep_work, self.tau_min, self.tau_max, self._tau)
             iters += steps
-            if code == _active_set.OPTIMAL:
-                self.relax_calls += 1
-                self._clip(self._rep_x)
+            if code != 2:
+                self.relax_calls += code == 0
                 return self._result(m, None, False, "relaxed", iters, t0)
             self.active_set_fallbacks += 1
             self.active_set_troubles += 1
+        else:
+            _kernels.residuals(self._G, self._xe, self._h, self._r)  # of τ* (original, unclipped rows)
         return self._proxsuite_repair(m, weights, l, tau_nom, iters, t0)
 
     def _proxsuite_repair(self, m, weights, l, tau_nom, iters, t0) -> QPResult:
