@@ -28,8 +28,8 @@ barrier classes and :class:`~c3bf_gym.robot.ArmModel` call; other barriers (or `
 go through ``Barrier.terms`` and ``rows_from_terms``. The barrier, ``margin``, ``sensing_radius``
 and ``joint_limits`` are read when the hook is built. With the active-set QP, that kernel, the
 QP's data step, fast path and active-set solves and the bookkeeping after them are one call too
-(:func:`c3bf_gym._kernels.hook_step`, same kernels in the same order: the same torques), not six
-compiled calls with Python between them (``PYTHONPATH=<tree> python benchmarks/filter_speed.py
+(:func:`c3bf_gym._kernels.hook_step`: the rows kernel, then :func:`c3bf_gym._kernels.qp_step`, which
+:meth:`TorqueQP.solve` runs too), not six compiled calls with Python between them as before (``PYTHONPATH=<tree> python benchmarks/filter_speed.py
 --calls 3000 --obstacles 1 4 8 --no-throughput``, trees interleaved, 4 obstacles, median µs:
 adversarial 42 / 42 before vs 33 / 36 fused, random 38 / 45 vs 30 / 28; noisy machine). Python
 runs only what the active-set solver hands to proxsuite (rare).
