@@ -45,7 +45,7 @@ _nonnegative_float = _number(float, 0.0, strict=False)
 
 def _add_train(sub: argparse._SubParsersAction) -> None:
     from c3bf_gym.scenarios import SCENARIOS
-    from c3bf_gym.training import ACTIONS, ALGORITHMS, DEFAULT_TRAIN_HZ, FILTERS, POLICY_RATES
+    from c3bf_gym.training import ACTIONS, ALGORITHMS, DEFAULT_TRAIN_HZ, FILTERS, OBSTACLE_ENCODERS, POLICY_RATES
 
     p = sub.add_parser(
         "train",
@@ -76,6 +76,9 @@ def _add_train(sub: argparse._SubParsersAction) -> None:
                    help="weight of the reward's dense -distance term (C3BFReachEnv's distance_weight; 0: off)")  # fmt: skip
     p.add_argument("--action-weight", type=_nonnegative_float, default=0.0,
                    help="weight of a -mean(action^2) reward term (ActionPenalty; keeps a residual policy near its prior; 0: off)")  # fmt: skip
+    p.add_argument("--obstacle-encoder", choices=OBSTACLE_ENCODERS, default="flat",
+                   help="how the policy reads the obstacle slots: flat (an MLP on the whole observation) or set "
+                        "(one shared encoder per slot, pooled: c3bf_gym.policies.ObstacleSetExtractor)")  # fmt: skip
     p.add_argument("--normalize-obs", action="store_true",
                    help="normalise observations with running statistics (SB3 VecNormalize, saved with the model)")  # fmt: skip
     p.add_argument("--hyperparams", type=json.loads, default={},
@@ -90,7 +93,7 @@ def _run_train(args: argparse.Namespace) -> int:
         algo=args.algo, action=args.action, filter=args.filter, scenario=args.scenario,
         timesteps=args.timesteps, seed=args.seed, n_envs=args.n_envs, eval_freq=args.eval_freq,
         eval_episodes=args.eval_episodes, final_eval_episodes=args.final_eval_episodes, checkpoint_freq=args.checkpoint_freq, out=args.out,
-        progress_bar=not args.no_progress, normalize_obs=args.normalize_obs, policy_hz=args.policy_hz, distance_weight=args.distance_weight, action_weight=args.action_weight, hyperparams=args.hyperparams,
+        progress_bar=not args.no_progress, normalize_obs=args.normalize_obs, policy_hz=args.policy_hz, distance_weight=args.distance_weight, action_weight=args.action_weight, obstacle_encoder=args.obstacle_encoder, hyperparams=args.hyperparams,
     )  # fmt: skip
     run_dir = train(config)
     print(f"run written to {run_dir}")

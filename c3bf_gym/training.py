@@ -37,6 +37,7 @@ __all__ = [
     "FILTERS",
     "FINAL_EVAL_SEED",
     "HYPERPARAMS",
+    "OBSTACLE_ENCODERS",
     "TrainConfig",
     "by_scenario",
     "evaluate",
@@ -66,6 +67,10 @@ DEFAULT_TRAIN_HZ = 10
 ALGORITHMS = ("sac", "ppo")
 ACTIONS = ("impedance", "residual", "torque")
 FILTERS = ("none", "hocbf", "c3bf")
+#: How the policy network reads the obstacle slots: ``flat`` (SB3's MLP on the whole
+#: observation) or ``set`` (:class:`~c3bf_gym.policies.ObstacleSetExtractor`: one shared encoder
+#: per obstacle slot, pooled, so what is learnt about one slot holds for every slot).
+OBSTACLE_ENCODERS = ("flat", "set")
 
 #: Default hyperparameters per (algorithm, action mode). How they were chosen: SB3 / RL-Zoo
 #: defaults for continuous control, then the cheapest changes that keep a run inside this 2-core
@@ -126,6 +131,7 @@ class TrainConfig:
     policy_hz: int = DEFAULT_TRAIN_HZ
     distance_weight: float = 0.0
     action_weight: float = 0.0
+    obstacle_encoder: Literal["flat", "set"] = "flat"
     hyperparams: dict[str, Any] = field(default_factory=dict)
 
     def validate(self) -> None:
@@ -135,6 +141,7 @@ class TrainConfig:
             ("algo", self.algo, ALGORITHMS),
             ("action", self.action, ACTIONS),
             ("filter", self.filter, FILTERS),
+            ("obstacle_encoder", self.obstacle_encoder, OBSTACLE_ENCODERS),
         ):
             if value not in choices:
                 raise ValueError(f"unknown {name} {value!r}; valid choices: {', '.join(map(repr, choices))}")
@@ -161,7 +168,10 @@ class TrainConfig:
         rate = "" if self.policy_hz == DEFAULT_POLICY_HZ else f"_{self.policy_hz}hz"
         dense = f"_dw{self.distance_weight:g}" if self.distance_weight else ""
         penalty = f"_aw{self.action_weight:g}" if self.action_weight else ""
-        return f"{self.algo}_{self.action}{norm}{rate}{dense}{penalty}_{self.filter}_{self.scenario}_s{self.seed}"
+        encoder = "" if self.obstacle_encoder == "flat" else f"_{self.obstacle_encoder}"
+        return (
+            f"{self.algo}_{self.action}{norm}{rate}{dense}{penalty}{encoder}_{self.filter}_{self.scenario}_s{self.seed}"
+        )
 
     def env_kwargs(self) -> dict[str, float]:
         """``gym.make`` keywords: the policy rate (the episode stays ``EPISODE_SECONDS`` long) and
@@ -334,6 +344,10 @@ def train(config: TrainConfig) -> Path:
         venv = VecNormalize(venv, norm_obs=True, norm_reward=False, clip_obs=OBS_CLIP, gamma=hyper.get("gamma", 0.99))
         eval_env = VecNormalize(eval_env, training=False, norm_obs=True, norm_reward=False, clip_obs=OBS_CLIP)
     algo = {"sac": SAC, "ppo": PPO}[config.algo]
+    if config.obstacle_encoder == "set":
+        from c3bf_gym.policies import ObstacleSetExtractor
+
+        hyper = {**hyper, "policy_kwargs": {**hyper.get("policy_kwargs", {}), "features_extractor_class": ObstacleSetExtractor}}
     model = algo("MlpPolicy", venv, seed=config.seed, verbose=0, tensorboard_log=str(run_dir / "tb"), **hyper)
     callbacks = CallbackList(
         [

@@ -17,7 +17,7 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-from c3bf_gym.training import ACTIONS, ALGORITHMS, DEFAULT_TRAIN_HZ, FILTERS, POLICY_RATES, TrainConfig
+from c3bf_gym.training import ACTIONS, ALGORITHMS, DEFAULT_TRAIN_HZ, FILTERS, OBSTACLE_ENCODERS, POLICY_RATES, TrainConfig
 
 
 def main() -> int:
@@ -32,6 +32,8 @@ def main() -> int:
     parser.add_argument("--normalize-obs", action="store_true")
     parser.add_argument("--distance-weight", type=float, default=0.0, help="the reward's dense -distance term")
     parser.add_argument("--action-weight", type=float, default=0.0, help="the reward's -mean(action^2) term")
+    parser.add_argument("--obstacle-encoder", choices=OBSTACLE_ENCODERS, default="flat",
+                        help="flat MLP or a shared per-obstacle encoder (set)")
     parser.add_argument("--hyperparams", default=None, help="JSON overriding the defaults (passed to every run)")
     parser.add_argument("--jobs", type=int, default=2)
     parser.add_argument("--out", default="runs")
@@ -44,7 +46,7 @@ def main() -> int:
         name = TrainConfig(
             algo=args.algo, action=args.action, filter=filter_name, scenario=args.scenario, seed=seed,
             policy_hz=args.policy_hz, normalize_obs=args.normalize_obs, distance_weight=args.distance_weight,
-            action_weight=args.action_weight,
+            action_weight=args.action_weight, obstacle_encoder=args.obstacle_encoder,
         ).name  # fmt: skip
         if (out / name / "summary.json").exists():
             print(f"skip {name}: finished")
@@ -54,6 +56,7 @@ def main() -> int:
             "--filter", filter_name, "--scenario", args.scenario, "--seed", str(seed),
             "--timesteps", str(args.timesteps), "--out", str(out), "--no-progress", "--policy-hz", str(args.policy_hz),
             "--distance-weight", str(args.distance_weight), "--action-weight", str(args.action_weight),
+            "--obstacle-encoder", args.obstacle_encoder,
         ] + (["--normalize-obs"] if args.normalize_obs else []) + (["--hyperparams", args.hyperparams] if args.hyperparams else [])  # fmt: skip
         jobs.append((name, command))
 
