@@ -93,6 +93,24 @@ def test_normalized_run_saves_and_applies_its_statistics(tmp_path, monkeypatch):
     assert len(seen) == 50  # one 5-s episode at the run's 10 Hz
 
 
+@pytest.mark.slow
+def test_set_encoder_run_names_itself_reloads_and_evaluates(tmp_path):
+    from stable_baselines3 import SAC
+
+    from c3bf_gym.policies import ObstacleSetExtractor
+
+    run = train(TrainConfig(timesteps=250, action="residual", scenario="multi", policy_hz=10, obstacle_encoder="set",
+                            eval_freq=10_000, final_eval_episodes=0, out=str(tmp_path), progress_bar=False,
+                            hyperparams={"learning_starts": 100}))  # fmt: skip
+    assert run.name == "sac_residual_10hz_set_c3bf_multi_s0"
+    assert json.loads((run / "config.json").read_text())["obstacle_encoder"] == "set"
+    model = SAC.load(run / "model.zip", device="cpu")
+    assert isinstance(model.actor.features_extractor, ObstacleSetExtractor)
+    assert isinstance(model.critic.features_extractor, ObstacleSetExtractor)
+    result = evaluate(run / "model.zip", episodes=1)
+    assert result["episodes"] == 1 and result["collision_episodes"] == 0
+
+
 @pytest.mark.parametrize("hz", [10, 50])
 def test_policy_rate_keeps_five_second_episodes(hz):
     env = make_env("none", "none", "impedance", seed=0, **policy_rate_kwargs(hz))()
@@ -166,6 +184,7 @@ def test_make_env_action_modes(action, shape):
         ({"distance_weight": -1.0}, "distance_weight must be a finite number >= 0"),
         ({"distance_weight": float("nan")}, "distance_weight must be a finite number >= 0"),
         ({"action_weight": -0.1}, "action_weight must be a finite number >= 0"),
+        ({"obstacle_encoder": "gnn"}, "unknown obstacle_encoder 'gnn'; valid choices: 'flat', 'set'"),
     ],
 )
 def test_bad_training_options(kwargs, message):

@@ -1,0 +1,92 @@
+"""The set encoder of obstacle slots: order-free, blind to unsensed slots, and checked inputs."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+
+import c3bf_gym  # noqa: F401  (registers C3BFReach-v0)
+from c3bf_gym.envs.reach import OBSERVATION_LAYOUT
+from c3bf_gym.policies import ObstacleSetExtractor
+from c3bf_gym.scenarios import MAX_OBSTACLES
+
+OWN = 21  # joint_pos, joint_vel, tool_pos, tool_vel, goal_rel
+
+
+def _slot_view(obs: np.ndarray) -> list[np.ndarray]:
+    """The per-slot parts of an observation batch, each (batch, MAX_OBSTACLES, width)."""
+    parts, start = [], OWN
+    for _, size, _ in OBSERVATION_LAYOUT[5:]:
+        parts.append(obs[:, start : start + size].reshape(len(obs), MAX_OBSTACLES, -1))
+        start += size
+    return parts
+
+
+def _from_slots(own: np.ndarray, parts: list[np.ndarray]) -> np.ndarray:
+    return np.concatenate([own] + [p.reshape(len(own), -1) for p in parts], axis=1)
+
+
+@pytest.fixture(scope="module")
+def multi_obs() -> np.ndarray:
+    env = gym.make("C3BFReach-v0", scenario="multi")
+    obs = []
+    for seed in range(4):
+        o, _ = env.reset(seed=seed)
+        for _ in range(20):
+            o, *_ = env.step(np.zeros(6))
+        obs.append(o)
+    env.close()
+    batch = np.stack(obs)
+    assert (batch[:, -MAX_OBSTACLES:].sum(axis=1) >= 2).all(), "several obstacles sensed"
+    return batch
+
+
+def _features(extractor: ObstacleSetExtractor, obs: np.ndarray) -> np.ndarray:
+    with torch.no_grad():
+        return extractor(torch.as_tensor(obs, dtype=torch.float32)).numpy()
+
+
+def test_features_are_the_robot_entries_and_pooled_slots(multi_obs):
+    torch.manual_seed(0)
+    extractor = ObstacleSetExtractor(gym.spaces.Box(-np.inf, np.inf, (multi_obs.shape[1],)), slot_features=16)
+    features = _features(extractor, multi_obs)
+    assert extractor.features_dim == OWN + 2 * 16 == features.shape[1]
+    np.testing.assert_array_equal(features[:, :OWN], multi_obs[:, :OWN])
+    assert (features[:, OWN:] != 0).any()
+
+
+def test_slot_order_does_not_matter(multi_obs):
+    torch.manual_seed(1)
+    extractor = ObstacleSetExtractor(gym.spaces.Box(-np.inf, np.inf, (multi_obs.shape[1],)))
+    order = np.random.default_rng(0).permutation(MAX_OBSTACLES)
+    shuffled = _from_slots(multi_obs[:, :OWN], [p[:, order] for p in _slot_view(multi_obs)])
+    assert not np.array_equal(shuffled, multi_obs)
+    np.testing.assert_allclose(_features(extractor, shuffled), _features(extractor, multi_obs), rtol=1e-5, atol=1e-5)
+
+
+def test_unsensed_slots_are_ignored(multi_obs):
+    torch.manual_seed(2)
+    extractor = ObstacleSetExtractor(gym.spaces.Box(-np.inf, np.inf, (multi_obs.shape[1],)))
+    parts = [p.copy() for p in _slot_view(multi_obs)]
+    unsensed = parts[-1][..., 0] == 0
+    assert unsensed.any()
+    for part in parts[:-1]:
+        part[unsensed] = 3.0  # anything: the flag says the slot is empty
+    np.testing.assert_array_equal(_features(extractor, _from_slots(multi_obs[:, :OWN], parts)), _features(extractor, multi_obs))
+    parts[-1][unsensed] = 1.0  # the same entries, now claimed sensed, do count
+    assert not np.allclose(_features(extractor, _from_slots(multi_obs[:, :OWN], parts)), _features(extractor, multi_obs))
+
+
+@pytest.mark.parametrize(
+    "shape, slot_features, message",
+    [
+        ((84,), 64, r"needs C3BFReach-v0's observation of shape \(85,\), got \(84,\)"),
+        ((85,), 0, "slot_features must be an integer >= 1"),
+        ((85,), 8.0, "slot_features must be an integer >= 1"),
+    ],
+)
+def test_bad_extractor_arguments(shape, slot_features, message):
+    with pytest.raises(ValueError, match=message):
+        ObstacleSetExtractor(gym.spaces.Box(-np.inf, np.inf, shape), slot_features=slot_features)
