@@ -76,9 +76,15 @@ _STAT_TOL = 1e-8   # relative stationarity error accepted by the final KKT check
 _opts = {"cache": True, "nogil": True, "error_model": "numpy", "boundscheck": False}
 
 
+def work_shapes(n: int, n_rows: int) -> tuple[tuple[int, int], tuple[int]]:
+    """Shapes of :func:`work_arrays`' ``(work, iwork)`` (float64, int64)."""
+    return (2 * n + 5, n + 1), (n + 2 + n_rows,)
+
+
 def work_arrays(n: int, n_rows: int) -> tuple[np.ndarray, np.ndarray]:
     """``(work, iwork)`` for :func:`solve` with up to n variables and a G of ``n_rows`` rows."""
-    return np.zeros((2 * n + 5, n + 1)), np.zeros(n + 2 + n_rows, dtype=np.int64)
+    work, iwork = work_shapes(n, n_rows)
+    return np.zeros(work), np.zeros(iwork, dtype=np.int64)
 
 
 def weight_data(W: np.ndarray, extra: int = 0) -> np.ndarray:

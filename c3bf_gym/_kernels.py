@@ -737,24 +737,52 @@ def qp_step(tau_nom, A, b, scale, weights, m_prev, k_prev, max_iter, tol, row_sl
 
 
 @njit(**_opts)
+def _vector(arena, layout, i):
+    """Buffer ``i`` of :func:`step_views`, 1-D."""
+    start = layout[i, 0]
+    return arena[start:start + layout[i, 1]]
+
+
+@njit(**_opts)
+def _matrix(arena, layout, i):
+    """Buffer ``i`` of :func:`step_views`, 2-D."""
+    start = layout[i, 0]
+    return arena[start:start + layout[i, 1] * layout[i, 2]].reshape((layout[i, 1], layout[i, 2]))
+
+
+@njit(**_opts)
+def step_views(qf, qi, layout):
+    """:meth:`~c3bf_gym.qp.TorqueQP.step_buffers` (:func:`qp_step`'s ``Gx`` … ``rep_iwork``) from
+    :meth:`~c3bf_gym.qp.TorqueQP.packed_step_buffers`: views of the float64 arena ``qf`` and the
+    int64 arena ``qi`` at the ``layout`` rows (``c3bf_gym.qp._step_buffer_shapes``' order)."""
+    return (_matrix(qf, layout, 0), _vector(qf, layout, 1), _vector(qf, layout, 2), _vector(qf, layout, 3),
+            _vector(qf, layout, 4), _vector(qf, layout, 5), _vector(qf, layout, 6), _vector(qf, layout, 7),
+            _vector(qf, layout, 8), _vector(qf, layout, 9), _matrix(qf, layout, 10), _vector(qf, layout, 11),
+            _vector(qf, layout, 12), _matrix(qf, layout, 13), _matrix(qf, layout, 14), _vector(qi, layout, 15),
+            _vector(qf, layout, 16), _matrix(qf, layout, 17), _matrix(qf, layout, 18), _vector(qi, layout, 19),
+            _vector(qi, layout, 20), _matrix(qf, layout, 21), _vector(qf, layout, 22), _matrix(qf, layout, 23),
+            _vector(qi, layout, 24))
+
+
+@njit(**_opts)
 def hook_step(stage, tau_nom, m_prev, k_prev, max_iter, tol, row_slack_weight, diag_W, tau,
               M, qfrc_passive, qfrc_bias, geom_xpos, geom_xmat, cdof, cdof_dot, com, qpos, qvel,
               arm_i, arm_f, chain, scratch, Minv, qacc_free, ends, ends_ab, a_dot_ab,
               active, distances, obs_pos, obs_vel, obs_acc, obs_radius, kind, floor_idx, floor_min,
-              joint_rows, hook_f, work, A, b, scale, limit,
-              Gx, hx, hcx, nrm, r, xe, nom, lo, hi, reach, negW, g, qp_f,
-              WJ, as_work, as_iwork, x0r, WJx, el_work, el_iwork, Kr, Gr, hr, rep_work, rep_iwork):
+              joint_rows, hook_f, work, A, b, scale, limit, qf, qi, layout):
     """One whole-arm filter step in one call (:meth:`~c3bf_gym.filter.SafetyHook.__call__`): the
     rows (:func:`hook_rows_whole_arm`), :meth:`~c3bf_gym.qp.TorqueQP.solve_scaled`'s active-set
     call (:func:`qp_step`, the same code the layer runs) and :func:`hook_post`; what saves time
     is one dispatch instead of three and no Python in between.
 
     ``M`` … ``b`` are :func:`hook_rows_whole_arm`'s arguments (``M`` here is MuJoCo's mass
-    matrix); ``Gx`` … ``rep_iwork`` and ``qp_f`` are :func:`qp_step`'s. Writes the torque into
-    ``tau`` when done. Returns ``(status, rows, min h, any inside, sensed count, steps, repair
-    slack count, active rows, slack, min row residual, correction)``, status one of ``STEP_*``;
-    the last four are only set when done.
+    matrix); ``qf``, ``qi``, ``layout`` hold :func:`qp_step`'s buffers (:func:`step_views`).
+    Writes the torque into ``tau`` when done. Returns ``(status, rows, min h, any inside, sensed
+    count, steps, repair slack count, active rows, slack, min row residual, correction)``, status
+    one of ``STEP_*``; the last four are only set when done.
     """
+    (Gx, hx, hcx, nrm, r, xe, nom, lo, hi, reach, negW, g, qp_f, WJ, as_work, as_iwork, x0r, WJx, el_work,
+     el_iwork, Kr, Gr, hr, rep_work, rep_iwork) = step_views(qf, qi, layout)
     m, min_h, inside, n_sensed = hook_rows_whole_arm(
         stage, M, qfrc_passive, qfrc_bias, geom_xpos, geom_xmat, cdof, cdof_dot, com, qpos, qvel, arm_i, arm_f,
         chain, scratch, Minv, qacc_free, ends, ends_ab, a_dot_ab, active, distances, obs_pos, obs_vel, obs_acc,

@@ -42,12 +42,15 @@ from dataclasses import dataclass
 from typing import Literal
 
 import mujoco
+import numba
 import numpy as np
 
 from c3bf_gym import _kernels
 from c3bf_gym.barriers import Barrier, JointLimits, Rows, make_barrier
 from c3bf_gym.qp import QPResult, TorqueQP
 from c3bf_gym.robot import ArmModel
+
+_perf_counter = time.perf_counter
 
 __all__ = ["ON_INFEASIBLE", "POINTS", "WEIGHTS", "SafetyHook", "SafetyInfeasibleError", "StepSafety", "build_hook"]
 
@@ -195,9 +198,17 @@ class SafetyHook:
         self._work = np.zeros((3, 6 + n))
         self._bound_qp: TorqueQP | None = None  # the QP whose buffers _bound holds (_bind)
         self._bound: tuple = ()
+        self._hook_step = _kernels.hook_step  # its compiled entry point once bound (_bind)
         self.last: QPResult | None = None
         self.report = StepSafety()
         self.solve_times: list[float] | None = None
+
+    def __getstate__(self) -> dict:
+        """Pickled without what :meth:`_bind` gathered (views of this process's arrays and a compiled
+        entry point): the unpickled hook binds again on its first call, to its own env's arrays."""
+        state = self.__dict__.copy()
+        state.update(_bound=(), _bound_qp=None, _hook_step=_kernels.hook_step)
+        return state
 
     def record_times(self, enabled: bool = True) -> None:
         """Start (or stop) keeping every physics step's filter time in ``solve_times``."""
@@ -295,7 +306,7 @@ class SafetyHook:
 
     def _bind(self, qp: TorqueQP) -> tuple:
         """The buffers :func:`c3bf_gym._kernels.hook_step` works in (env, arm and hook, then
-        ``qp``'s :meth:`~c3bf_gym.qp.TorqueQP.step_buffers`; all allocated once by their
+        ``qp``'s :meth:`~c3bf_gym.qp.TorqueQP.packed_step_buffers`; all allocated once by their
         constructors and updated in place), gathered once per QP object: fetching them attribute
         by attribute on every call cost more than the kernel's dispatch."""
         env, arm = self.env, self.arm
@@ -306,9 +317,19 @@ class SafetyHook:
             arm._ends_ab, arm._a_dot_ab, env.obstacle_active, env.distances, env.obstacle_pos, env.obstacle_vel,
             env.obstacle_acc, env.obstacle_radius, self._kind, self._floor_idx, self._floor_min,
             self.joint_limits is not None, self._hook_f, self._work, self._A, self._b, self._scale, self._limit,
-            *qp.step_buffers(),
+            *qp.packed_step_buffers(),
         )
         self._bound_qp = qp
+        # hook_step's compiled entry point for exactly these argument types, called directly: the
+        # dispatcher's type resolution of its ~50 arguments cost ~1.5 µs per call. The types are
+        # fixed: the buffers above, fresh C-contiguous float64 (n,) arrays tau_nom and tau
+        # (__call__ checks the shape: the entry point takes any array as the type it was compiled
+        # for), and for the scalars Python ints, floats and a bool (which the entry point converts
+        # to its types, as the dispatcher does).
+        vec = np.zeros(qp.n)
+        args = (0, vec, qp._m_prev, qp._kr, qp.active_set_max_iter, qp.active_tol, qp.row_slack_weight,
+                qp._diag_W, vec, *self._bound)
+        self._hook_step = _kernels.hook_step.compile(tuple(numba.typeof(a) for a in args))
         return self._bound
 
     def _step(self, tau_nom: np.ndarray, tau: np.ndarray, start: float) -> tuple[QPResult, float, bool, int, float, float]:
@@ -318,7 +339,7 @@ class SafetyHook:
         solver did not finish)."""
         qp, env = self.qp, self.env
         bound = self._bound if qp is self._bound_qp else self._bind(qp)
-        status, m, min_h, inside, n_sensed, steps, k, active, slack, residual, correction = _kernels.hook_step(
+        status, m, min_h, inside, n_sensed, steps, k, active, slack, residual, correction = self._hook_step(
             self.arm.claim(env.data, env.state_version), tau_nom, qp._m_prev, qp._kr, qp.active_set_max_iter,
             qp.active_tol, qp.row_slack_weight, qp._diag_W, tau, *bound)
         result = qp.finish_step(status, m, steps, k, active, slack, None, start)
@@ -328,9 +349,14 @@ class SafetyHook:
         return result, min_h, inside, n_sensed, residual, correction
 
     def __call__(self, tau_nom: np.ndarray) -> np.ndarray:
-        start = time.perf_counter()
-        tau_nom = np.ascontiguousarray(tau_nom, dtype=np.float64)
-        tau = np.empty_like(tau_nom)
+        start = _perf_counter()
+        # a copy of the caller's torque (float64; 1-D copies are contiguous): the kernels read it and the
+        # report keeps it. Its shape is checked here: the compiled entry point (_bind) cannot.
+        tau_nom = np.array(tau_nom, np.float64)
+        shape = self._limit.shape
+        if tau_nom.shape != shape:
+            raise ValueError(f"tau_nom must have shape {shape}, got {tau_nom.shape}")
+        tau = np.empty(shape)
         if self._fused and self.qp.solver == "active_set":
             result, min_h, inside, n_sensed, residual, correction = self._step(tau_nom, tau, start)
         else:
@@ -338,21 +364,29 @@ class SafetyHook:
             result = self.qp.solve_scaled(tau_nom, A, b, self._scale)  # rows in u = τ / s: (A s) u ≥ b
             # τ = u s, the smallest row residual A u − b and ‖τ − clip(τ_nom)‖ (the filter's change)
             residual, correction = _kernels.hook_post(A, b, result.tau, self._scale, tau_nom, self._limit, tau)
-        elapsed = time.perf_counter() - start
+        elapsed = _perf_counter() - start
         if self.solve_times is not None:
             self.solve_times.append(elapsed)
         self.last = result
+        # the running extremes as plain comparisons (what min / max do, without their call cost)
         report = self.report
         report.substeps += 1
         report.solve_time += elapsed
-        report.min_constraint = min(report.min_constraint, residual)
-        report.tau_nominal, report.tau = tau_nom.copy(), tau
-        report.min_h = min(report.min_h, min_h)
-        report.inside |= inside
-        report.sensed = max(report.sensed, n_sensed)
-        report.active_rows = max(report.active_rows, result.active_rows)
-        report.correction = max(report.correction, correction)
-        report.intervened |= correction > self.intervention_tol
+        if residual < report.min_constraint:
+            report.min_constraint = residual
+        report.tau_nominal, report.tau = tau_nom, tau
+        if min_h < report.min_h:
+            report.min_h = min_h
+        if inside:
+            report.inside = True
+        if n_sensed > report.sensed:
+            report.sensed = n_sensed
+        if result.active_rows > report.active_rows:
+            report.active_rows = result.active_rows
+        if correction > report.correction:
+            report.correction = correction
+        if correction > self.intervention_tol:
+            report.intervened = True
         if not result.feasible:
             report.feasible = False
             report.infeasible_steps += 1

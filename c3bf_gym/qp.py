@@ -188,6 +188,9 @@ _DUAL_SIGN_TOL = 1e-6  # wrong-signed multipliers above this (relative to 1 + ma
 _NO_SCALE = np.empty(0)  # solve(): the rows are used as given
 _AS_TOL = 1e-10  # active set: a row is violated below −_AS_TOL (1 + max |box|) [normalised N·m]
 _AS_VTOL = 1e-8  # active set: active rows must hold to _AS_VTOL (1 + max |box|) in its KKT check
+# finish_step runs at every filter step: module-level names instead of attribute lookups
+_STEP_SOLVED, _STEP_RELAXED, _STEP_RELAXED_AS_IS = _kernels.STEP_SOLVED, _kernels.STEP_RELAXED, _kernels.STEP_RELAXED_AS_IS
+_perf_counter = time.perf_counter
 
 
 def _raise_bad_data(code: int) -> None:
@@ -302,6 +305,48 @@ def _plain(x: np.ndarray) -> np.ndarray:
     return np.array(x, order="C")
 
 
+def _step_buffer_shapes(n: int, M: int, K: int) -> list[tuple[str, tuple[int, ...], type]]:
+    """``(attribute, shape, dtype)`` of :class:`TorqueQP`'s buffers of the compiled step, in
+    :func:`c3bf_gym._kernels.qp_step`'s order (n joints, M rows, K repair slack columns); the
+    kernel's :func:`~c3bf_gym._kernels.step_views` carves them in this order."""
+    f, i = np.float64, np.int64
+    as_w, as_i = _active_set.work_shapes(n, M + 2 * n)
+    el_w, el_i = _active_set.work_shapes(n + 1, M + 2 * n + 1)
+    rep_w, rep_i = _active_set.work_shapes(n + K, M + 2 * n + K)
+    return [
+        ("_Gx", (M + 2 * n + 1, n + 1), f), ("_hx", (M + 2 * n + 1,), f), ("_hcx", (M + 2 * n + 1,), f),
+        ("_nrm", (M,), f), ("_r", (M + 2 * n,), f), ("_xe", (n + 1,), f), ("_nom", (n,), f), ("tau_min", (n,), f),
+        ("tau_max", (n,), f), ("_reach", (M,), f), ("_negW", (n, n), f), ("_g", (n + 1,), f), ("_qp_f", (5,), f),
+        ("_WJ", (2 * n, n), f), ("_as_work", as_w, f), ("_as_iwork", as_i, i), ("_x0r", (n + K,), f),
+        ("_WJx", (2 * (n + K), n + K), f), ("_el_work", el_w, f), ("_el_iwork", el_i, i), ("_Kr", (K,), i),
+        ("_Gr", (M + 2 * n + K, n + K), f), ("_hr", (M + 2 * n + K,), f), ("_rep_work", rep_w, f),
+        ("_rep_iwork", rep_i, i),
+    ]  # fmt: skip
+
+
+class _StepArena:
+    """Zeroed buffers of the given ``(attribute, shape, dtype)`` back to back in one float64 and one
+    int64 array (``floats``, ``ints``), set as attributes of ``owner``; ``views`` in that order and
+    ``layout`` (len, 3) int64 rows ``(offset into their array, shape[0], shape[1] or 0)``."""
+
+    def __init__(self, owner, shapes: list[tuple[str, tuple[int, ...], type]]) -> None:
+        sizes = [math.prod(shape) for _, shape, _ in shapes]
+        ints = [dtype is np.int64 for _, _, dtype in shapes]
+        self.floats = np.zeros(sum(k for k, is_int in zip(sizes, ints) if not is_int))
+        self.ints = np.zeros(sum(k for k, is_int in zip(sizes, ints) if is_int), dtype=np.int64)
+        self.layout = np.zeros((len(shapes), 3), dtype=np.int64)
+        offsets = {False: 0, True: 0}
+        views = []
+        for row, ((name, shape, _), k, is_int) in enumerate(zip(shapes, sizes, ints)):
+            start = offsets[is_int]
+            view = (self.ints if is_int else self.floats)[start:start + k].reshape(shape)
+            self.layout[row] = start, shape[0], shape[1] if len(shape) > 1 else 0
+            offsets[is_int] = start + k
+            setattr(owner, name, view)
+            views.append(view)
+        self.views = tuple(views)
+
+
 def _make_qp(nvar: int, nrows: int, eps_abs: float, max_iter: int, max_iter_in: int | None = None):
     qp = _pq.dense.QP(nvar, 0, nrows, True, _pq.dense.HessianType.Dense, _pq.dense.DenseBackend.PrimalDualLDLT)
     s = qp.settings
@@ -361,7 +406,7 @@ class TorqueQP:
             raise ValueError(f"solver must be one of {', '.join(map(repr, SOLVERS))}; got {solver!r}")
         n, M = int(n), int(max_rows)
         self.n, self.max_rows = n, M
-        self.tau_min, self.tau_max = _box(tau_min, tau_max, n)
+        lo, hi = _box(tau_min, tau_max, n)
         self.slack_weight = float(slack_weight)
         self.eps_abs = float(eps_abs)
         self.max_iter = int(max_iter)
@@ -374,7 +419,11 @@ class TorqueQP:
         self.hard_max_iter = min(self.max_iter, 10)
         self.hard_max_iter_in = 20
 
-        # --- preallocated buffers (the hot path writes only into these).
+        # --- preallocated buffers (the hot path writes only into these). Those of the compiled
+        # step (step_buffers) lie back to back in one float64 and one int64 array (_step_arena).
+        K = max(M, 1)  # slack columns of the per-row repair (below)
+        self._step_arena = _StepArena(self, _step_buffer_shapes(n, M, K))
+        self.tau_min[:], self.tau_max[:] = lo, hi
         # G stacks the elastic rows and the box as rows so that ONE mat-vec gives every
         # residual:  rows [0, M): (Â_k | 1/σ), padded rows (0 | 1/σ) with h = -inf;
         # rows [M, M+n): (I | 0) with h = τ_min;  rows [M+n, M+2n): (−I | 0) with h = −τ_max.
@@ -383,33 +432,28 @@ class TorqueQP:
         self.slack_linear_weight = math.sqrt(self.slack_weight)
         # (The elastic active-set solve uses one more row, t ≥ 0: _Gx / _hx, of which _G / _h are
         # the leading rows.)
-        self._Gx = np.zeros((M + 2 * n + 1, n + 1))
         self._Gx[M + 2 * n, n] = 1.0
         self._G = self._Gx[:M + 2 * n]
         self._G[:M, n] = 1.0 / self._sigma
         self._G[M:M + n, :n] = np.eye(n)
         self._G[M + n:, :n] = -np.eye(n)
-        self._nrm = np.zeros(M)                       # row norms ‖A_k‖
-        self._hx = np.full(M + 2 * n + 1, -PROXSUITE_INF)
+        # _nrm: the row norms ‖A_k‖
+        self._hx.fill(-PROXSUITE_INF)
         self._hx[M + 2 * n] = 0.0
         self._h = self._hx[:M + 2 * n]
         self._h[M:M + n] = self.tau_min
         self._h[M + n:] = -self.tau_max
         self._Ce, self._l = self._G[:M], self._h[:M]
-        self._hcx = self._hx.copy()      # _hx with impossible rows clipped to their reach (_l_clipped)
+        self._hcx[:] = self._hx          # _hx with impossible rows clipped to their reach (_l_clipped)
         self._l_clipped = self._hcx[:M]
         self._u = np.full(M, PROXSUITE_INF)
-        self._r = np.zeros(M + 2 * n)                 # residuals G·(τ, 0) − h
-        self._xe = np.zeros(n + 1)                    # (τ, 0); τ part is the returned buffer
+        # _r: the residuals G·(τ, 0) − h; _xe: (τ, 0), whose τ part is the returned buffer; _nom: the
+        # nominal (in u with solve_scaled); _reach: max over the box of each normalised row
         self._tau = self._xe[:n]
-        self._nom = np.zeros(n)                       # the nominal (in u with solve_scaled)
-        self._reach = np.zeros(M)                     # max over the box of each normalised row
         self._H = np.zeros((n + 1, n + 1))            # elastic Hessian blockdiag(W, 1) (ρ s² = t²)
         self._H[n, n] = 1.0
-        self._negW = np.zeros((n, n))                 # −W, contiguous (g = −W τ_nom)
-        self._Wc = np.zeros((n, n))                   # W, contiguous (hard QP)
-        self._g = np.zeros(n + 1)                     # elastic gradient (−W τ_nom, c/σ)
-        self._g[n] = self.slack_linear_weight / self._sigma
+        self._Wc = np.zeros((n, n))                   # W, contiguous (hard QP); _negW: −W (g = −W τ_nom)
+        self._g[n] = self.slack_linear_weight / self._sigma  # _g: the elastic gradient (−W τ_nom, c/σ)
         self._Ch = np.zeros((M, n))                   # Â for the rare hard solve
         self._y = np.zeros(M)
         self._lbox = np.concatenate([self.tau_min, [0.0]])
@@ -434,32 +478,24 @@ class TorqueQP:
         #: neither the elastic nor the hard solve could confirm.
         self.retries = self.relax_calls = self.relax_fallbacks = self.suboptimal = 0
 
-        # The active-set solver (module docstring, "Active-set solver first"): its work arrays, the
-        # weight data [W; L⁻ᵀ] (set_weight), its tolerances and step cap.
-        self._as_work, self._as_iwork = _active_set.work_arrays(n, M + 2 * n)
+        # The active-set solver (module docstring, "Active-set solver first"): its work arrays
+        # (_as_work, _as_iwork), the weight data [W; L⁻ᵀ] (_WJ, set_weight), its tolerances and step cap.
         self._as_x = self._as_work[2 * n, :n]
-        self._WJ = np.zeros((2 * n, n))
         # ... and for the elastic and per-row repair problems ("Infeasible calls"): x₀ = (τ_nom, −1, …)
-        # and [W̃; J₀] for up to n + K variables (K = max_rows slack columns; each solve uses the
-        # leading blocks); the repair rows (Â_k | e_i / σ_k) in _Gr / _hr, then the box rows and
-        # the K rows t_i ≥ 0.
-        K = max(M, 1)
-        self._x0r = np.full(n + K, -1.0)
-        self._WJx = np.zeros((2 * (n + K), n + K))
-        self._el_work, self._el_iwork = _active_set.work_arrays(n + 1, M + 2 * n + 1)
+        # (_x0r) and [W̃; J₀] (_WJx) for up to n + K variables (K = max_rows slack columns; each solve
+        # uses the leading blocks); work arrays _el_work / _el_iwork and _rep_work / _rep_iwork; the
+        # repair rows (Â_k | e_i / σ_k) in _Gr / _hr, then the box rows and the K rows t_i ≥ 0.
+        self._x0r.fill(-1.0)
         self._el_x = self._el_work[2 * (n + 1), :n + 1]
-        self._Gr = np.zeros((M + 2 * n + K, n + K))
         self._Gr[M:M + 2 * n, :n] = self._G[M:, :n]
         self._Gr[M + 2 * n:, n:] = np.eye(K)
-        self._hr = np.zeros(M + 2 * n + K)
         self._hr[M:M + 2 * n] = self._h[M:]
-        self._Kr = np.zeros(K, dtype=np.int64)        # the repair's slack rows (first _kr entries)
-        self._kr = 0
-        self._rep_work, self._rep_iwork = _active_set.work_arrays(n + K, M + 2 * n + K)
+        self._kr = 0  # _Kr[:_kr]: the repair's slack rows
         self._rep_x = self._rep_work[2 * (n + K), :n]
         self._tau_star = np.zeros(n)
         box_scale = 1.0 + float(max(np.abs(self.tau_min).max(), np.abs(self.tau_max).max()))
         self._as_tol, self._as_vtol = _AS_TOL * box_scale, _AS_VTOL * box_scale
+        self._qp_f[:] = _ROW_NORM_MIN, PROXSUITE_INF, self._as_tol, self._as_vtol, self._sigma
         self.active_set_max_iter = 50
         self.active_set_fallbacks = self.active_set_troubles = 0
 
@@ -477,7 +513,6 @@ class TorqueQP:
         self._hard.init(self._Wc, self._g[:n], None, None, self._Ch, self._l, self._u,
                         self.tau_min, self.tau_max)
         self._hard_h_dirty = False
-        self._step_buffers: tuple | None = None
         if solver == "active_set":  # load the compiled solver now, not in a control loop's first binding call (~20 ms)
             _kernels.qp_step(np.zeros(n), np.zeros((0, n)), _NO_SCALE, _NO_SCALE, _NO_SCALE, 0, 0, 1, self.active_tol,
                              self.row_slack_weight, self._diag_W, *self.step_buffers())
@@ -591,26 +626,27 @@ class TorqueQP:
         """The buffers and constants :func:`c3bf_gym._kernels.qp_step` works in, in its order
         (allocated once by the constructor, updated in place; the solver tolerances and the slack
         scaling are fixed by it)."""
-        if self._step_buffers is None:
-            self._step_buffers = (
-                self._Gx, self._hx, self._hcx, self._nrm, self._r, self._xe, self._nom, self.tau_min, self.tau_max,
-                self._reach, self._negW, self._g,
-                np.array([_ROW_NORM_MIN, PROXSUITE_INF, self._as_tol, self._as_vtol, self._sigma]),
-                self._WJ, self._as_work, self._as_iwork, self._x0r, self._WJx, self._el_work, self._el_iwork,
-                self._Kr, self._Gr, self._hr, self._rep_work, self._rep_iwork,
-            )  # fmt: skip
-        return self._step_buffers
+        return self._step_arena.views
+
+    def packed_step_buffers(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`step_buffers` as ``(float64 arena, int64 arena, layout)``, which
+        :func:`c3bf_gym._kernels.step_views` turns back into them inside a compiled kernel: three
+        arguments instead of 25 (numba converts every array argument on every call)."""
+        arena = self._step_arena
+        return arena.floats, arena.ints, arena.layout
 
     def finish_step(self, status, m, steps, k, active, slack, weights, t0) -> QPResult:
         """The result of a :func:`c3bf_gym._kernels.qp_step` call (also run inside the filter's fused
         kernel): raise on bad data, keep the warm-start state, and run proxsuite where it handed over."""
-        _raise_bad_data(status)
+        if status < 0:
+            _raise_bad_data(status)
         self._m_prev, self._kr = m, k
-        if status <= _kernels.STEP_RELAXED_AS_IS:
-            self.relax_calls += status == _kernels.STEP_RELAXED
-            solved = status == _kernels.STEP_SOLVED
+        if status <= _STEP_RELAXED_AS_IS:  # done in the kernel (the common case: kept short)
+            solved = status == _STEP_SOLVED
+            if not solved:
+                self.relax_calls += status == _STEP_RELAXED
             return QPResult(self._tau, slack, solved, "solved" if solved else "relaxed", steps, active,
-                            time.perf_counter() - t0)
+                            _perf_counter() - t0)
         impossible = status in (_kernels.STEP_TO_ELASTIC_IMPOSSIBLE, _kernels.STEP_TO_REPAIR_IMPOSSIBLE)
         if status >= _kernels.STEP_TO_REPAIR:  # residuals of τ* are in _r
             if m:

@@ -676,3 +676,30 @@ def test_fused_hand_over_to_proxsuite_matches_the_unfused_path(make_env):
         np.testing.assert_allclose(tau_f, tau_p, rtol=0, atol=1e-6 * fused._limit.max())
     assert handed > 0 and "relaxed" in statuses  # the hand-over paths ran
     assert fused.qp.active_set_fallbacks == plain.qp.active_set_fallbacks
+
+
+
+def test_a_bound_hook_pickles_and_binds_again(make_env):
+    """What a hook gathers when it binds (views of this process's arrays, a compiled entry point)
+    is left out of its pickle: the copy binds again on its first call."""
+    import pickle
+
+    env = SafetyFilter(make_env(scenario="multi"), barrier="c3bf")
+    env.reset(seed=5)
+    env.step(np.zeros(6, np.float32))  # binds the hook
+    assert env.hook._bound
+    hook = pickle.loads(pickle.dumps(env)).hook
+    assert hook._bound == () and hook._bound_qp is None
+    hook(np.zeros(6))
+    assert hook._bound_qp is hook.qp and hook._bound[0] is not env.hook._bound[0]
+
+
+def test_nominal_of_the_wrong_shape_is_refused(make_env):
+    """The fused kernel is called through its compiled entry point, which does not check shapes:
+    the hook does."""
+    env = SafetyFilter(make_env(scenario="multi"), barrier="c3bf")
+    env.reset(seed=0)
+    for bad in (np.zeros(7), np.zeros((1, 6)), 0.0):
+        with pytest.raises(ValueError, match="tau_nom must have shape"):
+            env.hook(bad)
+    assert env.hook(np.zeros(6)).shape == (6,)

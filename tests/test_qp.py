@@ -298,3 +298,18 @@ def test_solved_result_is_the_optimum_after_warm_starts(solver):
         ref.solve()
         worst = max(worst, float(np.abs(res.tau - ref.results.x).max()))
     assert worst < 1e-5
+
+
+def test_packed_step_buffers_are_the_step_buffers():
+    """The fused kernel's three-argument form of the step buffers (``packed_step_buffers``, carved
+    by ``_kernels.step_views``) is the same memory, shapes and types as ``step_buffers``."""
+    from c3bf_gym import _kernels
+
+    qp = TorqueQP(6, 40, -2.0, 3.0)
+    carved = _kernels.step_views(*qp.packed_step_buffers())
+    buffers = qp.step_buffers()
+    assert len(carved) == len(buffers) == 25
+    for got, want in zip(carved, buffers):
+        assert got.ctypes.data == want.ctypes.data and got.shape == want.shape and got.dtype == want.dtype
+    np.testing.assert_array_equal(qp.tau_min, -2.0)
+    np.testing.assert_array_equal(qp.tau_max, 3.0)
