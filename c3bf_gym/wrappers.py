@@ -47,7 +47,7 @@ def reach_env(env: gym.Env, wrapper: str) -> C3BFReachEnv:
     return base
 
 
-class SafetyFilter(gym.Wrapper):
+class SafetyFilter(gym.Wrapper, gym.utils.EzPickle):
     """Project every torque through the C3BF (or distance-HOCBF) quadratic program.
 
     The filter runs at every physics step (500 Hz) on whatever total torque arrives (the policy's
@@ -73,6 +73,11 @@ class SafetyFilter(gym.Wrapper):
         weight: QP metric, ``"limits"`` (default) or ``"identity"``.
         on_infeasible: ``"relax"`` (default: apply the least-violating torque, report it) or
             ``"raise"``.
+
+    Pickling (and ``copy.deepcopy``) rebuilds the filter with the same arguments around the
+    unpickled environment, which Gymnasium's MuJoCo environments rebuild from their own
+    arguments: the copy is filtered like the original and, like any copied MuJoCo env, starts
+    from a fresh state (reset it).
     """
 
     def __init__(
@@ -89,6 +94,9 @@ class SafetyFilter(gym.Wrapper):
         on_infeasible: Literal["relax", "raise"] = "relax",
     ) -> None:
         super().__init__(env)
+        gym.utils.EzPickle.__init__(
+            self, env, barrier, points, gamma, margin, sensing_radius, ee_radius, joint_speed_fraction, weight, on_infeasible
+        )
         base = reach_env(env, "SafetyFilter")
         if base.has_torque_hook("filter"):
             raise ValueError("this environment already has a safety filter installed")
@@ -167,7 +175,7 @@ def default_impedance(env: C3BFReachEnv) -> CartesianImpedance:
     return CartesianImpedance(stiffness=300.0, posture=env.model.key_qpos[0].copy(), max_force=150.0)
 
 
-class CartesianImpedanceAction(gym.ActionWrapper):
+class CartesianImpedanceAction(gym.ActionWrapper, gym.utils.EzPickle):
     """Actions are tool position targets; an impedance controller turns them into torque.
 
     The action ``a`` in ``Box(-1, 1, (3,))`` sets the target ``x_tool + max_offset * a`` (world
@@ -188,6 +196,9 @@ class CartesianImpedanceAction(gym.ActionWrapper):
             ``residual``) [m].
         controller: a custom :class:`CartesianImpedance`.
         residual: actions correct a straight step for the goal instead of being the whole offset.
+
+    Pickling rebuilds the wrapper, and so its controller hook, around the unpickled environment
+    (as :class:`SafetyFilter`).
     """
 
     def __init__(
@@ -198,6 +209,7 @@ class CartesianImpedanceAction(gym.ActionWrapper):
         residual: bool = False,
     ) -> None:
         super().__init__(env)
+        gym.utils.EzPickle.__init__(self, env, max_offset, controller, residual)
         base = reach_env(env, "CartesianImpedanceAction")
         if base.has_torque_hook("nominal"):
             raise ValueError("this environment already has a nominal controller installed")

@@ -131,6 +131,28 @@ def test_same_seed_same_filtered_trajectory(make_env):
     assert info_a[0][1]["safety"]["intervened"]
 
 
+@pytest.mark.parametrize("how", ["deepcopy", "pickle"])
+def test_a_copied_filtered_env_is_filtered_like_the_original(make_env, how):
+    """Gymnasium's MuJoCo envs pickle as their constructor arguments, so a copy is a new env: the
+    wrappers must put their hooks on it, or the copy would step unfiltered without a word."""
+    import copy
+    import pickle
+
+    original = SafetyFilter(CartesianImpedanceAction(make_env(scenario="multi")))
+    rollout(original, 3, 5, mixed_policy)  # a used env, hooks bound
+    clone = copy.deepcopy(original) if how == "deepcopy" else pickle.loads(pickle.dumps(original))
+    base, hooks = clone.unwrapped, clone.unwrapped._hook_chain
+    assert base is not original.unwrapped and len(hooks) == 2
+    assert hooks[1] is clone.hook and clone.hook.env is base and clone.env.hook.env is base
+    a, info_a = rollout(original, 4, 60, mixed_policy)
+    b, info_b = rollout(clone, 4, 60, mixed_policy)
+    np.testing.assert_array_equal(a, b)
+    for (reward_a, ia), (reward_b, ib) in zip(info_a, info_b):
+        assert reward_a == reward_b
+        assert_same_safety(ia, ib)
+    assert sum(ia["safety"]["intervened"] for _, ia in info_a) > 0
+
+
 # ----------------------------------------------------------------------------- info
 
 
