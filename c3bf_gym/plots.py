@@ -243,16 +243,36 @@ def _scenario_table(keys: Sequence[tuple[str, str, str]], groups: Mapping[tuple[
 ACTION_STYLES = {"impedance": "-", "residual": "--", "torque": ":"}
 
 
+#: Training options that runs averaged together must share (anything but the seed and where the
+#: run was written), with the value a run's config.json means when it predates the option.
+_RECIPE = {
+    "scenario": "random", "timesteps": None, "n_envs": 1, "policy_hz": None, "normalize_obs": False,
+    "distance_weight": 0.0, "action_weight": 0.0, "obstacle_encoder": "flat", "hyperparams": {},
+}  # fmt: skip
+
+
+def _check_recipe(key: tuple[str, str, str], entries: list[tuple[dict, dict]], runs: list[Path]) -> None:
+    """Raise if the runs of one group were trained differently: their mean would mean nothing."""
+    differ = [k for k, default in _RECIPE.items() if len({json.dumps(c.get(k, default), sort_keys=True) for c, _ in entries}) > 1]
+    if differ:
+        raise ValueError(
+            f"runs grouped as {' '.join(key)} differ in {', '.join(differ)} ({', '.join(str(r) for r in runs)}); "
+            "plot runs of one recipe together"
+        )
+
+
 def plot_training(runs: Sequence[Path], path: Path, window: int = 20) -> str:
     """Learning curves grouped by (algorithm, action mode, filter): mean and min-max over seeds.
 
     Returns a markdown table, one row per group: training collision steps (total and per seed)
     and the final models' success rate and return (per seed and mean) with the number of
     evaluation episodes per model; then, when the final evaluations recorded it, a second table
-    of the final success per concrete scenario (the components of ``random``).
+    of the final success per concrete scenario (the components of ``random``). Runs of one group
+    must share their training options but the seed (``ValueError`` otherwise).
     """
     plt = _pyplot()
     groups: dict[tuple[str, str, str], list[tuple[dict, dict[str, np.ndarray]]]] = {}
+    group_runs: dict[tuple[str, str, str], list[Path]] = {}
     for run in runs:
         config_file = run / "config.json"
         if not config_file.exists() or not (run / "episodes.csv").exists():
@@ -265,9 +285,13 @@ def plot_training(runs: Sequence[Path], path: Path, window: int = 20) -> str:
         config["_summary"] = json.loads(summary.read_text()) if summary.exists() else {}
         config["_final"] = _final_success(run)
         config["_by_scenario"] = _final_by_scenario(run)
-        groups.setdefault((config["algo"], config["action"], config["filter"]), []).append((config, data))
+        key = (config["algo"], config["action"], config["filter"])
+        groups.setdefault(key, []).append((config, data))
+        group_runs.setdefault(key, []).append(run)
     if not groups:
         raise ValueError("no run has a finished training episode to plot")
+    for key, entries in groups.items():
+        _check_recipe(key, entries, group_runs[key])
     order = {"none": 0, "hocbf": 1, "c3bf": 2}
     keys = sorted(groups, key=lambda k: (k[0], k[1], order.get(k[2], 3)))
     several_modes = len({k[:2] for k in keys}) > 1

@@ -197,11 +197,11 @@ def test_evaluate_missing_model(tmp_path):
         evaluate(tmp_path / "model.zip")
 
 
-def _fake_run(root, name, filter_name, action, costs, final=None, by_scenario=None):
+def _fake_run(root, name, filter_name, action, costs, final=None, by_scenario=None, **options):
     """A run directory as `train` writes it, with made-up numbers (tests the table, not RL)."""
     run = root / name
     run.mkdir()
-    (run / "config.json").write_text(json.dumps({"algo": "sac", "action": action, "filter": filter_name}))
+    (run / "config.json").write_text(json.dumps({"algo": "sac", "action": action, "filter": filter_name, **options}))
     with open(run / "episodes.csv", "w", newline="") as fh:
         writer = csv.writer(fh)
         writer.writerow(["timesteps", "return", "length", "success", "cost", "interventions", "cumulative_cost"])
@@ -240,6 +240,17 @@ def test_plot_training_splits_final_success_by_scenario(tmp_path):
     table = plot_training(runs, tmp_path / "curves.png").splitlines()
     assert "| algo | action | filter | static | multi |" in table  # the paper's order
     assert "| sac | residual | c3bf | 1.00 (1.00, 1.00; 2 ep.) | 0.50 (0.33, 0.67; 3 ep.) |" in table
+
+
+def test_plot_training_refuses_to_average_different_recipes(tmp_path):
+    runs = [
+        _fake_run(tmp_path, "a", "c3bf", "residual", [0, 0], final=0.8, seed=0),  # predates obstacle_encoder
+        _fake_run(tmp_path, "b", "c3bf", "residual", [0, 0], final=0.9, seed=1, obstacle_encoder="flat"),
+    ]
+    plot_training(runs, tmp_path / "same.png")  # an old config means the default: one recipe
+    runs.append(_fake_run(tmp_path, "c", "c3bf", "residual", [0, 0], final=1.0, seed=2, obstacle_encoder="set"))
+    with pytest.raises(ValueError, match="runs grouped as sac residual c3bf differ in obstacle_encoder"):
+        plot_training(runs, tmp_path / "mixed.png")
 
 
 def test_plot_training_rejects_a_non_run(tmp_path, capsys):
