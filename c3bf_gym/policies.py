@@ -58,22 +58,24 @@ class ObstacleSetExtractor(BaseFeaturesExtractor):
             )
         if isinstance(slot_features, bool) or not isinstance(slot_features, int) or slot_features < 1:
             raise ValueError(f"slot_features must be an integer >= 1, got {slot_features!r}")
-        own = [s for name, s in parts.items() if name not in _PER_SLOT]
-        self._own = torch.cat([torch.arange(s.start, s.stop) for s in own])
-        self._context = torch.cat([torch.arange(parts[n].start, parts[n].stop) for n in _CONTEXT])
+        own = torch.cat([torch.arange(s.start, s.stop) for name, s in parts.items() if name not in _PER_SLOT])
+        context = torch.cat([torch.arange(parts[n].start, parts[n].stop) for n in _CONTEXT])
         # (MAX_OBSTACLES, per-slot width) indices: slot k's entries of every per-slot part.
         columns = []
         for name in _PER_SLOT:
             s = parts[name]
             width = (s.stop - s.start) // MAX_OBSTACLES
             columns.append(torch.arange(s.start, s.stop).reshape(MAX_OBSTACLES, width))
-        self._slot = torch.cat(columns, dim=1)
-        self._sensed = torch.arange(parts["obstacle_sensed"].start, parts["obstacle_sensed"].stop)
-        slot_in = self._slot.shape[1] + len(self._context)
-        super().__init__(observation_space, features_dim=len(self._own) + 2 * slot_features)
+        slot = torch.cat(columns, dim=1)
+        sensed = torch.arange(parts["obstacle_sensed"].start, parts["obstacle_sensed"].stop)
+        super().__init__(observation_space, features_dim=len(own) + 2 * slot_features)
+        # index buffers: they follow the module to its device, and are not saved with it
+        for name, index in (("_own", own), ("_context", context), ("_slot", slot), ("_sensed", sensed)):
+            self.register_buffer(name, index, persistent=False)
         self.phi = nn.Sequential(
-            nn.Linear(slot_in, slot_features), nn.ReLU(), nn.Linear(slot_features, slot_features), nn.ReLU()
-        )
+            nn.Linear(slot.shape[1] + len(context), slot_features), nn.ReLU(),
+            nn.Linear(slot_features, slot_features), nn.ReLU(),
+        )  # fmt: skip
 
     def forward(self, observations: torch.Tensor) -> torch.Tensor:
         slots = observations[:, self._slot]  # (batch, slots, width)
