@@ -688,7 +688,7 @@ def test_a_bound_hook_pickles_and_binds_again(make_env):
     env.reset(seed=5)
     env.step(np.zeros(6, np.float32))  # binds the hook
     assert env.hook._bound
-    hook = pickle.loads(pickle.dumps(env)).hook
+    hook = pickle.loads(pickle.dumps(env.hook))  # the hook alone (a wrapped env pickles as its arguments)
     assert hook._bound == () and hook._bound_qp is None
     hook(np.zeros(6))
     assert hook._bound_qp is hook.qp and hook._bound[0] is not env.hook._bound[0]
