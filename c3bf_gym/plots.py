@@ -251,12 +251,12 @@ _RECIPE = {
 }  # fmt: skip
 
 
-def _check_recipe(key: tuple[str, str, str], entries: list[tuple[dict, dict]], runs: list[Path]) -> None:
+def _check_recipe(key: tuple[str, str, str], entries: list[tuple[dict, dict]]) -> None:
     """Raise if the runs of one group were trained differently: their mean would mean nothing."""
     differ = [k for k, default in _RECIPE.items() if len({json.dumps(c.get(k, default), sort_keys=True) for c, _ in entries}) > 1]
     if differ:
         raise ValueError(
-            f"runs grouped as {' '.join(key)} differ in {', '.join(differ)} ({', '.join(str(r) for r in runs)}); "
+            f"runs grouped as {' '.join(key)} differ in {', '.join(differ)} ({', '.join(c['_run'] for c, _ in entries)}); "
             "plot runs of one recipe together"
         )
 
@@ -272,7 +272,6 @@ def plot_training(runs: Sequence[Path], path: Path, window: int = 20) -> str:
     """
     plt = _pyplot()
     groups: dict[tuple[str, str, str], list[tuple[dict, dict[str, np.ndarray]]]] = {}
-    group_runs: dict[tuple[str, str, str], list[Path]] = {}
     for run in runs:
         config_file = run / "config.json"
         if not config_file.exists() or not (run / "episodes.csv").exists():
@@ -285,13 +284,12 @@ def plot_training(runs: Sequence[Path], path: Path, window: int = 20) -> str:
         config["_summary"] = json.loads(summary.read_text()) if summary.exists() else {}
         config["_final"] = _final_success(run)
         config["_by_scenario"] = _final_by_scenario(run)
-        key = (config["algo"], config["action"], config["filter"])
-        groups.setdefault(key, []).append((config, data))
-        group_runs.setdefault(key, []).append(run)
+        config["_run"] = str(run)
+        groups.setdefault((config["algo"], config["action"], config["filter"]), []).append((config, data))
     if not groups:
         raise ValueError("no run has a finished training episode to plot")
     for key, entries in groups.items():
-        _check_recipe(key, entries, group_runs[key])
+        _check_recipe(key, entries)
     order = {"none": 0, "hocbf": 1, "c3bf": 2}
     keys = sorted(groups, key=lambda k: (k[0], k[1], order.get(k[2], 3)))
     several_modes = len({k[:2] for k in keys}) > 1

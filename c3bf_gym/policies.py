@@ -20,7 +20,7 @@ import torch
 from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
 from torch import nn
 
-from c3bf_gym.envs.reach import OBSERVATION_LAYOUT
+from c3bf_gym.envs.reach import OBSERVATION_SLICES
 from c3bf_gym.scenarios import MAX_OBSTACLES
 
 __all__ = ["ObstacleSetExtractor"]
@@ -32,14 +32,6 @@ _CONTEXT = ("goal_rel", "tool_vel")
 _PER_SLOT = ("obstacle_rel_pos", "obstacle_vel", "obstacle_radius", "obstacle_sensed")
 
 
-def _slices() -> dict[str, slice]:
-    out, start = {}, 0
-    for name, size, _ in OBSERVATION_LAYOUT:
-        out[name] = slice(start, start + size)
-        start += size
-    return out
-
-
 class ObstacleSetExtractor(BaseFeaturesExtractor):
     """Features = the robot's own observation entries ++ max and sum of ``phi`` over sensed slots.
 
@@ -49,7 +41,7 @@ class ObstacleSetExtractor(BaseFeaturesExtractor):
     """
 
     def __init__(self, observation_space: gym.spaces.Box, slot_features: int = 64) -> None:
-        parts = _slices()
+        parts = OBSERVATION_SLICES
         size = sum(s.stop - s.start for s in parts.values())
         if observation_space.shape != (size,):
             raise ValueError(

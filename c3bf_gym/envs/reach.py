@@ -19,7 +19,7 @@ from c3bf_gym.scenarios import (
     get_scenario,
 )
 
-__all__ = ["C3BFReachEnv", "DISTANCE_CUTOFF", "HOOK_STAGES", "OBSERVATION_LAYOUT", "TorqueHook"]
+__all__ = ["C3BFReachEnv", "DISTANCE_CUTOFF", "HOOK_STAGES", "OBSERVATION_LAYOUT", "OBSERVATION_SLICES", "TorqueHook"]
 
 #: A per-physics-step torque transformation: total joint torque in (N m, gravity compensation
 #: included), total joint torque out. It may read ``env.data`` (kinematics and dynamics are
@@ -43,6 +43,11 @@ OBSERVATION_LAYOUT: tuple[tuple[str, int, str], ...] = (
     ("obstacle_sensed", MAX_OBSTACLES, "1 if sensed, else 0 (and the slot's other entries are 0)"),
 )
 _OBS_SIZE = sum(size for _, size, _ in OBSERVATION_LAYOUT)
+_OBS_ENDS = np.cumsum([size for _, size, _ in OBSERVATION_LAYOUT]).tolist()
+#: Where each part of ``OBSERVATION_LAYOUT`` lies in the observation vector.
+OBSERVATION_SLICES: dict[str, slice] = {
+    name: slice(end - size, end) for (name, size, _), end in zip(OBSERVATION_LAYOUT, _OBS_ENDS)
+}
 
 _ARM_CONTYPE = 2  # arm geoms: contype 2, conaffinity 1 (see assets/ur5e.xml)
 _PARK_DEPTH = -50.0  # unused obstacles wait here, far beyond the distance cutoff
@@ -264,12 +269,12 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
         self._obstacle_specs: list = [None] * MAX_OBSTACLES
         self._step_displacement = np.zeros((MAX_OBSTACLES, 3))
         self._obs = np.zeros(_OBS_SIZE)
-        k = MAX_OBSTACLES
+        parts = OBSERVATION_SLICES
         self._obs_obstacles = (  # views into self._obs
-            self._obs[21 : 21 + 3 * k].reshape(k, 3),
-            self._obs[21 + 3 * k : 21 + 6 * k].reshape(k, 3),
-            self._obs[21 + 6 * k : 21 + 7 * k],
-            self._obs[21 + 7 * k : 21 + 8 * k],
+            self._obs[parts["obstacle_rel_pos"]].reshape(MAX_OBSTACLES, 3),
+            self._obs[parts["obstacle_vel"]].reshape(MAX_OBSTACLES, 3),
+            self._obs[parts["obstacle_radius"]],
+            self._obs[parts["obstacle_sensed"]],
         )
         self._tool_vel = np.zeros(6)
 
