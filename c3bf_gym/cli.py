@@ -45,38 +45,42 @@ _nonnegative_float = _number(float, 0.0, strict=False)
 
 def _add_train(sub: argparse._SubParsersAction) -> None:
     from c3bf_gym.scenarios import SCENARIOS
-    from c3bf_gym.training import ACTIONS, ALGORITHMS, DEFAULT_TRAIN_HZ, FILTERS, OBSTACLE_ENCODERS, POLICY_RATES
+    from c3bf_gym.training import ACTIONS, ALGORITHMS, FILTERS, OBSTACLE_ENCODERS, POLICY_RATES, TrainConfig
+
+    d = TrainConfig()  # the defaults live there
 
     p = sub.add_parser(
         "train",
         help="train one Stable-Baselines3 agent",
         description="Train PPO or SAC on C3BFReach-v0, with no filter, the distance HOCBF or the C3BF "
         "filter. Writes a run directory (config, model, per-episode metrics with the cumulative "
-        "training cost, evaluations, tensorboard logs).",
+        "training cost, evaluations, tensorboard logs). The defaults are the recipe of the README's RL "
+        "table (c3bf_gym.training.TrainConfig).",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
-    p.add_argument("--algo", choices=ALGORITHMS, default="sac")
-    p.add_argument("--action", choices=ACTIONS, default="impedance",
+    p.add_argument("--algo", choices=ALGORITHMS, default=d.algo, help="Stable-Baselines3 algorithm")
+    p.add_argument("--action", choices=ACTIONS, default=d.action,
                    help="impedance: Cartesian tool targets through the impedance controller; residual: corrections "
                    "to a straight step for the goal, through the same controller; torque: raw joint torques")  # fmt: skip
-    p.add_argument("--filter", choices=FILTERS, default="c3bf")
-    p.add_argument("--scenario", choices=list(SCENARIOS), default="random")
-    p.add_argument("--timesteps", type=_positive_int, default=60_000)
-    p.add_argument("--seed", type=_nonnegative_int, default=0)
-    p.add_argument("--n-envs", type=_positive_int, default=1, help="parallel environments (SubprocVecEnv when > 1)")
-    p.add_argument("--eval-freq", type=_positive_int, default=10_000, help="evaluate every N timesteps")
-    p.add_argument("--eval-episodes", type=_positive_int, default=10, help="episodes per periodic evaluation")
-    p.add_argument("--final-eval-episodes", type=_nonnegative_int, default=50,
+    p.add_argument("--filter", choices=FILTERS, default=d.filter, help="safety filter during training")
+    p.add_argument("--scenario", choices=list(SCENARIOS), default=d.scenario, help="obstacle scenario")
+    p.add_argument("--timesteps", type=_positive_int, default=d.timesteps, help="policy steps to train")
+    p.add_argument("--seed", type=_nonnegative_int, default=d.seed, help="seed of the agent and the training envs")
+    p.add_argument("--n-envs", type=_positive_int, default=d.n_envs, help="parallel environments (SubprocVecEnv when > 1)")
+    p.add_argument("--eval-freq", type=_positive_int, default=d.eval_freq, help="evaluate every N timesteps")
+    p.add_argument("--eval-episodes", type=_positive_int, default=d.eval_episodes, help="episodes per periodic evaluation")
+    p.add_argument("--final-eval-episodes", type=_nonnegative_int, default=d.final_eval_episodes,
                    help="episodes of the final model's evaluation (final_eval.json; 0: none)")  # fmt: skip
-    p.add_argument("--checkpoint-freq", type=_positive_int, default=20_000)
-    p.add_argument("--out", default="runs", help="parent directory of the run directory")
+    p.add_argument("--checkpoint-freq", type=_positive_int, default=d.checkpoint_freq, help="save a checkpoint every N timesteps")
+    p.add_argument("--out", default=d.out, help="parent directory of the run directory")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    p.add_argument("--policy-hz", type=int, default=DEFAULT_TRAIN_HZ, choices=POLICY_RATES,
+    p.add_argument("--policy-hz", type=int, default=d.policy_hz, choices=POLICY_RATES,
                    help="actions per second (the physics and the filter stay at 500 Hz; episodes stay 5 s)")  # fmt: skip
-    p.add_argument("--distance-weight", type=_nonnegative_float, default=0.0,
+    p.add_argument("--distance-weight", type=_nonnegative_float, default=d.distance_weight,
                    help="weight of the reward's dense -distance term (C3BFReachEnv's distance_weight; 0: off)")  # fmt: skip
-    p.add_argument("--action-weight", type=_nonnegative_float, default=0.0,
+    p.add_argument("--action-weight", type=_nonnegative_float, default=d.action_weight,
                    help="weight of a -mean(action^2) reward term (ActionPenalty; keeps a residual policy near its prior; 0: off)")  # fmt: skip
-    p.add_argument("--obstacle-encoder", choices=OBSTACLE_ENCODERS, default="flat",
+    p.add_argument("--obstacle-encoder", choices=OBSTACLE_ENCODERS, default=d.obstacle_encoder,
                    help="how the policy reads the obstacle slots: flat (an MLP on the whole observation) or set "
                         "(one shared encoder per slot, pooled: c3bf_gym.policies.ObstacleSetExtractor)")  # fmt: skip
     p.add_argument("--normalize-obs", action="store_true",
@@ -133,6 +137,8 @@ def _run_evaluate(args: argparse.Namespace) -> int:
 
 
 def _add_plot_training(sub: argparse._SubParsersAction) -> None:
+    from c3bf_gym.training import FINAL_EVAL_FILE
+
     p = sub.add_parser(
         "plot-training",
         help="learning curves of several runs",
@@ -142,13 +148,17 @@ def _add_plot_training(sub: argparse._SubParsersAction) -> None:
     p.add_argument("runs", nargs="+", help="run directories (each with config.json and episodes.csv)")
     p.add_argument("--out", default="docs/training_curves.png")
     p.add_argument("--table", default=None, help="also write a summary table (markdown) here")
+    p.add_argument("--evaluation", default=FINAL_EVAL_FILE,
+                   help="the final models' numbers come from this file in each run directory: the run's own "
+                   f"{FINAL_EVAL_FILE} (default) or a longer evaluation written there by "
+                   "`c3bf-gym evaluate RUN/model.zip --episodes N --json RUN/FILE`")  # fmt: skip
     p.set_defaults(func=_run_plot_training)
 
 
 def _run_plot_training(args: argparse.Namespace) -> int:
     from c3bf_gym.plots import plot_training
 
-    table = plot_training([Path(r) for r in args.runs], Path(args.out))
+    table = plot_training([Path(r) for r in args.runs], Path(args.out), evaluation=args.evaluation)
     print(table)
     if args.table:
         Path(args.table).write_text(table + "\n")

@@ -10,6 +10,7 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from c3bf_gym.metrics import EpisodeRecord
+from c3bf_gym.training import FINAL_EVAL_FILE
 
 __all__ = [
     "plot_barrier",
@@ -194,13 +195,17 @@ def _read_episodes(run: Path) -> dict[str, np.ndarray]:
     return {key: np.array([float(r[key]) for r in rows]) for key in (rows[0] if rows else {})}
 
 
-def _final_success(run: Path) -> tuple[float, float, int] | None:
-    """(success rate, mean return, episodes) of a run's final model: ``final_eval.json`` when the
-    run has it, else the last periodic evaluation in ``evaluations.npz``; None without either."""
-    final = run / "final_eval.json"
+def _final_success(run: Path, evaluation: str = FINAL_EVAL_FILE) -> tuple[float, float, int] | None:
+    """(success rate, mean return, episodes) of a run's final model from its ``evaluation`` file
+    (``c3bf-gym evaluate --json``'s format). For the default ``final_eval.json``, runs made before
+    it was recorded fall back to their last periodic evaluation in ``evaluations.npz`` (None
+    without either); any other file must exist."""
+    final = run / evaluation
     if final.exists():
         result = json.loads(final.read_text())
         return result["success_rate"], result["return_mean"], result["episodes"]
+    if evaluation != FINAL_EVAL_FILE:
+        raise FileNotFoundError(f"{run} has no {evaluation} (write it with: c3bf-gym evaluate {run / 'model.zip'} --json {final})")
     if (run / "evaluations.npz").exists():
         evals = np.load(run / "evaluations.npz")
         if "successes" in evals and len(evals["successes"]):
@@ -208,10 +213,10 @@ def _final_success(run: Path) -> tuple[float, float, int] | None:
     return None
 
 
-def _final_by_scenario(run: Path) -> dict[str, dict[str, float]]:
-    """``final_eval.json``'s success per concrete scenario (empty for runs evaluated before it
-    was recorded, or without a final evaluation)."""
-    final = run / "final_eval.json"
+def _final_by_scenario(run: Path, evaluation: str = FINAL_EVAL_FILE) -> dict[str, dict[str, float]]:
+    """The ``evaluation`` file's success per concrete scenario (empty for runs evaluated before
+    it was recorded, or without a final evaluation)."""
+    final = run / evaluation
     return json.loads(final.read_text()).get("by_scenario", {}) if final.exists() else {}
 
 
@@ -261,14 +266,17 @@ def _check_recipe(key: tuple[str, str, str], entries: list[tuple[dict, dict]]) -
         )
 
 
-def plot_training(runs: Sequence[Path], path: Path, window: int = 20) -> str:
+def plot_training(runs: Sequence[Path], path: Path, window: int = 20, evaluation: str = FINAL_EVAL_FILE) -> str:
     """Learning curves grouped by (algorithm, action mode, filter): mean and min-max over seeds.
 
-    Returns a markdown table, one row per group: training collision steps (total and per seed)
-    and the final models' success rate and return (per seed and mean) with the number of
-    evaluation episodes per model; then, when the final evaluations recorded it, a second table
-    of the final success per concrete scenario (the components of ``random``). Runs of one group
-    must share their training options but the seed (``ValueError`` otherwise).
+    Returns a markdown table, one row per group: training collision steps and training episodes
+    with an infeasible step (total and per seed), and the final models' success rate and return (per seed and mean) with the number of
+    evaluation episodes per model; then, when the evaluations recorded it, a second table of the
+    final success per concrete scenario (the components of ``random``). The final models'
+    numbers come from each run's ``evaluation`` file: ``final_eval.json`` (written by the run) by
+    default, or a longer evaluation written by ``c3bf-gym evaluate --json`` into the run
+    directory (``FileNotFoundError`` if a run lacks it). Runs of one group must share their
+    training options but the seed (``ValueError`` otherwise).
     """
     plt = _pyplot()
     groups: dict[tuple[str, str, str], list[tuple[dict, dict[str, np.ndarray]]]] = {}
@@ -282,8 +290,8 @@ def plot_training(runs: Sequence[Path], path: Path, window: int = 20) -> str:
             continue
         summary = run / "summary.json"
         config["_summary"] = json.loads(summary.read_text()) if summary.exists() else {}
-        config["_final"] = _final_success(run)
-        config["_by_scenario"] = _final_by_scenario(run)
+        config["_final"] = _final_success(run, evaluation)
+        config["_by_scenario"] = _final_by_scenario(run, evaluation)
         config["_run"] = str(run)
         groups.setdefault((config["algo"], config["action"], config["filter"]), []).append((config, data))
     if not groups:
@@ -297,8 +305,9 @@ def plot_training(runs: Sequence[Path], path: Path, window: int = 20) -> str:
     grid_len = 200
     lines = [
         "| algo | action | filter | seeds | timesteps | training collision steps (per seed) "
+        "| training episodes with an infeasible step (per seed) "
         "| final success (per seed) | final return | eval episodes per model |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for key in keys:
         algo, action, name = key
@@ -322,6 +331,10 @@ def plot_training(runs: Sequence[Path], path: Path, window: int = 20) -> str:
         costs = [int(c["_summary"].get("training_cost", d["cumulative_cost"][-1])) for c, d in entries]
         finals = [c["_final"] for c, _ in entries if c["_final"] is not None]
         head = f"| {algo} | {action} | {name} | {len(entries)} | {int(horizon)} | {sum(costs)} ({', '.join(map(str, costs))}) |"
+        # episodes where the QP had no solution (the filter applied its least-violating torque);
+        # runs from before episodes.csv recorded it count as n/a
+        infeasible = [int(np.count_nonzero(d["infeasible"])) if "infeasible" in d else None for _, d in entries]
+        head += (f" {sum(infeasible)} ({', '.join(map(str, infeasible))}) |" if None not in infeasible else " n/a |")
         if finals:
             succ, ret, episodes = zip(*finals)
             per_seed = ", ".join(f"{x:.2f}" for x in succ)

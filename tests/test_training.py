@@ -3,7 +3,10 @@
 from __future__ import annotations
 
 import csv
+import importlib.util
 import json
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -124,9 +127,9 @@ def test_policy_rate_keeps_five_second_episodes(hz):
 
 
 def test_distance_weight_reaches_the_env_and_names_the_run():
-    config = TrainConfig(action="residual", distance_weight=5.0, policy_hz=10)
+    config = TrainConfig(action="residual", distance_weight=5.0, action_weight=0.0, obstacle_encoder="flat", policy_hz=10)
     assert config.name == "sac_residual_10hz_dw5_c3bf_random_s0"
-    assert TrainConfig(action="residual", policy_hz=10).env_kwargs() == policy_rate_kwargs(10)
+    assert TrainConfig(action="residual", policy_hz=10, distance_weight=0.0).env_kwargs() == policy_rate_kwargs(10)
     env = make_env("none", "none", "residual", seed=0, **config.env_kwargs())()
     _, reward, *_, info = env.step(np.zeros(3, np.float32))
     assert info["reward_distance"] == pytest.approx(-5.0 * info["distance"])
@@ -134,7 +137,7 @@ def test_distance_weight_reaches_the_env_and_names_the_run():
 
 
 def test_action_weight_penalises_the_policy_action_and_names_the_run():
-    config = TrainConfig(action="residual", distance_weight=10.0, action_weight=0.5, policy_hz=10)
+    config = TrainConfig(action="residual", distance_weight=10.0, action_weight=0.5, obstacle_encoder="flat", policy_hz=10)
     assert config.name == "sac_residual_10hz_dw10_aw0.5_c3bf_random_s0"
     env = make_env("none", "c3bf", "residual", seed=0, action_weight=0.5, **config.env_kwargs())()
     assert [type(w).__name__ for w in (env, env.env)] == ["Monitor", "ActionPenalty"]
@@ -142,6 +145,29 @@ def test_action_weight_penalises_the_policy_action_and_names_the_run():
     assert info["reward_action"] == pytest.approx(-0.5)
     assert reward == pytest.approx(sum(v for k, v in info.items() if k.startswith("reward_")))
     env.close()
+
+
+def test_defaults_are_the_readme_recipe_on_every_entry_point(monkeypatch, tmp_path):
+    """`c3bf-gym train` and train/run_baselines.py take their defaults from TrainConfig, whose
+    defaults are the recipe of the README's RL table (its run names say so)."""
+    import c3bf_gym.training
+
+    assert TrainConfig().name == "sac_residual_10hz_dw10_aw3_set_c3bf_random_s0"
+    assert TrainConfig().timesteps == 25_000
+    seen = []
+    (tmp_path / "summary.json").write_text("{}")
+    monkeypatch.setattr(c3bf_gym.training, "train", lambda config: seen.append(config) or tmp_path)
+    assert main(["train"]) == 0 and seen == [TrainConfig()]
+    # run_baselines.py passes every option on, so its runs are the same recipe
+    spec = importlib.util.spec_from_file_location("run_baselines", Path(__file__).parents[1] / "train" / "run_baselines.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    commands = []
+    monkeypatch.setattr(module.subprocess, "call", lambda command, **_: commands.append(command) or 0)
+    monkeypatch.setattr(sys, "argv", ["run_baselines.py", "--filters", "c3bf", "--seeds", "0", "--out", str(tmp_path)])
+    assert module.main() == 0 and len(commands) == 1 and commands[0][1:4] == ["-m", "c3bf_gym.cli", "train"]
+    assert main(commands[0][3:]) == 0
+    assert seen[1] == TrainConfig(out=str(tmp_path), progress_bar=False)
 
 
 def test_by_scenario_splits_an_evaluation_by_its_concrete_scenarios():
@@ -197,16 +223,19 @@ def test_evaluate_missing_model(tmp_path):
         evaluate(tmp_path / "model.zip")
 
 
-def _fake_run(root, name, filter_name, action, costs, final=None, by_scenario=None, **options):
-    """A run directory as `train` writes it, with made-up numbers (tests the table, not RL)."""
+def _fake_run(root, name, filter_name, action, costs, final=None, by_scenario=None, infeasible=True, **options):
+    """A run directory as `train` writes it, with made-up numbers (tests the table, not RL); an
+    infeasible step in episode 2 if it had no collision, and no such column with ``infeasible=False``
+    (runs from before it was recorded)."""
     run = root / name
     run.mkdir()
     (run / "config.json").write_text(json.dumps({"algo": "sac", "action": action, "filter": filter_name, **options}))
     with open(run / "episodes.csv", "w", newline="") as fh:
         writer = csv.writer(fh)
-        writer.writerow(["timesteps", "return", "length", "success", "cost", "interventions", "cumulative_cost"])
+        writer.writerow(["timesteps", "return", "length", "success", "cost", "interventions"] + ["infeasible"] * infeasible + ["cumulative_cost"])
         for i, cost in enumerate(costs):
-            writer.writerow([250 * (i + 1), 10.0 * i, 250, float(i % 2), cost, 0, sum(costs[: i + 1])])
+            row = [250 * (i + 1), 10.0 * i, 250, float(i % 2), cost, 0] + [float(i == 1 and cost == 0)] * infeasible
+            writer.writerow(row + [sum(costs[: i + 1])])
     (run / "summary.json").write_text(json.dumps({"training_cost": float(sum(costs))}))
     if final is not None:
         record = {"success_rate": final, "return_mean": 5.0, "episodes": 50}
@@ -221,15 +250,15 @@ def test_plot_training_table_groups_by_mode_and_filter(tmp_path):
         _fake_run(tmp_path, "a", "none", "impedance", [3, 0, 2], final=0.5),
         _fake_run(tmp_path, "b", "none", "impedance", [1, 1, 0], final=0.25),
         _fake_run(tmp_path, "c", "c3bf", "residual", [0, 0, 0], final=1.0),
-        _fake_run(tmp_path, "d", "c3bf", "impedance", [0, 0, 0]),  # no evaluation at all
+        _fake_run(tmp_path, "d", "c3bf", "impedance", [0, 0, 0], infeasible=False),  # no evaluation at all, an old run
     ]
     out = tmp_path / "curves.png"
     assert main(["plot-training", *map(str, runs), "--out", str(out), "--table", str(tmp_path / "t.md")]) == 0
     rows = (tmp_path / "t.md").read_text().splitlines()
     assert out.stat().st_size > 0
-    assert "| sac | impedance | none | 2 | 750 | 7 (5, 2) | 0.38 (0.50, 0.25) | 5.0 | 50 |" in rows
-    assert "| sac | impedance | c3bf | 1 | 750 | 0 (0) | n/a | n/a | n/a |" in rows
-    assert "| sac | residual | c3bf | 1 | 750 | 0 (0) | 1.00 (1.00) | 5.0 | 50 |" in rows
+    assert "| sac | impedance | none | 2 | 750 | 7 (5, 2) | 1 (1, 0) | 0.38 (0.50, 0.25) | 5.0 | 50 |" in rows
+    assert "| sac | impedance | c3bf | 1 | 750 | 0 (0) | n/a | n/a | n/a | n/a |" in rows
+    assert "| sac | residual | c3bf | 1 | 750 | 0 (0) | 1 (1) | 1.00 (1.00) | 5.0 | 50 |" in rows
     assert not any("multi" in row for row in rows)  # no run recorded the split by scenario
 
 
@@ -240,6 +269,21 @@ def test_plot_training_splits_final_success_by_scenario(tmp_path):
     table = plot_training(runs, tmp_path / "curves.png").splitlines()
     assert "| algo | action | filter | static | multi |" in table  # the paper's order
     assert "| sac | residual | c3bf | 1.00 (1.00, 1.00; 2 ep.) | 0.50 (0.33, 0.67; 3 ep.) |" in table
+
+
+def test_plot_training_reads_a_longer_evaluation_when_asked(tmp_path):
+    runs = [_fake_run(tmp_path, name, "c3bf", "residual", [0, 0], final=0.8) for name in "ab"]
+    for run, rate in zip(runs, (0.9, 0.95)):
+        split = {"multi": {"episodes": 50, "success_rate": rate, "collision_episodes": 0}}
+        (run / "eval_200.json").write_text(json.dumps({"success_rate": rate, "return_mean": 7.0, "episodes": 200, "by_scenario": split}))
+    table = (tmp_path / "t.md")
+    assert main(["plot-training", *map(str, runs), "--out", str(tmp_path / "c.png"), "--table", str(table), "--evaluation", "eval_200.json"]) == 0
+    rows = table.read_text().splitlines()
+    assert "| sac | residual | c3bf | 2 | 500 | 0 (0, 0) | 2 (1, 1) | 0.93 (0.90, 0.95) | 7.0 | 200 |" in rows
+    assert "| sac | residual | c3bf | 0.93 (0.90, 0.95; 50 ep.) |" in rows
+    (runs[1] / "eval_200.json").unlink()
+    with pytest.raises(FileNotFoundError, match=r"b has no eval_200.json \(write it with: c3bf-gym evaluate"):
+        plot_training(runs, tmp_path / "c.png", evaluation="eval_200.json")
 
 
 def test_plot_training_refuses_to_average_different_recipes(tmp_path):

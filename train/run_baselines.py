@@ -2,9 +2,10 @@
 
 Runs go two at a time (one core each; set --jobs) as `c3bf-gym train` subprocesses, so every
 run's exact command is in its config.json and its log in OUT/logs/. Finished runs are skipped,
-so the script can be re-run after an interruption.
+so the script can be re-run after an interruption. The defaults are `TrainConfig`'s (the
+README's RL recipe); for example, the first set of the README's table:
 
-    python train/run_baselines.py --algo sac --action impedance --seeds 0 1 2 --timesteps 40000
+    python train/run_baselines.py --seeds 0 1 2
 """
 
 from __future__ import annotations
@@ -17,22 +18,25 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-from c3bf_gym.training import ACTIONS, ALGORITHMS, DEFAULT_TRAIN_HZ, FILTERS, OBSTACLE_ENCODERS, POLICY_RATES, TrainConfig
+from c3bf_gym.training import ACTIONS, ALGORITHMS, FILTERS, OBSTACLE_ENCODERS, POLICY_RATES, TrainConfig
 
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--algo", choices=ALGORITHMS, default="sac")
-    parser.add_argument("--action", choices=ACTIONS, default="impedance")
+    d = TrainConfig()  # the defaults live there
+    parser.add_argument("--algo", choices=ALGORITHMS, default=d.algo)
+    parser.add_argument("--action", choices=ACTIONS, default=d.action)
     parser.add_argument("--filters", nargs="+", choices=FILTERS, default=["none", "c3bf", "hocbf"])
-    parser.add_argument("--scenario", default="random")
+    parser.add_argument("--scenario", default=d.scenario)
     parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
-    parser.add_argument("--timesteps", type=int, default=40_000)
-    parser.add_argument("--policy-hz", type=int, choices=POLICY_RATES, default=DEFAULT_TRAIN_HZ)
+    parser.add_argument("--timesteps", type=int, default=d.timesteps)
+    parser.add_argument("--policy-hz", type=int, choices=POLICY_RATES, default=d.policy_hz)
     parser.add_argument("--normalize-obs", action="store_true")
-    parser.add_argument("--distance-weight", type=float, default=0.0, help="the reward's dense -distance term")
-    parser.add_argument("--action-weight", type=float, default=0.0, help="the reward's -mean(action^2) term")
-    parser.add_argument("--obstacle-encoder", choices=OBSTACLE_ENCODERS, default="flat",
+    parser.add_argument("--distance-weight", type=float, default=d.distance_weight,
+                        help="the reward's dense -distance term (default %(default)s)")
+    parser.add_argument("--action-weight", type=float, default=d.action_weight,
+                        help="the reward's -mean(action^2) term (default %(default)s)")
+    parser.add_argument("--obstacle-encoder", choices=OBSTACLE_ENCODERS, default=d.obstacle_encoder,
                         help="flat MLP or a shared per-obstacle encoder (set)")
     parser.add_argument("--hyperparams", default=None, help="JSON overriding the defaults (passed to every run)")
     parser.add_argument("--jobs", type=int, default=2)
