@@ -74,9 +74,9 @@ def test_evaluate_command_with_another_filter(tmp_path, capsys):
 def test_normalized_run_saves_and_applies_its_statistics(tmp_path, monkeypatch):
     from stable_baselines3 import SAC
 
-    run = train(TrainConfig(timesteps=300, filter="none", scenario="head_on", normalize_obs=True, policy_hz=10, eval_freq=10_000,
-                            final_eval_episodes=1, out=str(tmp_path), progress_bar=False, distance_weight=2.0,
-                            hyperparams={"learning_starts": 100}))  # fmt: skip
+    run = train(TrainConfig(timesteps=300, action="impedance", filter="none", scenario="head_on", normalize_obs=True, policy_hz=10,
+                            eval_freq=10_000, final_eval_episodes=1, out=str(tmp_path), progress_bar=False, distance_weight=2.0,
+                            action_weight=0.0, obstacle_encoder="flat", hyperparams={"learning_starts": 100}))  # fmt: skip
     assert run.name == "sac_impedance_norm_10hz_dw2_none_head_on_s0"
     stats = _load_normalizer(run / NORMALIZATION_FILE)
     assert stats is not None and stats.obs_rms.count >= 300 and not stats.training
@@ -105,7 +105,7 @@ def test_set_encoder_run_names_itself_reloads_and_evaluates(tmp_path):
     run = train(TrainConfig(timesteps=250, action="residual", scenario="multi", policy_hz=10, obstacle_encoder="set",
                             eval_freq=10_000, final_eval_episodes=0, out=str(tmp_path), progress_bar=False,
                             hyperparams={"learning_starts": 100}))  # fmt: skip
-    assert run.name == "sac_residual_10hz_set_c3bf_multi_s0"
+    assert run.name == "sac_residual_10hz_dw10_aw3_set_c3bf_multi_s0"
     assert json.loads((run / "config.json").read_text())["obstacle_encoder"] == "set"
     model = SAC.load(run / "model.zip", device="cpu")
     assert isinstance(model.actor.features_extractor, ObstacleSetExtractor)
