@@ -205,7 +205,7 @@ def _final_success(run: Path, evaluation: str = FINAL_EVAL_FILE) -> tuple[float,
         result = json.loads(final.read_text())
         return result["success_rate"], result["return_mean"], result["episodes"]
     if evaluation != FINAL_EVAL_FILE:
-        raise FileNotFoundError(f"{run} has no {evaluation} (write it with: c3bf-gym evaluate {run / 'model.zip'} --json {final})")
+        raise FileNotFoundError(f"{run} has no {evaluation} (write it with: c3bf-gym evaluate {run / 'model.zip'} --episodes N --json {final})")
     if (run / "evaluations.npz").exists():
         evals = np.load(run / "evaluations.npz")
         if "successes" in evals and len(evals["successes"]):
@@ -270,13 +270,14 @@ def plot_training(runs: Sequence[Path], path: Path, window: int = 20, evaluation
     """Learning curves grouped by (algorithm, action mode, filter): mean and min-max over seeds.
 
     Returns a markdown table, one row per group: training collision steps and training episodes
-    with an infeasible step (total and per seed), and the final models' success rate and return (per seed and mean) with the number of
-    evaluation episodes per model; then, when the evaluations recorded it, a second table of the
-    final success per concrete scenario (the components of ``random``). The final models'
-    numbers come from each run's ``evaluation`` file: ``final_eval.json`` (written by the run) by
-    default, or a longer evaluation written by ``c3bf-gym evaluate --json`` into the run
-    directory (``FileNotFoundError`` if a run lacks it). Runs of one group must share their
-    training options but the seed (``ValueError`` otherwise).
+    with an infeasible step (total and per seed), and the final models' success rate and return
+    (per seed and mean) with the number of evaluation episodes per model; then, when the
+    evaluations recorded it, a second table of the final success per concrete scenario (the
+    components of ``random``). The final models' numbers come from each run's ``evaluation``
+    file: ``final_eval.json`` (written by the run) by default, or a longer evaluation written by
+    ``c3bf-gym evaluate --json`` into the run directory (``FileNotFoundError`` if a run lacks
+    it). Runs of one group must share their training options but the seed (``ValueError``
+    otherwise).
     """
     plt = _pyplot()
     groups: dict[tuple[str, str, str], list[tuple[dict, dict[str, np.ndarray]]]] = {}
