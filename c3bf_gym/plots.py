@@ -195,29 +195,23 @@ def _read_episodes(run: Path) -> dict[str, np.ndarray]:
     return {key: np.array([float(r[key]) for r in rows]) for key in (rows[0] if rows else {})}
 
 
-def _final_success(run: Path, evaluation: str = FINAL_EVAL_FILE) -> tuple[float, float, int] | None:
-    """(success rate, mean return, episodes) of a run's final model from its ``evaluation`` file
-    (``c3bf-gym evaluate --json``'s format). For the default ``final_eval.json``, runs made before
-    it was recorded fall back to their last periodic evaluation in ``evaluations.npz`` (None
-    without either); any other file must exist."""
+def _final_evaluation(run: Path, evaluation: str = FINAL_EVAL_FILE) -> tuple[tuple[float, float, int] | None, dict]:
+    """A run's final model, from its ``evaluation`` file (``c3bf-gym evaluate --json``'s format,
+    read once): ``(success rate, mean return, episodes)`` and the success per concrete scenario
+    (empty for runs evaluated before it was recorded). For the default ``final_eval.json``, runs
+    made before it was recorded fall back to their last periodic evaluation in
+    ``evaluations.npz`` (None without either); any other file must exist."""
     final = run / evaluation
     if final.exists():
         result = json.loads(final.read_text())
-        return result["success_rate"], result["return_mean"], result["episodes"]
+        return (result["success_rate"], result["return_mean"], result["episodes"]), result.get("by_scenario", {})
     if evaluation != FINAL_EVAL_FILE:
         raise FileNotFoundError(f"{run} has no {evaluation} (write it with: c3bf-gym evaluate {run / 'model.zip'} --episodes N --json {final})")
     if (run / "evaluations.npz").exists():
         evals = np.load(run / "evaluations.npz")
         if "successes" in evals and len(evals["successes"]):
-            return float(np.mean(evals["successes"][-1])), float(np.mean(evals["results"][-1])), evals["successes"].shape[1]
-    return None
-
-
-def _final_by_scenario(run: Path, evaluation: str = FINAL_EVAL_FILE) -> dict[str, dict[str, float]]:
-    """The ``evaluation`` file's success per concrete scenario (empty for runs evaluated before
-    it was recorded, or without a final evaluation)."""
-    final = run / evaluation
-    return json.loads(final.read_text()).get("by_scenario", {}) if final.exists() else {}
+            return (float(np.mean(evals["successes"][-1])), float(np.mean(evals["results"][-1])), evals["successes"].shape[1]), {}
+    return None, {}
 
 
 def _scenario_table(keys: Sequence[tuple[str, str, str]], groups: Mapping[tuple[str, str, str], list]) -> list[str]:
@@ -291,8 +285,7 @@ def plot_training(runs: Sequence[Path], path: Path, window: int = 20, evaluation
             continue
         summary = run / "summary.json"
         config["_summary"] = json.loads(summary.read_text()) if summary.exists() else {}
-        config["_final"] = _final_success(run, evaluation)
-        config["_by_scenario"] = _final_by_scenario(run, evaluation)
+        config["_final"], config["_by_scenario"] = _final_evaluation(run, evaluation)
         config["_run"] = str(run)
         groups.setdefault((config["algo"], config["action"], config["filter"]), []).append((config, data))
     if not groups:

@@ -3,9 +3,9 @@
 Runs go two at a time (one core each; set --jobs) as `c3bf-gym train` subprocesses, so every
 run's exact command is in its config.json and its log in OUT/logs/. Finished runs are skipped,
 so the script can be re-run after an interruption. The defaults are `TrainConfig`'s (the
-README's RL recipe); for example, the first set of the README's table:
+README's RL recipe); for example, the main set of the README's table:
 
-    python train/run_baselines.py --seeds 0 1 2
+    python train/run_baselines.py --seeds 0 1 2 3 4
 """
 
 from __future__ import annotations

@@ -42,8 +42,8 @@ OBSERVATION_LAYOUT: tuple[tuple[str, int, str], ...] = (
     ("obstacle_radius", MAX_OBSTACLES, "m"),
     ("obstacle_sensed", MAX_OBSTACLES, "1 if sensed, else 0 (and the slot's other entries are 0)"),
 )
-_OBS_SIZE = sum(size for _, size, _ in OBSERVATION_LAYOUT)
 _OBS_ENDS = np.cumsum([size for _, size, _ in OBSERVATION_LAYOUT]).tolist()
+_OBS_SIZE = _OBS_ENDS[-1]
 #: Where each part of ``OBSERVATION_LAYOUT`` lies in the observation vector.
 OBSERVATION_SLICES: dict[str, slice] = {
     name: slice(end - size, end) for (name, size, _), end in zip(OBSERVATION_LAYOUT, _OBS_ENDS)
