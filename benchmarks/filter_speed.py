@@ -9,12 +9,15 @@ has work to do (``--policy random``: uniformly random torques instead). Every ``
 is timed as a whole; with ``--split`` also (same call, no second evaluation) its rows
 (``SafetyHook.rows``: arm dynamics, barrier, joint limits) and QP solve (``TorqueQP.solve_scaled``),
 for a hook that calls them: the whole-arm hook runs both in one kernel (``_kernels.hook_step``),
-so its split columns stay empty ("nan"). Median, p99 and max in µs, the share of calls the QP
-answered on its fast path (nominal already safe), and the QP's status counts (and the calls the
-active-set solver handed to proxsuite, "fallback").
+so its split columns stay empty ("nan"). Median, p99 and max in µs, of all calls and of the
+relaxed ones (no torque satisfied every row: the elastic and the per-row repair QPs ran), the
+share of calls the QP answered on its fast path (nominal already safe), and the QP's status
+counts (and the calls the active-set solver handed to proxsuite, "fallback"; the repairs settled
+in τ alone with their mean rounds, and those left to the slack QP: ``TorqueQP.repair_stats``).
 
 ``--qp-solver active_set proxsuite`` compares :class:`~c3bf_gym.qp.TorqueQP` solvers: the hook's
-QP is replaced by one with that ``solver`` (same rows, box and weight), and each obstacle count
+QP is replaced by one with that ``solver`` (same rows, box and weight; ``slack_repair`` is
+``active_set`` with ``repair_rounds = 0``, the per-row repair as the QP in (τ, t_K)), and each obstacle count
 runs ``--latency-rounds`` rounds (default 2) of ``--calls / rounds`` calls per solver, the order
 rotating per round and round r using seed ``--seed + r`` for both, so machine noise and the
 arrangements hit the solvers alike. One line per solver (calls pooled over the rounds), then the
@@ -132,7 +135,9 @@ class TimedHook:
         self.status: dict[str, int] = {}
         self.sensed: list[int] = []
         self.n_rows: list[int] = []
+        self.relaxed: list[bool] = []
         self._fallbacks0 = getattr(hook.qp, "active_set_fallbacks", 0)
+        self._repair0 = dict(getattr(hook.qp, "repair_stats", {}))  # older versions: no repair in τ alone
         if not split:
             return
         rows = hook.rows
@@ -165,8 +170,15 @@ class TimedHook:
         self.calls += 1
         self.fast.append(result.iterations == 0)
         self.status[result.status] = self.status.get(result.status, 0) + 1
+        self.relaxed.append(result.status == "relaxed")
         self.sensed.append(hook.report.sensed)
         self.n_rows.append(hook.qp._m_prev)
+
+    @property
+    def repair(self) -> dict[str, int]:
+        """``TorqueQP.repair_stats`` since this timer was installed (empty for older versions)."""
+        now = getattr(self.hook.qp, "repair_stats", {})
+        return {k: now[k] - self._repair0.get(k, 0) for k in now}
 
     @property
     def fallbacks(self) -> int:
@@ -187,9 +199,14 @@ class TimedHook:
 
 
 def use_solver(hook, solver: str) -> None:
-    """Give the hook a TorqueQP with ``solver`` (same size and box; the filter's W is the default)."""
+    """Give the hook a TorqueQP with ``solver`` (same size and box; the filter's W is the default).
+    ``slack_repair``: the active-set solver with ``repair_rounds = 0`` (the per-row repair always
+    as the QP in (τ, t_K), as before the repair in τ alone)."""
     qp = hook.qp
-    if getattr(qp, "solver", "proxsuite") != solver:
+    if solver == "slack_repair":
+        hook.qp = TorqueQP(qp.n, qp.max_rows, qp.tau_min, qp.tau_max, solver="active_set")
+        hook.qp.repair_rounds = 0
+    elif getattr(qp, "solver", "proxsuite") != solver:
         hook.qp = TorqueQP(qp.n, qp.max_rows, qp.tau_min, qp.tau_max, solver=solver)
 
 
@@ -236,12 +253,17 @@ def summary(timed: list[TimedHook]) -> dict:
     """The table row of the hook timers ``timed`` (calls pooled)."""
     pool = {key: [v for t in timed for v in getattr(t, key)] for key in ("total", "rows", "qp", "fast", "sensed")}
     status: dict[str, int] = {}
+    repair: dict[str, int] = {}
     for t in timed:
         for k, v in t.status.items():
             status[k] = status.get(k, 0) + v
+        for k, v in t.repair.items():
+            repair[k] = repair.get(k, 0) + v
+    relaxed_total = [v for t in timed for v, relaxed in zip(t.total, t.relaxed) if relaxed]
     return {
         "total_median_us": us(pool["total"], 50), "total_p99_us": us(pool["total"], 99),
-        "total_max_us": us(pool["total"], 100),
+        "total_max_us": us(pool["total"], 100), "relaxed_median_us": us(relaxed_total, 50),
+        "relaxed_p99_us": us(relaxed_total, 99), "repair": repair,
         "rows_median_us": us(pool["rows"], 50), "rows_p99_us": us(pool["rows"], 99),
         "qp_median_us": us(pool["qp"], 50), "qp_p99_us": us(pool["qp"], 99), "qp_max_us": us(pool["qp"], 100),
         "fast_path": float(np.mean(pool["fast"])), "status": status, "fallbacks": sum(t.fallbacks for t in timed),
@@ -271,8 +293,9 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--steps", type=int, default=1000, help="env steps per environment per round (default 1000)")
     parser.add_argument("--policy", choices=("adversarial", "random"), default="adversarial",
                         help="policy during the latency runs (default adversarial: the rows bind)")
-    parser.add_argument("--qp-solver", nargs="+", choices=("active_set", "proxsuite"),
-                        help="TorqueQP solver(s) of the latency runs (default: the filter's own); two are compared")
+    parser.add_argument("--qp-solver", nargs="+", choices=("active_set", "proxsuite", "slack_repair"),
+                        help="TorqueQP solver(s) of the latency runs (default: the filter's own); two are compared. "
+                             "slack_repair: active_set with the per-row repair as the QP in (tau, t_K)")
     parser.add_argument("--latency-rounds", type=int,
                         help="interleaved latency rounds per obstacle count (default 1, or 2 with several solvers)")
     parser.add_argument("--seed", type=int, default=0)
@@ -295,7 +318,7 @@ def main(argv: list[str] | None = None) -> dict:
           + (f", solvers {' vs '.join(solvers)} in {rounds} interleaved rounds" if len(solvers) > 1 else ""))
     label = len(solvers) > 1 or rounds > 1  # one line per solver, headed by its name
     header = (f"{'obst':>4} {'solver':>10} " if label else f"{'obst':>4} ") + (
-              f"{'sensed':>6} {'rows':>4} | {'total med':>9} {'p99':>7} {'max':>8} | "
+              f"{'sensed':>6} {'rows':>4} | {'total med':>9} {'p99':>7} {'max':>8} | {'relaxed med':>11} {'p99':>6} | "
               f"{'rows med':>8} {'p99':>6} | {'QP med':>7} {'p99':>7} {'max':>8} | {'fast path':>9}  QP status")  # fmt: skip
     print(header)
     print("-" * len(header))
@@ -312,15 +335,22 @@ def main(argv: list[str] | None = None) -> dict:
             status = ", ".join(f"{k} {v}" for k, v in sorted(row["status"].items()))
             if row["fallbacks"]:
                 status += f"; fallback {row['fallbacks']}"
+            rep = row["repair"]
+            if rep.get("settled") or rep.get("slack_qp"):
+                status += (f"; repair in tau settled {rep['settled']} (mean rounds "
+                           f"{rep['rounds'] / max(rep['settled'], 1):.2f}), to the slack QP {rep['slack_qp']}")
             head = f"{count:>4} {s or 'default':>10} " if label else f"{count:>4} "
             print(f"{head}{row['sensed_median']:>6.0f} {row['rows_count']:>4} | {row['total_median_us']:>9.0f} "
-                  f"{row['total_p99_us']:>7.0f} {row['total_max_us']:>8.0f} | {row['rows_median_us']:>8.0f} "
+                  f"{row['total_p99_us']:>7.0f} {row['total_max_us']:>8.0f} | {row['relaxed_median_us']:>11.0f} "
+                  f"{row['relaxed_p99_us']:>6.0f} | {row['rows_median_us']:>8.0f} "
                   f"{row['rows_p99_us']:>6.0f} | {row['qp_median_us']:>7.0f} {row['qp_p99_us']:>7.0f} "
                   f"{row['qp_max_us']:>8.0f} | {100 * row['fast_path']:>8.0f}%  {status}")  # fmt: skip
         if len(solvers) > 1:
             a, b = (rows_by_solver[s] for s in solvers[:2])
             print(f"{count:>4} {'ratio':>10} {'':>11} | {a['total_median_us'] / b['total_median_us']:>9.2f} "
-                  f"{a['total_p99_us'] / b['total_p99_us']:>7.2f} {'':>8} | {'':>15} | "
+                  f"{a['total_p99_us'] / b['total_p99_us']:>7.2f} {'':>8} | "
+                  f"{a['relaxed_median_us'] / b['relaxed_median_us']:>11.2f} "
+                  f"{a['relaxed_p99_us'] / b['relaxed_p99_us']:>6.2f} | {'':>15} | "
                   f"{a['qp_median_us'] / b['qp_median_us']:>7.2f} {a['qp_p99_us'] / b['qp_p99_us']:>7.2f}")
     if args.profile:
         hook_latency(4, min(args.calls, 2000), args.seed, args.policy, profile=True)

@@ -7,7 +7,8 @@ problems (module docstring of :mod:`c3bf_gym.qp`)::
     minimise  ½ (x − x₀)ᵀ W (x − x₀)   s.t.   G_k x ≥ h_k   for the m rows and the bound rows
 
 (hard: x = τ, bound rows = the 2n box rows; elastic and repair: x = (τ, t), W = blockdiag(W, I),
-x₀ = (τ_nom, −1, …), bound rows = box and t ≥ 0).
+x₀ = (τ_nom, −1, …), bound rows = box and t ≥ 0; the repair in τ alone,
+:func:`c3bf_gym._kernels.reduced_repair`: x = τ with a dense W and x₀ that fold in the soft rows).
 
 GI starts at the unconstrained minimiser x₀ and adds violated constraints one at a time while
 keeping every multiplier ≥ 0 (dual feasible), so the first primal-feasible iterate is the optimum.

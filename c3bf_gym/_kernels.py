@@ -647,22 +647,188 @@ def hook_post(A, b, u, scale, tau_nom, limit, tau):
 
 
 @njit(**_opts)
+def _soft_quadratic(W, G, l, nom, pflag, m, weights, row_slack_weight, WJp, x0p, L):
+    """The reduced repair's objective for the soft rows P (``pflag[k] == 1``, :func:`reduced_repair`):
+    ``H = W + Σ_P σ_k² Â_kᵀ Â_k`` and ``J₀ = L⁻ᵀ`` (H = L Lᵀ, L in the (n, n) scratch ``L``) into
+    ``WJp = [H; J₀]``, and the unconstrained minimiser ``x₀ = H⁻¹ (W τ_nom + Σ_P σ_k (1 + σ_k l_k)
+    Â_kᵀ)`` into ``x0p``. Returns False if H is not numerically positive definite."""
+    n = nom.shape[0]
+    H = WJp[:n]
+    J0 = WJp[n:2 * n]
+    for i in range(n):
+        acc = 0.0
+        for j in range(n):
+            H[i, j] = W[i, j]
+            acc += W[i, j] * nom[j]
+        x0p[i] = acc
+    for k in range(m):
+        if pflag[k]:
+            s = row_slack_weight * (1.0 if weights.shape[0] == 0 else weights[k])
+            c = s * (1.0 + s * l[k])
+            for i in range(n):
+                x0p[i] += c * G[k, i]
+                gi = s * s * G[k, i]
+                for j in range(n):
+                    H[i, j] += gi * G[k, j]
+    for j in range(n):  # Cholesky
+        acc = H[j, j]
+        for p in range(j):
+            acc -= L[j, p] * L[j, p]
+        if not acc > 0.0:
+            return False
+        L[j, j] = math.sqrt(acc)
+        for i in range(j + 1, n):
+            acc = H[i, j]
+            for p in range(j):
+                acc -= L[i, p] * L[j, p]
+            L[i, j] = acc / L[j, j]
+    for i in range(n):  # x₀: forward and back substitution
+        acc = x0p[i]
+        for p in range(i):
+            acc -= L[i, p] * x0p[p]
+        x0p[i] = acc / L[i, i]
+    for i in range(n - 1, -1, -1):
+        acc = x0p[i]
+        for p in range(i + 1, n):
+            acc -= L[p, i] * x0p[p]
+        x0p[i] = acc / L[i, i]
+    for c in range(n):  # row c of L⁻ᵀ = column c of L⁻¹ (L y = e_c, y_i = 0 for i < c)
+        for i in range(c):
+            J0[c, i] = 0.0
+        for i in range(c, n):
+            acc = 1.0 if i == c else 0.0
+            for p in range(c, i):
+                acc -= L[i, p] * J0[c, p]
+            J0[c, i] = acc / L[i, i]
+    return True
+
+
+@njit(**_opts)
+def reduced_repair(G, h, l, r, m, tol, weights, row_slack_weight, W, nom, WJp, x0p, hp, pflag, work, iwork,
+                   as_tol, as_vtol, max_iter, max_rounds, stats):
+    """The per-row repair (:meth:`~c3bf_gym.qp.TorqueQP._relax_rows`) solved in τ alone.
+
+    Eliminating the slacks leaves ``min ½ (τ − τ_nom)ᵀ W (τ − τ_nom) + Σ_{k∈K} φ_k(l_k − Â_k τ)``
+    over the hard rows (k ∉ K) and the box, with ``φ_k(v) = σ_k v + ½ σ_k² v²`` for v > 0 and 0
+    otherwise: piecewise quadratic, with the same unique optimum. Its active set is the set P of
+    rows of K with a positive slack; for a guess of P the problem is a QP in n variables (rows of P
+    in the objective, every other row hard), solved by :func:`~c3bf_gym._active_set.solve`. The
+    guess is right, and the point is the slack QP's optimum, when every row of P is violated (v_k
+    ≥ −``as_tol``: t_k = σ_k v_k ≥ 0) and every hard row of K has a multiplier ≤ σ_k (a zero
+    slack's KKT condition; the slack QP's multiplier of row k is σ_k (1 + t_k)); otherwise the
+    rows that break it switch sides and the QP is solved again, at most ``max_rounds`` times.
+
+    The first guess is last call's P (``pflag``) where its rows are still in K, else the rows τ*
+    violates most (within 1e-6 of ``min r``: the elastic problem's conflict). When the hard rows
+    of a guess conflict, the rows of K in the solver's certificate (active, or violated where it
+    stopped) go soft. ``r`` holds τ*'s residuals; ``stats`` (3,) counts the repairs settled here,
+    their rounds, and the repairs left to the slack QP. Returns ``(code, steps)``: 0 solved (τ
+    in ``work[2n, :n]``, P in ``pflag``), 1 no row to repair, 2 not settled (the caller solves
+    the slack QP).
+    """
+    n = nom.shape[0]
+    cap = l.shape[0]
+    rmin = np.inf
+    nk = 0
+    for k in range(m):
+        if r[k] < tol:
+            nk += 1
+            rmin = min(rmin, r[k])
+    if nk == 0:
+        return 1, 0
+    kept = 0  # the first guess: last call's soft rows still in K, or else the rows τ* violates most
+    for k in range(m):
+        pflag[k] = 1 if r[k] < tol and pflag[k] == 1 else 0
+        kept += pflag[k]
+    if kept == 0:
+        near = rmin + 1e-6 * (1.0 + abs(rmin))
+        for k in range(m):
+            pflag[k] = 1 if r[k] <= near else 0
+    for k in range(m, cap):
+        pflag[k] = 0
+    for k in range(cap, cap + 2 * n):
+        hp[k] = h[k]
+    N = work.shape[1] - 1
+    steps = 0
+    stats[2] += 1  # until it settles
+    for rounds in range(1, max_rounds + 1):
+        if not _soft_quadratic(W, G, l, nom, pflag, m, weights, row_slack_weight, WJp, x0p, work[:n, :n]):
+            return 2, steps
+        for k in range(m):
+            hp[k] = -np.inf if pflag[k] else l[k]
+        q = iwork[0]  # last solve's active rows, less the rows now soft (warm start)
+        kept = 0
+        for i in range(q):
+            a = iwork[1 + i]
+            if a >= cap or pflag[a] == 0:
+                iwork[1 + kept] = a
+                kept += 1
+        iwork[0] = kept
+        c, solve_steps = _active_set.solve(G, hp, m, cap, 2 * n, x0p, WJp, as_tol, as_vtol, max_iter, True, work,
+                                           iwork)
+        steps += solve_steps
+        x = work[2 * N, :n]
+        if c == _active_set.INFEASIBLE:  # the hard rows conflict: the rows of K among the certificate's
+            flags = iwork[N + 2:]        # (active, or violated at the point where it stopped) go soft
+            grew = False
+            for k in range(m):
+                if r[k] < tol and pflag[k] == 0 and (flags[k] or _active_set._slack(G, l, k, x) < -as_tol):
+                    pflag[k] = 1
+                    grew = True
+            if not grew:
+                return 2, steps
+            continue
+        if c != _active_set.OPTIMAL:
+            return 2, steps
+        u = work[2 * N + 4]
+        settled = True
+        for k in range(m):  # soft rows that the optimum satisfies: back to hard
+            if pflag[k] and _active_set._slack(G, l, k, x) > as_tol:
+                pflag[k] = 0
+                settled = False
+        for i in range(iwork[0]):  # hard rows of K whose multiplier exceeds σ_k: soft
+            k = iwork[1 + i]
+            if k < m and r[k] < tol:
+                sigma = row_slack_weight * (1.0 if weights.shape[0] == 0 else weights[k])
+                if u[i] > sigma * (1.0 + 1e-9):
+                    pflag[k] = 1
+                    settled = False
+        if settled:
+            stats[0] += 1
+            stats[1] += rounds
+            stats[2] -= 1
+            return 0, steps
+    return 2, steps
+
+
+@njit(**_opts)
 def repair_step(G, xe, h, r, m, tol, l, weights, row_slack_weight, K, k_prev, Gr, hr, rep_iwork, x0r, nom, WJx,
-                as_tol, as_vtol, max_iter, rep_work, lo, hi, u):
+                as_tol, as_vtol, max_iter, rep_work, lo, hi, u, W, WJp, x0p, hp, pflag, pw_work, pw_iwork,
+                max_rounds, rep_stats):
     """The per-row repair of the elastic torque τ* in ``xe`` (:meth:`~c3bf_gym.qp.TorqueQP._relax_rows`)
-    by the active-set solver: τ*'s residuals into ``r``, the repair rows (:func:`repair_rows`),
-    x₀ = (``nom``, −1, …) and the solve; the repaired torque, clipped, into ``u``. Returns
-    ``(code, steps, k)``: code 0 repaired, 1 no row to repair (k = 0), 2 the solver stopped at
-    its cap or failed its check (hand over to proxsuite)."""
+    by the active-set solver: τ*'s residuals into ``r``, then the problem in τ alone
+    (:func:`reduced_repair`, ``max_rounds`` > 0; ``W`` … ``pw_iwork`` and ``rep_stats`` its buffers) and, if it does
+    not settle, in (τ, t_K): the repair rows (:func:`repair_rows`), x₀ = (``nom``, −1, …) and the
+    solve. The repaired torque, clipped, goes into ``u``. Returns ``(code, steps, k)``: code 0
+    repaired, 1 no row to repair (k = 0), 2 the solver stopped at its cap or failed its check (hand
+    over to proxsuite); k is the slack QP's row count (unchanged when it was not needed)."""
     n = nom.shape[0]
     residuals(G, xe, h, r)
+    steps = 0
+    if max_rounds > 0:
+        c, steps = reduced_repair(G, h, l, r, m, tol, weights, row_slack_weight, W, nom, WJp, x0p, hp, pflag,
+                                  pw_work, pw_iwork, as_tol, as_vtol, max_iter, max_rounds, rep_stats)
+        if c == 0:
+            clip(pw_work[2 * (pw_work.shape[1] - 1)], lo, hi, u)
+            return 0, steps, k_prev
     k = repair_rows(r, m, tol, G, l, weights, row_slack_weight, K, k_prev, Gr, hr, rep_iwork)
     if k == 0:
-        return 1, 0, k
+        return 1, steps, k
     for j in range(n):
         x0r[j] = nom[j]
-    c, steps = _active_set.solve(Gr, hr, m, G.shape[0] - 2 * n, 2 * n + k, x0r[:n + k], WJx, as_tol, as_vtol,
-                                 max_iter + 2 * k, True, rep_work, rep_iwork)
+    c, s = _active_set.solve(Gr, hr, m, G.shape[0] - 2 * n, 2 * n + k, x0r[:n + k], WJx, as_tol, as_vtol,
+                             max_iter + 2 * k, True, rep_work, rep_iwork)
+    steps += s
     if c != _active_set.OPTIMAL:
         return 2, steps, k
     clip(rep_work[2 * (rep_work.shape[1] - 1)], lo, hi, u)
@@ -672,13 +838,14 @@ def repair_step(G, xe, h, r, m, tol, l, weights, row_slack_weight, K, k_prev, Gr
 @njit(**_opts)
 def qp_step(tau_nom, A, b, scale, weights, m_prev, k_prev, max_iter, tol, row_slack_weight, diag_W,
             Gx, hx, hcx, nrm, r, xe, nom, lo, hi, reach, negW, g, qp_f,
-            WJ, as_work, as_iwork, x0r, WJx, el_work, el_iwork, Kr, Gr, hr, rep_work, rep_iwork):
+            WJ, as_work, as_iwork, x0r, WJx, el_work, el_iwork, Kr, Gr, hr, rep_work, rep_iwork, WJp, x0p, hp,
+            pflag, pw_work, pw_iwork, rep_stats):
     """:class:`~c3bf_gym.qp.TorqueQP`'s active-set call (``solver="active_set"``): the data step
     (:func:`qp_prepare`), the fast path, the hard solve and, after an infeasibility proof, the
     elastic solve and the per-row repair (:func:`repair_step`), then the result's statistics.
 
-    ``Gx`` … ``rep_iwork`` are the layer's buffers, ``qp_f`` = ``[row norm min, inf, active-set
-    tol, active-set vtol, σ]``, ``weights`` the relaxation weights (empty: all 1). The torque (in
+    ``Gx`` … ``rep_stats`` are the layer's buffers, ``qp_f`` = ``[row norm min, inf, active-set
+    tol, active-set vtol, σ, the reduced repair's rounds]``, ``weights`` the relaxation weights (empty: all 1). The torque (in
     the scaled units) is ``xe[:n]``. Returns ``(status, steps, repair slack count, active rows,
     slack)``, status one of ``STEP_*``; the last two only when it is ≤ ``STEP_RELAXED_AS_IS``.
     """
@@ -725,9 +892,11 @@ def qp_step(tau_nom, A, b, scale, weights, m_prev, k_prev, max_iter, tol, row_sl
             if m == 0:
                 residuals(G, xe, h, r)
                 return out, steps, k, 0, 0.0
-            c, s, k = repair_step(G, xe, h, r, m, tol, hcx[:cap] if impossible else h[:cap], weights,
+            l = hcx[:cap] if impossible else h[:cap]
+            c, s, k = repair_step(G, xe, h, r, m, tol, l, weights,
                                   row_slack_weight, Kr, k_prev, Gr, hr, rep_iwork, x0r, nom, WJx, as_tol, as_vtol,
-                                  max_iter, rep_work, lo, hi, u)
+                                  max_iter, rep_work, lo, hi, u, WJ[:n], WJp, x0p, hp, pflag, pw_work, pw_iwork,
+                                  int(qp_f[5]), rep_stats)
             steps += s
             if c == 2:
                 return out, steps, k, 0, 0.0
@@ -752,7 +921,7 @@ def _matrix(arena, layout, i):
 
 @njit(**_opts)
 def step_views(qf, qi, layout):
-    """:meth:`~c3bf_gym.qp.TorqueQP.step_buffers` (:func:`qp_step`'s ``Gx`` … ``rep_iwork``) from
+    """:meth:`~c3bf_gym.qp.TorqueQP.step_buffers` (:func:`qp_step`'s ``Gx`` … ``rep_stats``) from
     :meth:`~c3bf_gym.qp.TorqueQP.packed_step_buffers`: views of the float64 arena ``qf`` and the
     int64 arena ``qi`` at the ``layout`` rows (``c3bf_gym.qp._step_buffer_shapes``' order)."""
     return (_matrix(qf, layout, 0), _vector(qf, layout, 1), _vector(qf, layout, 2), _vector(qf, layout, 3),
@@ -761,7 +930,8 @@ def step_views(qf, qi, layout):
             _vector(qf, layout, 12), _matrix(qf, layout, 13), _matrix(qf, layout, 14), _vector(qi, layout, 15),
             _vector(qf, layout, 16), _matrix(qf, layout, 17), _matrix(qf, layout, 18), _vector(qi, layout, 19),
             _vector(qi, layout, 20), _matrix(qf, layout, 21), _vector(qf, layout, 22), _matrix(qf, layout, 23),
-            _vector(qi, layout, 24))
+            _vector(qi, layout, 24), _matrix(qf, layout, 25), _vector(qf, layout, 26), _vector(qf, layout, 27),
+            _vector(qi, layout, 28), _matrix(qf, layout, 29), _vector(qi, layout, 30), _vector(qi, layout, 31))
 
 
 @njit(**_opts)
@@ -782,7 +952,8 @@ def hook_step(stage, tau_nom, m_prev, k_prev, max_iter, tol, row_slack_weight, d
     one of ``STEP_*``; the last four are only set when done.
     """
     (Gx, hx, hcx, nrm, r, xe, nom, lo, hi, reach, negW, g, qp_f, WJ, as_work, as_iwork, x0r, WJx, el_work,
-     el_iwork, Kr, Gr, hr, rep_work, rep_iwork) = step_views(qf, qi, layout)
+     el_iwork, Kr, Gr, hr, rep_work, rep_iwork, WJp, x0p, hp, pflag, pw_work, pw_iwork, rep_stats) = step_views(
+        qf, qi, layout)
     m, min_h, inside, n_sensed = hook_rows_whole_arm(
         stage, M, qfrc_passive, qfrc_bias, geom_xpos, geom_xmat, cdof, cdof_dot, com, qpos, qvel, arm_i, arm_f,
         chain, scratch, Minv, qacc_free, ends, ends_ab, a_dot_ab, active, distances, obs_pos, obs_vel, obs_acc,
@@ -790,7 +961,7 @@ def hook_step(stage, tau_nom, m_prev, k_prev, max_iter, tol, row_slack_weight, d
     status, steps, k, n_active, slack = qp_step(
         tau_nom, A[:m], b[:m], scale, nrm[:0], m_prev, k_prev, max_iter, tol, row_slack_weight, diag_W, Gx, hx, hcx,
         nrm, r, xe, nom, lo, hi, reach, negW, g, qp_f, WJ, as_work, as_iwork, x0r, WJx, el_work, el_iwork, Kr, Gr,
-        hr, rep_work, rep_iwork)
+        hr, rep_work, rep_iwork, WJp, x0p, hp, pflag, pw_work, pw_iwork, rep_stats)
     if status < 0 or status > STEP_RELAXED_AS_IS:
         return status, m, min_h, inside, n_sensed, steps, k, 0, 0.0, 0.0, 0.0
     residual, correction = hook_post(A[:m], b[:m], xe[:nom.shape[0]], scale, tau_nom, limit, tau)

@@ -126,6 +126,21 @@ calls it hands over (a step cap or a failed check) and ``solver="proxsuite"``:
   in proportion to 1/weights (as least squares for large s). If neither the
   active set nor proxsuite solves it (rare), τ* itself is applied. By proxsuite
   it costs one cold solve (≈ 20 iterations, ≈ 0.5–1 ms).
+
+  The active-set path first solves it in τ alone
+  (:func:`c3bf_gym._kernels.reduced_repair`): with the slacks eliminated the
+  cost is ½ (τ − τ_nom)ᵀ W (τ − τ_nom) + Σ_K φ_k(b̂_k − Â_k τ), φ_k(v) = σ_k v +
+  ½ σ_k² v² for v > 0 and 0 below, and for a guess P of the rows whose slack is
+  positive that is a QP in n variables (rows of P in the cost, the others hard).
+  The guess is checked against the slack QP's KKT conditions (every row of P
+  violated, every hard row of K with a multiplier ≤ σ_k) and corrected, at most
+  ``repair_rounds`` times (default 16), before the QP in (τ, t_K) above takes
+  over. The optimum is the same (they agree to ~1e-11 on the tests' random
+  problems); the 6-variable solves replace one of 6 + |K| variables whose warm
+  start alone refactorised ~11 active rows. On filter calls it settles in one
+  round for most repairs (last call's P is the first guess) and cut the relaxed
+  calls' median cost by about a quarter (``benchmarks/filter_speed.py
+  --qp-solver active_set slack_repair``).
 * **Dual sign check.** Every row is a lower bound with an infinite upper one, so
   its multiplier must be ≤ 0; box multipliers must point to the nearer bound.
   proxsuite's stopping test checks the primal and dual residuals only, and after
@@ -188,6 +203,7 @@ _DUAL_SIGN_TOL = 1e-6  # wrong-signed multipliers above this (relative to 1 + ma
 _NO_SCALE = np.empty(0)  # solve(): the rows are used as given
 _AS_TOL = 1e-10  # active set: a row is violated below −_AS_TOL (1 + max |box|) [normalised N·m]
 _AS_VTOL = 1e-8  # active set: active rows must hold to _AS_VTOL (1 + max |box|) in its KKT check
+_REPAIR_ROUNDS = 16  # the per-row repair in τ alone: guesses of its soft rows before the slack QP takes over
 # finish_step runs at every filter step: module-level names instead of attribute lookups
 _STEP_SOLVED, _STEP_RELAXED, _STEP_RELAXED_AS_IS = _kernels.STEP_SOLVED, _kernels.STEP_RELAXED, _kernels.STEP_RELAXED_AS_IS
 _perf_counter = time.perf_counter
@@ -316,11 +332,12 @@ def _step_buffer_shapes(n: int, M: int, K: int) -> list[tuple[str, tuple[int, ..
     return [
         ("_Gx", (M + 2 * n + 1, n + 1), f), ("_hx", (M + 2 * n + 1,), f), ("_hcx", (M + 2 * n + 1,), f),
         ("_nrm", (M,), f), ("_r", (M + 2 * n,), f), ("_xe", (n + 1,), f), ("_nom", (n,), f), ("tau_min", (n,), f),
-        ("tau_max", (n,), f), ("_reach", (M,), f), ("_negW", (n, n), f), ("_g", (n + 1,), f), ("_qp_f", (5,), f),
+        ("tau_max", (n,), f), ("_reach", (M,), f), ("_negW", (n, n), f), ("_g", (n + 1,), f), ("_qp_f", (6,), f),
         ("_WJ", (2 * n, n), f), ("_as_work", as_w, f), ("_as_iwork", as_i, i), ("_x0r", (n + K,), f),
         ("_WJx", (2 * (n + K), n + K), f), ("_el_work", el_w, f), ("_el_iwork", el_i, i), ("_Kr", (K,), i),
         ("_Gr", (M + 2 * n + K, n + K), f), ("_hr", (M + 2 * n + K,), f), ("_rep_work", rep_w, f),
-        ("_rep_iwork", rep_i, i),
+        ("_rep_iwork", rep_i, i), ("_WJp", (2 * n, n), f), ("_x0p", (n,), f), ("_hp", (M + 2 * n,), f),
+        ("_pflag", (M,), i), ("_pw_work", as_w, f), ("_pw_iwork", as_i, i), ("_rep_stats", (3,), i),
     ]  # fmt: skip
 
 
@@ -495,7 +512,7 @@ class TorqueQP:
         self._tau_star = np.zeros(n)
         box_scale = 1.0 + float(max(np.abs(self.tau_min).max(), np.abs(self.tau_max).max()))
         self._as_tol, self._as_vtol = _AS_TOL * box_scale, _AS_VTOL * box_scale
-        self._qp_f[:] = _ROW_NORM_MIN, PROXSUITE_INF, self._as_tol, self._as_vtol, self._sigma
+        self._qp_f[:] = _ROW_NORM_MIN, PROXSUITE_INF, self._as_tol, self._as_vtol, self._sigma, _REPAIR_ROUNDS
         self.active_set_max_iter = 50
         self.active_set_fallbacks = self.active_set_troubles = 0
 
@@ -535,6 +552,27 @@ class TorqueQP:
         for cap, H in getattr(self, "_relax_H", {}).items():
             H[:self.n, :self.n] = Wm
             self._relax_dirty[cap] = True
+
+    @property
+    def repair_rounds(self) -> int:
+        """How many guesses of its soft rows the per-row repair gets in τ alone (module docstring,
+        "Relaxation") before the QP in (τ, t_K) solves it; 0: that QP every time. Same optimum
+        either way; ``benchmarks/filter_speed.py --qp-solver active_set slack_repair`` compares their
+        cost."""
+        return int(self._qp_f[5])
+
+    @repair_rounds.setter
+    def repair_rounds(self, rounds: int) -> None:
+        if isinstance(rounds, bool) or not isinstance(rounds, (int, np.integer)) or rounds < 0:
+            raise ValueError(f"repair_rounds must be an integer >= 0; got {rounds!r}")
+        self._qp_f[5] = rounds
+
+    @property
+    def repair_stats(self) -> dict[str, int]:
+        """Per-row repairs since construction: ``settled`` in τ alone, their summed ``rounds``,
+        and ``slack_qp``: those left to the QP in (τ, t_K) (not counted when ``repair_rounds`` is 0)."""
+        settled, rounds, slack_qp = (int(v) for v in self._rep_stats)
+        return {"settled": settled, "rounds": rounds, "slack_qp": slack_qp}
 
     # ------------------------------------------------------------------ solve
     def solve(self, tau_nom, A, b, weights=None) -> QPResult:
@@ -631,7 +669,7 @@ class TorqueQP:
     def packed_step_buffers(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """:meth:`step_buffers` as ``(float64 arena, int64 arena, layout)``, which
         :func:`c3bf_gym._kernels.step_views` turns back into them inside a compiled kernel: three
-        arguments instead of 25 (numba converts every array argument on every call)."""
+        arguments instead of 32 (numba converts every array argument on every call)."""
         arena = self._step_arena
         return arena.floats, arena.ints, arena.layout
 
@@ -741,7 +779,9 @@ class TorqueQP:
             code, steps, self._kr = _kernels.repair_step(
                 self._G, self._xe, self._h, self._r, m, self.active_tol, l, w, self.row_slack_weight, self._Kr,
                 self._kr, self._Gr, self._hr, self._rep_iwork, self._x0r, tau_nom, self._WJx, self._as_tol,
-                self._as_vtol, self.active_set_max_iter, self._rep_work, self.tau_min, self.tau_max, self._tau)
+                self._as_vtol, self.active_set_max_iter, self._rep_work, self.tau_min, self.tau_max, self._tau,
+                self._WJ[:self.n], self._WJp, self._x0p, self._hp, self._pflag, self._pw_work, self._pw_iwork,
+                self.repair_rounds, self._rep_stats)
             iters += steps
             if code != 2:
                 self.relax_calls += code == 0

@@ -192,17 +192,24 @@ def test_infeasible_random_matches_proxsuite_and_kkt(W_kind):
     """Infeasible problems: the elastic and the per-row repair QP, both solved by the active-set
     solver, pass KKT checks of those problems built here in numpy (clipped bounds for impossible
     rows, slack rows K = rows the clipped elastic torque violates); the result equals proxsuite's
-    (status, τ, slack, active rows)."""
+    (status, τ, slack, active rows). The repair solved in τ alone (the default) settles on every
+    problem and gives the slack QP's torque (``repair_rounds=0``, whose KKT point is checked)."""
     rng = np.random.default_rng(20 + ["diag", "dense"].index(W_kind))
     M, n = MAX_ROWS, N
+    rounds = []
     for trial in range(60):
         m = int(rng.choice([4, 12, 30, 60, MAX_ROWS]))
         tau_nom, A, b, W, Wm, lo, hi, weights = _infeasible_problem(rng, m, W_kind)
+        qr = TorqueQP(N, MAX_ROWS, lo, hi, W=W)
         qa = TorqueQP(N, MAX_ROWS, lo, hi, W=W)
+        qa.repair_rounds = 0
         qp = TorqueQP(N, MAX_ROWS, lo, hi, W=W, solver="proxsuite")
+        rr = qr.solve(tau_nom, A, b, weights)
         ra = qa.solve(tau_nom, A, b, weights)
         rp = qp.solve(tau_nom, A, b, weights)
-        assert ra.status == rp.status == "relaxed" and qa.active_set_fallbacks == 0
+        assert rr.status == ra.status == rp.status == "relaxed" and qa.active_set_fallbacks == 0
+        assert qr._kr == 0 and qr.active_set_fallbacks == 0  # settled in τ alone: no slack QP, no proxsuite
+        np.testing.assert_allclose(rr.tau, ra.tau, rtol=0, atol=1e-9)
         np.testing.assert_allclose(ra.tau, rp.tau, atol=1e-6)
         assert ra.slack == pytest.approx(rp.slack, abs=1e-6) and ra.active_rows == rp.active_rows
         # elastic QP in (τ, t): rows (Â | 1/σ), box, t ≥ 0; bounds clipped to each row's reach
@@ -234,6 +241,34 @@ def test_infeasible_random_matches_proxsuite_and_kkt(W_kind):
         x0 = np.concatenate([tau_nom, -np.ones(k)])
         assert _gi_kkt_error(G, h, Wt, x0, qa._rep_work, qa._rep_iwork, n + k) < 1e-9
         np.testing.assert_array_equal(ra.tau, np.clip(qa._rep_x, lo, hi))
+
+
+def test_repair_in_tau_alone_follows_drifting_problems_and_hands_over_when_capped():
+    """The repair in τ alone starts each call from the last call's soft rows: on a sequence of
+    drifting infeasible problems it gives the slack QP's torque at every call, both when it
+    settles (default rounds) and when one round is too few and the slack QP takes over."""
+    rng = np.random.default_rng(40)
+    for W_kind in ("diag", "dense"):
+        tau_nom, A, b, W, Wm, lo, hi, weights = _infeasible_problem(rng, 30, W_kind)
+        qps = {rounds: TorqueQP(N, MAX_ROWS, lo, hi, W=W) for rounds in (16, 1, 0)}
+        for rounds, q in qps.items():
+            q.repair_rounds = rounds
+        handed_over = 0
+        for _ in range(40):
+            tau_nom = tau_nom + rng.normal(scale=0.3, size=N)
+            A = A + rng.normal(scale=0.02, size=A.shape)
+            results = {rounds: q.solve(tau_nom, A, b, weights) for rounds, q in qps.items()}
+            assert all(r.status == "relaxed" for r in results.values())
+            np.testing.assert_allclose(results[16].tau, results[0].tau, rtol=0, atol=1e-9)
+            np.testing.assert_allclose(results[1].tau, results[0].tau, rtol=0, atol=1e-9)
+            handed_over += qps[1]._kr > 0
+        assert qps[16]._kr == 0 and handed_over > 0  # the capped one did hand over, the default never
+
+
+@pytest.mark.parametrize("rounds", [-1, 2.5, True, "8"])
+def test_bad_repair_rounds_rejected(rounds):
+    with pytest.raises(ValueError, match="repair_rounds must be an integer >= 0"):
+        TorqueQP(2, 4, -1.0, 1.0).repair_rounds = rounds
 
 
 def test_infeasible_step_caps_fall_back_to_proxsuite():

@@ -308,7 +308,7 @@ def test_packed_step_buffers_are_the_step_buffers():
     qp = TorqueQP(6, 40, -2.0, 3.0)
     carved = _kernels.step_views(*qp.packed_step_buffers())
     buffers = qp.step_buffers()
-    assert len(carved) == len(buffers) == 25
+    assert len(carved) == len(buffers) == 32
     for got, want in zip(carved, buffers):
         assert got.ctypes.data == want.ctypes.data and got.shape == want.shape and got.dtype == want.dtype
     np.testing.assert_array_equal(qp.tau_min, -2.0)
