@@ -18,6 +18,7 @@ Usage::
 
     python benchmarks/guarantee.py --quick                 # smoke run (~1 min)
     python benchmarks/guarantee.py --episodes 200 --out results/guarantee
+    python benchmarks/guarantee.py --episodes 200 --filters c3bf/whole_arm --margin 0.03   # a wider margin
 """
 
 from __future__ import annotations
@@ -89,8 +90,8 @@ def adversarial_action(u) -> np.ndarray:
 # ----------------------------------------------------------------------------- one episode
 
 
-def run_episode(task: tuple[str, str, str, str, int, int]) -> Episode:
-    scenario, policy, barrier, points, seed, steps = task
+def run_episode(task: tuple[str, str, str, str, int, int, float | None]) -> Episode:
+    scenario, policy, barrier, points, seed, steps, margin = task
     import gymnasium as gym
 
     import c3bf_gym  # noqa: F401  (registers C3BFReach-v0)
@@ -99,7 +100,7 @@ def run_episode(task: tuple[str, str, str, str, int, int]) -> Episode:
     start = time.perf_counter()
     env = gym.make("C3BFReach-v0", scenario=scenario)
     if barrier != "none":
-        env = SafetyFilter(env, barrier=barrier, points=points)
+        env = SafetyFilter(env, barrier=barrier, points=points, **({} if margin is None else {"margin": margin}))
     u = env.unwrapped
     out = Episode(scenario, policy, barrier, points, seed)
     env.reset(seed=seed)
@@ -171,6 +172,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     parser.add_argument("--filters", nargs="+", default=[f"{b}/{p}" if b != "none" else b for b, p in FILTERS],
                         choices=[f"{b}/{p}" if b != "none" else b for b, p in FILTERS],
                         help="barrier/points combinations (default: all, and no filter)")  # fmt: skip
+    parser.add_argument("--margin", type=float, help="the filters' margin [m] (default: SafetyFilter's, 0.02)")
     parser.add_argument("--out", type=Path, default=Path("benchmarks/results/guarantee"), help="output directory")
     parser.add_argument("--quick", action="store_true", help="smoke run: 2 episodes of 100 steps per configuration")
     args = parser.parse_args(argv)
@@ -178,11 +180,14 @@ def main(argv: list[str] | None = None) -> list[dict]:
         args.episodes, args.steps = 2, 100
     if args.episodes < 1 or args.steps < 1 or args.workers < 1:
         parser.error("--episodes, --steps and --workers must be >= 1")
+    if args.margin is not None and not (np.isfinite(args.margin) and args.margin >= 0):
+        parser.error(f"--margin must be a finite number >= 0 (m), got {args.margin}")
 
     filters = [tuple(f.split("/")) if f != "none" else ("none", "-") for f in args.filters]
-    tasks = [(s, p, b, pts, args.seed + i, args.steps)
+    tasks = [(s, p, b, pts, args.seed + i, args.steps, args.margin)
              for s in args.scenarios for p in args.policies for b, pts in filters for i in range(args.episodes)]  # fmt: skip
-    print(f"{len(tasks)} episodes ({args.episodes} per configuration, {args.steps} steps) on {args.workers} workers")
+    print(f"{len(tasks)} episodes ({args.episodes} per configuration, {args.steps} steps) on {args.workers} workers"
+          + ("" if args.margin is None else f", filter margin {args.margin} m"))
     start = time.perf_counter()
     ctx = mp.get_context("spawn")  # fresh interpreters: no MuJoCo state or GL context inherited
     with ctx.Pool(args.workers) as pool:
@@ -201,7 +206,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
         writer.writeheader()
         for e in sorted(episodes, key=lambda e: (e.scenario, e.policy, e.barrier, e.points, e.seed)):
             writer.writerow(asdict(e))
-    meta = {"episodes_per_configuration": args.episodes, "steps": args.steps, "seed": args.seed,
+    meta = {"episodes_per_configuration": args.episodes, "steps": args.steps, "seed": args.seed, "margin": args.margin,
             "workers": args.workers, "quick": args.quick, "cpu_count": os.cpu_count()}  # fmt: skip
     with open(args.out / "summary.json", "w") as f:
         json.dump({"settings": meta, "configurations": rows}, f, indent=2)
