@@ -565,6 +565,12 @@ def row_reach(G, m, lo, hi, h, tol, l, l_clipped, reach):
 
 
 @njit(**_opts)
+def _row_sigma(weights, row_slack_weight, k):
+    """σ_k = ``row_slack_weight`` · weights[k] (weights empty: all 1), the repair's cost of row k's slack."""
+    return row_slack_weight * (1.0 if weights.shape[0] == 0 else weights[k])
+
+
+@njit(**_opts)
 def repair_rows(r, m, tol, G, l, weights, row_slack_weight, K, k_prev, Gr, hr, iwork):
     """Rows of the per-row repair QP (:meth:`~c3bf_gym.qp.TorqueQP._relax_rows`) for the active-set
     solver: ``K`` = the rows k < m with residual ``r_k < tol``; ``Gr[:m] = (G[:m, :n] | slack
@@ -586,8 +592,7 @@ def repair_rows(r, m, tol, G, l, weights, row_slack_weight, K, k_prev, Gr, hr, i
         if r[i] < tol:
             same = same and k < k_prev and K[k] == i
             K[k] = i
-            w = 1.0 if weights.shape[0] == 0 else weights[i]
-            Gr[i, n + k] = 1.0 / (row_slack_weight * w)
+            Gr[i, n + k] = 1.0 / _row_sigma(weights, row_slack_weight, i)
             k += 1
     if not (same and k == k_prev and iwork[0] > 0):
         first = Gr.shape[0] - K.shape[0]
@@ -663,7 +668,7 @@ def _soft_quadratic(W, G, l, nom, pflag, m, weights, row_slack_weight, WJp, x0p,
         x0p[i] = acc
     for k in range(m):
         if pflag[k]:
-            s = row_slack_weight * (1.0 if weights.shape[0] == 0 else weights[k])
+            s = _row_sigma(weights, row_slack_weight, k)
             c = s * (1.0 + s * l[k])
             for i in range(n):
                 x0p[i] += c * G[k, i]
@@ -789,8 +794,7 @@ def reduced_repair(G, h, l, r, m, tol, weights, row_slack_weight, W, nom, WJp, x
         for i in range(iwork[0]):  # hard rows of K whose multiplier exceeds σ_k: soft
             k = iwork[1 + i]
             if k < m and r[k] < tol:
-                sigma = row_slack_weight * (1.0 if weights.shape[0] == 0 else weights[k])
-                if u[i] > sigma * (1.0 + 1e-9):
+                if u[i] > _row_sigma(weights, row_slack_weight, k) * (1.0 + 1e-9):
                     pflag[k] = 1
                     settled = False
         if settled:
@@ -807,8 +811,8 @@ def repair_step(G, xe, h, r, m, tol, l, weights, row_slack_weight, K, k_prev, Gr
                 max_rounds, rep_stats):
     """The per-row repair of the elastic torque τ* in ``xe`` (:meth:`~c3bf_gym.qp.TorqueQP._relax_rows`)
     by the active-set solver: τ*'s residuals into ``r``, then the problem in τ alone
-    (:func:`reduced_repair`, ``max_rounds`` > 0; ``W`` … ``pw_iwork`` and ``rep_stats`` its buffers) and, if it does
-    not settle, in (τ, t_K): the repair rows (:func:`repair_rows`), x₀ = (``nom``, −1, …) and the
+    (:func:`reduced_repair`, ``max_rounds`` > 0; ``W`` … ``pw_iwork`` and ``rep_stats`` its
+    buffers) and, if it does not settle, in (τ, t_K): the repair rows (:func:`repair_rows`), x₀ = (``nom``, −1, …) and the
     solve. The repaired torque, clipped, goes into ``u``. Returns ``(code, steps, k)``: code 0
     repaired, 1 no row to repair (k = 0), 2 the solver stopped at its cap or failed its check (hand
     over to proxsuite); k is the slack QP's row count (unchanged when it was not needed)."""
@@ -845,8 +849,8 @@ def qp_step(tau_nom, A, b, scale, weights, m_prev, k_prev, max_iter, tol, row_sl
     elastic solve and the per-row repair (:func:`repair_step`), then the result's statistics.
 
     ``Gx`` … ``rep_stats`` are the layer's buffers, ``qp_f`` = ``[row norm min, inf, active-set
-    tol, active-set vtol, σ, the reduced repair's rounds]``, ``weights`` the relaxation weights (empty: all 1). The torque (in
-    the scaled units) is ``xe[:n]``. Returns ``(status, steps, repair slack count, active rows,
+    tol, active-set vtol, σ, the reduced repair's rounds]``, ``weights`` the relaxation weights
+    (empty: all 1). The torque (in the scaled units) is ``xe[:n]``. Returns ``(status, steps, repair slack count, active rows,
     slack)``, status one of ``STEP_*``; the last two only when it is ≤ ``STEP_RELAXED_AS_IS``.
     """
     n = nom.shape[0]
@@ -893,10 +897,9 @@ def qp_step(tau_nom, A, b, scale, weights, m_prev, k_prev, max_iter, tol, row_sl
                 residuals(G, xe, h, r)
                 return out, steps, k, 0, 0.0
             l = hcx[:cap] if impossible else h[:cap]
-            c, s, k = repair_step(G, xe, h, r, m, tol, l, weights,
-                                  row_slack_weight, Kr, k_prev, Gr, hr, rep_iwork, x0r, nom, WJx, as_tol, as_vtol,
-                                  max_iter, rep_work, lo, hi, u, WJ[:n], WJp, x0p, hp, pflag, pw_work, pw_iwork,
-                                  int(qp_f[5]), rep_stats)
+            c, s, k = repair_step(G, xe, h, r, m, tol, l, weights, row_slack_weight, Kr, k_prev, Gr, hr, rep_iwork,
+                                  x0r, nom, WJx, as_tol, as_vtol, max_iter, rep_work, lo, hi, u, WJ[:n], WJp, x0p,
+                                  hp, pflag, pw_work, pw_iwork, int(qp_f[5]), rep_stats)
             steps += s
             if c == 2:
                 return out, steps, k, 0, 0.0
