@@ -22,7 +22,9 @@ QP is replaced by one with that ``solver`` (same rows, box and weight; ``slack_r
 runs ``--latency-rounds`` rounds (default 2) of ``--calls / rounds`` calls per solver, the order
 rotating per round and round r using seed ``--seed + r`` for both, so machine noise and the
 arrangements hit the solvers alike. One line per solver (calls pooled over the rounds), then the
-ratios of the first solver over the second (total and QP, median and p99).
+ratios of the first solver over the second (total and QP, median and p99). ``--guard auto none``
+compares the same way the filter with and without its guard (``SafetyFilter(guard=...)``: the
+distance HOCBF's rows beside the C3BF's, or the C3BF's alone; label ``/unguarded``).
 
 (b) **Throughput.** Env steps/s of unfiltered ``C3BFReach-v0``, filtered
 (``SafetyFilter(barrier="c3bf")``) and Gymnasium's ``Pusher-v5``, all from ``gymnasium.make``,
@@ -31,7 +33,7 @@ order) so machine noise hits all three alike; the ratios filtered/unfiltered and
 filtered/Pusher are per round, the headline is their median.
 
 Usage: ``python benchmarks/filter_speed.py [--calls 3000] [--obstacles 1 4 8] [--policy adversarial]
-[--qp-solver S [S ...]] [--latency-rounds R] [--rounds 5] [--steps 1000] [--split] [--profile] [--no-throughput]
+[--qp-solver S [S ...]] [--guard G [G ...]] [--latency-rounds R] [--rounds 5] [--steps 1000] [--split] [--profile] [--no-throughput]
 [--json PATH]``. The script also times
 other versions of the package (``PYTHONPATH=/path/to/other/checkout``): it prints which
 ``c3bf_gym`` it imported, and the QP timer wraps ``TorqueQP.solve_scaled`` (the hook's call) or, in
@@ -212,8 +214,9 @@ def use_solver(hook, solver: str) -> None:
 
 
 def hook_latency(count: int, calls: int, seed: int, policy: str = "adversarial", profile: bool = False,
-                 qp_solver: str | None = None, split: bool = False) -> TimedHook:
-    env = SafetyFilter(gym.make("C3BFReach-v0", scenario="none"), barrier="c3bf")
+                 qp_solver: str | None = None, split: bool = False, guard: str = "auto") -> TimedHook:
+    env = SafetyFilter(gym.make("C3BFReach-v0", scenario="none"), barrier="c3bf",
+                       **({} if guard == "auto" else {"guard": None}))
     if qp_solver is not None:
         use_solver(env.hook, qp_solver)
     u = env.unwrapped
@@ -248,6 +251,12 @@ def hook_latency(count: int, calls: int, seed: int, policy: str = "adversarial",
 
 def us(values: list[float], q: float) -> float:
     return float(np.percentile(np.asarray(values) * 1e6, q)) if values else math.nan
+
+
+def variant_name(variant: tuple[str | None, str]) -> str:
+    """A latency variant's label: its solver (or "default"), "/unguarded" without the guard."""
+    solver, guard = variant
+    return (solver or "default") + ("/unguarded" if guard == "none" else "")
 
 
 def summary(timed: list[TimedHook]) -> dict:
@@ -299,8 +308,11 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--qp-solver", nargs="+", choices=("active_set", "proxsuite", "slack_repair"),
                         help="TorqueQP solver(s) of the latency runs (default: the filter's own); two are compared. "
                              "slack_repair: active_set with the per-row repair as the QP in (tau, t_K)")
+    parser.add_argument("--guard", nargs="+", choices=("auto", "none"),
+                        help="the filter's guard in the latency runs (default: SafetyFilter's, 'auto'); with two "
+                             "(or a solver and a guard each) they are compared, as two variants are")  # fmt: skip
     parser.add_argument("--latency-rounds", type=int,
-                        help="interleaved latency rounds per obstacle count (default 1, or 2 with several solvers)")
+                        help="interleaved latency rounds per obstacle count (default 1, or 2 with two variants)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--split", action="store_true",
                         help="also time the rows and the QP apart (only a hook that calls them: not the fused whole-arm kernel)")
@@ -310,31 +322,35 @@ def main(argv: list[str] | None = None) -> dict:
     args = parser.parse_args(argv)
     if args.calls < 1 or args.rounds < 1 or args.steps < 1 or any(not 1 <= k <= 8 for k in args.obstacles):
         parser.error("--calls, --rounds, --steps must be >= 1 and obstacle counts in 1..8")
-    solvers = args.qp_solver or [None]
-    rounds = args.latency_rounds or (2 if len(solvers) > 1 else 1)
+    # the variants compared: (solver, guard) pairs
+    variants = [(s, g) for s in args.qp_solver or [None] for g in args.guard or ["auto"]]
+    if len(variants) > 2:
+        parser.error("compare at most two variants: two solvers, or two guards")
+    rounds = args.latency_rounds or (2 if len(variants) > 1 else 1)
     if rounds < 1 or args.calls < rounds:
         parser.error("--latency-rounds must be >= 1 and <= --calls")
 
     out: dict = {"hook": {}, "throughput": {}, "package": c3bf_gym.__file__}
     print(f"c3bf_gym from {c3bf_gym.__file__}")
     print(f"(a) filter hook per physics step, whole-arm C3BF, {args.policy} policy, {args.calls} calls each [µs]"
-          + (f", solvers {' vs '.join(solvers)} in {rounds} interleaved rounds" if len(solvers) > 1 else ""))
-    label = len(solvers) > 1 or rounds > 1  # one line per solver, headed by its name
-    header = (f"{'obst':>4} {'solver':>10} " if label else f"{'obst':>4} ") + (
+          + (f", {' vs '.join(map(variant_name, variants))} in {rounds} interleaved rounds" if len(variants) > 1 else ""))
+    label = len(variants) > 1 or rounds > 1  # one line per variant, headed by its name
+    header = (f"{'obst':>4} {'variant':>18} " if label else f"{'obst':>4} ") + (
               f"{'sensed':>6} {'rows':>4} | {'total med':>9} {'p99':>7} {'max':>8} | {'solved med':>10} | {'relaxed med':>11} {'p99':>6} | "
               f"{'rows med':>8} {'p99':>6} | {'QP med':>7} {'p99':>7} {'max':>8} | {'fast path':>9}  QP status")  # fmt: skip
     print(header)
     print("-" * len(header))
     for count in args.obstacles:
-        timed: dict = {s: [] for s in solvers}
+        timed: dict = {s: [] for s in variants}
         per_round = args.calls // rounds
         for r in range(rounds):
-            for s in solvers[r % len(solvers):] + solvers[: r % len(solvers)]:  # rotate who goes first
-                timed[s].append(hook_latency(count, per_round, args.seed + r, args.policy, qp_solver=s,
-                                            split=args.split))
-        rows_by_solver = {s: summary(timed[s]) for s in solvers}
-        out["hook"][count] = rows_by_solver if len(solvers) > 1 else rows_by_solver[solvers[0]]
-        for s, row in rows_by_solver.items():
+            for s in variants[r % len(variants):] + variants[: r % len(variants)]:  # rotate who goes first
+                timed[s].append(hook_latency(count, per_round, args.seed + r, args.policy, qp_solver=s[0],
+                                            split=args.split, guard=s[1]))
+        rows_by_variant = {s: summary(timed[s]) for s in variants}
+        out["hook"][count] = ({variant_name(s): row for s, row in rows_by_variant.items()} if len(variants) > 1
+                              else rows_by_variant[variants[0]])
+        for s, row in rows_by_variant.items():
             status = ", ".join(f"{k} {v}" for k, v in sorted(row["status"].items()))
             if row["fallbacks"]:
                 status += f"; fallback {row['fallbacks']}"
@@ -342,16 +358,16 @@ def main(argv: list[str] | None = None) -> dict:
             if rep.get("settled") or rep.get("slack_qp"):
                 status += (f"; repair in tau settled {rep['settled']} (mean rounds "
                            f"{rep['rounds'] / max(rep['settled'], 1):.2f}), to the slack QP {rep['slack_qp']}")
-            head = f"{count:>4} {s or 'default':>10} " if label else f"{count:>4} "
+            head = f"{count:>4} {variant_name(s):>18} " if label else f"{count:>4} "
             print(f"{head}{row['sensed_median']:>6.0f} {row['rows_count']:>4} | {row['total_median_us']:>9.0f} "
                   f"{row['total_p99_us']:>7.0f} {row['total_max_us']:>8.0f} | {row['solved_median_us']:>10.0f} | "
                   f"{row['relaxed_median_us']:>11.0f} "
                   f"{row['relaxed_p99_us']:>6.0f} | {row['rows_median_us']:>8.0f} "
                   f"{row['rows_p99_us']:>6.0f} | {row['qp_median_us']:>7.0f} {row['qp_p99_us']:>7.0f} "
                   f"{row['qp_max_us']:>8.0f} | {100 * row['fast_path']:>8.0f}%  {status}")  # fmt: skip
-        if len(solvers) > 1:
-            a, b = (rows_by_solver[s] for s in solvers[:2])
-            print(f"{count:>4} {'ratio':>10} {'':>11} | {a['total_median_us'] / b['total_median_us']:>9.2f} "
+        if len(variants) > 1:
+            a, b = (rows_by_variant[s] for s in variants[:2])
+            print(f"{count:>4} {'ratio':>18} {'':>11} | {a['total_median_us'] / b['total_median_us']:>9.2f} "
                   f"{a['total_p99_us'] / b['total_p99_us']:>7.2f} {'':>8} | "
                   f"{a['solved_median_us'] / b['solved_median_us']:>10.2f} | "
                   f"{a['relaxed_median_us'] / b['relaxed_median_us']:>11.2f} "

@@ -19,6 +19,7 @@ Usage::
     python benchmarks/guarantee.py --quick                 # smoke run (~1 min)
     python benchmarks/guarantee.py --episodes 200 --out results/guarantee
     python benchmarks/guarantee.py --episodes 200 --filters c3bf/whole_arm --margin 0.03   # a wider margin
+    python benchmarks/guarantee.py --episodes 200 --filters c3bf/whole_arm --guard none    # the C3BF alone
 """
 
 from __future__ import annotations
@@ -90,8 +91,8 @@ def adversarial_action(u) -> np.ndarray:
 # ----------------------------------------------------------------------------- one episode
 
 
-def run_episode(task: tuple[str, str, str, str, int, int, float | None]) -> Episode:
-    scenario, policy, barrier, points, seed, steps, margin = task
+def run_episode(task: tuple[str, str, str, str, int, int, float | None, str]) -> Episode:
+    scenario, policy, barrier, points, seed, steps, margin, guard = task
     import gymnasium as gym
 
     import c3bf_gym  # noqa: F401  (registers C3BFReach-v0)
@@ -100,7 +101,8 @@ def run_episode(task: tuple[str, str, str, str, int, int, float | None]) -> Epis
     start = time.perf_counter()
     env = gym.make("C3BFReach-v0", scenario=scenario)
     if barrier != "none":
-        env = SafetyFilter(env, barrier=barrier, points=points, **({} if margin is None else {"margin": margin}))
+        env = SafetyFilter(env, barrier=barrier, points=points, guard=None if guard == "none" else guard,
+                           **({} if margin is None else {"margin": margin}))
     u = env.unwrapped
     out = Episode(scenario, policy, barrier, points, seed)
     env.reset(seed=seed)
@@ -173,6 +175,9 @@ def main(argv: list[str] | None = None) -> list[dict]:
                         choices=[f"{b}/{p}" if b != "none" else b for b, p in FILTERS],
                         help="barrier/points combinations (default: all, and no filter)")  # fmt: skip
     parser.add_argument("--margin", type=float, help="the filters' margin [m] (default: SafetyFilter's, 0.02)")
+    parser.add_argument("--guard", choices=("auto", "none"), default="auto",
+                        help="the filters' guard (SafetyFilter's: 'auto', the distance HOCBF beside the C3BF; "
+                             "'none', the barrier's rows alone)")  # fmt: skip
     parser.add_argument("--out", type=Path, default=Path("benchmarks/results/guarantee"), help="output directory")
     parser.add_argument("--quick", action="store_true", help="smoke run: 2 episodes of 100 steps per configuration")
     args = parser.parse_args(argv)
@@ -184,10 +189,10 @@ def main(argv: list[str] | None = None) -> list[dict]:
         parser.error(f"--margin must be a finite number >= 0 (m), got {args.margin}")
 
     filters = [tuple(f.split("/")) if f != "none" else ("none", "-") for f in args.filters]
-    tasks = [(s, p, b, pts, args.seed + i, args.steps, args.margin)
+    tasks = [(s, p, b, pts, args.seed + i, args.steps, args.margin, args.guard)
              for s in args.scenarios for p in args.policies for b, pts in filters for i in range(args.episodes)]  # fmt: skip
     print(f"{len(tasks)} episodes ({args.episodes} per configuration, {args.steps} steps) on {args.workers} workers"
-          + ("" if args.margin is None else f", filter margin {args.margin} m"))
+          + ("" if args.margin is None else f", filter margin {args.margin} m") + f", guard {args.guard}")
     start = time.perf_counter()
     ctx = mp.get_context("spawn")  # fresh interpreters: no MuJoCo state or GL context inherited
     with ctx.Pool(args.workers) as pool:
@@ -207,7 +212,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
         for e in sorted(episodes, key=lambda e: (e.scenario, e.policy, e.barrier, e.points, e.seed)):
             writer.writerow(asdict(e))
     meta = {"episodes_per_configuration": args.episodes, "steps": args.steps, "seed": args.seed, "margin": args.margin,
-            "workers": args.workers, "quick": args.quick, "cpu_count": os.cpu_count()}  # fmt: skip
+            "guard": args.guard, "workers": args.workers, "quick": args.quick, "cpu_count": os.cpu_count()}  # fmt: skip
     with open(args.out / "summary.json", "w") as f:
         json.dump({"settings": meta, "configurations": rows}, f, indent=2)
     print(f"wrote {args.out / 'episodes.csv'} and {args.out / 'summary.json'}")

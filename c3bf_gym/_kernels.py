@@ -352,13 +352,16 @@ def hook_rows_whole_arm(stage, M, qfrc_passive, qfrc_bias, geom_xpos, geom_xmat,
        (``arm_i``, ``arm_f``, ``scratch``: its packed constants and scratch).
     2. For every sensed obstacle (active and ``distances[k].min() <= sensing_radius``), one row
        per capsule: closest point (:func:`_closest_pair`), barrier ``kind`` (:func:`_c3bf_point`
-       or :func:`_hocbf_point`), row (:func:`_row`) with the sliding term ``−⟨grad_p, ṫ (b − a)⟩``.
+       or :func:`_hocbf_point`), row (:func:`_row`) with the sliding term ``−⟨grad_p, ṫ (b − a)⟩``;
+       with a guard (``hook_f``'s last two entries, gains γ₁, γ₂ of a distance HOCBF, > 0), the
+       guard's row for the same point right after it.
     3. The floor rows of the capsule ends ``floor_idx`` (:func:`floor_rows`, heights
        ``floor_min``).
     4. With ``joint_rows``, the ``4n`` joint-limit rows (:func:`joint_limit_rows`).
 
     ``hook_f`` = ``[sensing_radius, margin, floor γ, γ, barrier params (2), γ₁, γ₂, γ_v,
-    q_lo (n), q_hi (n), qd_max (n)]``; ``work`` a (3, 6 + nv) scratch. Returns ``(rows, min h, any
+    q_lo (n), q_hi (n), qd_max (n), guard γ₁, guard γ₂]`` (guard gains 0: no guard); ``work`` a
+    (3, 6 + nv) scratch. Returns ``(rows, min h of the barrier's rows (not the guard's), any
     inside, sensed count)``.
     """
     s_count = ends_ab.shape[0]
@@ -377,6 +380,9 @@ def hook_rows_whole_arm(stage, M, qfrc_passive, qfrc_bias, geom_xpos, geom_xmat,
     margin = hook_f[1]
     floor_gamma = hook_f[2]
     gamma = hook_f[3]
+    guard_gamma1 = hook_f[9 + 3 * nv]
+    guard_gamma2 = hook_f[10 + 3 * nv]
+    guard = guard_gamma2 > 0.0
     p = work[0, :3]
     v = work[1, :3]
     c = work[2, :3]
@@ -410,6 +416,11 @@ def hook_rows_whole_arm(stage, M, qfrc_passive, qfrc_bias, geom_xpos, geom_xmat,
             min_h = min(min_h, h)
             inside_any = inside_any or inside
             m += 1
+            if guard:
+                h, drift, inside = _hocbf_point(p, v, r, guard_gamma1, grad_v, grad_p)
+                bk = _row(grad_v, G, c, drift, h, guard_gamma2, A[m])
+                b[m] = bk - (grad_p[0] * slide[0] + grad_p[1] * slide[1] + grad_p[2] * slide[2])
+                m += 1
     n_floor = floor_idx.shape[0]
     floor_rows(ends, floor_idx, floor_min, floor_gamma, A[m:m + n_floor], b[m:m + n_floor])
     m += n_floor

@@ -46,7 +46,7 @@ import numba
 import numpy as np
 
 from c3bf_gym import _kernels
-from c3bf_gym.barriers import Barrier, JointLimits, Rows, make_barrier
+from c3bf_gym.barriers import BARRIERS, C3BF, Barrier, DistanceHOCBF, JointLimits, Rows, make_barrier
 from c3bf_gym.qp import QPResult, TorqueQP
 from c3bf_gym.robot import ArmModel
 
@@ -154,6 +154,7 @@ class SafetyHook:
         weight: Literal["limits", "identity"],
         on_infeasible: Literal["relax", "raise"],
         intervention_tol: float = 1e-3,
+        guard: Barrier | None = None,
     ) -> None:
         self.env = env
         self.barrier = barrier
@@ -162,12 +163,13 @@ class SafetyHook:
         self.sensing_radius = float(sensing_radius)
         self.ee_radius = float(ee_radius)
         self.joint_limits = joint_limits
+        self.guard = guard
         self.on_infeasible = on_infeasible
         self.intervention_tol = float(intervention_tol)
         self.arm: ArmModel = env.arm
         n = env.model.nv
         limit = env.torque_limit
-        self._per_obstacle = len(self.arm.capsule_ids) if points == "whole_arm" else 1
+        self._per_obstacle = (len(self.arm.capsule_ids) if points == "whole_arm" else 1) * (1 if guard is None else 2)
         n_obstacles = len(env.obstacle_radius)
         self._n_joint_rows = 0 if joint_limits is None else 4 * n
         self._floor_ends, self._floor_min = self._floor_setup(env.model)
@@ -186,6 +188,13 @@ class SafetyHook:
         # any other barrier or points="ee" goes through Barrier.terms / rows_from_terms.
         spec = getattr(barrier, "fused_spec", None)
         spec = spec() if spec is not None and points == "whole_arm" else None
+        guard_f = np.zeros(2)  # the kernel's guard gains (γ₁, γ₂) of a distance HOCBF; 0: no guard
+        if guard is not None:
+            guard_spec = guard.fused_spec() if hasattr(guard, "fused_spec") else None
+            if guard_spec is not None and guard_spec[0] == _kernels.HOCBF_KIND:
+                guard_f = guard_spec[1][[1, 0]]
+            else:
+                spec = None
         self._fused = spec is not None
         self._kind, params = spec if spec is not None else (-1, np.zeros(3))
         if joint_limits is not None:
@@ -193,7 +202,7 @@ class SafetyHook:
         else:
             jl = [np.ones(3), np.zeros(n), np.ones(n), np.ones(n)]
         # the fused kernel's float parameters (c3bf_gym._kernels.hook_rows_whole_arm)
-        self._hook_f = np.concatenate([[self.sensing_radius, self.margin, FLOOR_GAMMA], params, *jl])
+        self._hook_f = np.concatenate([[self.sensing_radius, self.margin, FLOOR_GAMMA], params, *jl, guard_f])
         self._floor_idx = self._floor_ends.astype(np.int64)
         self._work = np.zeros((3, 6 + n))
         self._bound_qp: TorqueQP | None = None  # the QP whose buffers _bound holds (_bind)
@@ -258,13 +267,19 @@ class SafetyHook:
                 G = np.broadcast_to(site.G, (len(sensed),) + site.G.shape[1:])
                 r = radius + self.ee_radius
                 r += self.margin
-            terms = self.barrier.terms(p, v, r)
-            m = len(p)
-            self.barrier.rows_from_terms(terms, G, c, out=Rows(self._A, self._b))
-            if self.points == "whole_arm":
-                self._b[:m] -= np.vecdot(terms.grad_p, slide_p)
-            min_h = float(terms.h.min())
-            inside = bool(terms.inside.any())
+            # one row per point, followed (as in the fused kernel) by the guard's row for that point
+            barriers = (self.barrier,) if self.guard is None else (self.barrier, self.guard)
+            for i, barrier in enumerate(barriers):
+                terms = barrier.terms(p, v, r)
+                rows = barrier.rows_from_terms(terms, G, c)
+                if self.points == "whole_arm":
+                    rows.b[:] -= np.vecdot(terms.grad_p, slide_p)
+                self._A[i:len(barriers) * len(p):len(barriers)] = rows.A
+                self._b[i:len(barriers) * len(p):len(barriers)] = rows.b
+                if i == 0:
+                    min_h = float(terms.h.min())
+                    inside = bool(terms.inside.any())
+            m = len(barriers) * len(p)
         if self._n_floor_rows:
             m += self._floor_rows(self._A[m:], self._b[m:])
         if self.joint_limits is not None:
@@ -411,8 +426,13 @@ def build_hook(
     joint_speed_fraction: float,
     weight: str,
     on_infeasible: str,
+    guard: str | Barrier | None = "auto",
 ) -> SafetyHook:
-    """Validate user-facing options and build a :class:`SafetyHook` (used by the wrappers)."""
+    """Validate user-facing options and build a :class:`SafetyHook` (used by the wrappers).
+
+    ``guard``: ``"auto"`` (a :class:`~c3bf_gym.barriers.DistanceHOCBF` with its default gains
+    beside a :class:`~c3bf_gym.barriers.C3BF`, nothing beside any other barrier), None, a name of
+    :data:`~c3bf_gym.barriers.BARRIERS` (its default gains) or a Barrier."""
     if points not in POINTS:
         raise ValueError(f"unknown points {points!r}; valid choices: {', '.join(map(repr, POINTS))}")
     if on_infeasible not in ON_INFEASIBLE:
@@ -440,8 +460,18 @@ def build_hook(
         barrier_obj = make_barrier(barrier, **({} if gamma is None else {"gamma1": gamma, "gamma2": gamma}))
     else:
         barrier_obj = make_barrier(barrier, **({} if gamma is None else {"gamma": gamma}))
+    if isinstance(guard, Barrier) or guard is None:
+        guard_obj = guard
+    elif guard == "auto":
+        guard_obj = DistanceHOCBF() if isinstance(barrier_obj, C3BF) else None
+    elif isinstance(guard, str) and guard in BARRIERS:
+        guard_obj = make_barrier(guard)
+    else:
+        choices = ", ".join(map(repr, ("auto", None, *BARRIERS)))
+        raise ValueError(f"unknown guard {guard!r}; valid choices: {choices}, or a Barrier")
     q_lo, q_hi = env.joint_range.T
     joint_limits = JointLimits(q_lo, q_hi, joint_speed_fraction * UR5E_JOINT_SPEED)
     return SafetyHook(
-        env, barrier_obj, points, margin, sensing_radius, ee_radius, joint_limits, weight, on_infeasible
+        env, barrier_obj, points, margin, sensing_radius, ee_radius, joint_limits, weight, on_infeasible,
+        guard=guard_obj,
     )

@@ -10,7 +10,7 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from c3bf_gym.metrics import EpisodeRecord
-from c3bf_gym.training import FINAL_EVAL_FILE
+from c3bf_gym.training import FINAL_EVAL_FILE, LEGACY_GUARD, filter_label
 
 __all__ = [
     "plot_barrier",
@@ -22,8 +22,8 @@ __all__ = [
     "plot_trajectories",
 ]
 
-COLORS = {"none": "tab:red", "hocbf": "tab:orange", "c3bf": "tab:blue"}
-LABELS = {"none": "no filter", "hocbf": "distance HOCBF", "c3bf": "C3BF"}
+COLORS = {"none": "tab:red", "hocbf": "tab:orange", "c3bf": "tab:blue", "c3bf+hocbf": "tab:green"}
+LABELS = {"none": "no filter", "hocbf": "distance HOCBF", "c3bf": "C3BF", "c3bf+hocbf": "C3BF + distance guard"}
 
 
 def _pyplot():
@@ -287,12 +287,14 @@ def plot_training(runs: Sequence[Path], path: Path, window: int = 20, evaluation
         config["_summary"] = json.loads(summary.read_text()) if summary.exists() else {}
         config["_final"], config["_by_scenario"] = _final_evaluation(run, evaluation)
         config["_run"] = str(run)
-        groups.setdefault((config["algo"], config["action"], config["filter"]), []).append((config, data))
+        # the C3BF with its guard is its own group ("c3bf+hocbf"); runs from before the guard had none
+        name = filter_label(config["filter"], config.get("guard", LEGACY_GUARD))
+        groups.setdefault((config["algo"], config["action"], name), []).append((config, data))
     if not groups:
         raise ValueError("no run has a finished training episode to plot")
     for key, entries in groups.items():
         _check_recipe(key, entries)
-    order = {"none": 0, "hocbf": 1, "c3bf": 2}
+    order = {"none": 0, "hocbf": 1, "c3bf": 2, "c3bf+hocbf": 3}
     keys = sorted(groups, key=lambda k: (k[0], k[1], order.get(k[2], 3)))
     several_modes = len({k[:2] for k in keys}) > 1
     fig, axes = plt.subplots(1, 3, figsize=(15, 4))

@@ -72,6 +72,17 @@ DEFAULT_TRAIN_HZ = 10
 ALGORITHMS = ("sac", "ppo")
 ACTIONS = ("impedance", "residual", "torque")
 FILTERS = ("none", "hocbf", "c3bf")
+#: ``SafetyFilter(guard=...)`` of a run: "auto" (the filter's default: the distance HOCBF's rows
+#: beside the C3BF's) or "none" (the barrier's rows alone). A run whose config.json has no
+#: "guard" predates the guard: it ran with the barrier's rows alone.
+GUARDS = ("auto", "none")
+LEGACY_GUARD = "none"
+
+
+def filter_label(filter: str, guard: str = "auto") -> str:
+    """A run's filter as its name and the training tables spell it: ``"c3bf+hocbf"`` for the C3BF
+    with its (default) distance-HOCBF guard, else the filter's name."""
+    return "c3bf+hocbf" if filter == "c3bf" and guard == "auto" else filter
 #: How the policy network reads the obstacle slots: ``flat`` (SB3's MLP on the whole
 #: observation) or ``set`` (:class:`~c3bf_gym.policies.ObstacleSetExtractor`: one shared encoder
 #: per obstacle slot, pooled, so what is learnt about one slot holds for every slot).
@@ -117,7 +128,8 @@ HYPERPARAMS: dict[tuple[str, str], dict[str, Any]] = {
 
 @dataclass
 class TrainConfig:
-    """One training run. ``filter`` is ``"none"``, ``"hocbf"`` or ``"c3bf"``.
+    """One training run. ``filter`` is ``"none"``, ``"hocbf"`` or ``"c3bf"``; ``guard`` is the
+    filter's (:data:`GUARDS`).
 
     The defaults are the recipe of the README's RL table (the one place they are kept; the
     command line takes them from here): SAC, residual Cartesian actions at 10 Hz, the reward's
@@ -129,6 +141,7 @@ class TrainConfig:
     algo: Literal["sac", "ppo"] = "sac"
     action: Literal["impedance", "residual", "torque"] = "residual"
     filter: Literal["none", "hocbf", "c3bf"] = "c3bf"
+    guard: Literal["auto", "none"] = "auto"
     scenario: str = "random"
     timesteps: int = 25_000
     seed: int = 0
@@ -153,6 +166,7 @@ class TrainConfig:
             ("algo", self.algo, ALGORITHMS),
             ("action", self.action, ACTIONS),
             ("filter", self.filter, FILTERS),
+            ("guard", self.guard, GUARDS),
             ("obstacle_encoder", self.obstacle_encoder, OBSTACLE_ENCODERS),
         ):
             if value not in choices:
@@ -182,7 +196,8 @@ class TrainConfig:
         penalty = f"_aw{self.action_weight:g}" if self.action_weight else ""
         encoder = "" if self.obstacle_encoder == "flat" else f"_{self.obstacle_encoder}"
         return (
-            f"{self.algo}_{self.action}{norm}{rate}{dense}{penalty}{encoder}_{self.filter}_{self.scenario}_s{self.seed}"
+            f"{self.algo}_{self.action}{norm}{rate}{dense}{penalty}{encoder}_{filter_label(self.filter, self.guard)}"
+            f"_{self.scenario}_s{self.seed}"
         )
 
     def env_kwargs(self) -> dict[str, float]:
@@ -229,23 +244,26 @@ def make_env(
     seed: int = 0,
     monitor_file: str | None = None,
     action_weight: float = 0.0,
+    guard: str = "auto",
     **env_kwargs: Any,
 ) -> Callable[[], gym.Env]:
     """A thunk building ``Monitor(ActionPenalty(SafetyFilter(CartesianImpedanceAction(C3BFReach-v0))))``
     (the parts the options ask for; ``ActionPenalty`` when ``action_weight > 0``), for SB3 vector
-    envs. The env is seeded on its first reset."""
+    envs. ``guard``: the filter's (:data:`GUARDS`). The env is seeded on its first reset."""
     from stable_baselines3.common.monitor import Monitor
 
     filter_name = _filter_name(filter)
     if action not in ACTIONS:
         raise ValueError(f"unknown action {action!r}; valid choices: {', '.join(map(repr, ACTIONS))}")
+    if guard not in GUARDS:
+        raise ValueError(f"unknown guard {guard!r}; valid choices: {', '.join(map(repr, GUARDS))}")
 
     def thunk() -> gym.Env:
         env = gym.make("C3BFReach-v0", scenario=scenario, **env_kwargs)
         if action in ("impedance", "residual"):
             env = CartesianImpedanceAction(env, residual=action == "residual")
         if filter_name is not None:
-            env = SafetyFilter(env, barrier=filter_name)
+            env = SafetyFilter(env, barrier=filter_name, guard=None if guard == "none" else guard)
         if action_weight:
             env = ActionPenalty(env, action_weight)
         env = Monitor(env, monitor_file, info_keywords=info_keywords(filter_name))
@@ -343,12 +361,14 @@ def train(config: TrainConfig) -> Path:
     filter_name = _filter_name(config.filter)
     rate, penalty = config.env_kwargs(), config.action_weight
     thunks = [
-        make_env(config.scenario, filter_name, config.action, seed=config.seed * 1000 + i, action_weight=penalty, **rate)
+        make_env(config.scenario, filter_name, config.action, seed=config.seed * 1000 + i, action_weight=penalty,
+                 guard=config.guard, **rate)
         for i in range(config.n_envs)
     ]
     venv = SubprocVecEnv(thunks) if config.n_envs > 1 else DummyVecEnv(thunks)
     eval_env = DummyVecEnv(
-        [make_env(config.scenario, filter_name, config.action, seed=10_000 + config.seed, action_weight=penalty, **rate)]
+        [make_env(config.scenario, filter_name, config.action, seed=10_000 + config.seed, action_weight=penalty,
+                  guard=config.guard, **rate)]
     )
     if config.normalize_obs:
         # Running mean/std of the observations (not of the rewards); EvalCallback copies the
@@ -426,11 +446,13 @@ def evaluate(
     scenario: str | None = None,
     seed: int = FINAL_EVAL_SEED,
     deterministic: bool = True,
+    guard: str | None = None,
 ) -> dict[str, float]:
     """Roll out a saved model for ``episodes`` seeded episodes.
 
-    ``filter`` and ``scenario`` default to the run's own (from its ``config.json``); pass a
-    filter to evaluate, e.g., an unfiltered agent with the C3BF filter on. The action mode,
+    ``filter``, ``guard`` and ``scenario`` default to the run's own (from its ``config.json``; a
+    run from before the guard ran without one); pass a filter to evaluate, e.g., an unfiltered
+    agent with the C3BF filter on. The action mode,
     policy rate and reward (``distance_weight``, ``action_weight``) are the run's too (also for
     ``best/`` and ``checkpoints/`` models), so returns compare only between runs with the same
     reward; success and collisions do not depend on it. A run
@@ -454,7 +476,8 @@ def evaluate(
     normalizer = _load_normalizer(run_dir / NORMALIZATION_FILE) if run_dir else None
     returns, successes, costs, collided, interventions, infeasible, kinds = [], [], [], [], [], [], []
     run_env = env_kwargs(config.get("policy_hz", DEFAULT_POLICY_HZ), config.get("distance_weight", 0.0))
-    env = make_env(scenario, filter, action, seed=seed, action_weight=config.get("action_weight", 0.0), **run_env)()
+    env = make_env(scenario, filter, action, seed=seed, action_weight=config.get("action_weight", 0.0),
+                   guard=config.get("guard", LEGACY_GUARD) if guard is None else guard, **run_env)()
     for episode in range(episodes):
         obs, _ = env.reset(seed=seed + episode)
         kinds.append(env.unwrapped.episode_scenario.name)

@@ -20,7 +20,7 @@ from c3bf_gym.scenarios import ObstacleSample, ObstacleSpec
 #: build_hook defaults as the SafetyFilter wrapper passes them.
 DEFAULTS = dict(
     barrier="c3bf", points="whole_arm", gamma=None, margin=0.02, sensing_radius=None, ee_radius=0.05,
-    joint_speed_fraction=0.5, weight="limits", on_infeasible="relax",
+    joint_speed_fraction=0.5, weight="limits", on_infeasible="relax", guard="auto",
 )  # fmt: skip
 
 
@@ -250,7 +250,7 @@ def test_rows_equal_independent_barrier_condition(env, seed, barrier, points):
     u = env
     rng = np.random.default_rng(seed)
     random_scene(u, rng, n_obstacles=1 + seed % 3)
-    hook = hook_for(u, barrier=barrier, points=points, margin=0.015)
+    hook = hook_for(u, barrier=barrier, points=points, margin=0.015, guard=None)  # the guard's: test_kernels
     A, b, min_h, inside, n_sensed = hook.rows()
     A, b = A.copy(), b.copy()
     assert not inside and n_sensed == 1 + seed % 3
@@ -325,7 +325,7 @@ def test_far_obstacle_pushing_nominal_is_not_filtered(env):
     np.testing.assert_allclose(out, tau_nom, rtol=1e-14, atol=1e-12)
     far = hook_for(u, sensing_radius=0.5)
     A, b, *_ = far.rows()
-    assert len(b) == FIXED_ROWS + len(u.arm.capsule_ids)
+    assert len(b) == FIXED_ROWS + 2 * len(u.arm.capsule_ids)  # per link the C3BF's row and the guard's
     far.begin_step()
     out = far(tau_nom.copy())
     assert far.report.sensed == 1
@@ -335,7 +335,7 @@ def test_far_obstacle_pushing_nominal_is_not_filtered(env):
 def test_obstacles_beyond_sensing_radius_add_no_row(env):
     u = env
     rng = np.random.default_rng(0)
-    s = len(u.arm.capsule_ids)
+    s = 2 * len(u.arm.capsule_ids)  # rows per sensed obstacle: per link the C3BF's and the guard's
     hook = hook_for(u, sensing_radius=0.15)
     hook_ee = hook_for(u, sensing_radius=0.15, points="ee")
     clearances = [0.05, 0.1, 0.14, 0.16, 0.3, 0.6]
@@ -350,7 +350,7 @@ def test_obstacles_beyond_sensing_radius_add_no_row(env):
     A, b, _, _, n_sensed = hook.rows()
     assert n_sensed == n_near and len(b) == n_near * s + FIXED_ROWS
     A, b, _, _, n_sensed = hook_ee.rows()
-    assert n_sensed == n_near and len(b) == n_near + FIXED_ROWS
+    assert n_sensed == n_near and len(b) == 2 * n_near + FIXED_ROWS
     # inactive (retired) obstacles add no row even when near
     u.obstacle_active[0] = False
     A, b, _, _, n_sensed = hook.rows()

@@ -6,9 +6,10 @@ the nearest obstacle straight at it at full torque, (c) the Cartesian impedance 
 heading for the goal. Collisions are judged by the environment's own signals (``info["cost"]``,
 ``info["min_distance"]``: MuJoCo's signed distances at every physics step), independent of the
 filter. The adversary is shown to collide with the filter off, so these tests can fail.
-The seeds here hold; the long sweep (``benchmarks/guarantee.py --episodes 200``, README) found 3
-adversarial episodes in 1,600 where whole-arm C3BF lets a link touch (head-on 101, crossing 148,
-multi 151), after long stretches with no safe torque.
+The filter is the default one: the C3BF's rows with the distance HOCBF's beside them (the
+guard). The long sweep (``benchmarks/guarantee.py --episodes 200``, README) found 3 adversarial
+episodes in 1,600 where the C3BF's rows alone let a link touch, after long stretches with no safe
+torque; they are replayed below with the guard.
 
 The default run keeps to ~60 s; ``-m slow`` adds a larger sweep (more seeds, the distance HOCBF,
 and the tool-only filter, whose link collisions are recorded, not asserted).
@@ -85,13 +86,13 @@ def goal_action(u, max_offset) -> np.ndarray:
 
 
 def run_episode(make_env, scenario, seed, policy, barrier="c3bf", points="whole_arm", steps=STEPS,
-                stop_at_collision=False):  # fmt: skip
+                stop_at_collision=False, guard="auto"):  # fmt: skip
     """Roll out one episode; returns a summary dict. ``barrier=None``: no filter."""
     env = make_env(scenario=scenario)
     if policy == "impedance":
         env = CartesianImpedanceAction(env)
     if barrier is not None:
-        env = SafetyFilter(env, barrier=barrier, points=points)
+        env = SafetyFilter(env, barrier=barrier, points=points, guard=guard)
     u = env.unwrapped
     env.reset(seed=seed)
     rng = np.random.default_rng(seed)
@@ -162,6 +163,16 @@ def test_sliding_closest_point_regressions(make_env, scenario, seed, barrier):
     summary = run_episode(make_env, scenario, seed, "adversarial", barrier=barrier)
     assert_safe(summary, f"{scenario} seed {seed} adversarial {barrier}")
     assert summary["min_distance"] > 0.015  # the 2 cm margin holds up to discretisation
+
+
+@pytest.mark.parametrize("scenario, seed", [("head_on", 101), ("crossing", 148), ("multi", 151)])
+def test_guard_keeps_the_long_sweeps_c3bf_collisions_off(make_env, scenario, seed):
+    """The three adversarial episodes of the long sweep where the C3BF's rows alone let a link
+    into an obstacle (by 0.3, 7.3 and 0.4 mm): with the distance HOCBF's rows beside them, the
+    margin holds."""
+    summary = run_episode(make_env, scenario, seed, "adversarial")
+    assert_safe(summary, f"{scenario} seed {seed} adversarial, guarded C3BF")
+    assert summary["min_distance"] > 0.015
 
 
 def test_adversarial_policy_targets_the_nearest_point(make_env):

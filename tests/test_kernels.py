@@ -265,7 +265,7 @@ def test_fused_hook_rows_match_numpy_assembly(make_env, barrier, seed):
     u.reset(seed=seed)
     rng = np.random.default_rng(10 + seed)
     scene(u, rng, 1 + seed % 4)
-    hook = build_hook(u, barrier, "whole_arm", None, 0.01, None, 0.05, 1.0, "limits", "relax")
+    hook = build_hook(u, barrier, "whole_arm", None, 0.01, None, 0.05, 1.0, "limits", "relax", guard=None)
     assert hook._fused
     A, b, min_h, inside, n_sensed = hook.rows()
     A_ref, b_ref, h_ref, inside_ref, sensed_ref = numpy_rows(u, hook)
@@ -276,23 +276,51 @@ def test_fused_hook_rows_match_numpy_assembly(make_env, barrier, seed):
     assert min_h == pytest.approx(h_ref, rel=1e-10)
 
 
-def test_fused_rows_equal_the_per_class_path(make_env):
+@pytest.mark.parametrize("guard", [None, DistanceHOCBF(gamma1=3.0, gamma2=4.0)])
+def test_fused_rows_equal_the_per_class_path(make_env, guard):
     """A barrier the filter cannot fuse (a subclass changing terms) takes the per-class path;
-    with the same math it must give the fused kernel's rows."""
+    with the same math it must give the fused kernel's rows, the guard's included (one after each
+    of the barrier's)."""
     u = make_env(scenario="none").unwrapped
     u.reset(seed=3)
     scene(u, np.random.default_rng(3), 3)
     q_lo, q_hi = u.joint_range.T
     args = dict(points="whole_arm", margin=0.02, sensing_radius=0.5, ee_radius=0.05,
-                joint_limits=JointLimits(q_lo, q_hi, np.pi), weight="limits", on_infeasible="relax")  # fmt: skip
+                joint_limits=JointLimits(q_lo, q_hi, np.pi), weight="limits", on_infeasible="relax", guard=guard)  # fmt: skip
     fused = SafetyHook(u, C3BF(gamma=5.0, eps=1e-2), **args)
     generic = SafetyHook(u, _NumpyC3BF(gamma=5.0, eps=1e-2), **args)
     assert fused._fused and not generic._fused
     A1, b1, h1, in1, n1 = (x.copy() if isinstance(x, np.ndarray) else x for x in fused.rows())
     A2, b2, h2, in2, n2 = generic.rows()
-    assert n1 == n2 == 3 and in1 == in2
+    assert n1 == n2 == 3 and in1 == in2 and h1 == pytest.approx(h2, rel=1e-12)
+    assert len(b1) == 7 * 3 * (1 if guard is None else 2) + 12 + 24
     close(A1, A2, 1e-10)
     close(b1, b2, 1e-10)
+
+
+def test_guard_rows_are_the_distance_hocbfs(make_env):
+    """With a guard, the obstacle rows alternate: the C3BF filter's row for a point, then the row
+    a distance-HOCBF filter with the guard's gains has for it. Floor and joint rows follow once."""
+    u = make_env(scenario="none").unwrapped
+    u.reset(seed=5)
+    scene(u, np.random.default_rng(5), 2)
+    q_lo, q_hi = u.joint_range.T
+    args = dict(points="whole_arm", margin=0.02, sensing_radius=0.5, ee_radius=0.05,
+                joint_limits=JointLimits(q_lo, q_hi, np.pi), weight="limits", on_infeasible="relax")  # fmt: skip
+    guarded = SafetyHook(u, C3BF(gamma=5.0), guard=DistanceHOCBF(gamma1=3.0, gamma2=4.0), **args)
+    alone = SafetyHook(u, C3BF(gamma=5.0), **args)
+    hocbf = SafetyHook(u, DistanceHOCBF(gamma1=3.0, gamma2=4.0), **args)
+    A, b, h, _, n = (x.copy() if isinstance(x, np.ndarray) else x for x in guarded.rows())
+    A1, b1, h1, _, _ = (x.copy() if isinstance(x, np.ndarray) else x for x in alone.rows())
+    A2, b2, *_ = hocbf.rows()
+    k = 7 * n
+    assert n == 2 and len(b) == 2 * k + 36 and h == h1  # min h is the barrier's, not the guard's
+    close(A[:2 * k:2], A1[:k], 0.0)
+    close(b[:2 * k:2], b1[:k], 0.0)
+    close(A[1:2 * k:2], A2[:k], 1e-12)
+    close(b[1:2 * k:2], b2[:k], 1e-12)
+    close(A[2 * k:], A1[k:], 0.0)
+    close(b[2 * k:], b1[k:], 0.0)
 
 
 # ----------------------------------------------------------------------------- QP layer

@@ -105,7 +105,7 @@ def test_set_encoder_run_names_itself_reloads_and_evaluates(tmp_path):
     run = train(TrainConfig(timesteps=250, action="residual", scenario="multi", policy_hz=10, obstacle_encoder="set",
                             eval_freq=10_000, final_eval_episodes=0, out=str(tmp_path), progress_bar=False,
                             hyperparams={"learning_starts": 100}))  # fmt: skip
-    assert run.name == "sac_residual_10hz_dw10_aw3_set_c3bf_multi_s0"
+    assert run.name == "sac_residual_10hz_dw10_aw3_set_c3bf+hocbf_multi_s0"
     assert json.loads((run / "config.json").read_text())["obstacle_encoder"] == "set"
     model = SAC.load(run / "model.zip", device="cpu")
     assert isinstance(model.actor.features_extractor, ObstacleSetExtractor)
@@ -128,7 +128,7 @@ def test_policy_rate_keeps_five_second_episodes(hz):
 
 def test_distance_weight_reaches_the_env_and_names_the_run():
     config = TrainConfig(action="residual", distance_weight=5.0, action_weight=0.0, obstacle_encoder="flat", policy_hz=10)
-    assert config.name == "sac_residual_10hz_dw5_c3bf_random_s0"
+    assert config.name == "sac_residual_10hz_dw5_c3bf+hocbf_random_s0"
     assert TrainConfig(action="residual", policy_hz=10, distance_weight=0.0).env_kwargs() == policy_rate_kwargs(10)
     env = make_env("none", "none", "residual", seed=0, **config.env_kwargs())()
     _, reward, *_, info = env.step(np.zeros(3, np.float32))
@@ -136,9 +136,26 @@ def test_distance_weight_reaches_the_env_and_names_the_run():
     env.close()
 
 
+def test_guard_reaches_the_filter_and_names_the_run():
+    """``guard="none"`` trains under the C3BF's rows alone, named as runs from before the guard
+    (which had none); the default puts the distance HOCBF beside them and says so in the name."""
+    from c3bf_gym.barriers import DistanceHOCBF
+
+    assert TrainConfig(guard="none").name == "sac_residual_10hz_dw10_aw3_set_c3bf_random_s0"
+    assert TrainConfig(filter="hocbf").name == "sac_residual_10hz_dw10_aw3_set_hocbf_random_s0"
+    for guard, expected in (("auto", DistanceHOCBF), ("none", type(None))):
+        env = make_env("none", "c3bf", "residual", seed=0, guard=guard)()
+        assert type(env.get_wrapper_attr("hook").guard) is expected
+        env.close()
+    with pytest.raises(ValueError, match="guard.*'auto'.*'none'"):
+        make_env("none", "c3bf", "residual", guard="hocbf")
+    with pytest.raises(ValueError, match="guard.*'auto'.*'none'"):
+        TrainConfig(guard="off").validate()
+
+
 def test_action_weight_penalises_the_policy_action_and_names_the_run():
     config = TrainConfig(action="residual", distance_weight=10.0, action_weight=0.5, obstacle_encoder="flat", policy_hz=10)
-    assert config.name == "sac_residual_10hz_dw10_aw0.5_c3bf_random_s0"
+    assert config.name == "sac_residual_10hz_dw10_aw0.5_c3bf+hocbf_random_s0"
     env = make_env("none", "c3bf", "residual", seed=0, action_weight=0.5, **config.env_kwargs())()
     assert [type(w).__name__ for w in (env, env.env)] == ["Monitor", "ActionPenalty"]
     _, reward, *_, info = env.step(np.ones(3, np.float32))
@@ -152,7 +169,7 @@ def test_defaults_are_the_readme_recipe_on_every_entry_point(monkeypatch, tmp_pa
     defaults are the recipe of the README's RL table (its run names say so)."""
     import c3bf_gym.training
 
-    assert TrainConfig().name == "sac_residual_10hz_dw10_aw3_set_c3bf_random_s0"
+    assert TrainConfig().name == "sac_residual_10hz_dw10_aw3_set_c3bf+hocbf_random_s0"
     assert TrainConfig().timesteps == 25_000
     seen = []
     (tmp_path / "summary.json").write_text("{}")
