@@ -103,6 +103,19 @@ def test_bad_options_exit_with_a_clear_message(argv, message, capsys):
     assert message in capsys.readouterr().err
 
 
+def test_the_guarded_filter_is_an_experiment_filter(tmp_path):
+    """"c3bf" in the experiments is the paper's C3BF alone; "c3bf+hocbf" is SafetyFilter's default
+    (with the distance guard): the two differ on the same episode."""
+    code = main(["experiments", "--out", str(tmp_path), "--seeds", "1", "--duration", "2", "--scenarios", "head_on",
+                 "--filters", "c3bf", "c3bf+hocbf", "--sensing-radius", "--no-progress"])  # fmt: skip
+    assert code == 0
+    table = _table(tmp_path)
+    assert set(table) == {("head_on", "c3bf"), ("head_on", "c3bf+hocbf")}
+    alone, guarded = table[("head_on", "c3bf")], table[("head_on", "c3bf+hocbf")]
+    assert int(guarded["collision_steps"]) == 0
+    assert alone["mean_correction_Nm"] != guarded["mean_correction_Nm"]
+
+
 def test_no_command_prints_help(capsys):
     assert main([]) == 2
     assert "experiments" in capsys.readouterr().out
