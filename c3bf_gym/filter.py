@@ -81,7 +81,8 @@ class StepSafety:
     Attributes:
         feasible: every physics step's QP was solved without slack.
         slack: the largest slack used [N m, row-normalised]; 0.0 when feasible.
-        min_h: the smallest barrier value over all rows and physics steps (inf with no row).
+        min_h: the smallest barrier value over the barrier's rows (not the guard's) and physics
+            steps (inf with no row).
         correction: the largest ``‖τ − τ_nom‖`` [N m] (``τ_nom`` clipped to the torque limits,
             so plain saturation is not counted as a safety intervention).
         active_rows: the largest number of binding rows.
@@ -179,7 +180,9 @@ class SafetyHook:
         self.arm: ArmModel = env.arm
         n = env.model.nv
         limit = env.torque_limit
-        self._per_obstacle = (len(self.arm.capsule_ids) if points == "whole_arm" else 1) * (1 if guard is None else 2)
+        # rows per sensed obstacle: one per protected point, and its guard's
+        points_count = len(self.arm.capsule_ids) if points == "whole_arm" else 1
+        self._per_obstacle = points_count * (1 if guard is None else 2)
         n_obstacles = len(env.obstacle_radius)
         self._n_joint_rows = 0 if joint_limits is None else 4 * n
         self._floor_ends, self._floor_min = self._floor_setup(env.model)

@@ -83,6 +83,8 @@ def filter_label(filter: str, guard: str = "auto") -> str:
     """A run's filter as its name and the training tables spell it: ``"c3bf+hocbf"`` for the C3BF
     with its (default) distance-HOCBF guard, else the filter's name."""
     return "c3bf+hocbf" if filter == "c3bf" and guard == "auto" else filter
+
+
 #: How the policy network reads the obstacle slots: ``flat`` (SB3's MLP on the whole
 #: observation) or ``set`` (:class:`~c3bf_gym.policies.ObstacleSetExtractor`: one shared encoder
 #: per obstacle slot, pooled, so what is learnt about one slot holds for every slot).
