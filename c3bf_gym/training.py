@@ -478,8 +478,9 @@ def evaluate(
     normalizer = _load_normalizer(run_dir / NORMALIZATION_FILE) if run_dir else None
     returns, successes, costs, collided, interventions, infeasible, kinds = [], [], [], [], [], [], []
     run_env = env_kwargs(config.get("policy_hz", DEFAULT_POLICY_HZ), config.get("distance_weight", 0.0))
-    env = make_env(scenario, filter, action, seed=seed, action_weight=config.get("action_weight", 0.0),
-                   guard=config.get("guard", LEGACY_GUARD) if guard is None else guard, **run_env)()
+    guard = config.get("guard", LEGACY_GUARD) if guard is None else guard
+    env = make_env(scenario, filter, action, seed=seed, action_weight=config.get("action_weight", 0.0), guard=guard,
+                   **run_env)()  # fmt: skip
     for episode in range(episodes):
         obs, _ = env.reset(seed=seed + episode)
         kinds.append(env.unwrapped.episode_scenario.name)
@@ -500,6 +501,7 @@ def evaluate(
     return {
         "model": str(model_path),
         "filter": filter,
+        "guard": guard,
         "scenario": scenario,
         "episodes": episodes,
         "success_rate": float(np.mean(successes)),

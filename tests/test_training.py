@@ -68,6 +68,13 @@ def test_evaluate_command_with_another_filter(tmp_path, capsys):
     assert main(["evaluate", str(run / "model.zip"), "--episodes", "2", "--filter", "c3bf", "--json", str(out_json)]) == 0
     result = json.loads(out_json.read_text())
     assert result["filter"] == "c3bf" and result["collision_episodes"] == 0 and result["episodes"] == 2
+    assert result["guard"] == "auto"  # the run's own (default) guard
+    # a run from before the guard (no "guard" in its config) is evaluated as it ran: without one
+    config = json.loads((run / "config.json").read_text())
+    del config["guard"]
+    (run / "config.json").write_text(json.dumps(config))
+    assert evaluate(run / "model.zip", episodes=1, filter="c3bf")["guard"] == "none"
+    assert evaluate(run / "model.zip", episodes=1, filter="c3bf", guard="auto")["guard"] == "auto"
 
 
 @pytest.mark.slow
@@ -301,6 +308,22 @@ def test_plot_training_reads_a_longer_evaluation_when_asked(tmp_path):
     (runs[1] / "eval_200.json").unlink()
     with pytest.raises(FileNotFoundError, match=r"b has no eval_200.json \(write it with: c3bf-gym evaluate"):
         plot_training(runs, tmp_path / "c.png", evaluation="eval_200.json")
+
+
+def test_plot_training_keeps_the_guarded_c3bf_apart(tmp_path):
+    """Runs of the C3BF with its guard are their own row ("c3bf+hocbf"); a run whose config has no
+    "guard" predates it and is the C3BF alone, like ``guard="none"``; the HOCBF has no guard."""
+    runs = [
+        _fake_run(tmp_path, "old", "c3bf", "residual", [0, 0], final=0.8),
+        _fake_run(tmp_path, "alone", "c3bf", "residual", [0, 0], final=0.9, guard="none"),
+        _fake_run(tmp_path, "guarded", "c3bf", "residual", [0, 0], final=1.0, guard="auto"),
+        _fake_run(tmp_path, "h_old", "hocbf", "residual", [0, 0], final=0.7),
+        _fake_run(tmp_path, "h_new", "hocbf", "residual", [0, 0], final=0.9, guard="auto"),
+    ]
+    rows = plot_training(runs, tmp_path / "c.png").splitlines()
+    assert "| sac | residual | c3bf | 2 | 500 | 0 (0, 0) | 2 (1, 1) | 0.85 (0.80, 0.90) | 5.0 | 50 |" in rows
+    assert "| sac | residual | c3bf+hocbf | 1 | 500 | 0 (0) | 1 (1) | 1.00 (1.00) | 5.0 | 50 |" in rows
+    assert "| sac | residual | hocbf | 2 | 500 | 0 (0, 0) | 2 (1, 1) | 0.80 (0.70, 0.90) | 5.0 | 50 |" in rows
 
 
 def test_plot_training_refuses_to_average_different_recipes(tmp_path):
