@@ -64,6 +64,7 @@ class SafetyFilter(gym.Wrapper, gym.utils.EzPickle):
         points: ``"whole_arm"`` (every link capsule, default) or ``"ee"`` (the tool only, as in the
             paper).
         gamma: class-K gain [1/s] (C3BF: γ; HOCBF: γ₁ = γ₂); None for the barrier's default (5).
+            The guard keeps its own gains (pass a ``DistanceHOCBF`` as ``guard`` to change them).
         margin: extra clearance added to every radius [m].
         sensing_radius: perception boundary [m]; None uses the environment's.
         ee_radius: protected sphere around the tool site with ``points="ee"`` [m].
