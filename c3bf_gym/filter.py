@@ -8,10 +8,10 @@ At every physics step (``C3BFReachEnv`` calls the hook between ``mj_step1`` and 
    capsule radius added to the obstacle's; ``ee``: the tool site with ``ee_radius``), and with a
    ``guard`` one more, the guard barrier's, right after it. The C3BF bounds only the direction of
    approach: a link may graze an obstacle at speed, and from there, within the torque limits, it
-   sometimes cannot turn away in time (3 of 1,600 adversarial episodes collided with the C3BF's
+   sometimes cannot turn away in time (8 of 2,400 adversarial episodes collided with the C3BF's
    rows alone, ``benchmarks/guarantee.py --guard none``). The distance HOCBF's rows (the default
-   guard beside a C3BF) bound the approach speed by the distance left; with both, none of the
-   1,600 collided;
+   guard beside a C3BF) bound the approach speed by the distance left; with both, 1 of the 2,400
+   collided (README, "The guarantee");
 3. the floor contributes one row per capsule end (``2 S``): every capsule stays ``margin`` above
    it. The floor is the one fixed thing the arm can touch, and its contact forces are not in the
    filter's model (``ẍ = G τ + c``): a link pressed into it is pushed by an unmodelled force,

@@ -80,9 +80,9 @@ class SafetyFilter(gym.Wrapper, gym.utils.EzPickle):
             paper's filter); ``"hocbf"``, ``"c3bf"`` or a :class:`~c3bf_gym.barriers.Barrier`.
             The C3BF alone bounds the direction of the relative velocity: it lets a link graze an
             obstacle at speed, from where, with the motors' torque limits, the link sometimes
-            cannot turn away in time (3 collisions in 1,600 adversarial episodes,
+            cannot turn away in time (8 collisions in 2,400 adversarial episodes,
             ``benchmarks/guarantee.py``). The distance HOCBF bounds the approach speed by the
-            distance left; with both, none of those episodes collided.
+            distance left; with both, 1 of those episodes collided (README, "The guarantee").
 
     Pickling (and ``copy.deepcopy``) rebuilds the filter with the same arguments around the
     unpickled environment, which Gymnasium's MuJoCo environments rebuild from their own
