@@ -360,7 +360,8 @@ def hook_rows_whole_arm(stage, M, qfrc_passive, qfrc_bias, geom_xpos, geom_xmat,
     4. With ``joint_rows``, the ``4n`` joint-limit rows (:func:`joint_limit_rows`).
 
     ``hook_f`` = ``[sensing_radius, margin, floor γ, γ, barrier params (2), γ₁, γ₂, γ_v,
-    q_lo (n), q_hi (n), qd_max (n), guard γ₁, guard γ₂]`` (guard gains 0: no guard); ``work`` a
+    q_lo (n), q_hi (n), qd_max (n), guard γ₁, guard γ₂, the barrier rows' relaxation weight]``
+    (guard gains 0: no guard; the weight is :func:`hook_step`'s); ``work`` a
     (3, 6 + nv) scratch. Returns ``(rows, min h of the barrier's rows (not the guard's), any
     inside, sensed count)``.
     """
@@ -949,11 +950,20 @@ def step_views(qf, qi, layout):
 
 
 @njit(**_opts)
+def guard_weights(weights, n_obstacle_rows, barrier_weight):
+    """The relaxation weights of a guarded filter's rows (:class:`~c3bf_gym.filter.SafetyHook`):
+    the first ``n_obstacle_rows`` alternate barrier row, guard row; the barrier's weigh
+    ``barrier_weight``, every other row 1."""
+    for i in range(weights.shape[0]):
+        weights[i] = barrier_weight if i < n_obstacle_rows and i % 2 == 0 else 1.0
+
+
+@njit(**_opts)
 def hook_step(stage, tau_nom, m_prev, k_prev, max_iter, tol, row_slack_weight, diag_W, tau,
               M, qfrc_passive, qfrc_bias, geom_xpos, geom_xmat, cdof, cdof_dot, com, qpos, qvel,
               arm_i, arm_f, chain, scratch, Minv, qacc_free, ends, ends_ab, a_dot_ab,
               active, distances, obs_pos, obs_vel, obs_acc, obs_radius, kind, floor_idx, floor_min,
-              joint_rows, hook_f, work, A, b, scale, limit, qf, qi, layout):
+              joint_rows, hook_f, work, A, b, weights, scale, limit, qf, qi, layout):
     """One whole-arm filter step in one call (:meth:`~c3bf_gym.filter.SafetyHook.__call__`): the
     rows (:func:`hook_rows_whole_arm`), :meth:`~c3bf_gym.qp.TorqueQP.solve_scaled`'s active-set
     call (:func:`qp_step`, the same code the layer runs) and :func:`hook_post`; what saves time
@@ -961,6 +971,8 @@ def hook_step(stage, tau_nom, m_prev, k_prev, max_iter, tol, row_slack_weight, d
 
     ``M`` … ``b`` are :func:`hook_rows_whole_arm`'s arguments (``M`` here is MuJoCo's mass
     matrix); ``qf``, ``qi``, ``layout`` hold :func:`qp_step`'s buffers (:func:`step_views`).
+    With a guard (``hook_f[10 + 3 nv] > 0``), the relaxation weights go into ``weights[:rows]``
+    (:func:`guard_weights`) and :func:`qp_step` gets them; without one, none (all rows weigh 1).
     Writes the torque into ``tau`` when done. Returns ``(status, rows, min h, any inside, sensed
     count, steps, repair slack count, active rows, slack, min row residual, correction)``, status
     one of ``STEP_*``; the last four are only set when done.
@@ -972,8 +984,14 @@ def hook_step(stage, tau_nom, m_prev, k_prev, max_iter, tol, row_slack_weight, d
         stage, M, qfrc_passive, qfrc_bias, geom_xpos, geom_xmat, cdof, cdof_dot, com, qpos, qvel, arm_i, arm_f,
         chain, scratch, Minv, qacc_free, ends, ends_ab, a_dot_ab, active, distances, obs_pos, obs_vel, obs_acc,
         obs_radius, kind, floor_idx, floor_min, joint_rows, hook_f, work, A, b)
+    nv = Minv.shape[0]
+    w = nrm[:0]
+    if hook_f[10 + 3 * nv] > 0.0:
+        n_fixed = floor_idx.shape[0] + (4 * nv if joint_rows else 0)
+        guard_weights(weights[:m], m - n_fixed, hook_f[11 + 3 * nv])
+        w = weights[:m]
     status, steps, k, n_active, slack = qp_step(
-        tau_nom, A[:m], b[:m], scale, nrm[:0], m_prev, k_prev, max_iter, tol, row_slack_weight, diag_W, Gx, hx, hcx,
+        tau_nom, A[:m], b[:m], scale, w, m_prev, k_prev, max_iter, tol, row_slack_weight, diag_W, Gx, hx, hcx,
         nrm, r, xe, nom, lo, hi, reach, negW, g, qp_f, WJ, as_work, as_iwork, x0r, WJx, el_work, el_iwork, Kr, Gr,
         hr, rep_work, rep_iwork, WJp, x0p, hp, pflag, pw_work, pw_iwork, rep_stats)
     if status < 0 or status > STEP_RELAXED_AS_IS:

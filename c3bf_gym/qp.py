@@ -615,16 +615,17 @@ class TorqueQP:
                 raise ValueError(f"weights must be finite and > 0; got {w}")
         return self._solve(t0, _plain(tau_nom), _plain(A), _plain(b), weights, _NO_SCALE)
 
-    def solve_scaled(self, tau_nom, A, b, scale) -> QPResult:
+    def solve_scaled(self, tau_nom, A, b, scale, weights=None) -> QPResult:
         """:meth:`solve` in the normalised torque ``u = τ / scale``, for a caller that owns ``A``.
 
         Solves :meth:`solve`'s problem for ``(τ_nom / scale, A diag(scale), b)``: the weight and
         box given to the constructor are in ``u``. ``A`` ((m, n) C-contiguous float64, m ≤
         ``max_rows``) is scaled **in place** (``A *= scale``); ``tau_nom``, ``b``, ``scale`` are
         contiguous float64 of shapes (n,), (m,), (n,). Shapes are not checked (NaN and inf in the
-        data still raise ValueError). The result's ``tau`` is ``u``. (The safety filter's call.)
+        data still raise ValueError). The result's ``tau`` is ``u``. ``weights``: :meth:`solve`'s
+        (not checked here either). (The safety filter's call.)
         """
-        return self._solve(time.perf_counter(), tau_nom, A, b, None, scale)
+        return self._solve(time.perf_counter(), tau_nom, A, b, weights, scale)
 
     def _solve(self, t0, tau_nom, A, b, weights, scale) -> QPResult:
         m = A.shape[0]

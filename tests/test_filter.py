@@ -601,7 +601,7 @@ def _unfused_call(hook, tau_nom):
 
     A, b, *_ = hook.rows()
     tau_nom = np.ascontiguousarray(tau_nom, dtype=np.float64)
-    result = hook.qp.solve_scaled(tau_nom, A, b, hook._scale)
+    result = hook.qp.solve_scaled(tau_nom, A, b, hook._scale, hook.relaxation_weights(len(b)))
     tau = np.empty_like(tau_nom)
     _kernels.hook_post(A, b, result.tau, hook._scale, tau_nom, hook._limit, tau)
     return tau, result

@@ -175,6 +175,15 @@ def test_guard_keeps_the_long_sweeps_c3bf_collisions_off(make_env, scenario, see
     assert summary["min_distance"] > 0.015
 
 
+def test_guarded_relaxation_regression(make_env):
+    """Head-on seed 363 against the adversary: with the guard's rows weighing what the C3BF's weigh
+    in the relaxation, a link held between the descending obstacle and the floor was hit
+    (−3.7 mm); with the C3BF's rows giving way first (BARRIER_RELAXATION_WEIGHT) it is not."""
+    summary = run_episode(make_env, "head_on", 363, "adversarial")
+    assert_safe(summary, "head_on seed 363 adversarial, guarded C3BF")
+    assert summary["infeasible_steps"] > 0  # the relaxation did run
+
+
 def test_adversarial_policy_targets_the_nearest_point(make_env):
     """The adversary's torque accelerates its chosen arm point towards the obstacle."""
     env = make_env(scenario="static")

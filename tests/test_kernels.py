@@ -298,6 +298,27 @@ def test_fused_rows_equal_the_per_class_path(make_env, guard):
     close(b1, b2, 1e-10)
 
 
+def test_guard_weights_let_the_barriers_rows_give_way_first():
+    w = np.zeros(9)
+    K.guard_weights(w, 6, 0.1)  # 3 points (barrier, guard), then 3 floor / joint rows
+    np.testing.assert_array_equal(w, [0.1, 1, 0.1, 1, 0.1, 1, 1, 1, 1])
+
+
+def test_guarded_hook_relaxation_weights(make_env):
+    from c3bf_gym.filter import BARRIER_RELAXATION_WEIGHT, build_hook
+
+    u = make_env(scenario="none").unwrapped
+    u.reset(seed=2)
+    scene(u, np.random.default_rng(2), 2)
+    hook = build_hook(u, "c3bf", "whole_arm", None, 0.02, None, 0.05, 0.5, "limits", "relax")
+    _, b, _, _, n = hook.rows()
+    w = hook.relaxation_weights(len(b))
+    k = 2 * 7 * n
+    assert n == 2 and np.all(w[:k:2] == BARRIER_RELAXATION_WEIGHT) and np.all(w[1:k:2] == 1.0) and np.all(w[k:] == 1.0)
+    alone = build_hook(u, "c3bf", "whole_arm", None, 0.02, None, 0.05, 0.5, "limits", "relax", guard=None)
+    assert alone.relaxation_weights(len(alone.rows()[1])) is None  # all rows weigh 1
+
+
 def test_guard_rows_are_the_distance_hocbfs(make_env):
     """With a guard, the obstacle rows alternate: the C3BF filter's row for a point, then the row
     a distance-HOCBF filter with the guard's gains has for it. Floor and joint rows follow once."""
