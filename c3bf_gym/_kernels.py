@@ -353,8 +353,8 @@ def hook_rows_whole_arm(stage, M, qfrc_passive, qfrc_bias, geom_xpos, geom_xmat,
     2. For every sensed obstacle (active and ``distances[k].min() <= sensing_radius``), one row
        per capsule: closest point (:func:`_closest_pair`), barrier ``kind`` (:func:`_c3bf_point`
        or :func:`_hocbf_point`), row (:func:`_row`) with the sliding term ``−⟨grad_p, ṫ (b − a)⟩``;
-       with a guard (``hook_f``'s last two entries, gains γ₁, γ₂ of a distance HOCBF, > 0), the
-       guard's row for the same point right after it.
+       with a guard (``hook_f``'s entries after ``qd_max``: gains γ₁, γ₂ of a distance HOCBF,
+       > 0), the guard's row for the same point right after it.
     3. The floor rows of the capsule ends ``floor_idx`` (:func:`floor_rows`, heights
        ``floor_min``).
     4. With ``joint_rows``, the ``4n`` joint-limit rows (:func:`joint_limit_rows`).

@@ -71,9 +71,10 @@ UR5E_JOINT_SPEED = np.pi
 FLOOR_GAMMA = 10.0
 #: With a guard, the relaxation weight of the barrier's rows (every other row weighs 1): when no
 #: torque satisfies every row, the C3BF's rows give way before the guard's, the floor's and the
-#: joint limits'. Measured (ad hoc, the README's 2,400 adversarial episodes of seeds 0–599):
-#: with equal weights the guarded filter collided once and came within 6–11 mm five times; with
-#: 0.1, none collided and all but one kept 17.7 mm.
+#: joint limits'. Measured (``benchmarks/guarantee.py``, the README's long sweeps, seeds 0–599):
+#: against the adversary, with equal weights the guarded filter collided in 1 of 2,400 episodes
+#: and came within 6–11 mm in four more; with 0.1, none collided and all but one kept 17.7 mm.
+#: Random torques: 0 and 1 of 2,400 (README, "The long sweeps").
 BARRIER_RELAXATION_WEIGHT = 0.1
 
 
