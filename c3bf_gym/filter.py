@@ -465,7 +465,8 @@ def build_hook(
     """Validate user-facing options and build a :class:`SafetyHook` (used by the wrappers).
 
     ``guard``: ``"auto"`` (a :class:`~c3bf_gym.barriers.DistanceHOCBF` with its default gains
-    beside a :class:`~c3bf_gym.barriers.C3BF`, nothing beside any other barrier), None, a name of
+    beside a :class:`~c3bf_gym.barriers.C3BF`, nothing beside any other barrier), None (or
+    ``"none"``), a name of
     :data:`~c3bf_gym.barriers.BARRIERS` (its default gains) or a Barrier."""
     if points not in POINTS:
         raise ValueError(f"unknown points {points!r}; valid choices: {', '.join(map(repr, POINTS))}")
@@ -496,12 +497,14 @@ def build_hook(
         barrier_obj = make_barrier(barrier, **({} if gamma is None else {"gamma": gamma}))
     if isinstance(guard, Barrier) or guard is None:
         guard_obj = guard
+    elif guard == "none":  # the command-line spelling of None
+        guard_obj = None
     elif guard == "auto":
         guard_obj = DistanceHOCBF() if isinstance(barrier_obj, C3BF) else None
     elif isinstance(guard, str) and guard in BARRIERS:
         guard_obj = make_barrier(guard)
     else:
-        choices = ", ".join(map(repr, ("auto", None, *BARRIERS)))
+        choices = ", ".join(map(repr, ("auto", None, "none", *BARRIERS)))
         raise ValueError(f"unknown guard {guard!r}; valid choices: {choices}, or a Barrier")
     q_lo, q_hi = env.joint_range.T
     joint_limits = JointLimits(q_lo, q_hi, joint_speed_fraction * UR5E_JOINT_SPEED)

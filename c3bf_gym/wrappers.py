@@ -76,8 +76,9 @@ class SafetyFilter(gym.Wrapper, gym.utils.EzPickle):
             ``"raise"``.
         guard: a second barrier whose rows hold beside the first one's, for every sensed obstacle
             and protected point. ``"auto"`` (default): the distance HOCBF (γ₁ = γ₂ = 5) beside
-            the C3BF, nothing beside any other barrier; None: the barrier's rows alone (the
-            paper's filter); ``"hocbf"``, ``"c3bf"`` or a :class:`~c3bf_gym.barriers.Barrier`.
+            the C3BF, nothing beside any other barrier; None (or ``"none"``): the barrier's rows
+            alone (the paper's filter); ``"hocbf"``, ``"c3bf"`` or a
+            :class:`~c3bf_gym.barriers.Barrier`.
             The C3BF alone bounds the direction of the relative velocity: it lets a link graze an
             obstacle at speed, from where, with the motors' torque limits, the link sometimes
             cannot turn away in time (8 collisions in 2,400 adversarial episodes,

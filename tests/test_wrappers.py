@@ -286,7 +286,7 @@ def test_edge_values_accepted(make_env):
 @pytest.mark.parametrize(
     "barrier, guard, expected",
     [("c3bf", "auto", DistanceHOCBF), (C3BF(gamma=2.0), "auto", DistanceHOCBF), ("hocbf", "auto", type(None)),
-     ("c3bf", None, type(None)), ("hocbf", "c3bf", C3BF)],
+     ("c3bf", None, type(None)), ("c3bf", "none", type(None)), ("hocbf", "c3bf", C3BF)],
 )
 def test_guard_choices(make_env, barrier, guard, expected):
     """``guard="auto"`` puts the distance HOCBF (default gains) beside a C3BF and nothing beside
