@@ -101,7 +101,7 @@ def run_episode(task: tuple[str, str, str, str, int, int, float | None, str]) ->
     start = time.perf_counter()
     env = gym.make("C3BFReach-v0", scenario=scenario)
     if barrier != "none":
-        env = SafetyFilter(env, barrier=barrier, points=points, guard=None if guard == "none" else guard,
+        env = SafetyFilter(env, barrier=barrier, points=points, guard=guard,
                            **({} if margin is None else {"margin": margin}))
     u = env.unwrapped
     out = Episode(scenario, policy, barrier, points, seed)

@@ -297,6 +297,14 @@ def _row(grad_v, G, c, drift, h, gamma, A_row):
 
 
 @njit(**_opts)
+def _sliding_row(grad_v, grad_p, slide, G, c, drift, h, gamma, A_row):
+    """:func:`_row` for a closest point sliding by ``slide`` along its link: its ``b`` less the
+    sliding term ``⟨grad_p, slide⟩``."""
+    bk = _row(grad_v, G, c, drift, h, gamma, A_row)
+    return bk - (grad_p[0] * slide[0] + grad_p[1] * slide[1] + grad_p[2] * slide[2])
+
+
+@njit(**_opts)
 def rows_from_terms(grad_v, drift, h, gamma, G, c, A, b):
     """:func:`_row` for P points: ``G`` (P, 3, n), ``c`` (P, 3) into ``A`` (P, n), ``b`` (P,)."""
     for k in range(h.shape[0]):
@@ -352,7 +360,7 @@ def hook_rows_whole_arm(stage, M, qfrc_passive, qfrc_bias, geom_xpos, geom_xmat,
        (``arm_i``, ``arm_f``, ``scratch``: its packed constants and scratch).
     2. For every sensed obstacle (active and ``distances[k].min() <= sensing_radius``), one row
        per capsule: closest point (:func:`_closest_pair`), barrier ``kind`` (:func:`_c3bf_point`
-       or :func:`_hocbf_point`), row (:func:`_row`) with the sliding term ``−⟨grad_p, ṫ (b − a)⟩``;
+       or :func:`_hocbf_point`), row (:func:`_sliding_row`: the sliding term ``−⟨grad_p, ṫ (b − a)⟩``);
        with a guard (``hook_f``'s entries after ``qd_max``: gains γ₁, γ₂ of a distance HOCBF,
        > 0), the guard's row for the same point right after it.
     3. The floor rows of the capsule ends ``floor_idx`` (:func:`floor_rows`, heights
@@ -412,15 +420,13 @@ def hook_rows_whole_arm(stage, M, qfrc_passive, qfrc_bias, geom_xpos, geom_xmat,
                 h, drift, inside = _c3bf_point(p, v, r, gamma, hook_f[4], hook_f[5], grad_v, grad_p)
             else:
                 h, drift, inside = _hocbf_point(p, v, r, hook_f[4], grad_v, grad_p)
-            bk = _row(grad_v, G, c, drift, h, gamma, A[m])
-            b[m] = bk - (grad_p[0] * slide[0] + grad_p[1] * slide[1] + grad_p[2] * slide[2])
+            b[m] = _sliding_row(grad_v, grad_p, slide, G, c, drift, h, gamma, A[m])
             min_h = min(min_h, h)
             inside_any = inside_any or inside
             m += 1
             if guard:
                 h, drift, inside = _hocbf_point(p, v, r, guard_gamma1, grad_v, grad_p)
-                bk = _row(grad_v, G, c, drift, h, guard_gamma2, A[m])
-                b[m] = bk - (grad_p[0] * slide[0] + grad_p[1] * slide[1] + grad_p[2] * slide[2])
+                b[m] = _sliding_row(grad_v, grad_p, slide, G, c, drift, h, guard_gamma2, A[m])
                 m += 1
     n_floor = floor_idx.shape[0]
     floor_rows(ends, floor_idx, floor_min, floor_gamma, A[m:m + n_floor], b[m:m + n_floor])

@@ -265,7 +265,7 @@ def make_env(
         if action in ("impedance", "residual"):
             env = CartesianImpedanceAction(env, residual=action == "residual")
         if filter_name is not None:
-            env = SafetyFilter(env, barrier=filter_name, guard=None if guard == "none" else guard)
+            env = SafetyFilter(env, barrier=filter_name, guard=guard)
         if action_weight:
             env = ActionPenalty(env, action_weight)
         env = Monitor(env, monitor_file, info_keywords=info_keywords(filter_name))
