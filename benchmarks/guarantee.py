@@ -91,8 +91,8 @@ def adversarial_action(u) -> np.ndarray:
 # ----------------------------------------------------------------------------- one episode
 
 
-def run_episode(task: tuple[str, str, str, str, int, int, float | None, str]) -> Episode:
-    scenario, policy, barrier, points, seed, steps, margin, guard = task
+def run_episode(task: tuple[str, str, str, str, int, int, float | None, str, float | None]) -> Episode:
+    scenario, policy, barrier, points, seed, steps, margin, guard, guard_gamma = task
     import gymnasium as gym
 
     import c3bf_gym  # noqa: F401  (registers C3BFReach-v0)
@@ -101,7 +101,8 @@ def run_episode(task: tuple[str, str, str, str, int, int, float | None, str]) ->
     start = time.perf_counter()
     env = gym.make("C3BFReach-v0", scenario=scenario)
     if barrier != "none":
-        env = SafetyFilter(env, barrier=barrier, points=points, guard=guard,
+        guarded = barrier == "c3bf" and guard == "auto"  # the only filter here with a guard
+        env = SafetyFilter(env, barrier=barrier, points=points, guard=guard, guard_gamma=guard_gamma if guarded else None,
                            **({} if margin is None else {"margin": margin}))
     u = env.unwrapped
     out = Episode(scenario, policy, barrier, points, seed)
@@ -178,6 +179,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     parser.add_argument("--guard", choices=("auto", "none"), default="auto",
                         help="the filters' guard (SafetyFilter's: 'auto', the distance HOCBF beside the C3BF; "
                              "'none', the barrier's rows alone)")  # fmt: skip
+    parser.add_argument("--guard-gamma", type=float, help="the guard's gains [1/s] (default: SafetyFilter's, 10)")
     parser.add_argument("--out", type=Path, default=Path("benchmarks/results/guarantee"), help="output directory")
     parser.add_argument("--quick", action="store_true", help="smoke run: 2 episodes of 100 steps per configuration")
     args = parser.parse_args(argv)
@@ -187,12 +189,14 @@ def main(argv: list[str] | None = None) -> list[dict]:
         parser.error("--episodes, --steps and --workers must be >= 1")
     if args.margin is not None and not (np.isfinite(args.margin) and args.margin >= 0):
         parser.error(f"--margin must be a finite number >= 0 (m), got {args.margin}")
+    if args.guard_gamma is not None and not (np.isfinite(args.guard_gamma) and args.guard_gamma > 0):
+        parser.error(f"--guard-gamma must be a finite number > 0 (1/s), got {args.guard_gamma}")
 
     filters = [tuple(f.split("/")) if f != "none" else ("none", "-") for f in args.filters]
-    tasks = [(s, p, b, pts, args.seed + i, args.steps, args.margin, args.guard)
+    tasks = [(s, p, b, pts, args.seed + i, args.steps, args.margin, args.guard, args.guard_gamma)
              for s in args.scenarios for p in args.policies for b, pts in filters for i in range(args.episodes)]  # fmt: skip
     print(f"{len(tasks)} episodes ({args.episodes} per configuration, {args.steps} steps) on {args.workers} workers"
-          + ("" if args.margin is None else f", filter margin {args.margin} m") + f", guard {args.guard}")
+          + ("" if args.margin is None else f", filter margin {args.margin} m") + f", guard {args.guard}" + ("" if args.guard_gamma is None else f" (gains {args.guard_gamma:g})"))
     start = time.perf_counter()
     ctx = mp.get_context("spawn")  # fresh interpreters: no MuJoCo state or GL context inherited
     with ctx.Pool(args.workers) as pool:
@@ -212,7 +216,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
         for e in sorted(episodes, key=lambda e: (e.scenario, e.policy, e.barrier, e.points, e.seed)):
             writer.writerow(asdict(e))
     meta = {"episodes_per_configuration": args.episodes, "steps": args.steps, "seed": args.seed, "margin": args.margin,
-            "guard": args.guard, "workers": args.workers, "quick": args.quick, "cpu_count": os.cpu_count()}  # fmt: skip
+            "guard": args.guard, "guard_gamma": args.guard_gamma, "workers": args.workers, "quick": args.quick, "cpu_count": os.cpu_count()}  # fmt: skip
     with open(args.out / "summary.json", "w") as f:
         json.dump({"settings": meta, "configurations": rows}, f, indent=2)
     print(f"wrote {args.out / 'episodes.csv'} and {args.out / 'summary.json'}")

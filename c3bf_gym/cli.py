@@ -66,6 +66,8 @@ def _add_train(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--guard", choices=GUARDS, default=d.guard,
                    help="the filter's guard: 'auto' (SafetyFilter's default: the distance HOCBF's rows beside "
                         "the C3BF's) or 'none' (the barrier's rows alone)")  # fmt: skip
+    p.add_argument("--guard-gamma", type=_positive_float, default=d.guard_gamma,
+                   help="the guard's gains, gamma1 = gamma2 [1/s] (default %(default)s)")
     p.add_argument("--scenario", choices=list(SCENARIOS), default=d.scenario, help="obstacle scenario")
     p.add_argument("--timesteps", type=_positive_int, default=d.timesteps, help="policy steps to train")
     p.add_argument("--seed", type=_nonnegative_int, default=d.seed, help="seed of the agent and the training envs")
@@ -97,7 +99,7 @@ def _run_train(args: argparse.Namespace) -> int:
     from c3bf_gym.training import TrainConfig, train
 
     config = TrainConfig(
-        algo=args.algo, action=args.action, filter=args.filter, guard=args.guard, scenario=args.scenario,
+        algo=args.algo, action=args.action, filter=args.filter, guard=args.guard, guard_gamma=args.guard_gamma, scenario=args.scenario,
         timesteps=args.timesteps, seed=args.seed, n_envs=args.n_envs, eval_freq=args.eval_freq,
         eval_episodes=args.eval_episodes, final_eval_episodes=args.final_eval_episodes, checkpoint_freq=args.checkpoint_freq, out=args.out,
         progress_bar=not args.no_progress, normalize_obs=args.normalize_obs, policy_hz=args.policy_hz, distance_weight=args.distance_weight, action_weight=args.action_weight, obstacle_encoder=args.obstacle_encoder, hyperparams=args.hyperparams,
@@ -123,6 +125,7 @@ def _add_evaluate(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--episodes", type=_positive_int, default=50)
     p.add_argument("--filter", choices=FILTERS, default=None, help="default: the run's own")
     p.add_argument("--guard", choices=GUARDS, default=None, help="the filter's guard (default: the run's own)")
+    p.add_argument("--guard-gamma", type=_positive_float, default=None, help="the guard's gains (default: the run's own)")
     p.add_argument("--scenario", choices=list(SCENARIOS), default=None, help="default: the run's own")
     p.add_argument("--seed", type=_nonnegative_int, default=FINAL_EVAL_SEED, help="seed of the first episode")
     p.add_argument("--json", dest="json_out", default=None, help="also write the result to this JSON file")
@@ -132,7 +135,7 @@ def _add_evaluate(sub: argparse._SubParsersAction) -> None:
 def _run_evaluate(args: argparse.Namespace) -> int:
     from c3bf_gym.training import evaluate
 
-    result = evaluate(args.model, args.episodes, args.filter, args.scenario, args.seed, guard=args.guard)
+    result = evaluate(args.model, args.episodes, args.filter, args.scenario, args.seed, guard=args.guard, guard_gamma=args.guard_gamma)
     text = json.dumps(result, indent=2)
     print(text)
     if args.json_out:

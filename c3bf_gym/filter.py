@@ -76,6 +76,8 @@ FLOOR_GAMMA = 10.0
 #: and came within 6–11 mm in four more; with 0.1, none collided and all but one kept 17.7 mm.
 #: Random torques: 0 and 1 of 2,400 (README, "The long sweeps").
 BARRIER_RELAXATION_WEIGHT = 0.1
+#: The default guard's gains, γ₁ = γ₂ [1/s] of the distance HOCBF beside the C3BF (``guard="auto"``).
+GUARD_GAMMA = 10.0
 
 
 class SafetyInfeasibleError(RuntimeError):
@@ -449,6 +451,16 @@ class SafetyHook:
         return tau
 
 
+def _named_barrier(name: object, gamma: float | None, gamma_name: str) -> Barrier:
+    """A barrier of :data:`~c3bf_gym.barriers.BARRIERS` by name, with ``gamma`` as all its gains
+    (None: its defaults); errors name ``gamma_name``, the user's parameter."""
+    if gamma is None:
+        return make_barrier(name)
+    if isinstance(gamma, bool) or not (isinstance(gamma, (int, float)) and np.isfinite(gamma) and gamma > 0):
+        raise ValueError(f"{gamma_name} must be a finite number > 0 (1/s), got {gamma!r}")
+    return make_barrier(name, **({"gamma1": gamma, "gamma2": gamma} if name == "hocbf" else {"gamma": gamma}))
+
+
 def build_hook(
     env,
     barrier: str | Barrier,
@@ -461,13 +473,15 @@ def build_hook(
     weight: str,
     on_infeasible: str,
     guard: str | Barrier | None = "auto",
+    guard_gamma: float | None = None,
 ) -> SafetyHook:
     """Validate user-facing options and build a :class:`SafetyHook` (used by the wrappers).
 
-    ``guard``: ``"auto"`` (a :class:`~c3bf_gym.barriers.DistanceHOCBF` with its default gains
-    beside a :class:`~c3bf_gym.barriers.C3BF`, nothing beside any other barrier), None (or
-    ``"none"``), a name of
-    :data:`~c3bf_gym.barriers.BARRIERS` (its default gains) or a Barrier."""
+    ``guard``: ``"auto"`` (a :class:`~c3bf_gym.barriers.DistanceHOCBF` beside a
+    :class:`~c3bf_gym.barriers.C3BF`, nothing beside any other barrier), None (or ``"none"``), a
+    name of :data:`~c3bf_gym.barriers.BARRIERS` or a Barrier. ``guard_gamma``: the named guard's
+    gain(s), as ``gamma`` is the barrier's; None for :data:`GUARD_GAMMA` (``"auto"``) or the named
+    barrier's default."""
     if points not in POINTS:
         raise ValueError(f"unknown points {points!r}; valid choices: {', '.join(map(repr, POINTS))}")
     if on_infeasible not in ON_INFEASIBLE:
@@ -491,18 +505,24 @@ def build_hook(
         if gamma is not None:
             raise ValueError("pass gamma either to the Barrier instance or here, not both")
         barrier_obj = barrier
-    elif barrier == "hocbf":
-        barrier_obj = make_barrier(barrier, **({} if gamma is None else {"gamma1": gamma, "gamma2": gamma}))
     else:
-        barrier_obj = make_barrier(barrier, **({} if gamma is None else {"gamma": gamma}))
+        barrier_obj = _named_barrier(barrier, gamma, "gamma")
+    if guard == "none":  # the command-line spelling of None
+        guard = None
+    if guard == "auto":
+        guard = "hocbf" if isinstance(barrier_obj, C3BF) else None
+        if guard is not None and guard_gamma is None:
+            guard_gamma = GUARD_GAMMA
+        elif guard is None and guard_gamma is not None:
+            raise ValueError("guard_gamma was given, but guard='auto' puts no guard beside this barrier (only beside the C3BF)")
     if isinstance(guard, Barrier) or guard is None:
+        if guard_gamma is not None and guard is None:
+            raise ValueError("guard_gamma was given without a guard (guard=None)")
+        if guard_gamma is not None:
+            raise ValueError("pass guard_gamma either to the guard Barrier instance or here, not both")
         guard_obj = guard
-    elif guard == "none":  # the command-line spelling of None
-        guard_obj = None
-    elif guard == "auto":
-        guard_obj = DistanceHOCBF() if isinstance(barrier_obj, C3BF) else None
     elif isinstance(guard, str) and guard in BARRIERS:
-        guard_obj = make_barrier(guard)
+        guard_obj = _named_barrier(guard, guard_gamma, "guard_gamma")
     else:
         choices = ", ".join(map(repr, ("auto", None, "none", *BARRIERS)))
         raise ValueError(f"unknown guard {guard!r}; valid choices: {choices}, or a Barrier")

@@ -10,7 +10,7 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from c3bf_gym.metrics import EpisodeRecord
-from c3bf_gym.training import FINAL_EVAL_FILE, LEGACY_GUARD, filter_label
+from c3bf_gym.training import FINAL_EVAL_FILE, filter_label, run_guard
 
 __all__ = [
     "plot_barrier",
@@ -22,8 +22,9 @@ __all__ = [
     "plot_trajectories",
 ]
 
-COLORS = {"none": "tab:red", "hocbf": "tab:orange", "c3bf": "tab:blue", "c3bf+hocbf": "tab:green"}
-LABELS = {"none": "no filter", "hocbf": "distance HOCBF", "c3bf": "C3BF", "c3bf+hocbf": "C3BF + distance guard"}
+COLORS = {"none": "tab:red", "hocbf": "tab:orange", "c3bf": "tab:blue", "c3bf+hocbf": "tab:green", "c3bf+hocbf5": "tab:olive"}
+LABELS = {"none": "no filter", "hocbf": "distance HOCBF", "c3bf": "C3BF", "c3bf+hocbf": "C3BF + distance guard",
+          "c3bf+hocbf5": "C3BF + distance guard (γ 5)"}  # fmt: skip
 
 
 def _pyplot():
@@ -287,14 +288,14 @@ def plot_training(runs: Sequence[Path], path: Path, window: int = 20, evaluation
         config["_summary"] = json.loads(summary.read_text()) if summary.exists() else {}
         config["_final"], config["_by_scenario"] = _final_evaluation(run, evaluation)
         config["_run"] = str(run)
-        # the C3BF with its guard is its own group ("c3bf+hocbf"); runs from before the guard had none
-        name = filter_label(config["filter"], config.get("guard", LEGACY_GUARD))
+        # the C3BF with its guard is its own group per guard gain ("c3bf+hocbf", "c3bf+hocbf5")
+        name = filter_label(config["filter"], *run_guard(config))
         groups.setdefault((config["algo"], config["action"], name), []).append((config, data))
     if not groups:
         raise ValueError("no run has a finished training episode to plot")
     for key, entries in groups.items():
         _check_recipe(key, entries)
-    order = {"none": 0, "hocbf": 1, "c3bf": 2, "c3bf+hocbf": 3}
+    order = {"none": 0, "hocbf": 1, "c3bf": 2, "c3bf+hocbf5": 3, "c3bf+hocbf": 4}
     keys = sorted(groups, key=lambda k: (k[0], k[1], order.get(k[2], 3)))
     several_modes = len({k[:2] for k in keys}) > 1
     fig, axes = plt.subplots(1, 3, figsize=(15, 4))

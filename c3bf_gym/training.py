@@ -29,6 +29,7 @@ from typing import Any, Callable, Literal
 import gymnasium as gym
 import numpy as np
 
+from c3bf_gym.filter import GUARD_GAMMA
 from c3bf_gym.wrappers import SAFETY_FILTERS, ActionPenalty, CartesianImpedanceAction, SafetyFilter
 
 __all__ = [
@@ -77,12 +78,24 @@ FILTERS = ("none", "hocbf", "c3bf")
 #: "guard" predates the guard: it ran with the barrier's rows alone.
 GUARDS = ("auto", "none")
 LEGACY_GUARD = "none"
+#: A run whose config.json has "guard" but no "guard_gamma" trained with the guard's first gains.
+LEGACY_GUARD_GAMMA = 5.0
 
 
-def filter_label(filter: str, guard: str = "auto") -> str:
+def filter_label(filter: str, guard: str = "auto", guard_gamma: float = GUARD_GAMMA) -> str:
     """A run's filter as its name and the training tables spell it: ``"c3bf+hocbf"`` for the C3BF
-    with its (default) distance-HOCBF guard, else the filter's name."""
-    return "c3bf+hocbf" if filter == "c3bf" and guard == "auto" else filter
+    with its distance-HOCBF guard (``"c3bf+hocbf5"`` with gains other than the default, here 5),
+    else the filter's name."""
+    if filter != "c3bf" or guard != "auto":
+        return filter
+    return "c3bf+hocbf" + ("" if guard_gamma == GUARD_GAMMA else f"{guard_gamma:g}")
+
+
+def run_guard(config: dict[str, Any]) -> tuple[str, float]:
+    """The guard and guard gains a run's ``config.json`` trained with (older runs: see
+    :data:`LEGACY_GUARD`, :data:`LEGACY_GUARD_GAMMA`; a run without a guard: the default gains,
+    for evaluating it with one)."""
+    return config.get("guard", LEGACY_GUARD), config.get("guard_gamma", LEGACY_GUARD_GAMMA if "guard" in config else GUARD_GAMMA)
 
 
 #: How the policy network reads the obstacle slots: ``flat`` (SB3's MLP on the whole
@@ -131,7 +144,8 @@ HYPERPARAMS: dict[tuple[str, str], dict[str, Any]] = {
 @dataclass
 class TrainConfig:
     """One training run. ``filter`` is ``"none"``, ``"hocbf"`` or ``"c3bf"``; ``guard`` is the
-    filter's (:data:`GUARDS`).
+    filter's (:data:`GUARDS`) and ``guard_gamma`` its gains (used with the C3BF's ``"auto"``
+    guard, the only one a run can have).
 
     The defaults are the recipe of the README's RL table (the one place they are kept; the
     command line takes them from here): SAC, residual Cartesian actions at 10 Hz, the reward's
@@ -144,6 +158,7 @@ class TrainConfig:
     action: Literal["impedance", "residual", "torque"] = "residual"
     filter: Literal["none", "hocbf", "c3bf"] = "c3bf"
     guard: Literal["auto", "none"] = "auto"
+    guard_gamma: float = GUARD_GAMMA
     scenario: str = "random"
     timesteps: int = 25_000
     seed: int = 0
@@ -179,6 +194,9 @@ class TrainConfig:
             value = getattr(self, name)
             if isinstance(value, bool) or not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
                 raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
+        value = self.guard_gamma
+        if isinstance(value, bool) or not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+            raise ValueError(f"guard_gamma must be a finite number > 0, got {value!r}")
         if not isinstance(self.normalize_obs, bool):
             raise ValueError(f"normalize_obs must be True or False, got {self.normalize_obs!r}")
         for name in ("timesteps", "n_envs", "eval_freq", "eval_episodes", "checkpoint_freq"):
@@ -198,7 +216,7 @@ class TrainConfig:
         penalty = f"_aw{self.action_weight:g}" if self.action_weight else ""
         encoder = "" if self.obstacle_encoder == "flat" else f"_{self.obstacle_encoder}"
         return (
-            f"{self.algo}_{self.action}{norm}{rate}{dense}{penalty}{encoder}_{filter_label(self.filter, self.guard)}"
+            f"{self.algo}_{self.action}{norm}{rate}{dense}{penalty}{encoder}_{filter_label(self.filter, self.guard, self.guard_gamma)}"
             f"_{self.scenario}_s{self.seed}"
         )
 
@@ -247,11 +265,14 @@ def make_env(
     monitor_file: str | None = None,
     action_weight: float = 0.0,
     guard: str = "auto",
+    guard_gamma: float | None = None,
     **env_kwargs: Any,
 ) -> Callable[[], gym.Env]:
     """A thunk building ``Monitor(ActionPenalty(SafetyFilter(CartesianImpedanceAction(C3BFReach-v0))))``
     (the parts the options ask for; ``ActionPenalty`` when ``action_weight > 0``), for SB3 vector
-    envs. ``guard``: the filter's (:data:`GUARDS`). The env is seeded on its first reset."""
+    envs. ``guard``: the filter's (:data:`GUARDS`); ``guard_gamma``: its gains when there is one
+    (the C3BF's ``"auto"``; None: the filter's default), unused otherwise, as a run's config
+    carries it either way. The env is seeded on its first reset."""
     from stable_baselines3.common.monitor import Monitor
 
     filter_name = _filter_name(filter)
@@ -265,7 +286,8 @@ def make_env(
         if action in ("impedance", "residual"):
             env = CartesianImpedanceAction(env, residual=action == "residual")
         if filter_name is not None:
-            env = SafetyFilter(env, barrier=filter_name, guard=guard)
+            guarded = filter_name == "c3bf" and guard == "auto"
+            env = SafetyFilter(env, barrier=filter_name, guard=guard, guard_gamma=guard_gamma if guarded else None)
         if action_weight:
             env = ActionPenalty(env, action_weight)
         env = Monitor(env, monitor_file, info_keywords=info_keywords(filter_name))
@@ -364,13 +386,13 @@ def train(config: TrainConfig) -> Path:
     rate, penalty = config.env_kwargs(), config.action_weight
     thunks = [
         make_env(config.scenario, filter_name, config.action, seed=config.seed * 1000 + i, action_weight=penalty,
-                 guard=config.guard, **rate)
+                 guard=config.guard, guard_gamma=config.guard_gamma, **rate)
         for i in range(config.n_envs)
     ]
     venv = SubprocVecEnv(thunks) if config.n_envs > 1 else DummyVecEnv(thunks)
     eval_env = DummyVecEnv(
         [make_env(config.scenario, filter_name, config.action, seed=10_000 + config.seed, action_weight=penalty,
-                  guard=config.guard, **rate)]
+                  guard=config.guard, guard_gamma=config.guard_gamma, **rate)]
     )
     if config.normalize_obs:
         # Running mean/std of the observations (not of the rewards); EvalCallback copies the
@@ -449,10 +471,11 @@ def evaluate(
     seed: int = FINAL_EVAL_SEED,
     deterministic: bool = True,
     guard: str | None = None,
+    guard_gamma: float | None = None,
 ) -> dict[str, float]:
     """Roll out a saved model for ``episodes`` seeded episodes.
 
-    ``filter``, ``guard`` and ``scenario`` default to the run's own (from its ``config.json``; a
+    ``filter``, ``guard``, ``guard_gamma`` and ``scenario`` default to the run's own (from its ``config.json``; a
     run from before the guard ran without one); pass a filter to evaluate, e.g., an unfiltered
     agent with the C3BF filter on. The action mode,
     policy rate and reward (``distance_weight``, ``action_weight``) are the run's too (also for
@@ -478,9 +501,11 @@ def evaluate(
     normalizer = _load_normalizer(run_dir / NORMALIZATION_FILE) if run_dir else None
     returns, successes, costs, collided, interventions, infeasible, kinds = [], [], [], [], [], [], []
     run_env = env_kwargs(config.get("policy_hz", DEFAULT_POLICY_HZ), config.get("distance_weight", 0.0))
-    guard = config.get("guard", LEGACY_GUARD) if guard is None else guard
+    run_guard_name, run_gamma = run_guard(config)
+    guard = run_guard_name if guard is None else guard
+    guard_gamma = run_gamma if guard_gamma is None else guard_gamma
     env = make_env(scenario, filter, action, seed=seed, action_weight=config.get("action_weight", 0.0), guard=guard,
-                   **run_env)()  # fmt: skip
+                   guard_gamma=guard_gamma, **run_env)()  # fmt: skip
     for episode in range(episodes):
         obs, _ = env.reset(seed=seed + episode)
         kinds.append(env.unwrapped.episode_scenario.name)
@@ -502,6 +527,7 @@ def evaluate(
         "model": str(model_path),
         "filter": filter,
         "guard": guard,
+        "guard_gamma": guard_gamma if _filter_name(filter) == "c3bf" and guard == "auto" else None,
         "scenario": scenario,
         "episodes": episodes,
         "success_rate": float(np.mean(successes)),

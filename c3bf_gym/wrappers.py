@@ -64,7 +64,7 @@ class SafetyFilter(gym.Wrapper, gym.utils.EzPickle):
         points: ``"whole_arm"`` (every link capsule, default) or ``"ee"`` (the tool only, as in the
             paper).
         gamma: class-K gain [1/s] (C3BF: γ; HOCBF: γ₁ = γ₂); None for the barrier's default (5).
-            The guard keeps its own gains (pass a ``DistanceHOCBF`` as ``guard`` to change them).
+            The guard has its own (``guard_gamma``).
         margin: extra clearance added to every radius [m].
         sensing_radius: perception boundary [m]; None uses the environment's.
         ee_radius: protected sphere around the tool site with ``points="ee"`` [m].
@@ -75,16 +75,16 @@ class SafetyFilter(gym.Wrapper, gym.utils.EzPickle):
         on_infeasible: ``"relax"`` (default: apply the least-violating torque, report it) or
             ``"raise"``.
         guard: a second barrier whose rows hold beside the first one's, for every sensed obstacle
-            and protected point. ``"auto"`` (default): the distance HOCBF (γ₁ = γ₂ = 5) beside
-            the C3BF, nothing beside any other barrier; None (or ``"none"``): the barrier's rows
-            alone (the paper's filter); ``"hocbf"``, ``"c3bf"`` or a
-            :class:`~c3bf_gym.barriers.Barrier`.
+            and protected point. ``"auto"`` (default): the distance HOCBF beside the C3BF, nothing
+            beside any other barrier; None (or ``"none"``): the barrier's rows alone (the paper's
+            filter); ``"hocbf"``, ``"c3bf"`` or a :class:`~c3bf_gym.barriers.Barrier`.
             The C3BF alone bounds the direction of the relative velocity: it lets a link graze an
             obstacle at speed, from where, with the motors' torque limits, the link sometimes
             cannot turn away in time (8 collisions in 2,400 adversarial episodes,
             ``benchmarks/guarantee.py``). The distance HOCBF bounds the approach speed by the
-            distance left; with both, none of those episodes collided (README, "The guarantee":
-            random torques met one collision in 2,400 episodes).
+            distance left (README, "The guarantee").
+        guard_gamma: the gain(s) [1/s] of a guard named by ``guard`` (HOCBF: γ₁ = γ₂); None for
+            :data:`~c3bf_gym.filter.GUARD_GAMMA` (10) with ``"auto"``, else the barrier's default.
 
     Pickling (and ``copy.deepcopy``) rebuilds the filter with the same arguments around the
     unpickled environment, which Gymnasium's MuJoCo environments rebuild from their own
@@ -105,18 +105,19 @@ class SafetyFilter(gym.Wrapper, gym.utils.EzPickle):
         weight: Literal["limits", "identity"] = "limits",
         on_infeasible: Literal["relax", "raise"] = "relax",
         guard: str | Barrier | None = "auto",
+        guard_gamma: float | None = None,
     ) -> None:
         super().__init__(env)
         gym.utils.EzPickle.__init__(
             self, env, barrier, points, gamma, margin, sensing_radius, ee_radius, joint_speed_fraction, weight,
-            on_infeasible, guard,
+            on_infeasible, guard, guard_gamma,
         )
         base = reach_env(env, "SafetyFilter")
         if base.has_torque_hook("filter"):
             raise ValueError("this environment already has a safety filter installed")
         self.hook: SafetyHook = build_hook(
             base, barrier, points, gamma, margin, sensing_radius, ee_radius, joint_speed_fraction, weight,
-            on_infeasible, guard,
+            on_infeasible, guard, guard_gamma,
         )
         base.add_torque_hook(self.hook, stage="filter")
         self._base = base

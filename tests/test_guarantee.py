@@ -24,6 +24,7 @@ import numpy as np
 import pytest
 
 from c3bf_gym import CartesianImpedanceAction, SafetyFilter
+from c3bf_gym.barriers import DistanceHOCBF
 
 SCENARIOS = ("static", "head_on", "crossing", "multi")
 STEPS = 250  # a full episode: 5 s at 50 Hz
@@ -176,12 +177,24 @@ def test_guard_keeps_the_long_sweeps_c3bf_collisions_off(make_env, scenario, see
 
 
 def test_guarded_relaxation_regression(make_env):
-    """Head-on seed 363 against the adversary: with the guard's rows weighing what the C3BF's weigh
-    in the relaxation, a link held between the descending obstacle and the floor was hit
-    (−3.7 mm); with the C3BF's rows giving way first (BARRIER_RELAXATION_WEIGHT) it is not."""
-    summary = run_episode(make_env, "head_on", 363, "adversarial")
-    assert_safe(summary, "head_on seed 363 adversarial, guarded C3BF")
+    """Head-on seed 363 against the adversary, with the guard's first gains (5): with the guard's
+    rows weighing what the C3BF's weigh in the relaxation, a link held between the descending
+    obstacle and the floor was hit (−3.7 mm); with the C3BF's rows giving way first
+    (BARRIER_RELAXATION_WEIGHT) it is not."""
+    summary = run_episode(make_env, "head_on", 363, "adversarial", guard=DistanceHOCBF(5.0, 5.0))
+    assert_safe(summary, "head_on seed 363 adversarial, C3BF guarded with gains 5")
     assert summary["infeasible_steps"] > 0  # the relaxation did run
+
+
+@pytest.mark.parametrize("scenario, seed, policy", [("head_on", 363, "adversarial"), ("multi", 66, "random")])
+def test_default_guard_gains_regressions(make_env, scenario, seed, policy):
+    """The long sweeps' two episodes that reached an obstacle with the guard's first gains (5):
+    head-on 363 (adversary, −3.7 mm before the relaxation weights, 1.6 mm after) and multi 66
+    (random torques, −8.0 mm: a link met an obstacle at 0.7 m/s). With GUARD_GAMMA both keep the
+    margin."""
+    summary = run_episode(make_env, scenario, seed, policy)
+    assert_safe(summary, f"{scenario} seed {seed} {policy}, guarded C3BF")
+    assert summary["min_distance"] > 0.005
 
 
 def test_adversarial_policy_targets_the_nearest_point(make_env):

@@ -12,8 +12,10 @@ import numpy as np
 import pytest
 
 from c3bf_gym.cli import main
+from c3bf_gym.filter import GUARD_GAMMA
 from c3bf_gym.plots import plot_training
 from c3bf_gym.training import (
+    LEGACY_GUARD_GAMMA,
     NORMALIZATION_FILE,
     TrainConfig,
     _load_normalizer,
@@ -75,6 +77,13 @@ def test_evaluate_command_with_another_filter(tmp_path, capsys):
     (run / "config.json").write_text(json.dumps(config))
     assert evaluate(run / "model.zip", episodes=1, filter="c3bf")["guard"] == "none"
     assert evaluate(run / "model.zip", episodes=1, filter="c3bf", guard="auto")["guard"] == "auto"
+    # a guarded run from before "guard_gamma" trained with the guard's first gains, 5
+    config["guard"] = "auto"
+    del config["guard_gamma"]
+    (run / "config.json").write_text(json.dumps(config))
+    assert evaluate(run / "model.zip", episodes=1, filter="c3bf")["guard_gamma"] == LEGACY_GUARD_GAMMA == 5.0
+    assert evaluate(run / "model.zip", episodes=1, filter="c3bf", guard_gamma=8.0)["guard_gamma"] == 8.0
+    assert evaluate(run / "model.zip", episodes=1, filter="c3bf", guard="none")["guard_gamma"] is None
 
 
 @pytest.mark.slow
@@ -150,10 +159,21 @@ def test_guard_reaches_the_filter_and_names_the_run():
 
     assert TrainConfig(guard="none").name == "sac_residual_10hz_dw10_aw3_set_c3bf_random_s0"
     assert TrainConfig(filter="hocbf").name == "sac_residual_10hz_dw10_aw3_set_hocbf_random_s0"
+    assert TrainConfig().name == "sac_residual_10hz_dw10_aw3_set_c3bf+hocbf_random_s0"
+    assert TrainConfig(guard_gamma=5.0).name == "sac_residual_10hz_dw10_aw3_set_c3bf+hocbf5_random_s0"
     for guard, expected in (("auto", DistanceHOCBF), ("none", type(None))):
         env = make_env("none", "c3bf", "residual", seed=0, guard=guard)()
         assert type(env.get_wrapper_attr("hook").guard) is expected
         env.close()
+    env = make_env("none", "c3bf", "residual", seed=0, guard_gamma=7.0)()
+    assert env.get_wrapper_attr("hook").guard.gamma1 == 7.0
+    env.close()
+    env = make_env("none", "hocbf", "residual", seed=0, guard_gamma=7.0)()  # no guard: the gains go unused
+    assert env.get_wrapper_attr("hook").guard is None
+    env.close()
+    for bad in (0.0, -1.0, float("inf"), True):
+        with pytest.raises(ValueError, match="guard_gamma must be a finite number > 0"):
+            TrainConfig(guard_gamma=bad).validate()
     with pytest.raises(ValueError, match="guard.*'auto'.*'none'"):
         make_env("none", "c3bf", "residual", guard="hocbf")
     with pytest.raises(ValueError, match="guard.*'auto'.*'none'"):
@@ -311,17 +331,21 @@ def test_plot_training_reads_a_longer_evaluation_when_asked(tmp_path):
 
 
 def test_plot_training_keeps_the_guarded_c3bf_apart(tmp_path):
-    """Runs of the C3BF with its guard are their own row ("c3bf+hocbf"); a run whose config has no
-    "guard" predates it and is the C3BF alone, like ``guard="none"``; the HOCBF has no guard."""
+    """Runs of the C3BF with its guard are their own row per guard gain ("c3bf+hocbf" with the
+    default, "c3bf+hocbf5" from a config with a guard but no "guard_gamma", which trained with the
+    first gains, 5); a run whose config has no "guard" predates it and is the C3BF alone, like
+    ``guard="none"``; the HOCBF has no guard."""
     runs = [
         _fake_run(tmp_path, "old", "c3bf", "residual", [0, 0], final=0.8),
         _fake_run(tmp_path, "alone", "c3bf", "residual", [0, 0], final=0.9, guard="none"),
-        _fake_run(tmp_path, "guarded", "c3bf", "residual", [0, 0], final=1.0, guard="auto"),
+        _fake_run(tmp_path, "guarded5", "c3bf", "residual", [0, 0], final=0.6, guard="auto"),
+        _fake_run(tmp_path, "guarded", "c3bf", "residual", [0, 0], final=1.0, guard="auto", guard_gamma=GUARD_GAMMA),
         _fake_run(tmp_path, "h_old", "hocbf", "residual", [0, 0], final=0.7),
-        _fake_run(tmp_path, "h_new", "hocbf", "residual", [0, 0], final=0.9, guard="auto"),
+        _fake_run(tmp_path, "h_new", "hocbf", "residual", [0, 0], final=0.9, guard="auto", guard_gamma=GUARD_GAMMA),
     ]
     rows = plot_training(runs, tmp_path / "c.png").splitlines()
     assert "| sac | residual | c3bf | 2 | 500 | 0 (0, 0) | 2 (1, 1) | 0.85 (0.80, 0.90) | 5.0 | 50 |" in rows
+    assert "| sac | residual | c3bf+hocbf5 | 1 | 500 | 0 (0) | 1 (1) | 0.60 (0.60) | 5.0 | 50 |" in rows
     assert "| sac | residual | c3bf+hocbf | 1 | 500 | 0 (0) | 1 (1) | 1.00 (1.00) | 5.0 | 50 |" in rows
     assert "| sac | residual | hocbf | 2 | 500 | 0 (0, 0) | 2 (1, 1) | 0.80 (0.70, 0.90) | 5.0 | 50 |" in rows
 

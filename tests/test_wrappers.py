@@ -9,6 +9,7 @@ import pytest
 
 from c3bf_gym import ActionPenalty, CartesianImpedanceAction, SafetyFilter
 from c3bf_gym.barriers import C3BF, DistanceHOCBF
+from c3bf_gym.filter import GUARD_GAMMA
 
 from conftest import ENV_ID
 
@@ -263,6 +264,11 @@ BAD_FILTER_ARGS = [
     (dict(joint_speed_fraction=float("nan")), "joint_speed_fraction"),
     (dict(guard="distance"), r"(?s)guard.*'auto'.*None.*'c3bf'.*'hocbf'.*Barrier"),
     (dict(guard=True), r"(?s)guard.*'auto'.*None"),
+    (dict(guard_gamma=0.0), r"guard_gamma must be a finite number > 0"),
+    (dict(guard_gamma=float("nan")), r"guard_gamma must be a finite number > 0"),
+    (dict(guard=None, guard_gamma=5.0), r"guard_gamma was given without a guard"),
+    (dict(guard=DistanceHOCBF(), guard_gamma=5.0), r"guard_gamma either to the guard Barrier instance or here"),
+    (dict(barrier="hocbf", guard_gamma=5.0), r"guard='auto' puts no guard beside this barrier"),
 ]
 
 
@@ -289,12 +295,21 @@ def test_edge_values_accepted(make_env):
      ("c3bf", None, type(None)), ("c3bf", "none", type(None)), ("hocbf", "c3bf", C3BF)],
 )
 def test_guard_choices(make_env, barrier, guard, expected):
-    """``guard="auto"`` puts the distance HOCBF (default gains) beside a C3BF and nothing beside
-    the distance HOCBF, whose rows would only repeat; a named guard is that barrier."""
+    """``guard="auto"`` puts the distance HOCBF (gains GUARD_GAMMA) beside a C3BF and nothing
+    beside the distance HOCBF, whose rows would only repeat; a named guard is that barrier."""
     env = SafetyFilter(make_env(scenario="none"), barrier=barrier, guard=guard)
     assert type(env.hook.guard) is expected
     if expected is DistanceHOCBF:
-        assert (env.hook.guard.gamma1, env.hook.guard.gamma2) == (5.0, 5.0)
+        assert (env.hook.guard.gamma1, env.hook.guard.gamma2) == (GUARD_GAMMA, GUARD_GAMMA)
+        assert tuple(env.hook._hook_f[-3:-1]) == (GUARD_GAMMA, GUARD_GAMMA)  # the fused kernel's
+
+
+def test_guard_gamma_sets_a_named_guards_gains(make_env):
+    env = SafetyFilter(make_env(scenario="none"), guard_gamma=7.0)
+    assert (env.hook.guard.gamma1, env.hook.guard.gamma2) == (7.0, 7.0)
+    assert tuple(env.hook._hook_f[-3:-1]) == (7.0, 7.0)
+    env = SafetyFilter(make_env(scenario="none"), barrier="hocbf", guard="c3bf", guard_gamma=3.0)
+    assert env.hook.guard.gamma == 3.0 and env.hook.barrier.gamma1 == 5.0  # the barrier keeps its own
 
 
 @pytest.mark.parametrize("wrapper", [SafetyFilter, CartesianImpedanceAction])

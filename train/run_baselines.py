@@ -28,6 +28,7 @@ def main() -> int:
     parser.add_argument("--action", choices=ACTIONS, default=d.action)
     parser.add_argument("--filters", nargs="+", choices=FILTERS, default=["none", "c3bf", "hocbf"])
     parser.add_argument("--guard", choices=GUARDS, default=d.guard, help="the filters' guard (default %(default)s)")
+    parser.add_argument("--guard-gamma", type=float, default=d.guard_gamma, help="the guard's gains (default %(default)s)")
     parser.add_argument("--scenario", default=d.scenario)
     parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     parser.add_argument("--timesteps", type=int, default=d.timesteps)
@@ -49,7 +50,7 @@ def main() -> int:
     jobs = []
     for seed, filter_name in itertools.product(args.seeds, args.filters):
         name = TrainConfig(
-            algo=args.algo, action=args.action, filter=filter_name, guard=args.guard, scenario=args.scenario, seed=seed,
+            algo=args.algo, action=args.action, filter=filter_name, guard=args.guard, guard_gamma=args.guard_gamma, scenario=args.scenario, seed=seed,
             policy_hz=args.policy_hz, normalize_obs=args.normalize_obs, distance_weight=args.distance_weight,
             action_weight=args.action_weight, obstacle_encoder=args.obstacle_encoder,
         ).name  # fmt: skip
@@ -58,7 +59,7 @@ def main() -> int:
             continue
         command = [
             sys.executable, "-m", "c3bf_gym.cli", "train", "--algo", args.algo, "--action", args.action,
-            "--filter", filter_name, "--guard", args.guard, "--scenario", args.scenario, "--seed", str(seed),
+            "--filter", filter_name, "--guard", args.guard, "--guard-gamma", str(args.guard_gamma), "--scenario", args.scenario, "--seed", str(seed),
             "--timesteps", str(args.timesteps), "--out", str(out), "--no-progress", "--policy-hz", str(args.policy_hz),
             "--distance-weight", str(args.distance_weight), "--action-weight", str(args.action_weight),
             "--obstacle-encoder", args.obstacle_encoder,
