@@ -23,10 +23,11 @@ At every physics step (``C3BFReachEnv`` calls the hook between ``mj_step1`` and 
    ``W``) that satisfies all rows and the actuator limits, or reports that none does. Then it
    applies a repaired least-violating torque: only rows that conflict give way, each with its
    own slack; rows the conflict does not involve (e.g. the speed limit of an uninvolved joint)
-   keep holding (:mod:`c3bf_gym.qp`, "Relaxation"). All rows weigh the same there: letting
-   the speed rows give way first (obstacle rows weighted 30×) let joint speeds run to 11× their
-   limit, after which the cone rows alone had no solution and 3 of 20 random-torque multi
-   episodes collided. The speed limits keep the cone rows satisfiable.
+   keep holding (:mod:`c3bf_gym.qp`, "Relaxation"). The joint, floor and guard rows weigh 1
+   there, and so do the barrier's without a guard (with one: :data:`BARRIER_RELAXATION_WEIGHT`).
+   Letting the speed rows give way first (obstacle rows weighted 30×) let joint speeds run to
+   11× their limit, after which the cone rows alone had no solution and 3 of 20 random-torque
+   multi episodes collided. The speed limits keep the cone rows satisfiable.
 
 Steps 1–4 for ``whole_arm`` with the built-in barriers (:class:`~c3bf_gym.barriers.C3BF`,
 :class:`~c3bf_gym.barriers.DistanceHOCBF`) are one compiled kernel,
