@@ -191,6 +191,8 @@ def main(argv: list[str] | None = None) -> list[dict]:
         parser.error(f"--margin must be a finite number >= 0 (m), got {args.margin}")
     if args.guard_gamma is not None and not (np.isfinite(args.guard_gamma) and args.guard_gamma > 0):
         parser.error(f"--guard-gamma must be a finite number > 0 (1/s), got {args.guard_gamma}")
+    if args.guard_gamma is not None and args.guard == "none":
+        parser.error("--guard-gamma sets the guard's gains; it needs --guard auto")
 
     filters = [tuple(f.split("/")) if f != "none" else ("none", "-") for f in args.filters]
     tasks = [(s, p, b, pts, args.seed + i, args.steps, args.margin, args.guard, args.guard_gamma)

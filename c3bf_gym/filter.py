@@ -54,7 +54,7 @@ import numba
 import numpy as np
 
 from c3bf_gym import _kernels
-from c3bf_gym.barriers import BARRIERS, C3BF, Barrier, DistanceHOCBF, JointLimits, Rows, make_barrier
+from c3bf_gym.barriers import BARRIERS, C3BF, Barrier, JointLimits, Rows, make_barrier
 from c3bf_gym.qp import QPResult, TorqueQP
 from c3bf_gym.robot import ArmModel
 

@@ -310,3 +310,28 @@ def test_recorded_floor_push_episode_does_not_collide(make_env):
         lowest = min(lowest, floor_gap(env.unwrapped))
     assert cost == 0.0 and min_distance >= 0.0, f"{cost:.0f} collision steps, min distance {min_distance * 1e3:.2f} mm"
     assert lowest >= 0.0
+
+
+
+def test_guarantee_benchmark_passes_the_guard_gains(tmp_path):
+    """The README's sweeps run this script: its options reach the filter and its record, and bad
+    ones are refused."""
+    import json
+    import subprocess
+    import sys
+
+    script = Path(__file__).resolve().parents[1] / "benchmarks" / "guarantee.py"
+
+    def run(*argv):
+        return subprocess.run([sys.executable, str(script), "--quick", "--out", str(tmp_path), *argv],
+                              capture_output=True, text=True, timeout=300)  # fmt: skip
+
+    done = run("--scenarios", "static", "--policies", "adversarial", "--filters", "c3bf/whole_arm", "--workers", "1",
+               "--guard-gamma", "7")  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["settings"]["guard_gamma"] == 7.0
+    assert [c["collision_episodes"] for c in summary["configurations"]] == [0]
+    for argv, message in ((["--guard-gamma", "0"], "finite number > 0"), (["--guard", "none", "--guard-gamma", "7"], "needs --guard auto")):
+        refused = run(*argv)
+        assert refused.returncode == 2 and message in refused.stderr
