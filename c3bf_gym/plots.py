@@ -23,8 +23,16 @@ __all__ = [
 ]
 
 COLORS = {"none": "tab:red", "hocbf": "tab:orange", "c3bf": "tab:blue", "c3bf+hocbf": "tab:green", "c3bf+hocbf5": "tab:olive"}
-LABELS = {"none": "no filter", "hocbf": "distance HOCBF", "c3bf": "C3BF", "c3bf+hocbf": "C3BF + distance guard",
-          "c3bf+hocbf5": "C3BF + distance guard (γ 5)"}  # fmt: skip
+LABELS = {"none": "no filter", "hocbf": "distance HOCBF", "c3bf": "C3BF", "c3bf+hocbf": "C3BF + distance guard"}
+
+
+def _label(name: str) -> str:
+    """A filter's legend label; ``"c3bf+hocbf5"`` (a guard with other gains) reads "C3BF + distance
+    guard (γ 5)"."""
+    guarded = "c3bf+hocbf"
+    if name.startswith(guarded) and name != guarded:
+        return f"{LABELS[guarded]} (γ {name[len(guarded):]})"
+    return LABELS.get(name, name)
 
 
 def _pyplot():
@@ -295,8 +303,8 @@ def plot_training(runs: Sequence[Path], path: Path, window: int = 20, evaluation
         raise ValueError("no run has a finished training episode to plot")
     for key, entries in groups.items():
         _check_recipe(key, entries)
-    order = {"none": 0, "hocbf": 1, "c3bf": 2, "c3bf+hocbf5": 3, "c3bf+hocbf": 4}
-    keys = sorted(groups, key=lambda k: (k[0], k[1], order.get(k[2], 3)))
+    order = {"none": 0, "hocbf": 1, "c3bf": 2, "c3bf+hocbf": 4}  # other guard gains: 3, by name
+    keys = sorted(groups, key=lambda k: (k[0], k[1], order.get(k[2], 3), k[2]))
     several_modes = len({k[:2] for k in keys}) > 1
     fig, axes = plt.subplots(1, 3, figsize=(15, 4))
     grid_len = 200
@@ -316,7 +324,7 @@ def plot_training(runs: Sequence[Path], path: Path, window: int = 20, evaluation
             for curve in curves:
                 values = d[curve] if curve == "cumulative_cost" else _trailing_mean(d[curve], window)
                 curves[curve].append(np.interp(grid, d["timesteps"], values))
-        label = f"{LABELS.get(name, name)}" + (f", {algo} {action}" if several_modes else "")
+        label = _label(name) + (f", {algo} {action}" if several_modes else "")
         for ax, curve, title in zip(axes, curves, ("episode return", "success (end of episode)", "cumulative collision steps")):
             stack = np.array(curves[curve])
             ax.plot(grid, stack.mean(0), ACTION_STYLES.get(action, "-"), color=COLORS.get(name),
