@@ -9,6 +9,7 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
+from c3bf_gym.filter import GUARD_GAMMA
 from c3bf_gym.metrics import EpisodeRecord
 from c3bf_gym.training import FINAL_EVAL_FILE, filter_label, run_guard
 
@@ -22,17 +23,27 @@ __all__ = [
     "plot_trajectories",
 ]
 
-COLORS = {"none": "tab:red", "hocbf": "tab:orange", "c3bf": "tab:blue", "c3bf+hocbf": "tab:green", "c3bf+hocbf5": "tab:olive"}
+COLORS = {"none": "tab:red", "hocbf": "tab:orange", "c3bf": "tab:blue", "c3bf+hocbf": "tab:green", "c3bf+hocbf5": "tab:olive",
+          "c3bf+hocbf20": "tab:purple"}  # fmt: skip
 LABELS = {"none": "no filter", "hocbf": "distance HOCBF", "c3bf": "C3BF", "c3bf+hocbf": "C3BF + distance guard"}
+
+
+_GUARDED = "c3bf+hocbf"
 
 
 def _label(name: str) -> str:
     """A filter's legend label; ``"c3bf+hocbf5"`` (a guard with other gains) reads "C3BF + distance
     guard (γ 5)"."""
-    guarded = "c3bf+hocbf"
-    if name.startswith(guarded) and name != guarded:
-        return f"{LABELS[guarded]} (γ {name[len(guarded):]})"
+    if name.startswith(_GUARDED) and name != _GUARDED:
+        return f"{LABELS[_GUARDED]} (γ {name[len(_GUARDED):]})"
     return LABELS.get(name, name)
+
+
+def _order(name: str) -> tuple[int, float]:
+    """Table and legend order: no filter, HOCBF, C3BF, then the guarded C3BF by its gains."""
+    if name.startswith(_GUARDED):
+        return 3, float(name[len(_GUARDED):] or GUARD_GAMMA)
+    return {"none": 0, "hocbf": 1, "c3bf": 2}.get(name, 4), 0.0
 
 
 def _pyplot():
@@ -303,8 +314,7 @@ def plot_training(runs: Sequence[Path], path: Path, window: int = 20, evaluation
         raise ValueError("no run has a finished training episode to plot")
     for key, entries in groups.items():
         _check_recipe(key, entries)
-    order = {"none": 0, "hocbf": 1, "c3bf": 2, "c3bf+hocbf": 4}  # other guard gains: 3, by name
-    keys = sorted(groups, key=lambda k: (k[0], k[1], order.get(k[2], 3), k[2]))
+    keys = sorted(groups, key=lambda k: (k[0], k[1], *_order(k[2])))
     several_modes = len({k[:2] for k in keys}) > 1
     fig, axes = plt.subplots(1, 3, figsize=(15, 4))
     grid_len = 200
