@@ -522,10 +522,9 @@ def build_hook(
         elif guard is None and guard_gamma is not None:
             raise ValueError("guard_gamma was given, but guard='auto' puts no guard beside this barrier (only beside the C3BF)")
     if isinstance(guard, Barrier) or guard is None:
-        if guard_gamma is not None and guard is None:
-            raise ValueError("guard_gamma was given without a guard (guard=None)")
         if guard_gamma is not None:
-            raise ValueError("pass guard_gamma either to the guard Barrier instance or here, not both")
+            raise ValueError("guard_gamma was given without a guard (guard=None)" if guard is None
+                             else "pass guard_gamma either to the guard Barrier instance or here, not both")  # fmt: skip
         guard_obj = guard
     elif isinstance(guard, str) and guard in BARRIERS:
         guard_obj = _named_barrier(guard, guard_gamma, "guard_gamma")

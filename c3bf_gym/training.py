@@ -190,13 +190,11 @@ class TrainConfig:
                 raise ValueError(f"unknown {name} {value!r}; valid choices: {', '.join(map(repr, choices))}")
         get_scenario(self.scenario)
         policy_rate_kwargs(self.policy_hz)
-        for name in ("distance_weight", "action_weight"):
+        for name, strict in (("distance_weight", False), ("action_weight", False), ("guard_gamma", True)):
             value = getattr(self, name)
-            if isinstance(value, bool) or not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
-                raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
-        value = self.guard_gamma
-        if isinstance(value, bool) or not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
-            raise ValueError(f"guard_gamma must be a finite number > 0, got {value!r}")
+            if isinstance(value, bool) or not (isinstance(value, (int, float)) and math.isfinite(value)
+                                               and (value > 0 if strict else value >= 0)):  # fmt: skip
+                raise ValueError(f"{name} must be a finite number {'>' if strict else '>='} 0, got {value!r}")
         if not isinstance(self.normalize_obs, bool):
             raise ValueError(f"normalize_obs must be True or False, got {self.normalize_obs!r}")
         for name in ("timesteps", "n_envs", "eval_freq", "eval_episodes", "checkpoint_freq"):
