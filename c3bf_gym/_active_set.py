@@ -66,6 +66,8 @@ import math
 import numpy as np
 from numba import njit
 
+from c3bf_gym import _compile_cache  # noqa: F401  (before any @njit(cache=True): the cache keys)
+
 OPTIMAL = 0
 INFEASIBLE = 1
 ITER_CAP = 2

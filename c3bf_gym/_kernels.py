@@ -32,9 +32,10 @@ import math
 import numpy as np
 from numba import njit
 
-# hook_step compiles _active_set.solve into itself. numba's cache (cache=True) is keyed on this
-# file only, so after editing _active_set.py alone a warm __pycache__ keeps the old solver inside
-# hook_step: touch this file (or delete c3bf_gym/__pycache__) whenever _active_set.py changes.
+from c3bf_gym import _compile_cache  # noqa: F401  (before any @njit(cache=True): the cache keys)
+
+# hook_step compiles _active_set.solve into itself: _compile_cache (imported by _active_set first)
+# keys the on-disk cache of both files' functions on both files.
 from c3bf_gym import _active_set
 
 #: barrier kinds of the fused kernel

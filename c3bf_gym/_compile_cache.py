@@ -1,0 +1,79 @@
+"""numba's on-disk cache for the package's compiled kernels, keyed on every kernel source file.
+
+numba keys a cached function on a hash of the one file that defines it. The filter's kernels call
+each other across files (``_kernels.hook_step`` compiles ``_active_set.solve`` into itself), so an
+edit to ``_active_set.py`` alone would leave the old solver inside the cached ``hook_step``. Here
+the cache stamp of every function defined in :data:`KERNEL_SOURCES` is the hash of all those
+files together: changing any of them recompiles every kernel on its next use.
+
+Importing this module installs cache locators in front of numba's own, for the same places
+numba would use (``NUMBA_CACHE_DIR`` when set, else beside the sources, else the user-wide cache
+when that folder is not writable);
+functions defined anywhere else keep numba's behaviour. It must be imported before the kernel
+modules define their functions, which they do by importing it first.
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import os
+from pathlib import Path
+
+from numba.core import caching
+
+__all__ = ["KERNEL_SOURCES", "sources_digest"]
+
+_PACKAGE = Path(__file__).resolve().parent
+#: The modules whose ``@njit(cache=True)`` functions are compiled into each other.
+KERNEL_SOURCES = ("_kernels.py", "_active_set.py")
+_PATHS = tuple(str(_PACKAGE / name) for name in KERNEL_SOURCES)
+
+
+@functools.lru_cache(maxsize=None)
+def _digest(stats: tuple[tuple[float, int], ...]) -> bytes:
+    # keyed on every file's (mtime, size), so an edit while the process runs is seen
+    sha = hashlib.sha256()
+    for path in _PATHS:
+        with open(path, "rb") as fh:
+            sha.update(hashlib.sha256(fh.read()).digest())
+    return sha.digest()
+
+
+def sources_digest() -> bytes:
+    """SHA-256 over the contents of every file of :data:`KERNEL_SOURCES`, in that order."""
+    return _digest(tuple((st.st_mtime, st.st_size) for st in map(os.stat, _PATHS)))
+
+
+def _is_kernel_source(py_file: str) -> bool:
+    return os.path.abspath(py_file) in _PATHS
+
+
+class _KernelStamp:
+    """Mixin: a locator that serves only :data:`KERNEL_SOURCES`, stamped with all of them."""
+
+    @classmethod
+    def from_function(cls, py_func, py_file):
+        if not _is_kernel_source(py_file):
+            return None
+        return super().from_function(py_func, py_file)
+
+    def get_source_stamp(self):
+        return sources_digest()
+
+
+class _UserProvidedKernelLocator(_KernelStamp, caching.UserProvidedCacheLocator):
+    """``NUMBA_CACHE_DIR``, when the user set it, as numba's first choice."""
+
+
+class _InTreeKernelLocator(_KernelStamp, caching.InTreeCacheLocator):
+    """Beside the sources (``__pycache__``), as numba's default."""
+
+
+class _UserWideKernelLocator(_KernelStamp, caching.UserWideCacheLocator):
+    """numba's user-wide cache, for a package installed read-only."""
+
+
+if _InTreeKernelLocator not in caching.CacheImpl._locator_classes:
+    caching.CacheImpl._locator_classes[:0] = [_UserProvidedKernelLocator, _InTreeKernelLocator,
+                                               _UserWideKernelLocator]

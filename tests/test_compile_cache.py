@@ -1,0 +1,48 @@
+"""The compiled kernels' on-disk cache follows their sources (c3bf_gym/_compile_cache.py).
+
+numba keys a cached function on the file that defines it; the filter's kernels are compiled into
+each other across files, so a stale cache could keep an edited solver's old machine code. These
+tests run a kernel in fresh interpreters on a copy of the package and read numba's own cache
+statistics."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import c3bf_gym
+
+PROBE = """
+import json, numpy as np
+from c3bf_gym import _kernels
+out = np.empty(3)
+_kernels.clip(np.array([2.0, -2.0, 0.5]), -np.ones(3), np.ones(3), out)
+stats = _kernels.clip.stats
+print(json.dumps({"hits": sum(stats.cache_hits.values()), "misses": sum(stats.cache_misses.values()),
+                  "file": _kernels.__file__, "out": out.tolist()}))
+"""
+
+
+def _probe(root: Path) -> dict:
+    done = subprocess.run([sys.executable, "-c", PROBE], cwd=root, capture_output=True, text=True, timeout=300,
+                          env={"PYTHONPATH": str(root), "PATH": "/usr/bin:/bin", "NUMBA_CACHE_DIR": ""})
+    assert done.returncode == 0, done.stderr
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+def test_an_edit_to_any_kernel_source_recompiles(tmp_path):
+    package = Path(c3bf_gym.__file__).parent
+    shutil.copytree(package, tmp_path / "c3bf_gym", ignore=shutil.ignore_patterns("__pycache__", "assets"))
+    first = _probe(tmp_path)
+    assert first["file"].startswith(str(tmp_path)) and first["out"] == [1.0, -1.0, 0.5]
+    assert first["misses"] == 1 and first["hits"] == 0  # compiled, then saved
+    assert _probe(tmp_path)["hits"] == 1  # unchanged sources: loaded from the cache
+    # an edit to _active_set.py alone (clip is defined in _kernels.py) must invalidate the cache
+    with open(tmp_path / "c3bf_gym" / "_active_set.py", "a") as fh:
+        fh.write("\n# edited\n")
+    edited = _probe(tmp_path)
+    assert edited["misses"] == 1 and edited["hits"] == 0
+    assert _probe(tmp_path)["hits"] == 1
