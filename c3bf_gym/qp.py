@@ -6,175 +6,59 @@ Problem solved at every control step (n joints, m safety rows, torques in N·m):
     subject to  A τ ≥ b                 (m ≤ max_rows rows)
                 τ_min ≤ τ ≤ τ_max       (hard actuator box)
 
-Design (numbers measured with proxsuite 0.8.0, see ``benchmarks/qp_micro.py``). With the
-default ``solver="active_set"`` every call goes fast path → active set (hard problem, then on an
-infeasibility proof the elastic and repair QPs), and the proxsuite bullets below describe the
-calls it hands over (a step cap or a failed check) and ``solver="proxsuite"``:
+Path of one call (``solver="active_set"``, the default; ``"proxsuite"`` skips the active set):
 
-* **Fast path.** If τ_nom is inside the box and already satisfies every row it
-  is the exact optimum (the unconstrained minimiser is feasible); it is returned
-  without calling the solver (``iterations == 0``).  This is the common case of
-  a safety filter. The data step before it (validation, row normalisation, the
-  residuals, and without the fast path the reach check and the gradient) is one
-  compiled kernel (:func:`c3bf_gym._kernels.qp_prepare`, ≈2 µs), as is the
-  bookkeeping after proxsuite (dual sign check, clipping, residuals).
-* **Active-set solver first** (``solver="active_set"``, the default). When the fast
-  path fails, the compiled dual active-set solver of :mod:`c3bf_gym._active_set`
-  (Goldfarb–Idnani; box as 2n rows; warm-started from the previous call's active
-  rows) solves the *hard* problem on the data step's normalised rows. It returns
-  either the exact optimum, accepted only after a KKT check (rows, box,
-  complementarity, stationarity), and proxsuite is not called; or a proof that
-  the rows and box have no common point (then "Infeasible calls" below); or (not
-  seen on filter data) a step cap or failed check: then everything below runs
-  unchanged (``active_set_fallbacks``). Rows no torque in the box can reach skip
-  it. ``solver="proxsuite"`` is the layer without it. Why: proxsuite's update and
-  solve cost 50–300 µs per call, and its "solved" answers can be off the optimum
-  (on a recorded 4-obstacle rollout, one by 1e-3 against a 1e-13 reference, where
-  the active set was within 1e-15). Measured side by side, same calls
-  interleaved (``PYTHONPATH=. python benchmarks/qp_micro.py``, binding case,
-  median / p99 of ``solve`` per call, active set vs proxsuite): 24 rows 14 / 23
-  vs 92 / 277 µs, 92 rows 18 / 44 vs 242 / 680 µs, largest torque difference
-  6e-7. (Whole filter hook: "Infeasible calls" below.) Warm starts end most
-  solves in one step (the same benchmark prints the step counts).
-* **Infeasible calls, active set.** After that proof the elastic QP and the
-  per-row repair (both below, same semantics) are solved by the same compiled
-  solver: both are always feasible and have its form ½(x − x₀)ᵀW̃(x − x₀) with
-  W̃ = blockdiag(W, I), x₀ = (τ_nom, −1, …) (the slack cost ½t² + t), the
-  slack columns in the rows and t ≥ 0 as bound rows. Only "s ≤ tol → solved"
-  is kept of the elastic decision rules: the proof already certifies
-  infeasibility, so the Farkas bound and the hard disambiguation solve (which
-  only tell a feasible problem with multipliers beyond c from an infeasible
-  one) are not needed; s > tol goes straight to the repair. The elastic solve is
-  warm-started like the hard one (own work arrays); the repair from its last
-  optimal active rows when K is unchanged, else from "every slack at t = 0"
-  (multipliers 1: a valid start, saving the k steps that bring the slacks
-  from −1 to 0). Work arrays for up to K = ``max_rows`` slacks are made once,
-  each solve uses their leading blocks. A step cap or failed KKT check
-  (``active_set_troubles``) hands that QP to proxsuite as before; seen only on
-  repairs with ~50 slacks (8 obstacles, 4 of 6000 calls: ≈150 steps, ~1 ms).
-  Whole filter hook per physics step, median / p99 µs, active set vs proxsuite,
-  interleaved (``PYTHONPATH=. python benchmarks/filter_speed.py --calls 3000
-  --obstacles 1 4 8 --no-throughput --qp-solver active_set proxsuite --policy P``):
-  adversarial 1 / 4 / 8 obstacles 30 / 93 vs 115 / 444, 38 / 182 vs
-  319 / 1402 (53% relaxed), 29 / 813 vs 141 / 7086; random 34 / 125 vs
-  112 / 692, 43 / 171 vs 153 / 1388, 30 / 1226 vs 201 / 12159.
-* **Row normalisation.** Rows are divided by ‖A_k‖₂ before they reach the
-  solver (an equivalent problem).  Tolerances, ``slack`` and ``active_rows``
-  are therefore in *normalised* units: the signed distance, in torque space
-  (N·m), of τ to the half-space of each row.  Rows with ‖A_k‖ < 1e-12 are kept
-  unscaled.
-* **One elastic QP instead of "hard, then relaxed".**  proxsuite 0.8 does not
-  reliably report ``PROXQP_PRIMAL_INFEASIBLE``: on contradicting rows, or rows
-  contradicting the box, it runs to ``max_iter`` and returns
-  ``PROXQP_MAX_ITER_REACHED`` (≈5–14 ms for max_iter=1000 on n=6), so waiting
-  for its verdict is useless at 500 Hz.  Without the active set's proof the
-  layer therefore always solves the elastic problem (n+1 variables, x = (τ, s))::
+* **Data step** (:func:`c3bf_gym._kernels.qp_prepare`): validation (NaN or inf in ``τ_nom``,
+  ``A`` or ``b`` raise ``ValueError``), row normalisation, residuals, and each row's reach
+  ``max_{τ∈box} Â_k τ``.
+* **Fast path.** If τ_nom lies in the box and satisfies every row it is the exact optimum and is
+  returned without a solve (``iterations == 0``).
+* **Hard problem, active set** (:mod:`c3bf_gym._active_set`, Goldfarb–Idnani dual active set,
+  box as 2n rows, warm-started from the previous call's active rows). Its result is accepted
+  only after a KKT check (rows, box, complementarity, stationarity); a proof that rows and box
+  have no common point leads to the relaxation below; a step cap or failed check hands the call
+  to proxsuite (``active_set_fallbacks``). Rows beyond the box's reach skip it.
+* **Row normalisation.** Rows are divided by ‖A_k‖₂ before they reach a solver (an equivalent
+  problem), so tolerances, ``slack`` and ``active_rows`` are in normalised units: the signed
+  distance, in torque space (N·m), of τ to each row's half-space. Rows with ‖A_k‖ < 1e-12 are
+  kept unscaled.
+* **Elastic problem** (when the hard one is infeasible, or by proxsuite): one shared slack
+  s ≥ 0, in the solver variable t = √ρ s (ρ = ``slack_weight``)::
 
-      minimise  ½ (τ − τ_nom)ᵀ W (τ − τ_nom) + c s + ½ ρ s²
-      s.t.      Â τ + s·1 ≥ b̂,  τ_min ≤ τ ≤ τ_max,  s ≥ 0      (Â, b̂ row-normalised)
+      minimise  ½ (τ − τ_nom)ᵀ W (τ − τ_nom) + √ρ s + ½ ρ s²
+      s.t.      Â τ + s·1 ≥ b̂,  τ_min ≤ τ ≤ τ_max,  s ≥ 0
 
-  with ρ = ``slack_weight`` and c = √ρ (``slack_linear_weight``).  The solver
-  variable is t = √ρ·s (cost ½t² + t, row column 1/√ρ): with raw ρ = c = 1e6
-  the dual residual of s must be met to ~1e-14 relative and warm-started
-  solves stalled at max_iter (observed).  Infeasibility is then decided from the
-  elastic solution, not from proxsuite's status:
-
-  - **s ≤ tol → hard problem solved** (``feasible=True``, ``status="solved"``,
-    ``slack=0.0``).  Exact, not a heuristic: with s at its lower bound the KKT
-    conditions of the elastic problem (c − Σ_k z_k = z_s ≥ 0) are exactly the
-    KKT conditions of the hard problem, so τ is the hard optimum.
-  - **s > tol and a Farkas bound certifies it → infeasible**
-    (``status="relaxed"``).  With y = row multipliers / Σ (y ≥ 0, Σy = 1), any τ
-    in the box has  max_k (b̂_k − Â_k τ) ≥ yᵀb̂ − Σ_i max(τ_min,i v_i, τ_max,i v_i),
-    v = Âᵀy.  If this lower bound is > tol no torque in the box satisfies all
-    rows.  One matrix-vector product, no extra solve.
-  - **s > tol, not certified** (the hard multipliers exceed c = √ρ in ℓ1,
-    e.g. torque corrections of order 1e3 N·m with W = I): the hard QP is solved
-    (warm-started, ``max_iter`` capped at ``hard_max_iter``); if proxsuite
-    reports ``PROXQP_SOLVED`` that result is returned as ``"solved"``,
-    otherwise the elastic result is returned as ``"relaxed"``.
-  - elastic solve not ``PROXQP_SOLVED`` → ``status="failed"``,
-    ``feasible=False``; τ is the last elastic iterate projected onto the box
-    (or the box projection of τ_nom if that iterate is not finite).  τ_nom is
-    never returned silently.
-
-  Reported ``slack`` for relaxed/failed results is recomputed from the returned
-  τ: max_k (b̂_k − Â_k τ), i.e. the largest normalised row violation.
-* **Relaxation: one slack per violated row, not one for all** (``_relax_rows``).
-  The elastic problem has one slack s shared by every row, so its solution τ*
-  (the min-max torque) is only determined up to "every row within s": rows that
-  take no part in the conflict may be violated by up to s wherever τ_nom pushes
-  against them. Recorded on the filter (multi scenario, random torques): the
-  conflict was a cone row of an obstacle 0.7 m away against the speed rows of
-  joints 0–1, yet the speed rows of joints 3–4 were violated by the same s; over
-  a few hundred such steps the joint speeds ran to 2–6× their limit, the cone
-  rows then had no solution even on their own (checked with an independent LP),
-  and a link touched an obstacle (−0.5 mm). So whenever the hard problem is
-  infeasible (certified, impossible rows, or hard solve not converged), τ* is
-  repaired by one more QP in (τ, t_K)::
+  s ≤ ``active_tol`` means the hard problem is solved (its KKT conditions are then the hard
+  problem's). Otherwise, by proxsuite, infeasibility is certified by a Farkas bound from the row
+  multipliers y (y ≥ 0, Σy = 1: ``min_{τ∈box} max_k (b̂_k − Â_k τ) ≥ yᵀb̂ − Σ_i max(lo_i v_i,
+  hi_i v_i)`` with ``v = Âᵀ y``), or decided by one capped hard solve. A proxsuite solve whose
+  multipliers have the wrong sign (every row is a lower bound, so its multiplier must be ≤ 0)
+  is repeated once from scratch. If even the elastic problem fails, ``status="failed"``: τ is
+  its last iterate projected onto the box (the box projection of τ_nom if that is not finite);
+  never τ_nom silently.
+* **Relaxation: one slack per violated row.** The shared slack only bounds every row's
+  violation by s, so the elastic torque τ* is repaired by one more QP in (τ, t_K)::
 
       minimise  ½ (τ − τ_nom)ᵀ W (τ − τ_nom) + Σ_{k∈K} (σ_k s_k + ½ σ_k² s_k²)
-      s.t.      Â_k τ + s_k ≥ b̂_k  (k ∈ K),   Â_k τ ≥ b̂_k  (k ∉ K),   box,  s ≥ 0
+      s.t.      Â_k τ + s_k ≥ b̂_k (k ∈ K),   Â_k τ ≥ b̂_k (k ∉ K),   box,   s ≥ 0
 
-  with K = rows τ* violates (residual < ``active_tol``), σ_k =
-  ``row_slack_weight`` · weights[k] (default 1e2 · 1) and, as above, the
-  scaled variable t_k = σ_k s_k (cost ½ t² + t, column 1/σ_k). (τ*, its
-  violations) is feasible here, so the repair always has a solution; rows τ*
-  satisfies stay satisfied, and the ℓ1 part is an exact penalty (σ_k exceeds the
-  rows' multipliers), so a violated row that is not needed for the conflict is
-  brought back to its bound. The violation is spread over the conflicting rows
-  in proportion to 1/weights (as least squares for large s). If neither the
-  active set nor proxsuite solves it (rare), τ* itself is applied. By proxsuite
-  it costs one cold solve (≈ 20 iterations, ≈ 0.5–1 ms).
-
+  K = the rows τ* violates (residual < ``active_tol``), σ_k = ``row_slack_weight`` · weights[k].
+  (τ*, its violations) is feasible, so the repair always has a solution; rows τ* satisfies stay
+  satisfied, and the ℓ1 term is an exact penalty, so a row the conflict does not need returns
+  to its bound; the violation is spread over the conflicting rows in proportion to 1/weights.
   The active-set path first solves it in τ alone
-  (:func:`c3bf_gym._kernels.reduced_repair`): with the slacks eliminated the
-  cost is ½ (τ − τ_nom)ᵀ W (τ − τ_nom) + Σ_K φ_k(b̂_k − Â_k τ), φ_k(v) = σ_k v +
-  ½ σ_k² v² for v > 0 and 0 below, and for a guess P of the rows whose slack is
-  positive that is a QP in n variables (rows of P in the cost, the others hard).
-  The guess is checked against the slack QP's KKT conditions (every row of P
-  violated, every hard row of K with a multiplier ≤ σ_k) and corrected, at most
-  ``repair_rounds`` times (default 16), before the QP in (τ, t_K) above takes
-  over. The optimum is the same (they agree to ~1e-11 on the tests' random
-  problems); the 6-variable solves replace one of 6 + |K| variables whose warm
-  start alone refactorised ~11 active rows. On filter calls it settled every
-  repair, in 1.1–1.9 rounds on average (last call's P is the first guess), and
-  the relaxed calls cost 0.66–0.77× as much at the median and 0.35–0.52× at the
-  p99, 4 obstacles (``benchmarks/filter_speed.py --qp-solver active_set
-  slack_repair``; README, "Speed").
-* **Dual sign check.** Every row is a lower bound with an infinite upper one, so
-  its multiplier must be ≤ 0; box multipliers must point to the nearer bound.
-  proxsuite's stopping test checks the primal and dual residuals only, and after
-  a warm start it reported ``PROXQP_SOLVED`` at points with wrong-signed row
-  multipliers (e.g. +1.75): feasible but not optimal. On 2500 recorded filter
-  QPs, 40 "solved" torques were 1e-3 to 0.26 (normalised) away from the unique
-  optimum (the worst with an 11% larger cost); every one had a wrong sign, and
-  no correct solve had one. Such a solve is repeated once from scratch (which fixed all of
-  them: largest error 3e-8); the check costs a few µs per solver call.
-* **Row-count sizes.** The elastic QP exists in sizes of 16, 32, 48, 64, 96, ...
-  rows up to ``max_rows`` (one proxsuite QP each, made on first use and
-  warm-started from its own last result); a call uses the smallest size that
-  holds its rows. proxsuite's cost grows with its row count, padding rows
-  included: 31 filter rows took ≈25% less time in a 32-row QP than in an 80-row
-  one. The results are the same (padding rows are never active).
-* **Solver data in place.** The proxsuite QPs are built with a fixed number of
-  inequality rows (``max_rows``, or the size above) plus native box constraints
-  (``box_constraints=True`` is required in the constructor for ``l_box``/``u_box``).
-  Unused rows are zero rows with ``l = -sqrt(DBL_MAX)`` (proxsuite's own
-  ``helpers::infinite_bound``) and ``u = +sqrt(DBL_MAX)``.  Each call does
-  ``qp.update(g=…, C=…, l=…, mu_in=1e-3)``: H is passed only after
-  :meth:`set_weight`; ``update_preconditioner=False`` (the Ruiz scaling
-  computed at construction from H is kept; rows arrive normalised, so a stale
-  row scaling does not matter, and recomputing it cost more than it saved).
-  The initial guess is ``WARM_START_WITH_PREVIOUS_RESULT`` which, as verified,
-  survives ``update`` (≈2–4× fewer iterations than cold start on slowly
-  varying problems).  Resetting ``mu_in`` on every update is needed: keeping
-  the tiny μ of the previous converged solve made warm starts stall for
-  thousands of iterations when rows appeared (observed: 3018 iterations,
-  31 ms; with the reset: ≤ 26 on the same sequences).  If the warm-started
-  solve still fails it is retried once from scratch (``NO_INITIAL_GUESS``).
-  Backend ``PrimalDualLDLT`` was measurably faster than the auto-selected
-  ``PrimalLDLT`` and had fewer iteration outliers.
+  (:func:`c3bf_gym._kernels.reduced_repair`: with the slacks eliminated the cost is piecewise
+  quadratic; a guess of the rows with a positive slack is checked against the slack QP's KKT
+  conditions and corrected at most ``repair_rounds`` times) before the slack QP takes over. If
+  no solver delivers the repair, τ* itself is applied. ``slack`` is recomputed from the applied
+  τ: the largest normalised row violation.
+* **proxsuite data in place.** Each elastic row count (16, 32, 48, 64, 96, … up to
+  ``max_rows``) has its own proxsuite QP, made on first use with native box constraints and
+  warm-started from its own last result; unused rows are zero rows with infinite bounds
+  (``PROXSUITE_INF``); ``mu_in`` is reset on every update; backend ``PrimalDualLDLT``.
+
+Why each choice was made, with the measurements and the commands that repeat them:
+``docs/design-decisions.md``, "QP layer".
 """
 
 from __future__ import annotations
