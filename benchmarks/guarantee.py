@@ -2,8 +2,10 @@
 
 Episodes of ``C3BFReach-v0`` over the paper's four scenarios (static, head_on, crossing, multi),
 for two policies (uniformly random torques; an adversary that drives the arm point nearest to an
-obstacle straight at it at full torque), three filters (whole-arm or tool-only C3BF, whole-arm or
-tool-only distance HOCBF, and none). Collisions are the environment's own signal
+obstacle straight at it at full torque), and filters named as ``c3bf_gym.FILTERS`` names them, each
+protecting the whole arm or the tool only: by default the default filter (``c3bf+hocbf``: the C3BF
+with its distance-HOCBF guard) and the distance HOCBF, whole-arm and tool-only, and no filter; the
+paper's C3BF alone (``c3bf``) on request. Collisions are the environment's own signal
 (``info["cost"]``: MuJoCo's signed distances at every physics step), independent of the filter.
 Seeds are shared across configurations (episode ``i`` uses seed ``--seed + i`` everywhere), so
 configurations are compared on the same episodes.
@@ -18,8 +20,8 @@ Usage::
 
     python benchmarks/guarantee.py --quick                 # smoke run (~1 min)
     python benchmarks/guarantee.py --episodes 200 --out results/guarantee
-    python benchmarks/guarantee.py --episodes 200 --filters c3bf/whole_arm --margin 0.03   # a wider margin
-    python benchmarks/guarantee.py --episodes 200 --filters c3bf/whole_arm --guard none    # the C3BF alone
+    python benchmarks/guarantee.py --episodes 200 --filters c3bf+hocbf/whole_arm --margin 0.03   # a wider margin
+    python benchmarks/guarantee.py --episodes 200 --filters c3bf/whole_arm                       # the C3BF alone
 """
 
 from __future__ import annotations
@@ -35,16 +37,22 @@ from pathlib import Path
 
 import numpy as np
 
+from c3bf_gym.filter import GUARD_GAMMA, FilterConfig
+
 SCENARIOS = ("static", "head_on", "crossing", "multi")
 POLICIES = ("random", "adversarial")
-FILTERS = (("c3bf", "whole_arm"), ("hocbf", "whole_arm"), ("c3bf", "ee"), ("hocbf", "ee"), ("none", "-"))
+#: (filter name, points) in table order; DEFAULT_FILTERS run unless --filters says otherwise.
+FILTERS = (("c3bf+hocbf", "whole_arm"), ("c3bf", "whole_arm"), ("hocbf", "whole_arm"), ("c3bf+hocbf", "ee"),
+           ("c3bf", "ee"), ("hocbf", "ee"), ("none", "-"))  # fmt: skip
+DEFAULT_FILTERS = (("c3bf+hocbf", "whole_arm"), ("hocbf", "whole_arm"), ("c3bf+hocbf", "ee"), ("hocbf", "ee"),
+                   ("none", "-"))  # fmt: skip
 
 
 @dataclass
 class Episode:
     scenario: str
     policy: str
-    barrier: str
+    filter: str
     points: str
     seed: int
     steps: int = 0
@@ -91,8 +99,8 @@ def adversarial_action(u) -> np.ndarray:
 # ----------------------------------------------------------------------------- one episode
 
 
-def run_episode(task: tuple[str, str, str, str, int, int, float | None, str, float | None]) -> Episode:
-    scenario, policy, barrier, points, seed, steps, margin, guard, guard_gamma = task
+def run_episode(task: tuple[str, str, str, str, int, int, float | None, float | None]) -> Episode:
+    scenario, policy, name, points, seed, steps, margin, guard_gamma = task
     import gymnasium as gym
 
     import c3bf_gym  # noqa: F401  (registers C3BFReach-v0)
@@ -100,12 +108,14 @@ def run_episode(task: tuple[str, str, str, str, int, int, float | None, str, flo
 
     start = time.perf_counter()
     env = gym.make("C3BFReach-v0", scenario=scenario)
-    if barrier != "none":
-        guarded = barrier == "c3bf" and guard == "auto"  # the only filter here with a guard
-        env = SafetyFilter(env, barrier=barrier, points=points, guard=guard, guard_gamma=guard_gamma if guarded else None,
-                           **({} if margin is None else {"margin": margin}))
+    filtered = name != "none"
+    if filtered:
+        settings = {"points": points, **({} if margin is None else {"margin": margin})}
+        if guard_gamma is not None and name == "c3bf+hocbf":  # the filter here with a named guard
+            settings["guard_gamma"] = guard_gamma
+        env = SafetyFilter(env, name, **settings)
     u = env.unwrapped
-    out = Episode(scenario, policy, barrier, points, seed)
+    out = Episode(scenario, policy, name, points, seed)
     env.reset(seed=seed)
     rng = np.random.default_rng(seed)
     for _ in range(steps):
@@ -114,10 +124,11 @@ def run_episode(task: tuple[str, str, str, str, int, int, float | None, str, flo
         out.steps += 1
         out.collision_steps += int(info["cost"] > 0)
         out.min_clearance = min(out.min_clearance, float(info["min_distance"]))
-        if barrier != "none":
+        if filtered:
             out.infeasible_steps += int(info["safety_infeasible"])
             out.interventions += int(info["safety_intervened"])
-            out.max_filter_ms = max(out.max_filter_ms, 1e3 * info["safety"]["solve_time"])
+            report = env.hook.report  # wall-clock time is kept off info (deterministic)
+            out.max_filter_ms = max(out.max_filter_ms, 1e3 * report.solve_time / max(report.substeps, 1))
         if terminated or truncated:
             break
     env.close()
@@ -128,15 +139,20 @@ def run_episode(task: tuple[str, str, str, str, int, int, float | None, str, flo
 # ----------------------------------------------------------------------------- sweep
 
 
+def _spell(entry: tuple[str, str]) -> str:
+    """A (filter, points) pair as --filters spells it: "c3bf+hocbf/whole_arm", or "none"."""
+    return entry[0] if entry[0] == "none" else "/".join(entry)
+
+
 def summarise(episodes: list[Episode]) -> list[dict]:
     groups: dict[tuple, list[Episode]] = {}
     for e in episodes:
-        groups.setdefault((e.scenario, e.policy, e.barrier, e.points), []).append(e)
+        groups.setdefault((e.scenario, e.policy, e.filter, e.points), []).append(e)
     rows = []
-    for (scenario, policy, barrier, points), group in groups.items():
+    for (scenario, policy, name, points), group in groups.items():
         steps = sum(e.steps for e in group)
         rows.append({
-            "scenario": scenario, "policy": policy, "barrier": barrier, "points": points,
+            "scenario": scenario, "policy": policy, "filter": name, "points": points,
             "episodes": len(group),
             "collision_episodes": sum(e.collision_steps > 0 for e in group),
             "collision_steps": sum(e.collision_steps for e in group),
@@ -148,18 +164,18 @@ def summarise(episodes: list[Episode]) -> list[dict]:
         })  # fmt: skip
     order = {name: i for i, name in enumerate(SCENARIOS + POLICIES)}
     filters = {f: i for i, f in enumerate(FILTERS)}
-    rows.sort(key=lambda r: (order[r["scenario"]], order[r["policy"]], filters[(r["barrier"], r["points"])]))
+    rows.sort(key=lambda r: (order[r["scenario"]], order[r["policy"]], filters[(r["filter"], r["points"])]))
     return rows
 
 
 def print_table(rows: list[dict]) -> None:
-    header = (f"{'scenario':<9} {'policy':<11} {'filter':<16} | {'episodes':>8} {'coll.ep':>7} {'coll.steps':>10} "
+    header = (f"{'scenario':<9} {'policy':<11} {'filter':<21} | {'episodes':>8} {'coll.ep':>7} {'coll.steps':>10} "
               f"{'min clear.':>10} {'infeas.steps':>12} {'interv.':>7} {'max ms':>8}")  # fmt: skip
     print(header)
     print("-" * len(header))
     for r in rows:
-        name = "none" if r["barrier"] == "none" else f"{r['barrier']}/{r['points']}"
-        print(f"{r['scenario']:<9} {r['policy']:<11} {name:<16} | {r['episodes']:>8} {r['collision_episodes']:>7} "
+        name = "none" if r["filter"] == "none" else f"{r['filter']}/{r['points']}"
+        print(f"{r['scenario']:<9} {r['policy']:<11} {name:<21} | {r['episodes']:>8} {r['collision_episodes']:>7} "
               f"{r['collision_steps']:>10} {r['min_clearance']:>10.4f} {r['infeasible_steps']:>12} "
               f"{100 * r['intervention_rate']:>6.1f}% {r['max_filter_ms']:>8.1f}")  # fmt: skip
 
@@ -172,14 +188,12 @@ def main(argv: list[str] | None = None) -> list[dict]:
     parser.add_argument("--seed", type=int, default=0, help="seed of episode 0 (episode i uses seed + i)")
     parser.add_argument("--scenarios", nargs="+", default=list(SCENARIOS), choices=SCENARIOS)
     parser.add_argument("--policies", nargs="+", default=list(POLICIES), choices=POLICIES)
-    parser.add_argument("--filters", nargs="+", default=[f"{b}/{p}" if b != "none" else b for b, p in FILTERS],
-                        choices=[f"{b}/{p}" if b != "none" else b for b, p in FILTERS],
-                        help="barrier/points combinations (default: all, and no filter)")  # fmt: skip
-    parser.add_argument("--margin", type=float, help="the filters' margin [m] (default: SafetyFilter's, 0.02)")
-    parser.add_argument("--guard", choices=("auto", "none"), default="auto",
-                        help="the filters' guard (SafetyFilter's: 'auto', the distance HOCBF beside the C3BF; "
-                             "'none', the barrier's rows alone)")  # fmt: skip
-    parser.add_argument("--guard-gamma", type=float, help="the guard's gains [1/s] (default: SafetyFilter's, 10)")
+    parser.add_argument("--filters", nargs="+", default=[_spell(f) for f in DEFAULT_FILTERS],
+                        choices=[_spell(f) for f in FILTERS],
+                        help="filter/points combinations (filter names: c3bf_gym.FILTERS)")  # fmt: skip
+    parser.add_argument("--margin", type=float, help=f"the filters' margin [m] (default {FilterConfig.margin})")
+    parser.add_argument("--guard-gamma", type=float,
+                        help=f"the gains [1/s] of c3bf+hocbf's guard (default {GUARD_GAMMA:g})")
     parser.add_argument("--out", type=Path, default=Path("benchmarks/results/guarantee"), help="output directory")
     parser.add_argument("--quick", action="store_true", help="smoke run: 2 episodes of 100 steps per configuration")
     args = parser.parse_args(argv)
@@ -191,14 +205,15 @@ def main(argv: list[str] | None = None) -> list[dict]:
         parser.error(f"--margin must be a finite number >= 0 (m), got {args.margin}")
     if args.guard_gamma is not None and not (np.isfinite(args.guard_gamma) and args.guard_gamma > 0):
         parser.error(f"--guard-gamma must be a finite number > 0 (1/s), got {args.guard_gamma}")
-    if args.guard_gamma is not None and args.guard == "none":
-        parser.error("--guard-gamma sets the guard's gains; it needs --guard auto")
+    if args.guard_gamma is not None and not any(f.startswith("c3bf+hocbf/") for f in args.filters):
+        parser.error("--guard-gamma sets the gains of c3bf+hocbf's guard; --filters has no c3bf+hocbf")
 
     filters = [tuple(f.split("/")) if f != "none" else ("none", "-") for f in args.filters]
-    tasks = [(s, p, b, pts, args.seed + i, args.steps, args.margin, args.guard, args.guard_gamma)
+    tasks = [(s, p, b, pts, args.seed + i, args.steps, args.margin, args.guard_gamma)
              for s in args.scenarios for p in args.policies for b, pts in filters for i in range(args.episodes)]  # fmt: skip
     print(f"{len(tasks)} episodes ({args.episodes} per configuration, {args.steps} steps) on {args.workers} workers"
-          + ("" if args.margin is None else f", filter margin {args.margin} m") + f", guard {args.guard}" + ("" if args.guard_gamma is None else f" (gains {args.guard_gamma:g})"))
+          + ("" if args.margin is None else f", filter margin {args.margin} m")
+          + ("" if args.guard_gamma is None else f", guard gains {args.guard_gamma:g}"))
     start = time.perf_counter()
     ctx = mp.get_context("spawn")  # fresh interpreters: no MuJoCo state or GL context inherited
     with ctx.Pool(args.workers) as pool:
@@ -215,10 +230,10 @@ def main(argv: list[str] | None = None) -> list[dict]:
     with open(args.out / "episodes.csv", "w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=[fl.name for fl in fields(Episode)])
         writer.writeheader()
-        for e in sorted(episodes, key=lambda e: (e.scenario, e.policy, e.barrier, e.points, e.seed)):
+        for e in sorted(episodes, key=lambda e: (e.scenario, e.policy, e.filter, e.points, e.seed)):
             writer.writerow(asdict(e))
     meta = {"episodes_per_configuration": args.episodes, "steps": args.steps, "seed": args.seed, "margin": args.margin,
-            "guard": args.guard, "guard_gamma": args.guard_gamma, "workers": args.workers, "quick": args.quick, "cpu_count": os.cpu_count()}  # fmt: skip
+            "guard_gamma": args.guard_gamma, "workers": args.workers, "quick": args.quick, "cpu_count": os.cpu_count()}  # fmt: skip
     with open(args.out / "summary.json", "w") as f:
         json.dump({"settings": meta, "configurations": rows}, f, indent=2)
     print(f"wrote {args.out / 'episodes.csv'} and {args.out / 'summary.json'}")

@@ -7,7 +7,7 @@ from gymnasium.envs.registration import register, registry
 
 from c3bf_gym.controllers import CartesianImpedance
 from c3bf_gym.envs import C3BFReachEnv
-from c3bf_gym.filter import SafetyInfeasibleError
+from c3bf_gym.filter import DEFAULT_FILTER, FILTERS, FilterConfig, SafetyInfeasibleError
 from c3bf_gym.scenarios import SCENARIOS, Envelope, ObstacleSpec, Scenario
 from c3bf_gym.wrappers import ActionPenalty, CartesianImpedanceAction, SafetyFilter
 
@@ -16,7 +16,10 @@ __all__ = [
     "C3BFReachEnv",
     "CartesianImpedance",
     "CartesianImpedanceAction",
+    "DEFAULT_FILTER",
     "Envelope",
+    "FILTERS",
+    "FilterConfig",
     "ObstacleSpec",
     "SCENARIOS",
     "SafetyFilter",

@@ -45,15 +45,16 @@ _nonnegative_float = _number(float, 0.0, strict=False)
 
 def _add_train(sub: argparse._SubParsersAction) -> None:
     from c3bf_gym.scenarios import SCENARIOS
-    from c3bf_gym.training import ACTIONS, ALGORITHMS, FILTERS, GUARDS, OBSTACLE_ENCODERS, POLICY_RATES, TrainConfig
+    from c3bf_gym.filter import GUARD_GAMMA
+    from c3bf_gym.training import ACTIONS, ALGORITHMS, OBSTACLE_ENCODERS, POLICY_RATES, TRAIN_FILTERS, TrainConfig
 
     d = TrainConfig()  # the defaults live there
 
     p = sub.add_parser(
         "train",
         help="train one Stable-Baselines3 agent",
-        description="Train PPO or SAC on C3BFReach-v0, with no filter, the distance HOCBF or the C3BF "
-        "filter. Writes a run directory (config, model, per-episode metrics with the cumulative "
+        description="Train PPO or SAC on C3BFReach-v0, with no filter or a named safety filter "
+        "(c3bf_gym.FILTERS). Writes a run directory (config, model, per-episode metrics with the cumulative "
         "training cost, evaluations, tensorboard logs). The defaults are the recipe of the README's RL "
         "table (c3bf_gym.training.TrainConfig).",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
@@ -62,12 +63,11 @@ def _add_train(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--action", choices=ACTIONS, default=d.action,
                    help="impedance: Cartesian tool targets through the impedance controller; residual: corrections "
                    "to a straight step for the goal, through the same controller; torque: raw joint torques")  # fmt: skip
-    p.add_argument("--filter", choices=FILTERS, default=d.filter, help="safety filter during training")
-    p.add_argument("--guard", choices=GUARDS, default=d.guard,
-                   help="the filter's guard: 'auto' (SafetyFilter's default: the distance HOCBF's rows beside "
-                        "the C3BF's) or 'none' (the barrier's rows alone)")  # fmt: skip
+    p.add_argument("--filter", choices=TRAIN_FILTERS, default=d.filter,
+                   help="safety filter during training: 'c3bf+hocbf' (SafetyFilter's default: the C3BF with its "
+                        "distance-HOCBF guard), 'c3bf' (the paper's C3BF alone), 'hocbf' or 'none'")  # fmt: skip
     p.add_argument("--guard-gamma", type=_positive_float, default=d.guard_gamma,
-                   help="the guard's gains, gamma1 = gamma2 [1/s] (default %(default)s)")
+                   help=f"the guard's gains, gamma1 = gamma2 [1/s], with filter c3bf+hocbf (None: {GUARD_GAMMA:g})")
     p.add_argument("--scenario", choices=list(SCENARIOS), default=d.scenario, help="obstacle scenario")
     p.add_argument("--timesteps", type=_positive_int, default=d.timesteps, help="policy steps to train")
     p.add_argument("--seed", type=_nonnegative_int, default=d.seed, help="seed of the agent and the training envs")
@@ -99,7 +99,7 @@ def _run_train(args: argparse.Namespace) -> int:
     from c3bf_gym.training import TrainConfig, train
 
     config = TrainConfig(
-        algo=args.algo, action=args.action, filter=args.filter, guard=args.guard, guard_gamma=args.guard_gamma, scenario=args.scenario,
+        algo=args.algo, action=args.action, filter=args.filter, guard_gamma=args.guard_gamma, scenario=args.scenario,
         timesteps=args.timesteps, seed=args.seed, n_envs=args.n_envs, eval_freq=args.eval_freq,
         eval_episodes=args.eval_episodes, final_eval_episodes=args.final_eval_episodes, checkpoint_freq=args.checkpoint_freq, out=args.out,
         progress_bar=not args.no_progress, normalize_obs=args.normalize_obs, policy_hz=args.policy_hz, distance_weight=args.distance_weight, action_weight=args.action_weight, obstacle_encoder=args.obstacle_encoder, hyperparams=args.hyperparams,
@@ -112,20 +112,21 @@ def _run_train(args: argparse.Namespace) -> int:
 
 def _add_evaluate(sub: argparse._SubParsersAction) -> None:
     from c3bf_gym.scenarios import SCENARIOS
-    from c3bf_gym.training import FILTERS, FINAL_EVAL_SEED, GUARDS
+    from c3bf_gym.training import FINAL_EVAL_SEED, TRAIN_FILTERS
 
     p = sub.add_parser(
         "evaluate",
         help="evaluate a saved model",
         description="Roll out a saved model for N seeded episodes: success rate, return, collisions "
         "(from the environment's geometric cost) and filter interventions. --filter evaluates a "
-        "model under another filter than it was trained with (e.g. an unfiltered agent with C3BF on).",
+        "model under another filter than it was trained with (e.g. an unfiltered agent with the default filter on).",
     )
     p.add_argument("model", help="path to model.zip inside a run directory")
     p.add_argument("--episodes", type=_positive_int, default=50)
-    p.add_argument("--filter", choices=FILTERS, default=None, help="default: the run's own")
-    p.add_argument("--guard", choices=GUARDS, default=None, help="the filter's guard (default: the run's own)")
-    p.add_argument("--guard-gamma", type=_positive_float, default=None, help="the guard's gains (default: the run's own)")
+    p.add_argument("--filter", choices=TRAIN_FILTERS, default=None, help="default: the run's own")
+    p.add_argument("--guard-gamma", type=_positive_float, default=None,
+                   help="the guard's gains with filter c3bf+hocbf (default: the run's own, or the default gains with "
+                        "--filter)")  # fmt: skip
     p.add_argument("--scenario", choices=list(SCENARIOS), default=None, help="default: the run's own")
     p.add_argument("--seed", type=_nonnegative_int, default=FINAL_EVAL_SEED, help="seed of the first episode")
     p.add_argument("--json", dest="json_out", default=None, help="also write the result to this JSON file")
@@ -135,7 +136,7 @@ def _add_evaluate(sub: argparse._SubParsersAction) -> None:
 def _run_evaluate(args: argparse.Namespace) -> int:
     from c3bf_gym.training import evaluate
 
-    result = evaluate(args.model, args.episodes, args.filter, args.scenario, args.seed, guard=args.guard, guard_gamma=args.guard_gamma)
+    result = evaluate(args.model, args.episodes, args.filter, args.scenario, args.seed, guard_gamma=args.guard_gamma)
     text = json.dumps(result, indent=2)
     print(text)
     if args.json_out:

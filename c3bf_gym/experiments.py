@@ -22,17 +22,17 @@ from typing import Any, Sequence
 import numpy as np
 
 from c3bf_gym.envs.reach import C3BFReachEnv
-from c3bf_gym.filter import POINTS
+from c3bf_gym.filter import FILTERS, POINTS
 from c3bf_gym.metrics import EpisodeRecord, summarize
 from c3bf_gym.wrappers import ImpedanceHook, SafetyFilter, default_impedance
 
 __all__ = ["ExperimentConfig", "MinimumJerk", "add_parser", "run_episode", "run_experiments"]
 
 PAPER_SCENARIOS = ("static", "head_on", "crossing", "multi")
-#: "c3bf" is the paper's filter, the C3BF's rows alone (``guard=None``): the experiments compare
-#: the barriers themselves. "c3bf+hocbf" is ``SafetyFilter``'s default, the C3BF with the distance
-#: HOCBF's rows beside them (not in the default set).
-EXPERIMENT_FILTERS = ("none", "hocbf", "c3bf", "c3bf+hocbf")
+#: "none" and the named filters (:data:`~c3bf_gym.filter.FILTERS`): "c3bf" is the paper's filter,
+#: the C3BF's rows alone, so the default set compares the barriers themselves; "c3bf+hocbf" is
+#: ``SafetyFilter``'s default, the C3BF with its distance-HOCBF guard.
+EXPERIMENT_FILTERS = ("none", *FILTERS)
 
 
 class MinimumJerk:
@@ -104,11 +104,8 @@ def run_episode(
     base = C3BFReachEnv(scenario=scenario, render_mode="rgb_array" if render else None, width=400, height=300, **kwargs)
     env = base
     if filter_name != "none":
-        barrier, guard = ("c3bf", "auto") if filter_name == "c3bf+hocbf" else (filter_name, None)
-        env = SafetyFilter(
-            base, barrier=barrier, points=config.points, gamma=config.gamma, margin=config.margin, guard=guard,
-            **(filter_kwargs or {}),
-        )  # fmt: skip
+        env = SafetyFilter(base, filter_name, points=config.points, gamma=config.gamma, margin=config.margin,
+                           **(filter_kwargs or {}))  # fmt: skip
         env.hook.record_times()
     env.reset(seed=seed)
     start = base.data.site_xpos[base.ee_site_id].copy()

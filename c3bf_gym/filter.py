@@ -1,89 +1,272 @@
 """The safety filter as a per-physics-step torque hook: barrier rows + joint limits -> QP.
 
-At every physics step (``C3BFReachEnv`` calls the hook between ``mj_step1`` and ``mj_step2``):
+Its settings are one :class:`FilterConfig`; :data:`FILTERS` names the configurations the project
+compares. At every physics step (``C3BFReachEnv`` calls the hook between ``mj_step1`` and
+``mj_step2``):
 
-1. the arm's dynamics at the protected points are refreshed (:class:`~c3bf_gym.robot.ArmModel`);
+1. the arm's dynamics at the protected points are refreshed (:class:`~c3bf_gym.robot.ArmModel`):
+   for a point ``x`` on the arm, ``ẍ = G τ + c`` with ``G = J M⁻¹`` (``M`` including the
+   integrator's joint damping) and ``c = J M⁻¹ (τ_passive − b) + J̇ q̇``;
 2. every *sensed* obstacle (active, surface within ``sensing_radius`` of the arm) contributes one
    row per protected point (``whole_arm``: the closest point of every link capsule, with the
    capsule radius added to the obstacle's; ``ee``: the tool site with ``ee_radius``), and with a
-   ``guard`` one more, the guard barrier's, right after it. The C3BF bounds only the direction of
-   approach: a link may graze an obstacle at speed, and from there, within the torque limits, it
-   sometimes cannot turn away in time (8 of 2,400 adversarial episodes collided with the C3BF's
-   rows alone, ``benchmarks/guarantee.py --guard none``). The distance HOCBF's rows (the default
-   guard beside a C3BF, gains :data:`GUARD_GAMMA`) bound the approach speed by the distance left;
-   with both, and the C3BF's rows giving way first when no torque satisfies every row
-   (:data:`BARRIER_RELAXATION_WEIGHT`), none of 4,800 episodes collided (README, "The guarantee");
-3. the floor contributes one row per capsule end (``2 S``): every capsule stays ``margin`` above
-   it. The floor is the one fixed thing the arm can touch, and its contact forces are not in the
-   filter's model (``ẍ = G τ + c``): a link pressed into it is pushed by an unmodelled force,
-   which can drive another link through its obstacle row (found by a seed search: the tool
-   touched the floor and link 5 hit an obstacle 0.19 s later, every QP solved);
-4. joint position and velocity limits contribute ``4 n`` rows;
+   guard one more, the guard barrier's, right after it. Closest points slide along their links;
+   the rows include the sliding terms of ``ḣ``;
+3. the floor contributes one row per capsule end that can move vertically (``2 S`` at most):
+   the second-order barrier ``z̈ + 2γ ż + γ² (z − z_min) ≥ 0`` (γ = ``floor_gamma``), with
+   ``z_min`` the floor plus the capsule radius plus ``margin``. Contact forces are not in the
+   model ``ẍ = G τ + c``, so the arm must not lean on the floor;
+4. joint position and velocity limits contribute ``4 n`` rows
+   (:class:`~c3bf_gym.barriers.JointLimits`);
 5. :class:`~c3bf_gym.qp.TorqueQP` returns the torque closest to the nominal one (weighted by
-   ``W``) that satisfies all rows and the actuator limits, or reports that none does. Then it
-   applies a repaired least-violating torque: only rows that conflict give way, each with its
-   own slack; rows the conflict does not involve (e.g. the speed limit of an uninvolved joint)
-   keep holding (:mod:`c3bf_gym.qp`, "Relaxation"). The joint, floor and guard rows weigh 1
-   there, and so do the barrier's without a guard (with one: :data:`BARRIER_RELAXATION_WEIGHT`).
-   Letting the speed rows give way first (obstacle rows weighted 30×) let joint speeds run to
-   11× their limit, after which the cone rows alone had no solution and 3 of 20 random-torque
-   multi episodes collided. The speed limits keep the cone rows satisfiable.
+   ``W``) that satisfies every row within the actuator limits. When none does, it applies a
+   repaired least-violating torque: each row the conflict needs gets its own slack, weighted
+   ``relaxation_weight`` for the barrier's rows beside a guard and 1 for every other row, and
+   rows outside the conflict keep holding (:mod:`c3bf_gym.qp`, "Relaxation"). The step is then
+   reported infeasible, with the largest slack; ``on_infeasible="raise"`` raises instead.
 
 Steps 1–4 for ``whole_arm`` with the built-in barriers (:class:`~c3bf_gym.barriers.C3BF`,
-:class:`~c3bf_gym.barriers.DistanceHOCBF`) are one compiled kernel,
+:class:`~c3bf_gym.barriers.DistanceHOCBF`, and a distance-HOCBF guard) are one compiled kernel,
 :func:`c3bf_gym._kernels.hook_rows_whole_arm`, built from the same per-point functions the
 barrier classes and :class:`~c3bf_gym.robot.ArmModel` call; other barriers (or ``points="ee"``)
-go through ``Barrier.terms`` and ``rows_from_terms``. The barrier, ``margin``, ``sensing_radius``
-and ``joint_limits`` are read when the hook is built. With the active-set QP, that kernel, the
-QP's data step, fast path and active-set solves and the bookkeeping after them are one call too
-(:func:`c3bf_gym._kernels.hook_step`: the rows kernel, then :func:`c3bf_gym._kernels.qp_step`, which
-:meth:`TorqueQP.solve` runs too), not six compiled calls with Python between them as before (``PYTHONPATH=<tree> python benchmarks/filter_speed.py
---calls 3000 --obstacles 1 4 8 --no-throughput``, trees interleaved, 4 obstacles, median µs:
-adversarial 42 / 42 before vs 33 / 36 fused, random 38 / 45 vs 30 / 28; noisy machine). Python
-runs only what the active-set solver hands to proxsuite (rare).
+go through ``Barrier.terms`` and ``rows_from_terms`` and give the same rows. With the
+``"active_set"`` solver the rows kernel and the QP are one compiled call
+(:func:`c3bf_gym._kernels.hook_step`); Python runs only what the active-set solver hands to
+proxsuite. Why each of these choices was made, with the measurements and the commands that
+repeat them: ``docs/design-decisions.md``.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass
-from typing import Literal
+from typing import Any, Literal
 
 import mujoco
 import numba
 import numpy as np
 
-from c3bf_gym import _kernels
+from c3bf_gym import _kernels, validation
 from c3bf_gym.barriers import BARRIERS, C3BF, Barrier, JointLimits, Rows, make_barrier
-from c3bf_gym.qp import QPResult, TorqueQP
+from c3bf_gym.qp import SOLVERS, QPResult, TorqueQP
 from c3bf_gym.robot import ArmModel
 
 _perf_counter = time.perf_counter
 
-__all__ = ["ON_INFEASIBLE", "POINTS", "WEIGHTS", "SafetyHook", "SafetyInfeasibleError", "StepSafety", "build_hook"]
+__all__ = [
+    "DEFAULT_FILTER",
+    "FILTERS",
+    "FilterConfig",
+    "ON_INFEASIBLE",
+    "POINTS",
+    "WEIGHTS",
+    "SafetyHook",
+    "SafetyInfeasibleError",
+    "StepSafety",
+]
 
 POINTS = ("whole_arm", "ee")
 ON_INFEASIBLE = ("relax", "raise")
 WEIGHTS = ("limits", "identity")
+#: ``FilterConfig.guard``'s named choices besides a Barrier instance and the barrier names.
+GUARDS = ("auto", None, "none")
 
 #: UR5e joint speed limit, 180 deg/s on every joint (UR5e technical specifications).
 UR5E_JOINT_SPEED = np.pi
-#: Gain [1/s] of the floor rows' second-order barrier (both stages), as the joint position limits'.
-FLOOR_GAMMA = 10.0
-#: With a guard, the relaxation weight of the barrier's rows (every other row weighs 1): when no
-#: torque satisfies every row, the C3BF's rows give way before the guard's, the floor's and the
-#: joint limits'. Measured with the guard's first gains, 5 (``benchmarks/guarantee.py``, the README's
-#: long sweeps, seeds 0–599; not re-measured with GUARD_GAMMA's 10):
-#: against the adversary, with equal weights the guarded filter collided in 1 of 2,400 episodes
-#: and came within 6–11 mm in four more; with 0.1, none collided and all but one kept 17.7 mm.
-#: Random torques: 0 and 1 of 2,400 (README, "The long sweeps").
-BARRIER_RELAXATION_WEIGHT = 0.1
-#: The default guard's gains, γ₁ = γ₂ [1/s] of the distance HOCBF beside the C3BF (``guard="auto"``).
-#: Measured against the first choice, the HOCBF's own default 5 (README, "The long sweeps" and
-#: "Results: RL baselines"): over the 4,800 episodes of seeds 0–599 none collided with 10, one with
-#: 5 (random torques, multi 66), and the adversary's lowest clearance was 17.8 mm against 1.6 mm;
-#: agents trained under the filter reached 0.937 success against 0.886 (the C3BF alone: 0.952).
+#: The gains γ₁ = γ₂ [1/s] of the guard ``guard="auto"`` puts beside the C3BF (a distance
+#: HOCBF) when ``guard_gamma`` is None. Chosen by the guarantee sweep (docs/design-decisions.md).
 GUARD_GAMMA = 10.0
+
+
+@dataclass(frozen=True)
+class FilterConfig:
+    """Every setting of the safety filter, validated when built; the one place its defaults live.
+
+    ``SafetyFilter``, ``gym.make(..., safety_filter=...)``, the experiments, training and the
+    benchmarks all take or build one. Named configurations (:data:`FILTERS`) come from
+    :meth:`named`; ``dataclasses.replace`` (or :meth:`replace`) derives variants, validated again.
+
+    Attributes:
+        barrier: the obstacle barrier, ``"c3bf"`` (:class:`~c3bf_gym.barriers.C3BF`) or
+            ``"hocbf"`` (:class:`~c3bf_gym.barriers.DistanceHOCBF`), or a
+            :class:`~c3bf_gym.barriers.Barrier` instance.
+        gamma: the named barrier's class-K gain [1/s] (C3BF: γ; HOCBF: γ₁ = γ₂); None for the
+            barrier's own default (5). Must be None with a Barrier instance (it carries its own).
+        guard: a second barrier whose row, for every (sensed obstacle, protected point), holds
+            beside the barrier's. ``"auto"``: a distance HOCBF beside the C3BF and nothing beside
+            any other barrier; None (or ``"none"``, read as None): no guard; a barrier name or a
+            Barrier instance. The C3BF bounds only the direction of approach; the distance HOCBF
+            bounds the approach speed by the distance left.
+        guard_gamma: the named guard's gains [1/s] (HOCBF: γ₁ = γ₂); None for
+            :data:`GUARD_GAMMA` with ``"auto"``, else the named barrier's default. Must be None
+            without a named guard.
+        points: ``"whole_arm"`` (the closest point of every link capsule) or ``"ee"`` (a sphere
+            of ``ee_radius`` at the tool site, as in the paper).
+        margin: extra clearance added to every combined radius [m], >= 0.
+        sensing_radius: obstacles whose surface is farther than this from the arm add no row
+            [m], > 0; None for the environment's own (the paper's perception boundary).
+        ee_radius: radius of the protected tool sphere with ``points="ee"`` [m], >= 0.
+        joint_limits: add the ``4 n`` joint position and speed rows.
+        joint_speed_fraction: the joint speed bound as a fraction of the UR5e's 180 deg/s,
+            in (0, 1].
+        floor_gamma: gain [1/s] of the floor rows' second-order barrier, > 0: every capsule end
+            that can move vertically keeps ``margin`` above an upright world plane.
+        weight: the QP metric: ``"limits"`` (W = diag(1/τ_max²): relative changes weigh the same
+            on every joint) or ``"identity"`` (the paper's plain ‖τ − τ_nom‖²).
+        relaxation_weight: with a guard, the weight of the barrier's rows in the relaxation
+            (every other row weighs 1), in (0, 1]: when no torque satisfies every row, the
+            barrier's rows give way first.
+        on_infeasible: ``"relax"`` (apply the least-violating torque and report it) or
+            ``"raise"`` (raise :class:`SafetyInfeasibleError`; the environment is restored to its
+            state before the step).
+        intervention_tol: ‖τ − τ_nom‖ above which a physics step counts as an intervention
+            [N m], >= 0.
+        solver: the QP solver, one of :data:`~c3bf_gym.qp.SOLVERS`.
+
+    Raises:
+        ValueError: on an unknown name or choice (the message lists the valid ones), a value
+            out of its range, or inconsistent settings (a gain beside a Barrier instance, a
+            ``guard_gamma`` without a named guard).
+    """
+
+    barrier: str | Barrier = "c3bf"
+    gamma: float | None = None
+    guard: str | Barrier | None = "auto"
+    guard_gamma: float | None = None
+    points: Literal["whole_arm", "ee"] = "whole_arm"
+    margin: float = 0.02
+    sensing_radius: float | None = None
+    ee_radius: float = 0.05
+    joint_limits: bool = True
+    joint_speed_fraction: float = 0.5
+    floor_gamma: float = 10.0
+    weight: Literal["limits", "identity"] = "limits"
+    relaxation_weight: float = 0.1
+    on_infeasible: Literal["relax", "raise"] = "relax"
+    intervention_tol: float = 1e-3
+    solver: str = "active_set"
+
+    def __post_init__(self) -> None:
+        check = validation
+        set_ = object.__setattr__
+        if not isinstance(self.barrier, Barrier):
+            _choice_or_barrier("barrier", self.barrier, BARRIERS)
+        if self.gamma is not None:
+            if isinstance(self.barrier, Barrier):
+                raise ValueError("gamma was given beside a Barrier instance: pass the gain to the instance, or name "
+                                 "the barrier")  # fmt: skip
+            set_(self, "gamma", check.number("gamma", self.gamma, low=0.0, low_open=True, unit="1/s"))
+        guard = self.guard
+        if not isinstance(guard, Barrier):
+            guard = _choice_or_barrier("guard", guard, (*GUARDS, *BARRIERS))
+            set_(self, "guard", None if guard == "none" else guard)
+        if self.guard_gamma is not None:
+            if not isinstance(self.guard, str) or (self.guard == "auto" and self.resolved_guard() is None):
+                raise ValueError(
+                    f"guard_gamma was given, but guard={self.guard!r} puts no named guard beside barrier "
+                    f"{self.barrier!r} (guard_gamma sets the gains of 'auto' beside the C3BF, or of a guard named "
+                    f"by {', '.join(map(repr, BARRIERS))})"
+                )
+            set_(self, "guard_gamma", check.number("guard_gamma", self.guard_gamma, low=0.0, low_open=True,
+                                                   unit="1/s"))  # fmt: skip
+        check.choice("points", self.points, POINTS)
+        set_(self, "margin", check.number("margin", self.margin, low=0.0, unit="m"))
+        if self.sensing_radius is not None:
+            set_(self, "sensing_radius", check.number("sensing_radius", self.sensing_radius, low=0.0, low_open=True,
+                                                      unit="m"))  # fmt: skip
+        set_(self, "ee_radius", check.number("ee_radius", self.ee_radius, low=0.0, unit="m"))
+        set_(self, "joint_limits", check.boolean("joint_limits", self.joint_limits))
+        set_(self, "joint_speed_fraction", check.number("joint_speed_fraction", self.joint_speed_fraction, low=0.0,
+                                                        low_open=True, high=1.0))  # fmt: skip
+        set_(self, "floor_gamma", check.number("floor_gamma", self.floor_gamma, low=0.0, low_open=True, unit="1/s"))
+        check.choice("weight", self.weight, WEIGHTS)
+        set_(self, "relaxation_weight", check.number("relaxation_weight", self.relaxation_weight, low=0.0,
+                                                     low_open=True, high=1.0))  # fmt: skip
+        check.choice("on_infeasible", self.on_infeasible, ON_INFEASIBLE)
+        set_(self, "intervention_tol", check.number("intervention_tol", self.intervention_tol, low=0.0, unit="N m"))
+        check.choice("solver", self.solver, SOLVERS)
+
+    @classmethod
+    def named(cls, name: str, **changes: Any) -> FilterConfig:
+        """The configuration :data:`FILTERS` names ``name``, with ``changes`` to its fields."""
+        settings = FILTERS.get(name) if isinstance(name, str) else None
+        if settings is None:
+            raise ValueError(f"unknown filter {name!r}; valid choices: {', '.join(map(repr, FILTERS))}")
+        return cls(**settings).replace(**changes)
+
+    def replace(self, **changes: Any) -> FilterConfig:
+        """A copy with ``changes`` to its fields (validated); unknown names are a ValueError."""
+        unknown = sorted(set(changes) - {f.name for f in dataclasses.fields(self)})
+        if unknown:
+            raise ValueError(f"unknown filter setting(s) {', '.join(map(repr, unknown))}; valid settings: "
+                             f"{', '.join(f.name for f in dataclasses.fields(self))}")  # fmt: skip
+        return dataclasses.replace(self, **changes) if changes else self
+
+    @property
+    def name(self) -> str | None:
+        """The :data:`FILTERS` name of this configuration's rows (barrier and guard, whatever the
+        other settings), with the guard's gains appended when they are not the default
+        (``"c3bf+hocbf20"``); None for Barrier instances."""
+        if isinstance(self.barrier, Barrier) or isinstance(self.guard, Barrier):
+            return None
+        guard = self.resolved_guard()
+        if guard is None:
+            return self.barrier
+        gains = self.guard_object().gamma
+        return f"{self.barrier}+{guard}" + ("" if gains == GUARD_GAMMA else f"{gains:g}")
+
+    def resolved_guard(self) -> str | Barrier | None:
+        """The guard itself: ``"auto"`` resolved against the barrier (``"hocbf"`` beside the C3BF)."""
+        if self.guard != "auto":
+            return self.guard
+        is_c3bf = self.barrier == "c3bf" or isinstance(self.barrier, C3BF)
+        return "hocbf" if is_c3bf else None
+
+    def resolved_guard_gamma(self) -> float | None:
+        """The named guard's gains (None: the named barrier's default, or no named guard)."""
+        if self.guard_gamma is not None or self.guard != "auto":
+            return self.guard_gamma
+        return GUARD_GAMMA if self.resolved_guard() is not None else None
+
+    def barrier_object(self) -> Barrier:
+        """The barrier as a :class:`~c3bf_gym.barriers.Barrier`."""
+        return self.barrier if isinstance(self.barrier, Barrier) else _named_barrier(self.barrier, self.gamma)
+
+    def guard_object(self) -> Barrier | None:
+        """The guard as a :class:`~c3bf_gym.barriers.Barrier`, or None."""
+        guard = self.resolved_guard()
+        if guard is None or isinstance(guard, Barrier):
+            return guard
+        return _named_barrier(guard, self.resolved_guard_gamma())
+
+
+def _choice_or_barrier(name: str, value: Any, choices: tuple) -> Any:
+    """:func:`~c3bf_gym.validation.choice`, whose error also offers a Barrier instance."""
+    try:
+        return validation.choice(name, value, choices)
+    except ValueError as error:
+        raise ValueError(f"{error}, or a Barrier instance") from None
+
+
+def _named_barrier(name: str, gamma: float | None) -> Barrier:
+    """The barrier of :data:`~c3bf_gym.barriers.BARRIERS` named ``name``, with ``gamma`` as all its
+    gains (None: its defaults)."""
+    if gamma is None:
+        return make_barrier(name)
+    return make_barrier(name, **({"gamma1": gamma, "gamma2": gamma} if name == "hocbf" else {"gamma": gamma}))
+
+
+#: The named filters: each a :class:`FilterConfig`'s barrier and guard (the other settings at
+#: their defaults). One name means one filter everywhere: the API, ``gym.make``, the command
+#: line, the experiments, training runs, tables and plots.
+FILTERS: dict[str, dict[str, Any]] = {
+    "c3bf+hocbf": {"barrier": "c3bf", "guard": "auto"},
+    "c3bf": {"barrier": "c3bf", "guard": None},
+    "hocbf": {"barrier": "hocbf", "guard": None},
+}
+#: The filter :class:`SafetyFilter` applies by default: the C3BF with its distance-HOCBF guard.
+DEFAULT_FILTER = "c3bf+hocbf"
 
 
 class SafetyInfeasibleError(RuntimeError):
@@ -103,7 +286,8 @@ class StepSafety:
             so plain saturation is not counted as a safety intervention).
         active_rows: the largest number of binding rows.
         sensed: the largest number of sensed obstacles.
-        solve_time: mean wall time of the filter per physics step [s] (rows and QP).
+        solve_time: total wall time of the filter over the step's physics steps [s] (rows and
+            QP). Not in :meth:`as_info`: wall-clock time would make ``info`` nondeterministic.
         intervened: some physics step changed the torque by more than ``intervention_tol``.
         inside: some protected point was already inside an obstacle's (margin-inflated) radius.
         infeasible_steps: number of physics steps whose QP needed slack.
@@ -135,7 +319,6 @@ class StepSafety:
             "correction": self.correction,
             "active_rows": self.active_rows,
             "sensed": self.sensed,
-            "solve_time": self.solve_time / max(self.substeps, 1),
             "intervened": self.intervened,
             "inside": self.inside,
             "infeasible_steps": self.infeasible_steps,
@@ -148,51 +331,37 @@ class SafetyHook:
 
     Args:
         env: the unwrapped :class:`~c3bf_gym.envs.C3BFReachEnv`.
-        barrier: a :class:`~c3bf_gym.barriers.Barrier` (e.g. ``C3BF(gamma=5)``).
-        points: ``"whole_arm"`` or ``"ee"``.
-        margin: extra clearance added to every combined radius [m].
-        sensing_radius: obstacles whose surface is farther than this from the arm add no row [m].
-        ee_radius: radius of the protected sphere at the tool site with ``points="ee"`` [m].
-        joint_limits: the joint-limit barrier (None: no joint rows).
-        weight: ``"limits"`` (W = diag(1/τ_max²): relative changes weigh the same on every joint)
-            or ``"identity"`` (the paper's plain ‖τ − τ_nom‖²).
-        on_infeasible: ``"relax"`` (apply the least-violating torque and report it) or
-            ``"raise"`` (raise :class:`SafetyInfeasibleError`).
-        intervention_tol: ‖τ − τ_nom‖ above which a step counts as an intervention [N m].
-        guard: a second barrier whose row for every (sensed obstacle, point) holds beside the
-            first one's (None: none). The fused whole-arm kernel computes a
-            :class:`~c3bf_gym.barriers.DistanceHOCBF` guard's rows itself; any other guard takes
-            the per-class path. ``min_h`` in the report is the first barrier's.
+        config: the filter's settings (:class:`FilterConfig`). The fused whole-arm kernel
+            computes the C3BF's, the distance HOCBF's and a distance-HOCBF guard's rows itself;
+            any other barrier or guard, and ``points="ee"``, take the per-class path
+            (``Barrier.terms``). ``min_h`` in the report is the barrier's, not the guard's.
 
     Attributes:
+        config: the settings it was built with.
         solve_times: when a list (set ``record_times=True``), every physics step's filter wall
             time [s] is appended, for latency percentiles.
     """
 
-    def __init__(
-        self,
-        env,
-        barrier: Barrier,
-        points: Literal["whole_arm", "ee"],
-        margin: float,
-        sensing_radius: float,
-        ee_radius: float,
-        joint_limits: JointLimits | None,
-        weight: Literal["limits", "identity"],
-        on_infeasible: Literal["relax", "raise"],
-        intervention_tol: float = 1e-3,
-        guard: Barrier | None = None,
-    ) -> None:
+    def __init__(self, env, config: FilterConfig) -> None:
+        if not isinstance(config, FilterConfig):
+            raise TypeError(f"config must be a FilterConfig, got {type(config).__name__}")
         self.env = env
-        self.barrier = barrier
-        self.points = points
-        self.margin = float(margin)
-        self.sensing_radius = float(sensing_radius)
-        self.ee_radius = float(ee_radius)
+        self.config = config
+        self.barrier = barrier = config.barrier_object()
+        self.guard = guard = config.guard_object()
+        self.points = points = config.points
+        self.margin = config.margin
+        self.sensing_radius = env.sensing_radius if config.sensing_radius is None else config.sensing_radius
+        self.ee_radius = config.ee_radius
+        self.on_infeasible = config.on_infeasible
+        self.intervention_tol = config.intervention_tol
+        self.floor_gamma = config.floor_gamma
+        joint_limits = None
+        if config.joint_limits:
+            q_lo, q_hi = env.joint_range.T
+            joint_limits = JointLimits(q_lo, q_hi, config.joint_speed_fraction * UR5E_JOINT_SPEED)
         self.joint_limits = joint_limits
-        self.guard = guard
-        self.on_infeasible = on_infeasible
-        self.intervention_tol = float(intervention_tol)
+        weight = config.weight
         self.arm: ArmModel = env.arm
         n = env.model.nv
         limit = env.torque_limit
@@ -207,7 +376,7 @@ class SafetyHook:
         # The QP runs in normalised torque u = τ / s with s = τ_max ("limits": W = diag(1/τ_max²)
         # becomes the identity, box ±1) or s = 1 ("identity"): a well-conditioned problem either way.
         self._scale = limit.copy() if weight == "limits" else np.ones(n)
-        self.qp = TorqueQP(n, max_rows, -limit / self._scale, limit / self._scale)
+        self.qp = TorqueQP(n, max_rows, -limit / self._scale, limit / self._scale, solver=config.solver)
         self._limit = limit
         self._A = np.zeros((max_rows, n))
         self._b = np.zeros(max_rows)
@@ -224,7 +393,7 @@ class SafetyHook:
         if guard is not None:
             guard_spec = guard.fused_spec() if hasattr(guard, "fused_spec") else None
             if guard_spec is not None and guard_spec[0] == _kernels.HOCBF_KIND:
-                guard_f = np.array([guard_spec[1][1], guard_spec[1][0], BARRIER_RELAXATION_WEIGHT])
+                guard_f = np.array([guard_spec[1][1], guard_spec[1][0], config.relaxation_weight])
             else:
                 spec = None
         self._fused = spec is not None
@@ -234,7 +403,7 @@ class SafetyHook:
         else:
             jl = [np.ones(3), np.zeros(n), np.ones(n), np.ones(n)]
         # the fused kernel's float parameters (c3bf_gym._kernels.hook_rows_whole_arm)
-        self._hook_f = np.concatenate([[self.sensing_radius, self.margin, FLOOR_GAMMA], params, *jl, guard_f])
+        self._hook_f = np.concatenate([[self.sensing_radius, self.margin, self.floor_gamma], params, *jl, guard_f])
         self._floor_idx = self._floor_ends.astype(np.int64)
         self._work = np.zeros((3, 6 + n))
         self._bound_qp: TorqueQP | None = None  # the QP whose buffers _bound holds (_bind)
@@ -323,10 +492,11 @@ class SafetyHook:
 
     def relaxation_weights(self, m: int) -> np.ndarray | None:
         """The relaxation weights of :meth:`rows`' ``m`` rows: None without a guard (all rows weigh
-        1), else :data:`BARRIER_RELAXATION_WEIGHT` for the barrier's rows and 1 for the others."""
+        1), else ``config.relaxation_weight`` for the barrier's rows and 1 for the others."""
         if self.guard is None:
             return None
-        _kernels.guard_weights(self._weights[:m], m - self._n_floor_rows - self._n_joint_rows, BARRIER_RELAXATION_WEIGHT)
+        _kernels.guard_weights(self._weights[:m], m - self._n_floor_rows - self._n_joint_rows,
+                               self.config.relaxation_weight)
         return self._weights[:m]
 
     def _floor_setup(self, model: mujoco.MjModel) -> tuple[np.ndarray, np.ndarray]:
@@ -356,7 +526,7 @@ class SafetyHook:
         (The fused kernel's :func:`c3bf_gym._kernels.floor_rows`.)"""
         self.arm.end_dynamics()  # refreshes the packed capsule ends (arm._ends) if stale
         k = self._n_floor_rows
-        _kernels.floor_rows(self.arm._ends, self._floor_idx, self._floor_min, FLOOR_GAMMA, A[:k], b[:k])
+        _kernels.floor_rows(self.arm._ends, self._floor_idx, self._floor_min, self.floor_gamma, A[:k], b[:k])
         return k
 
     def _bind(self, qp: TorqueQP) -> tuple:
@@ -455,85 +625,3 @@ class SafetyHook:
                     "the least-violating torque instead"
                 )
         return tau
-
-
-def _named_barrier(name: object, gamma: float | None, gamma_name: str) -> Barrier:
-    """A barrier of :data:`~c3bf_gym.barriers.BARRIERS` by name, with ``gamma`` as all its gains
-    (None: its defaults); errors name ``gamma_name``, the user's parameter."""
-    if gamma is None:
-        return make_barrier(name)
-    if isinstance(gamma, bool) or not (isinstance(gamma, (int, float)) and np.isfinite(gamma) and gamma > 0):
-        raise ValueError(f"{gamma_name} must be a finite number > 0 (1/s), got {gamma!r}")
-    return make_barrier(name, **({"gamma1": gamma, "gamma2": gamma} if name == "hocbf" else {"gamma": gamma}))
-
-
-def build_hook(
-    env,
-    barrier: str | Barrier,
-    points: str,
-    gamma: float | None,
-    margin: float,
-    sensing_radius: float | None,
-    ee_radius: float,
-    joint_speed_fraction: float,
-    weight: str,
-    on_infeasible: str,
-    guard: str | Barrier | None = "auto",
-    guard_gamma: float | None = None,
-) -> SafetyHook:
-    """Validate user-facing options and build a :class:`SafetyHook` (used by the wrappers).
-
-    ``guard``: ``"auto"`` (a :class:`~c3bf_gym.barriers.DistanceHOCBF` beside a
-    :class:`~c3bf_gym.barriers.C3BF`, nothing beside any other barrier), None (or ``"none"``), a
-    name of :data:`~c3bf_gym.barriers.BARRIERS` or a Barrier. ``guard_gamma``: the named guard's
-    gain(s), as ``gamma`` is the barrier's; None for :data:`GUARD_GAMMA` (``"auto"``) or the named
-    barrier's default."""
-    if points not in POINTS:
-        raise ValueError(f"unknown points {points!r}; valid choices: {', '.join(map(repr, POINTS))}")
-    if on_infeasible not in ON_INFEASIBLE:
-        raise ValueError(f"unknown on_infeasible {on_infeasible!r}; valid choices: {', '.join(map(repr, ON_INFEASIBLE))}")
-    if weight not in WEIGHTS:
-        raise ValueError(f"unknown weight {weight!r}; valid choices: {', '.join(map(repr, WEIGHTS))}")
-    for name, value, low, strict in (
-        ("margin", margin, 0.0, False),
-        ("ee_radius", ee_radius, 0.0, False),
-        ("joint_speed_fraction", joint_speed_fraction, 0.0, True),
-    ):
-        if not (isinstance(value, (int, float)) and np.isfinite(value) and (value > low if strict else value >= low)):
-            raise ValueError(f"{name} must be a finite number {'>' if strict else '>='} {low}, got {value!r}")
-    if joint_speed_fraction > 1.0:
-        raise ValueError(f"joint_speed_fraction must be in (0, 1] (a fraction of the UR5e's 180 deg/s), got {joint_speed_fraction!r}")
-    if sensing_radius is None:
-        sensing_radius = env.sensing_radius
-    elif not (isinstance(sensing_radius, (int, float)) and sensing_radius > 0):
-        raise ValueError(f"sensing_radius must be a number > 0 (m), got {sensing_radius!r}")
-    if isinstance(barrier, Barrier):
-        if gamma is not None:
-            raise ValueError("pass gamma either to the Barrier instance or here, not both")
-        barrier_obj = barrier
-    else:
-        barrier_obj = _named_barrier(barrier, gamma, "gamma")
-    if guard == "none":  # the command-line spelling of None
-        guard = None
-    if guard == "auto":
-        guard = "hocbf" if isinstance(barrier_obj, C3BF) else None
-        if guard is not None and guard_gamma is None:
-            guard_gamma = GUARD_GAMMA
-        elif guard is None and guard_gamma is not None:
-            raise ValueError("guard_gamma was given, but guard='auto' puts no guard beside this barrier (only beside the C3BF)")
-    if isinstance(guard, Barrier) or guard is None:
-        if guard_gamma is not None:
-            raise ValueError("guard_gamma was given without a guard (guard=None)" if guard is None
-                             else "pass guard_gamma either to the guard Barrier instance or here, not both")  # fmt: skip
-        guard_obj = guard
-    elif isinstance(guard, str) and guard in BARRIERS:
-        guard_obj = _named_barrier(guard, guard_gamma, "guard_gamma")
-    else:
-        choices = ", ".join(map(repr, ("auto", None, "none", *BARRIERS)))
-        raise ValueError(f"unknown guard {guard!r}; valid choices: {choices}, or a Barrier")
-    q_lo, q_hi = env.joint_range.T
-    joint_limits = JointLimits(q_lo, q_hi, joint_speed_fraction * UR5E_JOINT_SPEED)
-    return SafetyHook(
-        env, barrier_obj, points, margin, sensing_radius, ee_radius, joint_limits, weight, on_infeasible,
-        guard=guard_obj,
-    )

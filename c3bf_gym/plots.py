@@ -11,7 +11,7 @@ import numpy as np
 
 from c3bf_gym.filter import GUARD_GAMMA
 from c3bf_gym.metrics import EpisodeRecord
-from c3bf_gym.training import FINAL_EVAL_FILE, filter_label, run_guard
+from c3bf_gym.training import FINAL_EVAL_FILE, filter_label
 
 __all__ = [
     "plot_barrier",
@@ -308,7 +308,7 @@ def plot_training(runs: Sequence[Path], path: Path, window: int = 20, evaluation
         config["_final"], config["_by_scenario"] = _final_evaluation(run, evaluation)
         config["_run"] = str(run)
         # the C3BF with its guard is its own group per guard gain ("c3bf+hocbf", "c3bf+hocbf5")
-        name = filter_label(config["filter"], *run_guard(config))
+        name = filter_label(config["filter"], config.get("guard_gamma"))
         groups.setdefault((config["algo"], config["action"], name), []).append((config, data))
     if not groups:
         raise ValueError("no run has a finished training episode to plot")

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import csv
 import json
-import math
 import os
 import sys
 import time
@@ -29,8 +28,9 @@ from typing import Any, Callable, Literal
 import gymnasium as gym
 import numpy as np
 
-from c3bf_gym.filter import GUARD_GAMMA
-from c3bf_gym.wrappers import SAFETY_FILTERS, ActionPenalty, CartesianImpedanceAction, SafetyFilter
+from c3bf_gym import validation
+from c3bf_gym.filter import DEFAULT_FILTER, FILTERS, FilterConfig
+from c3bf_gym.wrappers import ActionPenalty, CartesianImpedanceAction, SafetyFilter
 
 __all__ = [
     "ACTIONS",
@@ -72,30 +72,31 @@ DEFAULT_TRAIN_HZ = 10
 
 ALGORITHMS = ("sac", "ppo")
 ACTIONS = ("impedance", "residual", "torque")
-FILTERS = ("none", "hocbf", "c3bf")
-#: ``SafetyFilter(guard=...)`` of a run: "auto" (the filter's default: the distance HOCBF's rows
-#: beside the C3BF's) or "none" (the barrier's rows alone). A run whose config.json has no
-#: "guard" predates the guard: it ran with the barrier's rows alone.
-GUARDS = ("auto", "none")
-LEGACY_GUARD = "none"
-#: A run whose config.json has "guard" but no "guard_gamma" trained with the guard's first gains.
-LEGACY_GUARD_GAMMA = 5.0
+#: A run's ``filter``: "none" or a name of :data:`~c3bf_gym.filter.FILTERS` (the default
+#: :data:`~c3bf_gym.filter.DEFAULT_FILTER`, the C3BF with its distance-HOCBF guard).
+TRAIN_FILTERS = ("none", *FILTERS)
 
 
-def filter_label(filter: str, guard: str = "auto", guard_gamma: float = GUARD_GAMMA) -> str:
-    """A run's filter as its name and the training tables spell it: ``"c3bf+hocbf"`` for the C3BF
-    with its distance-HOCBF guard (``"c3bf+hocbf5"`` with gains other than the default, here 5),
-    else the filter's name."""
-    if filter != "c3bf" or guard != "auto":
-        return filter
-    return "c3bf+hocbf" + ("" if guard_gamma == GUARD_GAMMA else f"{guard_gamma:g}")
+def filter_config(filter: str | FilterConfig | None, guard_gamma: float | None = None) -> FilterConfig | None:
+    """The :class:`~c3bf_gym.filter.FilterConfig` a run's filter names (None for ``"none"`` or
+    None), with ``guard_gamma`` the guard's gains (None: the default; only with a guard)."""
+    if isinstance(filter, FilterConfig):
+        return filter if guard_gamma is None else filter.replace(guard_gamma=guard_gamma)
+    if filter in (None, "none"):
+        if guard_gamma is not None:
+            raise ValueError(f"guard_gamma was given without a filter (filter={filter!r})")
+        return None
+    if not (isinstance(filter, str) and filter in FILTERS):
+        raise ValueError(f"unknown filter {filter!r}; valid choices: {', '.join(map(repr, TRAIN_FILTERS))}")
+    return FilterConfig.named(filter, guard_gamma=guard_gamma)
 
 
-def run_guard(config: dict[str, Any]) -> tuple[str, float]:
-    """The guard and guard gains a run's ``config.json`` trained with (older runs: see
-    :data:`LEGACY_GUARD`, :data:`LEGACY_GUARD_GAMMA`; a run without a guard: the default gains,
-    for evaluating it with one)."""
-    return config.get("guard", LEGACY_GUARD), config.get("guard_gamma", LEGACY_GUARD_GAMMA if "guard" in config else GUARD_GAMMA)
+def filter_label(filter: str | FilterConfig | None, guard_gamma: float | None = None) -> str:
+    """A run's filter as its name and the training tables spell it: ``"none"`` or the
+    configuration's :attr:`~c3bf_gym.filter.FilterConfig.name` (``"c3bf+hocbf20"`` for the guard
+    with gains 20)."""
+    config = filter_config(filter, guard_gamma)
+    return "none" if config is None else config.name
 
 
 #: How the policy network reads the obstacle slots: ``flat`` (SB3's MLP on the whole
@@ -143,9 +144,8 @@ HYPERPARAMS: dict[tuple[str, str], dict[str, Any]] = {
 
 @dataclass
 class TrainConfig:
-    """One training run. ``filter`` is ``"none"``, ``"hocbf"`` or ``"c3bf"``; ``guard`` is the
-    filter's (:data:`GUARDS`) and ``guard_gamma`` its gains (used with the C3BF's ``"auto"``
-    guard, the only one a run can have).
+    """One training run. ``filter`` is one of :data:`TRAIN_FILTERS` and ``guard_gamma`` the
+    guard's gains where the filter has one (None: :data:`~c3bf_gym.filter.GUARD_GAMMA`).
 
     The defaults are the recipe of the README's RL table (the one place they are kept; the
     command line takes them from here): SAC, residual Cartesian actions at 10 Hz, the reward's
@@ -156,9 +156,8 @@ class TrainConfig:
 
     algo: Literal["sac", "ppo"] = "sac"
     action: Literal["impedance", "residual", "torque"] = "residual"
-    filter: Literal["none", "hocbf", "c3bf"] = "c3bf"
-    guard: Literal["auto", "none"] = "auto"
-    guard_gamma: float = GUARD_GAMMA
+    filter: str = DEFAULT_FILTER
+    guard_gamma: float | None = None
     scenario: str = "random"
     timesteps: int = 25_000
     seed: int = 0
@@ -182,19 +181,16 @@ class TrainConfig:
         for name, value, choices in (
             ("algo", self.algo, ALGORITHMS),
             ("action", self.action, ACTIONS),
-            ("filter", self.filter, FILTERS),
-            ("guard", self.guard, GUARDS),
+            ("filter", self.filter, TRAIN_FILTERS),
             ("obstacle_encoder", self.obstacle_encoder, OBSTACLE_ENCODERS),
         ):
             if value not in choices:
                 raise ValueError(f"unknown {name} {value!r}; valid choices: {', '.join(map(repr, choices))}")
         get_scenario(self.scenario)
         policy_rate_kwargs(self.policy_hz)
-        for name, strict in (("distance_weight", False), ("action_weight", False), ("guard_gamma", True)):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not (isinstance(value, (int, float)) and math.isfinite(value)
-                                               and (value > 0 if strict else value >= 0)):  # fmt: skip
-                raise ValueError(f"{name} must be a finite number {'>' if strict else '>='} 0, got {value!r}")
+        filter_config(self.filter, self.guard_gamma)  # the filter's own checks, guard_gamma's included
+        for name in ("distance_weight", "action_weight"):
+            validation.number(name, getattr(self, name), low=0.0)
         if not isinstance(self.normalize_obs, bool):
             raise ValueError(f"normalize_obs must be True or False, got {self.normalize_obs!r}")
         for name in ("timesteps", "n_envs", "eval_freq", "eval_episodes", "checkpoint_freq"):
@@ -214,7 +210,7 @@ class TrainConfig:
         penalty = f"_aw{self.action_weight:g}" if self.action_weight else ""
         encoder = "" if self.obstacle_encoder == "flat" else f"_{self.obstacle_encoder}"
         return (
-            f"{self.algo}_{self.action}{norm}{rate}{dense}{penalty}{encoder}_{filter_label(self.filter, self.guard, self.guard_gamma)}"
+            f"{self.algo}_{self.action}{norm}{rate}{dense}{penalty}{encoder}_{filter_label(self.filter, self.guard_gamma)}"
             f"_{self.scenario}_s{self.seed}"
         )
 
@@ -241,54 +237,41 @@ def policy_rate_kwargs(hz: int) -> dict[str, int]:
     return {"frame_skip": PHYSICS_HZ // hz, "max_episode_steps": EPISODE_SECONDS * hz}
 
 
-def _filter_name(name: str | None) -> str | None:
-    """``"none"`` (the command-line spelling) -> None, as :data:`SAFETY_FILTERS` spells it."""
-    value = None if name in (None, "none") else name
-    if value not in SAFETY_FILTERS:
-        raise ValueError(f"unknown filter {name!r}; valid choices: {', '.join(map(repr, FILTERS))}")
-    return value
-
-
-def info_keywords(filter_name: str | None) -> tuple[str, ...]:
+def info_keywords(filter: str | FilterConfig | None) -> tuple[str, ...]:
     """The per-episode keys ``Monitor`` records for a run with this filter."""
     keys = ("is_success", "episode_cost")
-    return keys + ("episode_interventions", "episode_infeasible") if _filter_name(filter_name) else keys
+    return keys + ("episode_interventions", "episode_infeasible") if filter_config(filter) else keys
 
 
 def make_env(
     scenario: str = "random",
-    filter: str | None = "c3bf",
+    filter: str | FilterConfig | None = DEFAULT_FILTER,
     action: str = "impedance",
     seed: int = 0,
     monitor_file: str | None = None,
     action_weight: float = 0.0,
-    guard: str = "auto",
     guard_gamma: float | None = None,
     **env_kwargs: Any,
 ) -> Callable[[], gym.Env]:
     """A thunk building ``Monitor(ActionPenalty(SafetyFilter(CartesianImpedanceAction(C3BFReach-v0))))``
     (the parts the options ask for; ``ActionPenalty`` when ``action_weight > 0``), for SB3 vector
-    envs. ``guard``: the filter's (:data:`GUARDS`); ``guard_gamma``: its gains when there is one
-    (the C3BF's ``"auto"``; None: the filter's default), unused otherwise, as a run's config
-    carries it either way. The env is seeded on its first reset."""
+    envs. ``filter``: "none"/None, a name of :data:`~c3bf_gym.filter.FILTERS` or a
+    :class:`~c3bf_gym.filter.FilterConfig`; ``guard_gamma``: the guard's gains where it has one
+    (None: the default). The env is seeded on its first reset."""
     from stable_baselines3.common.monitor import Monitor
 
-    filter_name = _filter_name(filter)
-    if action not in ACTIONS:
-        raise ValueError(f"unknown action {action!r}; valid choices: {', '.join(map(repr, ACTIONS))}")
-    if guard not in GUARDS:
-        raise ValueError(f"unknown guard {guard!r}; valid choices: {', '.join(map(repr, GUARDS))}")
+    config = filter_config(filter, guard_gamma)
+    validation.choice("action", action, ACTIONS)
 
     def thunk() -> gym.Env:
         env = gym.make("C3BFReach-v0", scenario=scenario, **env_kwargs)
         if action in ("impedance", "residual"):
             env = CartesianImpedanceAction(env, residual=action == "residual")
-        if filter_name is not None:
-            guarded = filter_name == "c3bf" and guard == "auto"
-            env = SafetyFilter(env, barrier=filter_name, guard=guard, guard_gamma=guard_gamma if guarded else None)
+        if config is not None:
+            env = SafetyFilter(env, config)
         if action_weight:
             env = ActionPenalty(env, action_weight)
-        env = Monitor(env, monitor_file, info_keywords=info_keywords(filter_name))
+        env = Monitor(env, monitor_file, info_keywords=info_keywords(config))
         env.reset(seed=seed)
         env.action_space.seed(seed)
         return env
@@ -380,17 +363,15 @@ def train(config: TrainConfig) -> Path:
             indent=2,
         )
     )
-    filter_name = _filter_name(config.filter)
+    filter_ = filter_config(config.filter, config.guard_gamma)
     rate, penalty = config.env_kwargs(), config.action_weight
     thunks = [
-        make_env(config.scenario, filter_name, config.action, seed=config.seed * 1000 + i, action_weight=penalty,
-                 guard=config.guard, guard_gamma=config.guard_gamma, **rate)
+        make_env(config.scenario, filter_, config.action, seed=config.seed * 1000 + i, action_weight=penalty, **rate)
         for i in range(config.n_envs)
     ]
     venv = SubprocVecEnv(thunks) if config.n_envs > 1 else DummyVecEnv(thunks)
     eval_env = DummyVecEnv(
-        [make_env(config.scenario, filter_name, config.action, seed=10_000 + config.seed, action_weight=penalty,
-                  guard=config.guard, guard_gamma=config.guard_gamma, **rate)]
+        [make_env(config.scenario, filter_, config.action, seed=10_000 + config.seed, action_weight=penalty, **rate)]
     )
     if config.normalize_obs:
         # Running mean/std of the observations (not of the rewards); EvalCallback copies the
@@ -468,14 +449,13 @@ def evaluate(
     scenario: str | None = None,
     seed: int = FINAL_EVAL_SEED,
     deterministic: bool = True,
-    guard: str | None = None,
     guard_gamma: float | None = None,
 ) -> dict[str, float]:
     """Roll out a saved model for ``episodes`` seeded episodes.
 
-    ``filter``, ``guard``, ``guard_gamma`` and ``scenario`` default to the run's own (from its ``config.json``; a
-    run from before the guard ran without one); pass a filter to evaluate, e.g., an unfiltered
-    agent with the C3BF filter on. The action mode,
+    ``filter`` (one of :data:`TRAIN_FILTERS`), ``guard_gamma`` and ``scenario`` default to the
+    run's own (from its ``config.json``); pass a filter to evaluate, e.g., an unfiltered agent
+    with the default filter on (its guard then has the default gains). The action mode,
     policy rate and reward (``distance_weight``, ``action_weight``) are the run's too (also for
     ``best/`` and ``checkpoints/`` models), so returns compare only between runs with the same
     reward; success and collisions do not depend on it. A run
@@ -493,17 +473,16 @@ def evaluate(
     config = json.loads((run_dir / "config.json").read_text()) if run_dir else {}
     algo = config.get("algo", "sac")
     action = config.get("action", "impedance")
-    filter = config.get("filter", "none") if filter is None else filter
+    if filter is None:
+        filter = config.get("filter", "none")
+        guard_gamma = config.get("guard_gamma") if guard_gamma is None else guard_gamma
+    filter_ = filter_config(filter, guard_gamma)  # checked before the model loads
     scenario = config.get("scenario", "random") if scenario is None else scenario
     model = {"sac": SAC, "ppo": PPO}[algo].load(model_path, device="cpu")
     normalizer = _load_normalizer(run_dir / NORMALIZATION_FILE) if run_dir else None
     returns, successes, costs, collided, interventions, infeasible, kinds = [], [], [], [], [], [], []
     run_env = env_kwargs(config.get("policy_hz", DEFAULT_POLICY_HZ), config.get("distance_weight", 0.0))
-    run_guard_name, run_gamma = run_guard(config)
-    guard = run_guard_name if guard is None else guard
-    guard_gamma = run_gamma if guard_gamma is None else guard_gamma
-    env = make_env(scenario, filter, action, seed=seed, action_weight=config.get("action_weight", 0.0), guard=guard,
-                   guard_gamma=guard_gamma, **run_env)()  # fmt: skip
+    env = make_env(scenario, filter_, action, seed=seed, action_weight=config.get("action_weight", 0.0), **run_env)()
     for episode in range(episodes):
         obs, _ = env.reset(seed=seed + episode)
         kinds.append(env.unwrapped.episode_scenario.name)
@@ -523,9 +502,8 @@ def evaluate(
     env.close()
     return {
         "model": str(model_path),
-        "filter": filter,
-        "guard": guard,
-        "guard_gamma": guard_gamma if _filter_name(filter) == "c3bf" and guard == "auto" else None,
+        "filter": filter_label(filter_),
+        "guard_gamma": None if filter_ is None else filter_.resolved_guard_gamma(),
         "scenario": scenario,
         "episodes": episodes,
         "success_rate": float(np.mean(successes)),

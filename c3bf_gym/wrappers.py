@@ -6,27 +6,25 @@ wrapping order: the impedance controller is always the ``nominal`` stage and the
 
     env = gym.make("C3BFReach-v0")
     env = CartesianImpedanceAction(env)          # policy outputs tool targets
-    env = SafetyFilter(env, barrier="c3bf")      # every torque passes the QP
+    env = SafetyFilter(env)                      # every torque passes the QP
 """
 
 from __future__ import annotations
 
-from typing import Any, Callable, Literal
+from typing import Any, Callable
 
 import gymnasium as gym
 import numpy as np
 
-from c3bf_gym.barriers import Barrier
 from c3bf_gym.controllers.impedance import CartesianImpedance
 from c3bf_gym.envs.reach import C3BFReachEnv
-from c3bf_gym.filter import SafetyHook, StepSafety, build_hook
+from c3bf_gym.filter import FILTERS, FilterConfig, SafetyHook, StepSafety
 from c3bf_gym.robot import ArmModel
 
 __all__ = [
     "ActionPenalty",
     "CartesianImpedanceAction",
     "ImpedanceHook",
-    "SAFETY_FILTERS",
     "SafetyFilter",
     "make_reach",
     "reach_env",
@@ -47,89 +45,82 @@ def reach_env(env: gym.Env, wrapper: str) -> C3BFReachEnv:
     return base
 
 
-class SafetyFilter(gym.Wrapper, gym.utils.EzPickle):
-    """Project every torque through the C3BF (or distance-HOCBF) quadratic program.
+class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs, gym.utils.EzPickle):
+    """Project every torque through the safety filter's quadratic program.
 
     The filter runs at every physics step (500 Hz) on whatever total torque arrives (the policy's
     torque plus gravity compensation, or the impedance controller's), so the policy's rate does
-    not weaken it. Adds ``info["safety"]`` (a dict, see :class:`~c3bf_gym.filter.StepSafety`)
-    and flat scalars for SB3's ``Monitor(info_keywords=...)``: ``safety_intervened`` (0/1 this
-    step), ``safety_infeasible`` (0/1), ``episode_interventions`` and ``episode_infeasible``
-    (counts of such steps so far in the episode: the value at the episode's last step is its
-    total).
+    not weaken it. Its settings are one :class:`~c3bf_gym.filter.FilterConfig`; by default the
+    C3BF with its distance-HOCBF guard (``"c3bf+hocbf"``, :data:`~c3bf_gym.filter.DEFAULT_FILTER`).
+
+    Adds ``info["safety"]`` (a dict, see :class:`~c3bf_gym.filter.StepSafety`; deterministic:
+    wall-clock timings are kept on ``filter.hook`` for benchmarks, not in ``info``) and flat
+    scalars for SB3's ``Monitor(info_keywords=...)``: ``safety_intervened`` (0/1 this step),
+    ``safety_infeasible`` (0/1), ``episode_interventions`` and ``episode_infeasible`` (counts of
+    such steps so far in the episode: the value at the episode's last step is its total).
 
     Args:
         env: a ``C3BFReach-v0`` environment (possibly wrapped).
-        barrier: ``"c3bf"`` (default), ``"hocbf"``, or a :class:`~c3bf_gym.barriers.Barrier`.
-        points: ``"whole_arm"`` (every link capsule, default) or ``"ee"`` (the tool only, as in the
-            paper).
-        gamma: class-K gain [1/s] (C3BF: γ; HOCBF: γ₁ = γ₂); None for the barrier's default (5).
-            The guard has its own (``guard_gamma``).
-        margin: extra clearance added to every radius [m].
-        sensing_radius: perception boundary [m]; None uses the environment's.
-        ee_radius: protected sphere around the tool site with ``points="ee"`` [m].
-        joint_speed_fraction: joint speed limit rows at this fraction of the UR5e's 180 deg/s.
-            The C3BF bounds the direction of the relative velocity, not its size: without a speed
-            bound a fast link near an obstacle needs more torque than the motors have.
-        weight: QP metric, ``"limits"`` (default) or ``"identity"``.
-        on_infeasible: ``"relax"`` (default: apply the least-violating torque, report it) or
-            ``"raise"``.
-        guard: a second barrier whose rows hold beside the first one's, for every sensed obstacle
-            and protected point. ``"auto"`` (default): the distance HOCBF beside the C3BF, nothing
-            beside any other barrier; None (or ``"none"``): the barrier's rows alone (the paper's
-            filter); ``"hocbf"``, ``"c3bf"`` or a :class:`~c3bf_gym.barriers.Barrier`.
-            The C3BF alone bounds the direction of the relative velocity: it lets a link graze an
-            obstacle at speed, from where, with the motors' torque limits, the link sometimes
-            cannot turn away in time (8 collisions in 2,400 adversarial episodes,
-            ``benchmarks/guarantee.py``). The distance HOCBF bounds the approach speed by the
-            distance left (README, "The guarantee").
-        guard_gamma: the gain(s) [1/s] of a guard named by ``guard`` (HOCBF: γ₁ = γ₂); None for
-            :data:`~c3bf_gym.filter.GUARD_GAMMA` (10) with ``"auto"``, else the barrier's default.
+        config: a :class:`~c3bf_gym.filter.FilterConfig`, or the name of one in
+            :data:`~c3bf_gym.filter.FILTERS` (``"c3bf+hocbf"``, ``"c3bf"``: the paper's C3BF
+            alone, ``"hocbf"``); None for the default configuration.
+        **settings: changes to fields of ``config`` (e.g. ``margin=0.03``, ``barrier="hocbf"``,
+            ``on_infeasible="raise"``); see :class:`~c3bf_gym.filter.FilterConfig` for each
+            field, its unit and its default.
 
+    Raises:
+        ValueError: on an unknown filter name or setting (the message lists the valid ones), an
+            invalid value, or an environment that already has a filter.
+        TypeError: when ``env`` is not a ``C3BFReach`` environment.
+
+    Failure paths: with ``on_infeasible="raise"`` a step with no safe torque raises
+    :class:`~c3bf_gym.filter.SafetyInfeasibleError` and leaves the environment as it was before
+    the step. After :meth:`close`, ``step`` and ``reset`` raise: a closed filter never steps the
+    environment unfiltered.
+
+    ``gym.make(filtered.spec)`` rebuilds the same stack (the wrapper records its arguments).
     Pickling (and ``copy.deepcopy``) rebuilds the filter with the same arguments around the
     unpickled environment, which Gymnasium's MuJoCo environments rebuild from their own
     arguments: the copy is filtered like the original and, like any copied MuJoCo env, starts
     from a fresh state (reset it).
     """
 
-    def __init__(
-        self,
-        env: gym.Env,
-        barrier: str | Barrier = "c3bf",
-        points: Literal["whole_arm", "ee"] = "whole_arm",
-        gamma: float | None = None,
-        margin: float = 0.02,
-        sensing_radius: float | None = None,
-        ee_radius: float = 0.05,
-        joint_speed_fraction: float = 0.5,
-        weight: Literal["limits", "identity"] = "limits",
-        on_infeasible: Literal["relax", "raise"] = "relax",
-        guard: str | Barrier | None = "auto",
-        guard_gamma: float | None = None,
-    ) -> None:
+    def __init__(self, env: gym.Env, config: FilterConfig | str | None = None, **settings: Any) -> None:
+        gym.utils.RecordConstructorArgs.__init__(self, config=config, **settings)
+        gym.utils.EzPickle.__init__(self, env, config, **settings)
         super().__init__(env)
-        gym.utils.EzPickle.__init__(
-            self, env, barrier, points, gamma, margin, sensing_radius, ee_radius, joint_speed_fraction, weight,
-            on_infeasible, guard, guard_gamma,
-        )
+        if config is None:
+            config = FilterConfig()
+        elif isinstance(config, str):
+            config = FilterConfig.named(config)
+        elif not isinstance(config, FilterConfig):
+            raise TypeError(f"config must be a FilterConfig, a filter name ({', '.join(map(repr, FILTERS))}) or None, "
+                            f"got {type(config).__name__}")  # fmt: skip
+        config = config.replace(**settings)
         base = reach_env(env, "SafetyFilter")
         if base.has_torque_hook("filter"):
             raise ValueError("this environment already has a safety filter installed")
-        self.hook: SafetyHook = build_hook(
-            base, barrier, points, gamma, margin, sensing_radius, ee_radius, joint_speed_fraction, weight,
-            on_infeasible, guard, guard_gamma,
-        )
+        self.config: FilterConfig = config
+        self.hook = SafetyHook(base, config)
         base.add_torque_hook(self.hook, stage="filter")
         self._base = base
+        self._closed = False
         self._episode_interventions = 0
         self._episode_infeasible = 0
 
+    def _check_open(self) -> None:
+        if self._closed:
+            raise RuntimeError("this SafetyFilter is closed: its hook was removed, so stepping would apply unfiltered "
+                               "torques; build a new SafetyFilter around a fresh environment")  # fmt: skip
+
     def reset(self, **kwargs: Any):
+        self._check_open()
         self._episode_interventions = 0
         self._episode_infeasible = 0
         return self.env.reset(**kwargs)
 
     def step(self, action):
+        self._check_open()
         self.hook.begin_step()
         obs, reward, terminated, truncated, info = self.env.step(action)
         report: StepSafety = self.hook.report
@@ -143,7 +134,9 @@ class SafetyFilter(gym.Wrapper, gym.utils.EzPickle):
         return obs, reward, terminated, truncated, info
 
     def close(self) -> None:
-        self._base.remove_torque_hook("filter")
+        if not self._closed:
+            self._closed = True
+            self._base.remove_torque_hook("filter")
         super().close()
 
 
@@ -191,7 +184,7 @@ def default_impedance(env: C3BFReachEnv) -> CartesianImpedance:
     return CartesianImpedance(stiffness=300.0, posture=env.model.key_qpos[0].copy(), max_force=150.0)
 
 
-class CartesianImpedanceAction(gym.ActionWrapper, gym.utils.EzPickle):
+class CartesianImpedanceAction(gym.ActionWrapper, gym.utils.RecordConstructorArgs, gym.utils.EzPickle):
     """Actions are tool position targets; an impedance controller turns them into torque.
 
     The action ``a`` in ``Box(-1, 1, (3,))`` sets the target ``x_tool + max_offset * a`` (world
@@ -213,6 +206,7 @@ class CartesianImpedanceAction(gym.ActionWrapper, gym.utils.EzPickle):
         controller: a custom :class:`CartesianImpedance`.
         residual: actions correct a straight step for the goal instead of being the whole offset.
 
+    ``gym.make(wrapped.spec)`` rebuilds the same stack (the wrapper records its arguments).
     Pickling rebuilds the wrapper, and so its controller hook, around the unpickled environment
     (as :class:`SafetyFilter`).
     """
@@ -224,8 +218,9 @@ class CartesianImpedanceAction(gym.ActionWrapper, gym.utils.EzPickle):
         controller: CartesianImpedance | None = None,
         residual: bool = False,
     ) -> None:
-        super().__init__(env)
+        gym.utils.RecordConstructorArgs.__init__(self, max_offset=max_offset, controller=controller, residual=residual)
         gym.utils.EzPickle.__init__(self, env, max_offset, controller, residual)
+        super().__init__(env)
         base = reach_env(env, "CartesianImpedanceAction")
         if base.has_torque_hook("nominal"):
             raise ValueError("this environment already has a nominal controller installed")
@@ -293,19 +288,17 @@ class ActionPenalty(gym.Wrapper):
         return obs, float(reward) + penalty, terminated, truncated, info
 
 
-SAFETY_FILTERS = (None, "c3bf", "hocbf")
-
-
-def make_reach(safety_filter: str | None = None, **kwargs: Any) -> gym.Env:
+def make_reach(safety_filter: FilterConfig | str | None = None, **kwargs: Any) -> gym.Env:
     """Entry point of ``C3BFReach-v0``: the environment, optionally inside a :class:`SafetyFilter`.
 
-    ``gym.make("C3BFReach-v0", safety_filter="c3bf")`` is the shortcut for
-    ``SafetyFilter(gym.make("C3BFReach-v0"), barrier="c3bf")`` with default filter settings; every
+    ``gym.make("C3BFReach-v0", safety_filter=NAME)`` is the shortcut for
+    ``SafetyFilter(gym.make("C3BFReach-v0"), NAME)``: ``safety_filter`` is None (no filter), a
+    name of :data:`~c3bf_gym.filter.FILTERS` or a :class:`~c3bf_gym.filter.FilterConfig`. Every
     other keyword goes to :class:`~c3bf_gym.envs.C3BFReachEnv`.
     """
-    if safety_filter not in SAFETY_FILTERS:
-        raise ValueError(
-            f"unknown safety_filter {safety_filter!r}; valid choices: {', '.join(map(repr, SAFETY_FILTERS))}"
-        )
+    if not (safety_filter is None or isinstance(safety_filter, FilterConfig)
+            or (isinstance(safety_filter, str) and safety_filter in FILTERS)):
+        raise ValueError(f"unknown safety_filter {safety_filter!r}; valid choices: None, "
+                         f"{', '.join(map(repr, FILTERS))} or a FilterConfig")  # fmt: skip
     env = C3BFReachEnv(**kwargs)
-    return env if safety_filter is None else SafetyFilter(env, barrier=safety_filter)
+    return env if safety_filter is None else SafetyFilter(env, safety_filter)

@@ -14,21 +14,15 @@ import pytest
 
 from c3bf_gym import SafetyFilter
 from c3bf_gym.barriers import C3BF, DistanceHOCBF
-from c3bf_gym.filter import UR5E_JOINT_SPEED, SafetyHook, SafetyInfeasibleError, build_hook
+from c3bf_gym.filter import UR5E_JOINT_SPEED, FilterConfig, SafetyHook, SafetyInfeasibleError
 from c3bf_gym.scenarios import ObstacleSample, ObstacleSpec
-
-#: build_hook defaults as the SafetyFilter wrapper passes them.
-DEFAULTS = dict(
-    barrier="c3bf", points="whole_arm", gamma=None, margin=0.02, sensing_radius=None, ee_radius=0.05,
-    joint_speed_fraction=0.5, weight="limits", on_infeasible="relax", guard="auto",
-)  # fmt: skip
-
 
 # ----------------------------------------------------------------------------- helpers
 
 
-def hook_for(u, **overrides) -> SafetyHook:
-    return build_hook(u, **{**DEFAULTS, **overrides})
+def hook_for(u, **settings) -> SafetyHook:
+    """The hook SafetyFilter builds: the default configuration with ``settings`` changed."""
+    return SafetyHook(u, FilterConfig(**settings))
 
 
 @pytest.fixture
@@ -419,7 +413,8 @@ def test_torque_limits_are_never_exceeded(env):
     # without joint-limit rows and obstacles, and lifting the arm (so the floor rows do not
     # bind; ``big`` itself would slam the arm down), the box alone acts: plain saturation, which
     # is not counted as a safety intervention
-    bare = SafetyHook(u, C3BF(), "whole_arm", 0.02, 1.0, 0.05, None, "limits", "raise")
+    bare = SafetyHook(u, FilterConfig(barrier=C3BF(), guard=None, sensing_radius=1.0, joint_limits=False,
+                                      on_infeasible="raise"))
     bare.begin_step()
     tau = bare(-big)
     np.testing.assert_allclose(tau, np.clip(-big, -u.torque_limit, u.torque_limit), atol=1e-12)
@@ -532,7 +527,7 @@ def test_gamma_reaches_the_barrier(env):
     hocbf = hook_for(u, barrier="hocbf", gamma=3.5).barrier
     assert (hocbf.gamma1, hocbf.gamma2) == (3.5, 3.5)
     assert hook_for(u).barrier.gamma == 5.0
-    with pytest.raises(ValueError, match="not both"):
+    with pytest.raises(ValueError, match="gamma was given beside a Barrier instance"):
         hook_for(u, barrier=C3BF(gamma=1.0), gamma=2.0)
 
 

@@ -326,12 +326,14 @@ def test_guarantee_benchmark_passes_the_guard_gains(tmp_path):
         return subprocess.run([sys.executable, str(script), "--quick", "--out", str(tmp_path), *argv],
                               capture_output=True, text=True, timeout=300)  # fmt: skip
 
-    done = run("--scenarios", "static", "--policies", "adversarial", "--filters", "c3bf/whole_arm", "--workers", "1",
-               "--guard-gamma", "7")  # fmt: skip
+    done = run("--scenarios", "static", "--policies", "adversarial", "--filters", "c3bf+hocbf/whole_arm", "--workers",
+               "1", "--guard-gamma", "7")  # fmt: skip
     assert done.returncode == 0, done.stderr
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert summary["settings"]["guard_gamma"] == 7.0
-    assert [c["collision_episodes"] for c in summary["configurations"]] == [0]
-    for argv, message in ((["--guard-gamma", "0"], "finite number > 0"), (["--guard", "none", "--guard-gamma", "7"], "needs --guard auto")):
+    assert [(c["filter"], c["collision_episodes"]) for c in summary["configurations"]] == [("c3bf+hocbf", 0)]
+    for argv, message in ((["--guard-gamma", "0"], "finite number > 0"),
+                          (["--filters", "c3bf/whole_arm", "--guard-gamma", "7"], "no c3bf+hocbf"),
+                          (["--filters", "c3bf+guard/ee"], "invalid choice")):  # fmt: skip
         refused = run(*argv)
         assert refused.returncode == 2 and message in refused.stderr

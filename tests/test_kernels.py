@@ -16,7 +16,7 @@ from numba.core.caching import NullCache
 
 from c3bf_gym import _kernels as K
 from c3bf_gym.barriers import C3BF, DistanceHOCBF, JointLimits
-from c3bf_gym.filter import FLOOR_GAMMA, SafetyHook
+from c3bf_gym.filter import FilterConfig, SafetyHook
 from c3bf_gym.qp import PROXSUITE_INF, TorqueQP
 from c3bf_gym.robot import ArmModel
 from c3bf_gym.scenarios import ObstacleSample, ObstacleSpec
@@ -248,7 +248,7 @@ def numpy_rows(u, hook):
     b = -((gv * c).sum(1) + drift + bar.gamma * h) - (gp * slide_p).sum(1)
     # floor rows: z'' + 2γ z' + γ² (z − z_min) ≥ 0 at the capsule ends the filter protects
     ends = arm.end_dynamics()
-    idx, g = hook._floor_ends, FLOOR_GAMMA
+    idx, g = hook._floor_ends, FilterConfig().floor_gamma
     A_floor = ends.G[idx, 2]
     b_floor = -(ends.c[idx, 2] + 2 * g * ends.vel[idx, 2] + g * g * (ends.pos[idx, 2] - hook._floor_min))
     jl = hook.joint_limits.rows(u.data.qpos, u.data.qvel, arm.Minv, arm.qacc_free)
@@ -259,13 +259,11 @@ def numpy_rows(u, hook):
 @pytest.mark.parametrize("barrier", ["c3bf", "hocbf"])
 @pytest.mark.parametrize("seed", range(4))
 def test_fused_hook_rows_match_numpy_assembly(make_env, barrier, seed):
-    from c3bf_gym.filter import build_hook
-
     u = make_env(scenario="none").unwrapped
     u.reset(seed=seed)
     rng = np.random.default_rng(10 + seed)
     scene(u, rng, 1 + seed % 4)
-    hook = build_hook(u, barrier, "whole_arm", None, 0.01, None, 0.05, 1.0, "limits", "relax", guard=None)
+    hook = SafetyHook(u, FilterConfig(barrier=barrier, margin=0.01, joint_speed_fraction=1.0, guard=None))
     assert hook._fused
     A, b, min_h, inside, n_sensed = hook.rows()
     A_ref, b_ref, h_ref, inside_ref, sensed_ref = numpy_rows(u, hook)
@@ -284,11 +282,9 @@ def test_fused_rows_equal_the_per_class_path(make_env, guard):
     u = make_env(scenario="none").unwrapped
     u.reset(seed=3)
     scene(u, np.random.default_rng(3), 3)
-    q_lo, q_hi = u.joint_range.T
-    args = dict(points="whole_arm", margin=0.02, sensing_radius=0.5, ee_radius=0.05,
-                joint_limits=JointLimits(q_lo, q_hi, np.pi), weight="limits", on_infeasible="relax", guard=guard)  # fmt: skip
-    fused = SafetyHook(u, C3BF(gamma=5.0, eps=1e-2), **args)
-    generic = SafetyHook(u, _NumpyC3BF(gamma=5.0, eps=1e-2), **args)
+    config = FilterConfig(sensing_radius=0.5, joint_speed_fraction=1.0, guard=guard)
+    fused = SafetyHook(u, config.replace(barrier=C3BF(gamma=5.0, eps=1e-2)))
+    generic = SafetyHook(u, config.replace(barrier=_NumpyC3BF(gamma=5.0, eps=1e-2)))
     assert fused._fused and not generic._fused
     A1, b1, h1, in1, n1 = (x.copy() if isinstance(x, np.ndarray) else x for x in fused.rows())
     A2, b2, h2, in2, n2 = generic.rows()
@@ -305,17 +301,16 @@ def test_guard_weights_let_the_barriers_rows_give_way_first():
 
 
 def test_guarded_hook_relaxation_weights(make_env):
-    from c3bf_gym.filter import BARRIER_RELAXATION_WEIGHT, build_hook
-
     u = make_env(scenario="none").unwrapped
     u.reset(seed=2)
     scene(u, np.random.default_rng(2), 2)
-    hook = build_hook(u, "c3bf", "whole_arm", None, 0.02, None, 0.05, 0.5, "limits", "relax")
+    hook = SafetyHook(u, FilterConfig())
     _, b, _, _, n = hook.rows()
     w = hook.relaxation_weights(len(b))
     k = 2 * 7 * n
-    assert n == 2 and np.all(w[:k:2] == BARRIER_RELAXATION_WEIGHT) and np.all(w[1:k:2] == 1.0) and np.all(w[k:] == 1.0)
-    alone = build_hook(u, "c3bf", "whole_arm", None, 0.02, None, 0.05, 0.5, "limits", "relax", guard=None)
+    weight = FilterConfig().relaxation_weight
+    assert n == 2 and np.all(w[:k:2] == weight) and np.all(w[1:k:2] == 1.0) and np.all(w[k:] == 1.0)
+    alone = SafetyHook(u, FilterConfig(guard=None))
     assert alone.relaxation_weights(len(alone.rows()[1])) is None  # all rows weigh 1
 
 
@@ -325,12 +320,10 @@ def test_guard_rows_are_the_distance_hocbfs(make_env):
     u = make_env(scenario="none").unwrapped
     u.reset(seed=5)
     scene(u, np.random.default_rng(5), 2)
-    q_lo, q_hi = u.joint_range.T
-    args = dict(points="whole_arm", margin=0.02, sensing_radius=0.5, ee_radius=0.05,
-                joint_limits=JointLimits(q_lo, q_hi, np.pi), weight="limits", on_infeasible="relax")  # fmt: skip
-    guarded = SafetyHook(u, C3BF(gamma=5.0), guard=DistanceHOCBF(gamma1=3.0, gamma2=4.0), **args)
-    alone = SafetyHook(u, C3BF(gamma=5.0), **args)
-    hocbf = SafetyHook(u, DistanceHOCBF(gamma1=3.0, gamma2=4.0), **args)
+    config = FilterConfig(sensing_radius=0.5, joint_speed_fraction=1.0, guard=None)
+    guarded = SafetyHook(u, config.replace(barrier=C3BF(gamma=5.0), guard=DistanceHOCBF(gamma1=3.0, gamma2=4.0)))
+    alone = SafetyHook(u, config.replace(barrier=C3BF(gamma=5.0)))
+    hocbf = SafetyHook(u, config.replace(barrier=DistanceHOCBF(gamma1=3.0, gamma2=4.0)))
     A, b, h, _, n = (x.copy() if isinstance(x, np.ndarray) else x for x in guarded.rows())
     A1, b1, h1, _, _ = (x.copy() if isinstance(x, np.ndarray) else x for x in alone.rows())
     A2, b2, *_ = hocbf.rows()

@@ -12,10 +12,9 @@ import numpy as np
 import pytest
 
 from c3bf_gym.cli import main
-from c3bf_gym.filter import GUARD_GAMMA
+from c3bf_gym.filter import GUARD_GAMMA, FilterConfig
 from c3bf_gym.plots import plot_training
 from c3bf_gym.training import (
-    LEGACY_GUARD_GAMMA,
     NORMALIZATION_FILE,
     TrainConfig,
     _load_normalizer,
@@ -29,7 +28,7 @@ from c3bf_gym.training import (
 
 @pytest.mark.slow
 @pytest.mark.parametrize("algo", ["sac", "ppo"])
-@pytest.mark.parametrize("filter_name", ["none", "c3bf"])
+@pytest.mark.parametrize("filter_name", ["none", "c3bf+hocbf"])
 def test_train_save_reload_evaluate(algo, filter_name, tmp_path):
     config = TrainConfig(
         algo=algo, filter=filter_name, scenario="head_on", timesteps=300, eval_freq=250, eval_episodes=1,
@@ -47,7 +46,7 @@ def test_train_save_reload_evaluate(algo, filter_name, tmp_path):
     assert cumulative == sorted(cumulative)
     summary = json.loads((run / "summary.json").read_text())
     assert summary["training_cost"] >= cumulative[-1]
-    if filter_name == "c3bf":
+    if filter_name != "none":
         assert summary["training_cost"] == 0.0
         assert all(float(r["interventions"]) >= 0 and float(r["infeasible"]) >= 0 for r in rows)
     final = json.loads((run / "final_eval.json").read_text())
@@ -58,7 +57,7 @@ def test_train_save_reload_evaluate(algo, filter_name, tmp_path):
     best = evaluate(run / "best" / "best_model.zip", episodes=1)  # the run's config from one level up
     assert best["filter"] == filter_name and best["scenario"] == "head_on"
     assert 0.0 <= result["success_rate"] <= 1.0
-    if filter_name == "c3bf":
+    if filter_name != "none":
         assert result["collision_episodes"] == 0
 
 
@@ -67,23 +66,20 @@ def test_evaluate_command_with_another_filter(tmp_path, capsys):
     run = train(TrainConfig(timesteps=260, filter="none", scenario="head_on", eval_freq=10_000, final_eval_episodes=0, out=str(tmp_path),
                             progress_bar=False, hyperparams={"learning_starts": 100}))  # fmt: skip
     out_json = tmp_path / "eval.json"
-    assert main(["evaluate", str(run / "model.zip"), "--episodes", "2", "--filter", "c3bf", "--json", str(out_json)]) == 0
+    assert main(["evaluate", str(run / "model.zip"), "--episodes", "2", "--filter", "c3bf+hocbf", "--json", str(out_json)]) == 0
     result = json.loads(out_json.read_text())
-    assert result["filter"] == "c3bf" and result["collision_episodes"] == 0 and result["episodes"] == 2
-    assert result["guard"] == "auto"  # the run's own (default) guard
-    # a run from before the guard (no "guard" in its config) is evaluated as it ran: without one
+    assert result["filter"] == "c3bf+hocbf" and result["collision_episodes"] == 0 and result["episodes"] == 2
+    assert result["guard_gamma"] == GUARD_GAMMA  # another filter than the run's: its default gains
+    assert evaluate(run / "model.zip", episodes=1, filter="c3bf")["guard_gamma"] is None  # the C3BF alone
+    result = evaluate(run / "model.zip", episodes=1, filter="c3bf+hocbf", guard_gamma=8.0)
+    assert (result["filter"], result["guard_gamma"]) == ("c3bf+hocbf8", 8.0)
+    with pytest.raises(ValueError, match="guard_gamma was given"):
+        evaluate(run / "model.zip", episodes=1, filter="hocbf", guard_gamma=8.0)
+    # a run trained with other gains is evaluated with its own
     config = json.loads((run / "config.json").read_text())
-    del config["guard"]
+    config.update(filter="c3bf+hocbf", guard_gamma=20.0)
     (run / "config.json").write_text(json.dumps(config))
-    assert evaluate(run / "model.zip", episodes=1, filter="c3bf")["guard"] == "none"
-    assert evaluate(run / "model.zip", episodes=1, filter="c3bf", guard="auto")["guard"] == "auto"
-    # a guarded run from before "guard_gamma" trained with the guard's first gains, 5
-    config["guard"] = "auto"
-    del config["guard_gamma"]
-    (run / "config.json").write_text(json.dumps(config))
-    assert evaluate(run / "model.zip", episodes=1, filter="c3bf")["guard_gamma"] == LEGACY_GUARD_GAMMA == 5.0
-    assert evaluate(run / "model.zip", episodes=1, filter="c3bf", guard_gamma=8.0)["guard_gamma"] == 8.0
-    assert evaluate(run / "model.zip", episodes=1, filter="c3bf", guard="none")["guard_gamma"] is None
+    assert evaluate(run / "model.zip", episodes=1)["filter"] == "c3bf+hocbf20"
 
 
 @pytest.mark.slow
@@ -152,38 +148,38 @@ def test_distance_weight_reaches_the_env_and_names_the_run():
     env.close()
 
 
-def test_guard_reaches_the_filter_and_names_the_run():
-    """``guard="none"`` trains under the C3BF's rows alone, named as runs from before the guard
-    (which had none); the default puts the distance HOCBF beside them and says so in the name."""
+def test_filter_names_reach_the_filter_and_name_the_run():
+    """A run's filter is a FILTERS name, the same filter as SafetyFilter's of that name: "c3bf" is
+    the C3BF's rows alone, the default "c3bf+hocbf" has the distance HOCBF beside them; the run
+    name says which, and the guard's gains when they are not the default."""
     from c3bf_gym.barriers import DistanceHOCBF
 
-    assert TrainConfig(guard="none").name == "sac_residual_10hz_dw10_aw3_set_c3bf_random_s0"
+    assert TrainConfig(filter="c3bf").name == "sac_residual_10hz_dw10_aw3_set_c3bf_random_s0"
     assert TrainConfig(filter="hocbf").name == "sac_residual_10hz_dw10_aw3_set_hocbf_random_s0"
     assert TrainConfig().name == "sac_residual_10hz_dw10_aw3_set_c3bf+hocbf_random_s0"
     assert TrainConfig(guard_gamma=5.0).name == "sac_residual_10hz_dw10_aw3_set_c3bf+hocbf5_random_s0"
-    for guard, expected in (("auto", DistanceHOCBF), ("none", type(None))):
-        env = make_env("none", "c3bf", "residual", seed=0, guard=guard)()
+    for name, expected in (("c3bf+hocbf", DistanceHOCBF), ("c3bf", type(None))):
+        env = make_env("none", name, "residual", seed=0)()
         assert type(env.get_wrapper_attr("hook").guard) is expected
+        assert env.get_wrapper_attr("config") == FilterConfig.named(name)
         env.close()
-    env = make_env("none", "c3bf", "residual", seed=0, guard_gamma=7.0)()
+    env = make_env("none", "c3bf+hocbf", "residual", seed=0, guard_gamma=7.0)()
     assert env.get_wrapper_attr("hook").guard.gamma1 == 7.0
-    env.close()
-    env = make_env("none", "hocbf", "residual", seed=0, guard_gamma=7.0)()  # no guard: the gains go unused
-    assert env.get_wrapper_attr("hook").guard is None
     env.close()
     for bad in (0.0, -1.0, float("inf"), True):
         with pytest.raises(ValueError, match="guard_gamma must be a finite number > 0"):
             TrainConfig(guard_gamma=bad).validate()
-    with pytest.raises(ValueError, match="guard.*'auto'.*'none'"):
-        make_env("none", "c3bf", "residual", guard="hocbf")
-    with pytest.raises(ValueError, match="guard.*'auto'.*'none'"):
-        TrainConfig(guard="off").validate()
+    for name in ("hocbf", "c3bf", "none"):  # gains without a guard are an inconsistency, not ignored
+        with pytest.raises(ValueError, match="guard_gamma was given"):
+            TrainConfig(filter=name, guard_gamma=7.0).validate()
+    with pytest.raises(ValueError, match=r"unknown filter 'cbf'; valid choices: 'none', 'c3bf\+hocbf', 'c3bf', 'hocbf'"):
+        make_env("none", "cbf", "residual")
 
 
 def test_action_weight_penalises_the_policy_action_and_names_the_run():
     config = TrainConfig(action="residual", distance_weight=10.0, action_weight=0.5, obstacle_encoder="flat", policy_hz=10)
     assert config.name == "sac_residual_10hz_dw10_aw0.5_c3bf+hocbf_random_s0"
-    env = make_env("none", "c3bf", "residual", seed=0, action_weight=0.5, **config.env_kwargs())()
+    env = make_env("none", "c3bf+hocbf", "residual", seed=0, action_weight=0.5, **config.env_kwargs())()
     assert [type(w).__name__ for w in (env, env.env)] == ["Monitor", "ActionPenalty"]
     _, reward, *_, info = env.step(np.ones(3, np.float32))
     assert info["reward_action"] == pytest.approx(-0.5)
@@ -208,7 +204,7 @@ def test_defaults_are_the_readme_recipe_on_every_entry_point(monkeypatch, tmp_pa
     spec.loader.exec_module(module)
     commands = []
     monkeypatch.setattr(module.subprocess, "call", lambda command, **_: commands.append(command) or 0)
-    monkeypatch.setattr(sys, "argv", ["run_baselines.py", "--filters", "c3bf", "--seeds", "0", "--out", str(tmp_path)])
+    monkeypatch.setattr(sys, "argv", ["run_baselines.py", "--filters", "c3bf+hocbf", "--seeds", "0", "--out", str(tmp_path)])
     assert module.main() == 0 and len(commands) == 1 and commands[0][1:4] == ["-m", "c3bf_gym.cli", "train"]
     assert main(commands[0][3:]) == 0
     assert seen[1] == TrainConfig(out=str(tmp_path), progress_bar=False)
@@ -222,7 +218,7 @@ def test_by_scenario_splits_an_evaluation_by_its_concrete_scenarios():
 
 
 def test_make_env_puts_monitor_outside_the_filter():
-    env = make_env("static", "c3bf", "impedance", seed=0)()
+    env = make_env("static", "c3bf+hocbf", "impedance", seed=0)()
     assert type(env).__name__ == "Monitor"
     assert "episode_interventions" in env.info_keywords and "episode_infeasible" in env.info_keywords
     env.close()
@@ -332,16 +328,14 @@ def test_plot_training_reads_a_longer_evaluation_when_asked(tmp_path):
 
 def test_plot_training_keeps_the_guarded_c3bf_apart(tmp_path):
     """Runs of the C3BF with its guard are their own row per guard gain ("c3bf+hocbf" with the
-    default, "c3bf+hocbf5" from a config with a guard but no "guard_gamma", which trained with the
-    first gains, 5); a run whose config has no "guard" predates it and is the C3BF alone, like
-    ``guard="none"``; the HOCBF has no guard."""
+    default, "c3bf+hocbf5" with gains 5), apart from the C3BF alone and the HOCBF."""
     runs = [
         _fake_run(tmp_path, "old", "c3bf", "residual", [0, 0], final=0.8),
-        _fake_run(tmp_path, "alone", "c3bf", "residual", [0, 0], final=0.9, guard="none"),
-        _fake_run(tmp_path, "guarded5", "c3bf", "residual", [0, 0], final=0.6, guard="auto"),
-        _fake_run(tmp_path, "guarded", "c3bf", "residual", [0, 0], final=1.0, guard="auto", guard_gamma=GUARD_GAMMA),
+        _fake_run(tmp_path, "alone", "c3bf", "residual", [0, 0], final=0.9, guard_gamma=None),
+        _fake_run(tmp_path, "guarded5", "c3bf+hocbf", "residual", [0, 0], final=0.6, guard_gamma=5.0),
+        _fake_run(tmp_path, "guarded", "c3bf+hocbf", "residual", [0, 0], final=1.0, guard_gamma=None),
         _fake_run(tmp_path, "h_old", "hocbf", "residual", [0, 0], final=0.7),
-        _fake_run(tmp_path, "h_new", "hocbf", "residual", [0, 0], final=0.9, guard="auto", guard_gamma=GUARD_GAMMA),
+        _fake_run(tmp_path, "h_new", "hocbf", "residual", [0, 0], final=0.9, guard_gamma=None),
     ]
     rows = plot_training(runs, tmp_path / "c.png").splitlines()
     assert "| sac | residual | c3bf | 2 | 500 | 0 (0, 0) | 2 (1, 1) | 0.85 (0.80, 0.90) | 5.0 | 50 |" in rows

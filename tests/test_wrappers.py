@@ -3,11 +3,14 @@ input, and hook lifetime."""
 
 from __future__ import annotations
 
+import warnings
+
 import gymnasium as gym
 import numpy as np
 import pytest
 
-from c3bf_gym import ActionPenalty, CartesianImpedanceAction, SafetyFilter
+import c3bf_gym
+from c3bf_gym import DEFAULT_FILTER, FILTERS, ActionPenalty, CartesianImpedanceAction, FilterConfig, SafetyFilter
 from c3bf_gym.barriers import C3BF, DistanceHOCBF
 from c3bf_gym.filter import GUARD_GAMMA
 
@@ -21,7 +24,6 @@ SAFETY_TYPES = {
     "correction": float,
     "active_rows": int,
     "sensed": int,
-    "solve_time": float,
     "intervened": bool,
     "inside": bool,
     "infeasible_steps": int,
@@ -169,7 +171,8 @@ def test_info_safety_keys_and_types(make_env):
             assert type(safety[key]) is kind, (key, type(safety[key]))
         for key, value in safety.items():  # anything else added later: plain scalars only
             assert type(value) in (bool, int, float), (key, type(value))
-        assert safety["slack"] >= 0.0 and safety["correction"] >= 0.0 and safety["solve_time"] > 0.0
+        assert safety["slack"] >= 0.0 and safety["correction"] >= 0.0
+        assert "solve_time" not in safety and env.hook.report.solve_time > 0.0  # timings stay off info
         assert safety["feasible"] == (safety["infeasible_steps"] == 0) == (safety["slack"] == 0.0)
         # flat keys for SB3's Monitor(info_keywords=...)
         assert type(info["safety_intervened"]) is float and info["safety_intervened"] in (0.0, 1.0)
@@ -266,9 +269,16 @@ BAD_FILTER_ARGS = [
     (dict(guard=True), r"(?s)guard.*'auto'.*None"),
     (dict(guard_gamma=0.0), r"guard_gamma must be a finite number > 0"),
     (dict(guard_gamma=float("nan")), r"guard_gamma must be a finite number > 0"),
-    (dict(guard=None, guard_gamma=5.0), r"guard_gamma was given without a guard"),
-    (dict(guard=DistanceHOCBF(), guard_gamma=5.0), r"guard_gamma either to the guard Barrier instance or here"),
-    (dict(barrier="hocbf", guard_gamma=5.0), r"guard='auto' puts no guard beside this barrier"),
+    (dict(guard=None, guard_gamma=5.0), r"guard_gamma was given, but guard=None puts no named guard"),
+    (dict(guard=DistanceHOCBF(), guard_gamma=5.0), r"guard_gamma was given, but guard=DistanceHOCBF"),
+    (dict(barrier="hocbf", guard_gamma=5.0), r"guard='auto' puts no named guard beside barrier 'hocbf'"),
+    (dict(barrier=C3BF(), gamma=2.0), r"gamma was given beside a Barrier instance"),
+    (dict(margin=True), r"margin must be a finite number >= 0"),
+    (dict(margin="0.02"), r"margin must be a finite number >= 0"),
+    (dict(joint_limits="false"), r"joint_limits must be True or False"),
+    (dict(relaxation_weight=0.0), r"relaxation_weight"),
+    (dict(solver="osqp"), r"(?s)solver.*'active_set'.*'proxsuite'"),
+    (dict(bogus=1.0), r"(?s)unknown filter setting\(s\) 'bogus'; valid settings: barrier, gamma"),
 ]
 
 
@@ -513,3 +523,85 @@ def test_filtered_rollout_repeats_bit_for_bit_across_processes(tmp_path):
     first, second = (r.stdout.split() for r in runs)
     assert first[1] == "0", "a call went to proxsuite, whose results are not bit-reproducible"
     assert first == second
+
+
+# ----------------------------------------------------------------------------- Gymnasium conventions
+
+
+@pytest.mark.parametrize("stack", ["filter", "impedance", "both"])
+def test_spec_round_trip_rebuilds_the_wrappers(make_env, stack):
+    """``gym.make(env.spec)`` rebuilds the same wrappers with the same settings: the same seed and
+    actions then give the same observations."""
+    env = make_env(scenario="multi")
+    if stack in ("impedance", "both"):
+        env = CartesianImpedanceAction(env, max_offset=0.05)
+    if stack in ("filter", "both"):
+        env = SafetyFilter(env, "c3bf", margin=0.03)
+    copy = gym.make(env.spec)
+    try:
+        assert [w.name for w in copy.spec.additional_wrappers] == [w.name for w in env.spec.additional_wrappers]
+        if stack != "impedance":
+            assert copy.config == env.config and copy.config.name == "c3bf" and copy.config.margin == 0.03
+        actions = np.random.default_rng(0).uniform(-1, 1, (5,) + env.action_space.shape).astype(np.float32)
+        for e in (env, copy):
+            e.reset(seed=4)
+        for a in actions:
+            np.testing.assert_array_equal(env.step(a)[0], copy.step(a)[0])
+    finally:
+        copy.close()
+
+
+@pytest.mark.parametrize("stack", ["filter", "impedance"])
+def test_check_env_passes_on_the_wrappers(stack):
+    from gymnasium.utils.env_checker import check_env
+
+    env = c3bf_gym.C3BFReachEnv(scenario="multi")
+    env = SafetyFilter(env) if stack == "filter" else CartesianImpedanceAction(env)
+    try:
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", message=".*(different from the unwrapped|infinity).*")
+            check_env(env, skip_render_check=True)
+    finally:
+        env.close()
+
+
+def test_closed_filter_refuses_to_step(make_env):
+    """After close() the hook is gone: stepping would apply unfiltered torques, so it raises."""
+    env = SafetyFilter(make_env(scenario="multi"))
+    env.reset(seed=0)
+    env.close()
+    with pytest.raises(RuntimeError, match="closed"):
+        env.step(env.action_space.sample())
+    with pytest.raises(RuntimeError, match="closed"):
+        env.reset(seed=1)
+    env.close()  # closing twice is harmless
+
+
+def test_config_object_name_and_settings(make_env):
+    config = FilterConfig(margin=0.03, guard_gamma=20.0)
+    env = SafetyFilter(make_env(scenario="none"), config, on_infeasible="raise")
+    assert env.config == config.replace(on_infeasible="raise") and env.config.name == "c3bf+hocbf20"
+    assert env.hook.margin == 0.03 and env.hook.guard.gamma == 20.0
+    assert SafetyFilter(make_env(scenario="none"), "hocbf").config == FilterConfig(barrier="hocbf", guard=None)
+    assert SafetyFilter(make_env(scenario="none")).config.name == DEFAULT_FILTER == "c3bf+hocbf"
+    for name in FILTERS:  # one name, one filter: gym.make and SafetyFilter agree
+        made = gym.make(ENV_ID, scenario="none", safety_filter=name)
+        try:
+            assert made.unwrapped.has_torque_hook("filter")
+            assert _filter_of(made).config == FilterConfig.named(name)
+        finally:
+            made.close()
+    with pytest.raises(TypeError, match="config must be a FilterConfig"):
+        SafetyFilter(make_env(scenario="none"), 3)
+
+
+def _filter_of(env) -> SafetyFilter:
+    while not isinstance(env, SafetyFilter):
+        env = env.env
+    return env
+
+
+def test_numpy_scalars_are_numbers(make_env):
+    env = SafetyFilter(make_env(scenario="none"), margin=np.float32(0.03), gamma=np.int64(4))
+    assert env.config.margin == pytest.approx(0.03) and type(env.config.margin) is float
+    assert env.hook.barrier.gamma == 4.0

@@ -18,7 +18,7 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-from c3bf_gym.training import ACTIONS, ALGORITHMS, FILTERS, GUARDS, OBSTACLE_ENCODERS, POLICY_RATES, TrainConfig
+from c3bf_gym.training import ACTIONS, ALGORITHMS, OBSTACLE_ENCODERS, POLICY_RATES, TRAIN_FILTERS, TrainConfig
 
 
 def main() -> int:
@@ -26,9 +26,9 @@ def main() -> int:
     d = TrainConfig()  # the defaults live there
     parser.add_argument("--algo", choices=ALGORITHMS, default=d.algo)
     parser.add_argument("--action", choices=ACTIONS, default=d.action)
-    parser.add_argument("--filters", nargs="+", choices=FILTERS, default=["none", "c3bf", "hocbf"])
-    parser.add_argument("--guard", choices=GUARDS, default=d.guard, help="the filters' guard (default %(default)s)")
-    parser.add_argument("--guard-gamma", type=float, default=d.guard_gamma, help="the guard's gains (default %(default)s)")
+    parser.add_argument("--filters", nargs="+", choices=TRAIN_FILTERS, default=["none", d.filter, "hocbf"])
+    parser.add_argument("--guard-gamma", type=float, default=d.guard_gamma,
+                        help="the gains of c3bf+hocbf's guard (default: the filter's)")
     parser.add_argument("--scenario", default=d.scenario)
     parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     parser.add_argument("--timesteps", type=int, default=d.timesteps)
@@ -45,12 +45,16 @@ def main() -> int:
     parser.add_argument("--out", default="runs")
     args = parser.parse_args()
 
+    def gains(filter_name: str) -> float | None:
+        """--guard-gamma for the filters with a guard (c3bf+hocbf), None for the others."""
+        return args.guard_gamma if filter_name == "c3bf+hocbf" else None
+
     out = Path(args.out)
     (out / "logs").mkdir(parents=True, exist_ok=True)
     jobs = []
     for seed, filter_name in itertools.product(args.seeds, args.filters):
         name = TrainConfig(
-            algo=args.algo, action=args.action, filter=filter_name, guard=args.guard, guard_gamma=args.guard_gamma, scenario=args.scenario, seed=seed,
+            algo=args.algo, action=args.action, filter=filter_name, guard_gamma=gains(filter_name), scenario=args.scenario, seed=seed,
             policy_hz=args.policy_hz, normalize_obs=args.normalize_obs, distance_weight=args.distance_weight,
             action_weight=args.action_weight, obstacle_encoder=args.obstacle_encoder,
         ).name  # fmt: skip
@@ -59,7 +63,8 @@ def main() -> int:
             continue
         command = [
             sys.executable, "-m", "c3bf_gym.cli", "train", "--algo", args.algo, "--action", args.action,
-            "--filter", filter_name, "--guard", args.guard, "--guard-gamma", str(args.guard_gamma), "--scenario", args.scenario, "--seed", str(seed),
+            "--filter", filter_name, *(["--guard-gamma", str(gains(filter_name))] if gains(filter_name) else []),
+            "--scenario", args.scenario, "--seed", str(seed),
             "--timesteps", str(args.timesteps), "--out", str(out), "--no-progress", "--policy-hz", str(args.policy_hz),
             "--distance-weight", str(args.distance_weight), "--action-weight", str(args.action_weight),
             "--obstacle-encoder", args.obstacle_encoder,

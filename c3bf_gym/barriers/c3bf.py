@@ -93,16 +93,19 @@ class C3BF(Barrier):
         n_pts = p.shape[0]
         h, drift, inside = np.empty(n_pts), np.empty(n_pts), np.empty(n_pts, dtype=bool)
         grad_v, grad_p = np.empty((n_pts, 3)), np.empty((n_pts, 3))
-        _kernels.c3bf_terms(contiguous(p), contiguous(v), radii(r, n_pts), self._gamma, self._eps, self.delta,
+        _kernels.c3bf_terms(contiguous(p), contiguous(v), radii(r, n_pts), float(self.gamma), float(self.eps), self.delta,
                             h, grad_v, drift, inside, grad_p)
         return BarrierTerms(h, grad_v, drift, inside, grad_p)
 
     def fused_spec(self) -> tuple[int, np.ndarray] | None:
         """``(kind, params)`` of the filter's fused kernel (:mod:`c3bf_gym._kernels`), or None
-        for a subclass that changes :meth:`terms`."""
+        for a subclass that changes :meth:`terms`. The parameters are read through the public
+        properties (:attr:`gamma`, :attr:`eps`, :attr:`delta`), as :meth:`terms` and
+        :meth:`rows_from_terms` read them, so a subclass that overrides one is honoured on both
+        paths."""
         if type(self).terms is not C3BF.terms:
             return None
-        return _kernels.C3BF_KIND, np.array([self._gamma, self._eps, self.delta])
+        return _kernels.C3BF_KIND, np.array([float(self.gamma), float(self.eps), float(self.delta)])
 
     def partials(
         self, p: ArrayLike, v: ArrayLike, r: ArrayLike

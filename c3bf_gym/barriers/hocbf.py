@@ -91,16 +91,19 @@ class DistanceHOCBF(Barrier):
         n_pts = p.shape[0]
         h, drift, inside = np.empty(n_pts), np.empty(n_pts), np.empty(n_pts, dtype=bool)
         grad_v, grad_p = np.empty((n_pts, 3)), np.empty((n_pts, 3))
-        _kernels.hocbf_terms(contiguous(p), contiguous(v), radii(r, n_pts), self._gamma1,
+        _kernels.hocbf_terms(contiguous(p), contiguous(v), radii(r, n_pts), float(self.gamma1),
                              h, grad_v, drift, inside, grad_p)
         return BarrierTerms(h, grad_v, drift, inside, grad_p)
 
     def fused_spec(self) -> tuple[int, np.ndarray] | None:
         """``(kind, params)`` of the filter's fused kernel (:mod:`c3bf_gym._kernels`), or None
-        for a subclass that changes :meth:`terms`."""
+        for a subclass that changes :meth:`terms`. The gains are read through the public
+        properties (:attr:`gamma`, the row's γ₂, and :attr:`gamma1`), as :meth:`terms` and
+        :meth:`rows_from_terms` read them, so a subclass that overrides one is honoured on both
+        paths."""
         if type(self).terms is not DistanceHOCBF.terms:
             return None
-        return _kernels.HOCBF_KIND, np.array([self._gamma2, self._gamma1, 0.0])
+        return _kernels.HOCBF_KIND, np.array([float(self.gamma), float(self.gamma1), 0.0])
 
     def partials(
         self, p: ArrayLike, v: ArrayLike, r: ArrayLike
