@@ -437,3 +437,29 @@ def test_kernels_are_cached_on_disk():
     dispatchers = [f for f in vars(K).values() if isinstance(f, CPUDispatcher)]
     assert len(dispatchers) >= 15
     assert all(not isinstance(f._cache, NullCache) for f in dispatchers)
+
+
+class _GainC3BF(C3BF):
+    """A subclass that changes only the gain, through the public property."""
+
+    @property
+    def gamma(self) -> float:
+        return 2.0
+
+
+def test_a_subclass_changing_only_gamma_is_honoured_on_the_fused_path(make_env):
+    """The fused kernel reads the barrier's parameters through its public properties, as the
+    per-class path does, so a subclass overriding ``gamma`` gets its own rows on both."""
+    u = make_env(scenario="none").unwrapped
+    u.reset(seed=3)
+    scene(u, np.random.default_rng(3), 3)
+    config = FilterConfig(sensing_radius=0.5, guard=None)
+    fused = SafetyHook(u, config.replace(barrier=_GainC3BF()))
+    assert fused._fused
+    A1, b1, *_ = (x.copy() if isinstance(x, np.ndarray) else x for x in fused.rows())
+    plain = SafetyHook(u, config.replace(barrier=C3BF(gamma=2.0)))
+    A2, b2, *_ = plain.rows()
+    close(A1, A2, 0.0)
+    close(b1, b2, 0.0)
+    base = SafetyHook(u, config.replace(barrier=C3BF()))  # gamma 5: other rows
+    assert not np.allclose(base.rows()[1][:len(b1)], b1)
