@@ -692,3 +692,19 @@ def test_gravity_compensation(make_env, compensated):
         assert drift.max() < 1e-3
     else:
         assert drift[1] > 0.05, f"shoulder (joint 2) should sag without compensation, moved {drift[1]:.4f} rad"
+
+
+# ----------------------------------------------------------------------------- 13. step order and errors
+
+
+def test_bare_env_refuses_to_step_before_reset():
+    env = C3BFReachEnv(scenario="none")
+    try:
+        with pytest.raises(gym.error.ResetNeeded, match=r"reset\(\)"):
+            env.step(np.zeros(6, np.float32))
+        assert env.data.time == 0.0 and env.state_version == 0  # nothing ran
+        env.reset(seed=0)
+        env.step(np.zeros(6, np.float32))  # and after reset it steps
+    finally:
+        env.close()
+

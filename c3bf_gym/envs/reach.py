@@ -7,7 +7,7 @@ from typing import Any, Callable, Literal
 
 import mujoco
 import numpy as np
-from gymnasium import spaces, utils
+from gymnasium import error, spaces, utils
 from gymnasium.envs.mujoco.mujoco_env import MujocoEnv
 
 from c3bf_gym.robot import ArmModel, segment_closest_points
@@ -131,7 +131,9 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
 
     ## Episode End
     Truncation after ``max_episode_steps`` (250 steps, 5 s, set at registration). Termination only
-    on collision and only with ``terminate_on_collision=True``.
+    on collision and only with ``terminate_on_collision=True``. ``step`` before the first
+    ``reset`` (or after a ``reset`` that raised) raises ``gymnasium.error.ResetNeeded``, also on
+    the bare class (``gym.make`` adds Gymnasium's ``OrderEnforcing`` on top).
 
     ## Scenarios
     ``static``, ``head_on``, ``crossing``, ``multi`` (the paper's four), ``random`` (uniform mixture
@@ -235,6 +237,7 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
         self._workspace = tuple(np.asarray(c, dtype=float) for c in self.envelope.workspace)
         self._goal_distance = 0.0
         self._episode_cost = 0.0
+        self._needs_reset = True
 
     # ------------------------------------------------------------------ model and spaces
     def _setup_model(self) -> None:
@@ -345,6 +348,11 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
 
     # ------------------------------------------------------------------ gym API
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        if self._needs_reset:
+            raise error.ResetNeeded(
+                "C3BFReachEnv.step() was called before reset(): call reset() first (after a reset that "
+                "raised, too)"
+            )
         torque = self._validate_action(action) * self.torque_limit
         min_distance, effort = self._simulate(torque)
         self._respawn_departed()
@@ -455,6 +463,7 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
 
     # ------------------------------------------------------------------ reset and scenarios
     def reset_model(self) -> np.ndarray:
+        self._needs_reset = True  # until this reset has placed everything
         m, d, rng = self.model, self.data, self.np_random
         mujoco.mj_resetDataKeyframe(m, d, 0)
         d.qpos[:] += rng.uniform(-_HOME_NOISE, _HOME_NOISE, size=m.nq)
@@ -477,6 +486,7 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
         self._goal_distance = float(np.linalg.norm(goal - start))
         self._episode_cost = 0.0
         self.state_version += 1
+        self._needs_reset = False
         return self._get_obs()
 
     def _sample_goal(self, start: np.ndarray, rng: np.random.Generator) -> np.ndarray:
