@@ -708,3 +708,140 @@ def test_bare_env_refuses_to_step_before_reset():
     finally:
         env.close()
 
+
+class RaisingHook:
+    """A torque hook that returns its input unchanged, except that call ``fail_at`` (1-based,
+    counting physics substeps) raises ``error``; every other call passes."""
+
+    def __init__(self, fail_at: int | None = None, error: BaseException | None = None) -> None:
+        self.calls = 0
+        self.fail_at = fail_at
+        self.error = error
+
+    def __call__(self, tau: np.ndarray) -> np.ndarray:
+        self.calls += 1
+        if self.calls == self.fail_at:
+            raise self.error
+        return tau
+
+
+def full_state(env) -> dict[str, np.ndarray]:
+    """Everything a step reads or writes: MuJoCo's state and derived quantities, the obstacles'
+    bookkeeping and the generator respawns draw from."""
+    u = env.unwrapped
+    d, m = u.data, u.model
+    geoms = u.obstacle_geom_ids
+    return {
+        **state_snapshot(env),
+        "qacc_warmstart": d.qacc_warmstart.copy(),
+        "sensordata": d.sensordata.copy(),
+        "site_xpos": d.site_xpos.copy(),
+        "geom_xpos": d.geom_xpos.copy(),
+        "qfrc_bias": d.qfrc_bias.copy(),
+        "obstacle_acc": u.obstacle_acc.copy(),
+        "obstacle_radius": u.obstacle_radius.copy(),
+        "obstacle_active": u.obstacle_active.copy(),
+        "geom_size": m.geom_size[geoms].copy(),
+        "geom_rbound": m.geom_rbound[geoms].copy(),
+        "specs": np.array([repr(s) for s in u._obstacle_specs]),
+        "scalars": np.array([u._goal_distance, u._episode_cost]),
+        "rng": np.array(repr(u.np_random.bit_generator.state)),
+    }
+
+
+def assert_same_state(a: dict, b: dict) -> None:
+    assert a.keys() == b.keys()
+    for key in a:
+        assert a[key].tobytes() == b[key].tobytes(), key
+
+
+def assert_same_rest_of_episode(env, twin, actions) -> int:
+    """Step both through ``actions`` (until the episode ends); every output bit-identical."""
+    n = 0
+    for action in actions:
+        out, twin_out = env.step(action), twin.step(action)
+        assert out[0].tobytes() == twin_out[0].tobytes(), n
+        assert out[1:] == twin_out[1:], n  # reward, flags, and exact equality of every info entry
+        n += 1
+        if out[2] or out[3]:
+            break
+    return n
+
+
+# fast obstacles leave the workspace and respawn (drawing from np_random) within the episode
+FAST_MULTI = {"scenario": "multi", "obstacle_speed_range": (0.6, 1.0)}
+
+
+def test_error_in_a_hook_mid_step_leaves_the_env_as_before_the_call(make_env):
+    """A hook raising at the 4th physics substep of step k: the env is as before step k, and the
+    rest of the episode (step k retried) matches a twin whose hook never raised."""
+    from c3bf_gym import SafetyInfeasibleError
+
+    env, twin = make_env(**FAST_MULTI), make_env(**FAST_MULTI)
+    frame_skip, k = env.unwrapped.frame_skip, 30
+    error = SafetyInfeasibleError("no torque within the limits satisfies the safety rows (test)")
+    env.unwrapped.add_torque_hook(RaisingHook((k - 1) * frame_skip + 4, error), "filter")
+    twin.unwrapped.add_torque_hook(RaisingHook(), "filter")
+    actions = np.random.default_rng(8).uniform(-1, 1, size=(250, 6)).astype(np.float32)
+    env.reset(seed=8)
+    twin.reset(seed=8)
+    assert assert_same_rest_of_episode(env, twin, actions[: k - 1]) == k - 1
+    before, version = full_state(env), env.unwrapped.state_version
+    with pytest.raises(SafetyInfeasibleError) as excinfo:
+        env.step(actions[k - 1])
+    assert excinfo.value is error  # the very exception, unchanged
+    after = full_state(env)
+    assert_same_state(after, before)
+    assert_same_state(after, full_state(twin))
+    # a new version number: nothing keyed on a version seen before (or during) the call is current
+    assert env.unwrapped.state_version > version + 3
+    assert assert_same_rest_of_episode(env, twin, actions[k - 1 :]) == 250 - (k - 1)
+
+
+def test_error_after_a_respawn_restores_obstacles_and_the_generator(make_env):
+    """An error late in a step that respawned an obstacle (new draws, new radius in the model)
+    rolls all of that back; the episode then goes on like a twin's."""
+    env, twin = make_env(**FAST_MULTI), make_env(**FAST_MULTI)
+    u = env.unwrapped
+    respawn = u._respawn_departed
+    failures = []
+
+    def respawn_then_fail() -> None:
+        state = repr(u.np_random.bit_generator.state)
+        respawn()
+        if not failures and repr(u.np_random.bit_generator.state) != state:  # it drew: a respawn
+            failures.append(KeyboardInterrupt())
+            raise failures[0]
+
+    u._respawn_departed = respawn_then_fail
+    actions = np.random.default_rng(3).uniform(-1, 1, size=(250, 6)).astype(np.float32)
+    env.reset(seed=3)
+    twin.reset(seed=3)
+    for i, action in enumerate(actions):
+        before = full_state(env)
+        try:
+            env.step(action)
+        except KeyboardInterrupt as exc:
+            assert exc is failures[0]
+            break
+        twin_out = twin.step(action)
+    else:
+        pytest.fail("no obstacle respawned in the episode: the test did not exercise a respawn")
+    assert_same_state(full_state(env), before)
+    assert_same_state(full_state(env), full_state(twin))
+    assert assert_same_rest_of_episode(env, twin, actions[i:]) == 250 - i
+    del twin_out
+
+
+def test_error_message_and_type_come_through_unchanged(make_env):
+    class Custom(Exception):
+        pass
+
+    env = make_env(scenario="static")
+    env.unwrapped.add_torque_hook(RaisingHook(2, Custom("exact message, 42 N m")), "nominal")
+    env.reset(seed=0)
+    with pytest.raises(Custom) as excinfo:
+        env.step(np.zeros(6, np.float32))
+    assert type(excinfo.value) is Custom and str(excinfo.value) == "exact message, 42 N m"
+    assert excinfo.value.__cause__ is None and excinfo.value.__context__ is None
+    assert env.unwrapped.data.time == 0.0

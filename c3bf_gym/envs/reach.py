@@ -60,6 +60,10 @@ _GOAL_LOW = np.array([0.3, -0.4, 0.15])
 _GOAL_HIGH = np.array([0.65, 0.4, 0.6])
 _GOAL_MIN_TRAVEL = 0.3  # m, minimum start-to-goal distance
 _HOME_NOISE = 0.05  # rad, uniform joint noise around the home keyframe at reset
+#: What ``step`` saves to undo itself: every part of MuJoCo's state that integration reads
+#: (time, qpos, qvel, act, history, warmstart, ctrl, applied forces, eq_active, mocap poses,
+#: userdata, plugin and plastic state), so that restoring it continues bit-identically.
+_STEP_STATE = mujoco.mjtState.mjSTATE_INTEGRATION
 
 
 def _asset(name: str) -> str:
@@ -134,6 +138,19 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
     on collision and only with ``terminate_on_collision=True``. ``step`` before the first
     ``reset`` (or after a ``reset`` that raised) raises ``gymnasium.error.ResetNeeded``, also on
     the bare class (``gym.make`` adds Gymnasium's ``OrderEnforcing`` on top).
+
+    ## Errors during a step
+    A ``step`` that raises (a torque hook mid-step, e.g. the safety filter's
+    ``SafetyInfeasibleError`` with ``on_infeasible="raise"``, an interrupt, a renderer error)
+    leaves the environment as it was before the call, then re-raises the same exception
+    unchanged: MuJoCo's integration state (``mjSTATE_INTEGRATION``: time, joints, obstacle
+    positions, warm start, ...) with its derived quantities recomputed, the obstacles' velocity,
+    radius, activity and spec, their geom sizes in the model, the episode's reward and cost
+    bookkeeping, and ``np_random`` (respawns draw from it). Stepping on then continues exactly as
+    if the failed call had never been made. ``state_version`` is the exception: it moves on to a
+    number never used before, so no cache keyed on a version seen before or during the failed
+    call takes itself for current. Hooks' own state (a filter's counters and warm start) is
+    theirs to manage.
 
     ## Scenarios
     ``static``, ``head_on``, ``crossing``, ``multi`` (the paper's four), ``random`` (uniform mixture
@@ -238,6 +255,20 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
         self._goal_distance = 0.0
         self._episode_cost = 0.0
         self._needs_reset = True
+        # step's undo record: MuJoCo's state, saved at every step, and the obstacles' bookkeeping,
+        # saved only when a step is about to respawn (see _save_obstacles)
+        self._saved_state = np.empty(mujoco.mj_stateSize(self.model, _STEP_STATE))
+        self._saved_obstacles = (
+            np.empty_like(self.obstacle_vel),
+            np.empty_like(self.obstacle_acc),
+            np.empty_like(self.obstacle_radius),
+            np.empty_like(self.obstacle_active),
+            self.model.geom_size[self.obstacle_geom_ids].copy(),
+            self.model.geom_rbound[self.obstacle_geom_ids].copy(),
+        )
+        self._saved_specs: list = []
+        self._saved_rng: dict | None = None
+        self._obstacles_saved = False
 
     # ------------------------------------------------------------------ model and spaces
     def _setup_model(self) -> None:
@@ -348,12 +379,31 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
 
     # ------------------------------------------------------------------ gym API
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        """Apply ``action`` (6,) for ``frame_skip`` physics steps; Gymnasium's 5-tuple.
+
+        Raises ``gymnasium.error.ResetNeeded`` before the first ``reset`` and ``ValueError`` for
+        an invalid action (both before anything changes). Whatever raises during the step (a
+        torque hook, a respawn, rendering) leaves the environment as it was before the call,
+        except for a fresh ``state_version``, and propagates unchanged (the class docstring's
+        "Errors during a step" lists what is restored).
+        """
         if self._needs_reset:
             raise error.ResetNeeded(
                 "C3BFReachEnv.step() was called before reset(): call reset() first (after a reset that "
                 "raised, too)"
             )
         torque = self._validate_action(action) * self.torque_limit
+        mujoco.mj_getState(self.model, self.data, self._saved_state, _STEP_STATE)
+        self._obstacles_saved = False
+        goal_distance, episode_cost = self._goal_distance, self._episode_cost
+        try:
+            return self._step(torque)
+        except BaseException:
+            self._goal_distance, self._episode_cost = goal_distance, episode_cost
+            self._restore()
+            raise
+
+    def _step(self, torque: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         min_distance, effort = self._simulate(torque)
         self._respawn_departed()
 
@@ -384,6 +434,44 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
             self.render()
         terminated = self.terminate_on_collision and cost > 0.0
         return self._get_obs(), reward, terminated, False, info
+
+    def _save_obstacles(self) -> None:
+        """Save what a respawn changes besides MuJoCo's state (once per step, before the first)."""
+        if self._obstacles_saved:
+            return
+        vel, acc, radius, active, size, rbound = self._saved_obstacles
+        geoms = self.obstacle_geom_ids
+        np.copyto(vel, self.obstacle_vel)
+        np.copyto(acc, self.obstacle_acc)
+        np.copyto(radius, self.obstacle_radius)
+        np.copyto(active, self.obstacle_active)
+        size[:] = self.model.geom_size[geoms]
+        rbound[:] = self.model.geom_rbound[geoms]
+        self._saved_specs = list(self._obstacle_specs)
+        self._saved_rng = self.np_random.bit_generator.state
+        self._obstacles_saved = True
+
+    def _restore(self) -> None:
+        """Undo the current step: the state saved at its start, and the obstacles' bookkeeping if
+        a respawn saved it; then recompute what ``_simulate``'s invariant promises
+        (``mj_step1``: kinematics, dynamics, sensors) and move ``state_version`` past every
+        number used so far."""
+        m, d = self.model, self.data
+        if self._obstacles_saved:
+            vel, acc, radius, active, size, rbound = self._saved_obstacles
+            geoms = self.obstacle_geom_ids
+            np.copyto(self.obstacle_vel, vel)
+            np.copyto(self.obstacle_acc, acc)
+            np.copyto(self.obstacle_radius, radius)
+            np.copyto(self.obstacle_active, active)
+            m.geom_size[geoms] = size
+            m.geom_rbound[geoms] = rbound
+            self._obstacle_specs = list(self._saved_specs)
+            self.np_random.bit_generator.state = self._saved_rng
+            self._obstacles_saved = False
+        mujoco.mj_setState(m, d, self._saved_state, _STEP_STATE)
+        mujoco.mj_step1(m, d)
+        self.state_version += 1
 
     def _validate_action(self, action: Any) -> np.ndarray:
         a = np.asarray(action)
@@ -519,6 +607,7 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
         outside = ((self.obstacle_pos < low) | (self.obstacle_pos > high)).any(axis=1) & self.obstacle_active
         if not outside.any():
             return
+        self._save_obstacles()
         for slot in np.flatnonzero(outside):
             tool = self.data.site_xpos[self.ee_site_id].copy()
             goal = self.data.mocap_pos[self._goal_mocap].copy()
