@@ -523,11 +523,11 @@ def test_unknown_scenario_lists_valid_choices():
 @pytest.mark.parametrize(
     "kwargs, message",
     [
-        ({"obstacle_radius_range": (0.0, 0.05)}, "obstacle_radius_range must be > 0"),
-        ({"obstacle_radius_range": (-0.01, 0.05)}, "obstacle_radius_range must be > 0"),
+        ({"obstacle_radius_range": (0.0, 0.05)}, r"obstacle_radius_range must be .*both > 0"),
+        ({"obstacle_radius_range": (-0.01, 0.05)}, r"obstacle_radius_range must be .*both > 0"),
         ({"obstacle_radius_range": (0.08, 0.04)}, "low <= high"),
         ({"obstacle_radius_range": (0.04, np.nan)}, "finite"),
-        ({"obstacle_speed_range": (-0.1, 0.2)}, "obstacle_speed_range must be >= 0"),
+        ({"obstacle_speed_range": (-0.1, 0.2)}, r"obstacle_speed_range must be .*both >= 0"),
         ({"obstacle_speed_range": (0.4, 0.1)}, "low <= high"),
         ({"obstacle_speed_range": (0.1, np.inf)}, "finite"),
         ({"frame_skip": 0}, "frame_skip"),
