@@ -12,6 +12,7 @@ from __future__ import annotations
 import inspect
 import os
 import pickle
+import time
 import warnings
 from functools import partial
 from importlib import resources
@@ -542,11 +543,61 @@ def test_unknown_scenario_lists_valid_choices():
         ({"effort_weight": -1.0}, "effort_weight"),
         ({"progress_weight": np.nan}, "progress_weight"),
         ({"distance_weight": -1.0}, "distance_weight"),
+        # bools and strings are not numbers, and only bools are booleans
+        ({"sensing_radius": True}, r"sensing_radius must be a finite number > 0 \[m\], got True"),
+        ({"success_tolerance": "0.05"}, r"success_tolerance must be a finite number > 0 \[m\], got '0.05'"),
+        ({"effort_weight": True}, r"effort_weight must be a finite number >= 0, got True"),
+        ({"obstacle_radius_range": (True, 0.08)}, r"obstacle_radius_range must be \(low, high\)"),
+        ({"gravity_compensation": "false"}, r"gravity_compensation must be True or False, got 'false'"),
+        ({"terminate_on_collision": "false"}, r"terminate_on_collision must be True or False, got 'false'"),
+        ({"terminate_on_collision": 1}, r"terminate_on_collision must be True or False, got 1"),
+        # ranges: exactly two numbers, and the message names the argument, the value and the form
+        (
+            {"obstacle_speed_range": (0.1, 0.2, 0.3)},
+            r"obstacle_speed_range must be \(low, high\): two finite numbers with low <= high, both >= 0 "
+            r"\[m/s\], got \(0.1, 0.2, 0.3\)",
+        ),
+        ({"obstacle_speed_range": 0.3}, r"obstacle_speed_range must be \(low, high\).*got 0.3"),
+        ({"obstacle_radius_range": (0.05,)}, r"obstacle_radius_range must be \(low, high\).*both > 0 \[m\], got \(0.05,\)"),
+        ({"obstacle_radius_range": "0.04, 0.08"}, r"obstacle_radius_range must be \(low, high\)"),
+        ({"scenario": 3}, r"unknown scenario 3; valid choices: 'static', 'head_on', 'crossing', 'multi', 'random', 'none'"),
+        ({"width": 0}, r"width must be an integer >= 1"),
+        ({"height": 240.0}, r"height must be an integer >= 1"),
     ],
 )
 def test_bad_constructor_arguments_rejected(kwargs, message):
     with pytest.raises(ValueError, match=message):
         C3BFReachEnv(**kwargs)
+
+
+def test_numpy_scalars_are_accepted_wherever_a_number_is():
+    env = C3BFReachEnv(
+        scenario="none",
+        frame_skip=np.int64(5),
+        gravity_compensation=np.bool_(True),
+        sensing_radius=np.float32(0.5),
+        terminate_on_collision=np.bool_(False),
+        success_tolerance=np.float32(0.05),
+        obstacle_speed_range=(np.float32(0.1), np.float64(0.3)),
+        obstacle_radius_range=np.array([0.04, 0.06], np.float32),
+        progress_weight=np.float32(50.0),
+        success_bonus=np.int32(2),
+        effort_weight=np.float16(0.05),
+        distance_weight=np.float32(0.5),
+        width=np.int64(64),
+        height=np.int32(48),
+    )
+    try:
+        assert env.frame_skip == 5 and type(env.frame_skip) is int
+        assert env.sensing_radius == np.float32(0.5) and type(env.sensing_radius) is float
+        assert env.gravity_compensation is True and env.terminate_on_collision is False
+        assert env.envelope.speed_range == (float(np.float32(0.1)), 0.3)
+        assert env.envelope.radius_range == (float(np.float32(0.04)), float(np.float32(0.06)))
+        assert all(type(w) is float for w in env._weights) and env._weights[1] == 2.0
+        env.reset(seed=0)
+        env.step(np.zeros(6, np.float32))
+    finally:
+        env.close()
 
 
 def test_scenario_with_too_many_obstacles_rejected():
@@ -845,3 +896,39 @@ def test_error_message_and_type_come_through_unchanged(make_env):
     assert type(excinfo.value) is Custom and str(excinfo.value) == "exact message, 42 N m"
     assert excinfo.value.__cause__ is None and excinfo.value.__context__ is None
     assert env.unwrapped.data.time == 0.0
+
+
+# ----------------------------------------------------------------------------- 14. scenarios that cannot be placed
+
+
+def test_scenario_the_envelope_can_never_place_is_rejected_at_construction():
+    """An obstacle whose every spawn point lies within the envelope's spawn clearance of the tool's
+    start cannot be placed: the env says so when it is made, not after seconds of sampling."""
+    near_tool = Scenario("near_tool", (ObstacleSpec("crossing"), ObstacleSpec("static", path_fraction=(0.0, 0.02))))
+    with pytest.raises(ValueError) as excinfo:
+        C3BFReachEnv(scenario=near_tool)
+    message = str(excinfo.value)
+    for part in ("'near_tool'", "obstacle 1", "static", "path_fraction", "spawn_clearance", "must be >="):
+        assert part in message, part
+    # a moving obstacle at rest (speed range 0) that meets the path at the tool: the same
+    at_rest = Scenario("at_rest", (ObstacleSpec("head_on", path_fraction=(0.0, 0.02)),))
+    with pytest.raises(ValueError, match=r"(?s)'at_rest'.*obstacle 0.*path_fraction"):
+        C3BFReachEnv(scenario=at_rest, obstacle_speed_range=(0.0, 0.0))
+    C3BFReachEnv(scenario=at_rest).close()  # with the default speeds it spawns far enough away
+
+
+def test_reset_fails_fast_when_a_spec_cannot_be_placed_from_this_start():
+    env = C3BFReachEnv(scenario="static")
+    try:
+        env.scenario = Scenario("stuck", (ObstacleSpec("static", path_fraction=(0.0, 0.01)),))  # set after the check
+        start = time.perf_counter()
+        with pytest.raises(RuntimeError) as excinfo:
+            env.reset(seed=0)
+        assert time.perf_counter() - start < 0.5
+        message = str(excinfo.value)
+        assert "could not place scenario 'stuck'" in message and "obstacle 0" in message
+        assert "path_fraction=(0.0, 0.01)" in message
+        with pytest.raises(gym.error.ResetNeeded):  # a failed reset places nothing to step from
+            env.step(np.zeros(6, np.float32))
+    finally:
+        env.close()
