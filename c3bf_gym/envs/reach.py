@@ -246,7 +246,8 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
         self._check_scenario(self.scenario)
         self._hooks: dict[str, TorqueHook] = {}
         #: Incremented whenever ``data`` moves to a new state (each physics step, reset,
-        #: respawn): consumers key their per-state caches on it.
+        #: respawn, a failed step's roll-back): consumers key their per-state caches on it. It
+        #: only grows, so a number once seen never stands for another state.
         self.state_version = 0
         self._arm = None
         self._hook_chain: tuple[TorqueHook, ...] = ()
