@@ -13,7 +13,10 @@ promise, checked at every spawn and respawn:
 * the path stays above ``min_height`` (no obstacle is sent through the floor).
 
 Sampling is rejection-based with a bounded number of attempts, driven only by the generator it is
-given, so a seed fixes the episode.
+given, so a seed fixes the episode. Every field is checked when its object is built (numbers are
+Python or numpy numbers, ranges exactly two of them; see :mod:`c3bf_gym.validation`), and
+:func:`max_spawn_distance` bounds where a spec can spawn, so that a spec the envelope can never
+place is refused before any sampling.
 """
 
 from __future__ import annotations
@@ -22,6 +25,8 @@ from dataclasses import dataclass
 from typing import Callable, Literal
 
 import numpy as np
+
+from c3bf_gym.validation import choice, number, number_range, sequence
 
 __all__ = [
     "MAX_OBSTACLES",
@@ -32,6 +37,7 @@ __all__ = [
     "ObstacleSample",
     "ObstacleSampler",
     "get_scenario",
+    "max_spawn_distance",
 ]
 
 #: Obstacle slots in the scene (``obstacle_0`` ... ``obstacle_7``) and in the observation.
@@ -41,16 +47,9 @@ ObstacleKind = Literal["static", "head_on", "crossing"]
 _KINDS = ("static", "head_on", "crossing")
 
 
-def _check_range(name: str, value: tuple[float, float], lower: float, allow_equal_lower: bool) -> tuple[float, float]:
-    lo, hi = (float(v) for v in value)
-    if not (np.isfinite(lo) and np.isfinite(hi)):
-        raise ValueError(f"{name} must be finite, got {value!r}")
-    if lo > hi:
-        raise ValueError(f"{name} must be (low, high) with low <= high, got {value!r}")
-    if lo < lower or (lo == lower and not allow_equal_lower):
-        bound = ">=" if allow_equal_lower else ">"
-        raise ValueError(f"{name} must be {bound} {lower}, got {value!r}")
-    return lo, hi
+#: :func:`max_spawn_distance` takes a lateral jitter draw (a 3-D normal vector) to be at most this
+#: many standard deviations long: a longer one has probability below 1e-13.
+JITTER_SIGMAS = 8.0
 
 
 @dataclass(frozen=True)
@@ -71,15 +70,20 @@ class Envelope:
     )
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "speed_range", _check_range("speed_range", self.speed_range, 0.0, True))
-        object.__setattr__(self, "radius_range", _check_range("radius_range", self.radius_range, 0.0, False))
+        set_field = object.__setattr__  # frozen: fields are stored in their canonical types
+        set_field(self, "speed_range", number_range("speed_range", self.speed_range, low=0.0, unit="m/s"))
+        set_field(self, "radius_range", number_range("radius_range", self.radius_range, low=0.0, low_open=True, unit="m"))
         for name in ("spawn_clearance", "keep_out_radius", "keep_out_height", "min_height", "horizon"):
-            value = getattr(self, name)
-            if not np.isfinite(value) or value < 0:
-                raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
-        low, high = (np.asarray(c, dtype=float) for c in self.workspace)
-        if low.shape != (3,) or high.shape != (3,) or not np.all(low < high):
-            raise ValueError(f"workspace must be ((xlo, ylo, zlo), (xhi, yhi, zhi)) with lo < hi, got {self.workspace!r}")
+            set_field(self, name, number(name, getattr(self, name), low=0.0, unit="s" if name == "horizon" else "m"))
+        form = "((xlo, ylo, zlo), (xhi, yhi, zhi)): two corners of three finite numbers with lo < hi [m]"
+        try:
+            corners = sequence("workspace", self.workspace, object, form)
+            low, high = (tuple(number("workspace", x) for x in sequence("workspace", c, object, form)) for c in corners)
+        except ValueError:
+            raise ValueError(f"workspace must be {form}, got {self.workspace!r}") from None
+        if len(low) != 3 or len(high) != 3 or not all(lo < hi for lo, hi in zip(low, high)):
+            raise ValueError(f"workspace must be {form}, got {self.workspace!r}")
+        set_field(self, "workspace", (low, high))
 
     def path_ok(self, start: np.ndarray, velocity: np.ndarray, radius: float) -> bool:
         """Whether the straight path from ``start`` over ``horizon`` s respects keep-out and floor."""
@@ -109,7 +113,10 @@ class ObstacleSpec:
     * ``head_on``: moves along the path, from beyond the goal towards the tool's start.
     * ``crossing``: crosses the path at ``crossing_angle`` (deg, from the path direction).
 
-    Moving obstacles reach the path point ``meet_time`` seconds after spawning.
+    Moving obstacles reach the path point ``meet_time`` seconds after spawning. Ranges are
+    ``(low, high)``: ``path_fraction`` >= 0 (and for a static obstacle reaching above 0: at 0 it
+    would sit on the tool's start, inside the arm), ``meet_time`` > 0 [s], ``crossing_angle`` > 0
+    [deg]; ``lateral_jitter`` >= 0 [m] is the standard deviation of a normal offset per axis.
     """
 
     kind: ObstacleKind
@@ -119,11 +126,20 @@ class ObstacleSpec:
     lateral_jitter: float = 0.02
 
     def __post_init__(self) -> None:
-        if self.kind not in _KINDS:
-            raise ValueError(f"unknown obstacle kind {self.kind!r}; valid choices: {', '.join(map(repr, _KINDS))}")
-        _check_range("path_fraction", self.path_fraction, 0.0, True)
-        _check_range("meet_time", self.meet_time, 0.0, False)
-        _check_range("crossing_angle", self.crossing_angle, 0.0, False)
+        set_field = object.__setattr__  # frozen: fields are stored in their canonical types
+        set_field(self, "kind", choice("obstacle kind", self.kind, _KINDS))
+        path_fraction = number_range("path_fraction", self.path_fraction, low=0.0)
+        if self.kind == "static" and path_fraction[1] == 0.0:
+            raise ValueError(
+                "path_fraction must be (low, high) with high > 0 for a static obstacle (at 0 it sits on the "
+                f"tool's start, inside the arm, and can never spawn clear of it), got {self.path_fraction!r}"
+            )
+        set_field(self, "path_fraction", path_fraction)
+        set_field(self, "meet_time", number_range("meet_time", self.meet_time, low=0.0, low_open=True, unit="s"))
+        set_field(
+            self, "crossing_angle", number_range("crossing_angle", self.crossing_angle, low=0.0, low_open=True, unit="deg")
+        )
+        set_field(self, "lateral_jitter", number("lateral_jitter", self.lateral_jitter, low=0.0, unit="m"))
 
 
 @dataclass(frozen=True)
@@ -135,12 +151,36 @@ class ObstacleSample:
 
 @dataclass(frozen=True)
 class Scenario:
-    """A named set of obstacles, or (``mixture``) a uniform choice among other scenarios."""
+    """A named set of obstacles, or (``mixture``) a uniform choice among other scenarios.
+
+    ``obstacles`` is a sequence of :class:`ObstacleSpec` and ``mixture`` of names of registered
+    (:data:`SCENARIOS`) scenarios that are not mixtures themselves; both are stored as tuples and a
+    scenario has one or the other, not both. Checked when built: ``ValueError`` names the field.
+    """
 
     name: str
     obstacles: tuple[ObstacleSpec, ...] = ()
     mixture: tuple[str, ...] = ()
     description: str = ""
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.name, str):
+            raise ValueError(f"Scenario name must be a string, got {self.name!r}")
+        if not isinstance(self.description, str):
+            raise ValueError(f"Scenario description must be a string, got {self.description!r}")
+        obstacles = sequence("obstacles", self.obstacles, ObstacleSpec, "ObstacleSpec instances (a tuple of them)")
+        mixture = sequence("mixture", self.mixture, str, "a tuple of scenario names")
+        if obstacles and mixture:
+            raise ValueError(
+                f"scenario {self.name!r} has both obstacles and a mixture; give one: a mixture draws one of its "
+                "scenarios per episode and would ignore the obstacles"
+            )
+        for name in mixture:
+            if get_scenario(name).mixture:
+                raise ValueError(f"scenario {self.name!r}: mixture component {name!r} is itself a mixture; "
+                                 "components must be scenarios with obstacles (or none)")
+        object.__setattr__(self, "obstacles", obstacles)
+        object.__setattr__(self, "mixture", mixture)
 
     def resolve(self, rng: np.random.Generator) -> Scenario:
         """The concrete scenario for one episode (itself, or one mixture component)."""
@@ -149,30 +189,45 @@ class Scenario:
         return get_scenario(self.mixture[int(rng.integers(len(self.mixture)))])
 
 
-SCENARIOS: dict[str, Scenario] = {
-    s.name: s
-    for s in (
-        Scenario("static", (ObstacleSpec("static"),), description="one obstacle at rest on the tool's path"),
-        Scenario("head_on", (ObstacleSpec("head_on"),), description="one obstacle coming down the path at the tool"),
-        Scenario("crossing", (ObstacleSpec("crossing"),), description="one obstacle crossing the path at an angle"),
-        Scenario(
-            "multi",
-            (ObstacleSpec("static"), ObstacleSpec("head_on"), ObstacleSpec("crossing"), ObstacleSpec("crossing")),
-            description="four obstacles at once: static, head-on and two crossing",
-        ),
-        Scenario("random", mixture=("static", "head_on", "crossing", "multi"), description="a uniform mixture of the four"),
-        Scenario("none", description="no obstacles (free reaching)"),
-    )
-}
+#: The registered scenarios by name (what ``get_scenario`` and mixtures look up), in this order.
+SCENARIOS: dict[str, Scenario] = {}
 
 
 def get_scenario(name: str) -> Scenario:
-    try:
-        return SCENARIOS[name]
-    except (KeyError, TypeError):
-        raise ValueError(
-            f"unknown scenario {name!r}; valid choices: {', '.join(map(repr, SCENARIOS))}"
-        ) from None
+    """The registered scenario ``name``; ``ValueError`` listing the valid names otherwise."""
+    return SCENARIOS[choice("scenario", name, SCENARIOS)]
+
+
+for _scenario in (
+    Scenario("static", (ObstacleSpec("static"),), description="one obstacle at rest on the tool's path"),
+    Scenario("head_on", (ObstacleSpec("head_on"),), description="one obstacle coming down the path at the tool"),
+    Scenario("crossing", (ObstacleSpec("crossing"),), description="one obstacle crossing the path at an angle"),
+    Scenario(
+        "multi",
+        (ObstacleSpec("static"), ObstacleSpec("head_on"), ObstacleSpec("crossing"), ObstacleSpec("crossing")),
+        description="four obstacles at once: static, head-on and two crossing",
+    ),
+):
+    SCENARIOS[_scenario.name] = _scenario
+# registered after its components, which building it looks up
+SCENARIOS["random"] = Scenario(
+    "random", mixture=("static", "head_on", "crossing", "multi"), description="a uniform mixture of the four"
+)
+SCENARIOS["none"] = Scenario("none", description="no obstacles (free reaching)")
+del _scenario
+
+
+def max_spawn_distance(spec: ObstacleSpec, envelope: Envelope, path_length: float) -> float:
+    """How far (m) from the path's start an obstacle of ``spec`` can spawn, for paths of length at
+    most ``path_length`` (m): its path point (``path_fraction``), plus the lateral jitter (taken as
+    :data:`JITTER_SIGMAS` standard deviations), plus, when it moves, the distance it covers at the
+    envelope's top speed in the longest ``meet_time``. :class:`ObstacleSampler` never draws a
+    position farther away, so a spec needing more room than this can never be placed.
+    """
+    reach = spec.path_fraction[1] * path_length + JITTER_SIGMAS * spec.lateral_jitter
+    if spec.kind != "static":
+        reach += envelope.speed_range[1] * spec.meet_time[1]
+    return reach
 
 
 @dataclass

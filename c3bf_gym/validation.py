@@ -8,7 +8,8 @@ valid form. The rules:
   rejected, never read as 0/1 or parsed;
 * booleans must be ``bool`` or ``numpy.bool_``; ``"false"`` is not False;
 * ranges are exactly two numbers ``(low, high)`` with ``low <= high``;
-* choices are compared by equality and the error lists every valid choice.
+* choices are compared by equality and the error lists every valid choice;
+* sequences are any iterable but a string, of items of one type, stored as a tuple.
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["boolean", "choice", "integer", "number", "number_range"]
+__all__ = ["boolean", "choice", "integer", "number", "number_range", "sequence"]
 
 
 def _is_number(value: Any) -> bool:
@@ -101,3 +102,15 @@ def choice(name: str, value: Any, choices: Iterable[Any]) -> Any:
         if value is option or (isinstance(value, str) and isinstance(option, str) and value == option):
             return option
     raise ValueError(f"unknown {name} {value!r}; valid choices: {', '.join(map(repr, options))}")
+
+
+def sequence(name: str, value: Any, item_type: type | tuple[type, ...], form: str) -> tuple[Any, ...]:
+    """``value`` as a tuple whose items are all ``item_type`` instances (a list or any iterable but
+    a string); ``form`` describes it in the error, e.g. ``"a tuple of ObstacleSpec"``."""
+    if isinstance(value, (str, bytes)) or not isinstance(value, Iterable):
+        raise ValueError(f"{name} must be {form}, got {value!r}")
+    items = tuple(value)
+    for item in items:
+        if not isinstance(item, item_type):
+            raise ValueError(f"{name} must be {form}, got {value!r} (an item is {item!r})")
+    return items

@@ -12,6 +12,7 @@ from __future__ import annotations
 import inspect
 import os
 import pickle
+import time
 import warnings
 from functools import partial
 from importlib import resources
@@ -523,11 +524,11 @@ def test_unknown_scenario_lists_valid_choices():
 @pytest.mark.parametrize(
     "kwargs, message",
     [
-        ({"obstacle_radius_range": (0.0, 0.05)}, "obstacle_radius_range must be > 0"),
-        ({"obstacle_radius_range": (-0.01, 0.05)}, "obstacle_radius_range must be > 0"),
+        ({"obstacle_radius_range": (0.0, 0.05)}, r"obstacle_radius_range must be .*both > 0"),
+        ({"obstacle_radius_range": (-0.01, 0.05)}, r"obstacle_radius_range must be .*both > 0"),
         ({"obstacle_radius_range": (0.08, 0.04)}, "low <= high"),
         ({"obstacle_radius_range": (0.04, np.nan)}, "finite"),
-        ({"obstacle_speed_range": (-0.1, 0.2)}, "obstacle_speed_range must be >= 0"),
+        ({"obstacle_speed_range": (-0.1, 0.2)}, r"obstacle_speed_range must be .*both >= 0"),
         ({"obstacle_speed_range": (0.4, 0.1)}, "low <= high"),
         ({"obstacle_speed_range": (0.1, np.inf)}, "finite"),
         ({"frame_skip": 0}, "frame_skip"),
@@ -542,11 +543,61 @@ def test_unknown_scenario_lists_valid_choices():
         ({"effort_weight": -1.0}, "effort_weight"),
         ({"progress_weight": np.nan}, "progress_weight"),
         ({"distance_weight": -1.0}, "distance_weight"),
+        # bools and strings are not numbers, and only bools are booleans
+        ({"sensing_radius": True}, r"sensing_radius must be a finite number > 0 \[m\], got True"),
+        ({"success_tolerance": "0.05"}, r"success_tolerance must be a finite number > 0 \[m\], got '0.05'"),
+        ({"effort_weight": True}, r"effort_weight must be a finite number >= 0, got True"),
+        ({"obstacle_radius_range": (True, 0.08)}, r"obstacle_radius_range must be \(low, high\)"),
+        ({"gravity_compensation": "false"}, r"gravity_compensation must be True or False, got 'false'"),
+        ({"terminate_on_collision": "false"}, r"terminate_on_collision must be True or False, got 'false'"),
+        ({"terminate_on_collision": 1}, r"terminate_on_collision must be True or False, got 1"),
+        # ranges: exactly two numbers, and the message names the argument, the value and the form
+        (
+            {"obstacle_speed_range": (0.1, 0.2, 0.3)},
+            r"obstacle_speed_range must be \(low, high\): two finite numbers with low <= high, both >= 0 "
+            r"\[m/s\], got \(0.1, 0.2, 0.3\)",
+        ),
+        ({"obstacle_speed_range": 0.3}, r"obstacle_speed_range must be \(low, high\).*got 0.3"),
+        ({"obstacle_radius_range": (0.05,)}, r"obstacle_radius_range must be \(low, high\).*both > 0 \[m\], got \(0.05,\)"),
+        ({"obstacle_radius_range": "0.04, 0.08"}, r"obstacle_radius_range must be \(low, high\)"),
+        ({"scenario": 3}, r"unknown scenario 3; valid choices: 'static', 'head_on', 'crossing', 'multi', 'random', 'none'"),
+        ({"width": 0}, r"width must be an integer >= 1"),
+        ({"height": 240.0}, r"height must be an integer >= 1"),
     ],
 )
 def test_bad_constructor_arguments_rejected(kwargs, message):
     with pytest.raises(ValueError, match=message):
         C3BFReachEnv(**kwargs)
+
+
+def test_numpy_scalars_are_accepted_wherever_a_number_is():
+    env = C3BFReachEnv(
+        scenario="none",
+        frame_skip=np.int64(5),
+        gravity_compensation=np.bool_(True),
+        sensing_radius=np.float32(0.5),
+        terminate_on_collision=np.bool_(False),
+        success_tolerance=np.float32(0.05),
+        obstacle_speed_range=(np.float32(0.1), np.float64(0.3)),
+        obstacle_radius_range=np.array([0.04, 0.06], np.float32),
+        progress_weight=np.float32(50.0),
+        success_bonus=np.int32(2),
+        effort_weight=np.float16(0.05),
+        distance_weight=np.float32(0.5),
+        width=np.int64(64),
+        height=np.int32(48),
+    )
+    try:
+        assert env.frame_skip == 5 and type(env.frame_skip) is int
+        assert env.sensing_radius == np.float32(0.5) and type(env.sensing_radius) is float
+        assert env.gravity_compensation is True and env.terminate_on_collision is False
+        assert env.envelope.speed_range == (float(np.float32(0.1)), 0.3)
+        assert env.envelope.radius_range == (float(np.float32(0.04)), float(np.float32(0.06)))
+        assert all(type(w) is float for w in env._weights) and env._weights[1] == 2.0
+        env.reset(seed=0)
+        env.step(np.zeros(6, np.float32))
+    finally:
+        env.close()
 
 
 def test_scenario_with_too_many_obstacles_rejected():
@@ -692,3 +743,192 @@ def test_gravity_compensation(make_env, compensated):
         assert drift.max() < 1e-3
     else:
         assert drift[1] > 0.05, f"shoulder (joint 2) should sag without compensation, moved {drift[1]:.4f} rad"
+
+
+# ----------------------------------------------------------------------------- 13. step order and errors
+
+
+def test_bare_env_refuses_to_step_before_reset():
+    env = C3BFReachEnv(scenario="none")
+    try:
+        with pytest.raises(gym.error.ResetNeeded, match=r"reset\(\)"):
+            env.step(np.zeros(6, np.float32))
+        assert env.data.time == 0.0 and env.state_version == 0  # nothing ran
+        env.reset(seed=0)
+        env.step(np.zeros(6, np.float32))  # and after reset it steps
+    finally:
+        env.close()
+
+
+class RaisingHook:
+    """A torque hook that returns its input unchanged, except that call ``fail_at`` (1-based,
+    counting physics substeps) raises ``error``; every other call passes."""
+
+    def __init__(self, fail_at: int | None = None, error: BaseException | None = None) -> None:
+        self.calls = 0
+        self.fail_at = fail_at
+        self.error = error
+
+    def __call__(self, tau: np.ndarray) -> np.ndarray:
+        self.calls += 1
+        if self.calls == self.fail_at:
+            raise self.error
+        return tau
+
+
+def full_state(env) -> dict[str, np.ndarray]:
+    """Everything a step reads or writes: MuJoCo's state and derived quantities, the obstacles'
+    bookkeeping and the generator respawns draw from."""
+    u = env.unwrapped
+    d, m = u.data, u.model
+    geoms = u.obstacle_geom_ids
+    return {
+        **state_snapshot(env),
+        "qacc_warmstart": d.qacc_warmstart.copy(),
+        "sensordata": d.sensordata.copy(),
+        "site_xpos": d.site_xpos.copy(),
+        "geom_xpos": d.geom_xpos.copy(),
+        "qfrc_bias": d.qfrc_bias.copy(),
+        "obstacle_acc": u.obstacle_acc.copy(),
+        "obstacle_radius": u.obstacle_radius.copy(),
+        "obstacle_active": u.obstacle_active.copy(),
+        "geom_size": m.geom_size[geoms].copy(),
+        "geom_rbound": m.geom_rbound[geoms].copy(),
+        "specs": np.array([repr(s) for s in u._obstacle_specs]),
+        "scalars": np.array([u._goal_distance, u._episode_cost]),
+        "rng": np.array(repr(u.np_random.bit_generator.state)),
+    }
+
+
+def assert_same_state(a: dict, b: dict) -> None:
+    assert a.keys() == b.keys()
+    for key in a:
+        assert a[key].tobytes() == b[key].tobytes(), key
+
+
+def assert_same_rest_of_episode(env, twin, actions) -> int:
+    """Step both through ``actions`` (until the episode ends); every output bit-identical."""
+    n = 0
+    for action in actions:
+        out, twin_out = env.step(action), twin.step(action)
+        assert out[0].tobytes() == twin_out[0].tobytes(), n
+        assert out[1:] == twin_out[1:], n  # reward, flags, and exact equality of every info entry
+        n += 1
+        if out[2] or out[3]:
+            break
+    return n
+
+
+# fast obstacles leave the workspace and respawn (drawing from np_random) within the episode
+FAST_MULTI = {"scenario": "multi", "obstacle_speed_range": (0.6, 1.0)}
+
+
+def test_error_in_a_hook_mid_step_leaves_the_env_as_before_the_call(make_env):
+    """A hook raising at the 4th physics substep of step k: the env is as before step k, and the
+    rest of the episode (step k retried) matches a twin whose hook never raised."""
+    from c3bf_gym import SafetyInfeasibleError
+
+    env, twin = make_env(**FAST_MULTI), make_env(**FAST_MULTI)
+    frame_skip, k = env.unwrapped.frame_skip, 30
+    error = SafetyInfeasibleError("no torque within the limits satisfies the safety rows (test)")
+    env.unwrapped.add_torque_hook(RaisingHook((k - 1) * frame_skip + 4, error), "filter")
+    twin.unwrapped.add_torque_hook(RaisingHook(), "filter")
+    actions = np.random.default_rng(8).uniform(-1, 1, size=(250, 6)).astype(np.float32)
+    env.reset(seed=8)
+    twin.reset(seed=8)
+    assert assert_same_rest_of_episode(env, twin, actions[: k - 1]) == k - 1
+    before, version = full_state(env), env.unwrapped.state_version
+    with pytest.raises(SafetyInfeasibleError) as excinfo:
+        env.step(actions[k - 1])
+    assert excinfo.value is error  # the very exception, unchanged
+    after = full_state(env)
+    assert_same_state(after, before)
+    assert_same_state(after, full_state(twin))
+    # a new version number: nothing keyed on a version seen before (or during) the call is current
+    assert env.unwrapped.state_version > version + 3
+    assert assert_same_rest_of_episode(env, twin, actions[k - 1 :]) == 250 - (k - 1)
+
+
+def test_error_after_a_respawn_restores_obstacles_and_the_generator(make_env):
+    """An error late in a step that respawned an obstacle (new draws, new radius in the model)
+    rolls all of that back; the episode then goes on like a twin's."""
+    env, twin = make_env(**FAST_MULTI), make_env(**FAST_MULTI)
+    u = env.unwrapped
+    respawn = u._respawn_departed
+    failures = []
+
+    def respawn_then_fail() -> None:
+        state = repr(u.np_random.bit_generator.state)
+        respawn()
+        if not failures and repr(u.np_random.bit_generator.state) != state:  # it drew: a respawn
+            failures.append(KeyboardInterrupt())
+            raise failures[0]
+
+    u._respawn_departed = respawn_then_fail
+    actions = np.random.default_rng(3).uniform(-1, 1, size=(250, 6)).astype(np.float32)
+    env.reset(seed=3)
+    twin.reset(seed=3)
+    for i, action in enumerate(actions):
+        before = full_state(env)
+        try:
+            env.step(action)
+        except KeyboardInterrupt as exc:
+            assert exc is failures[0]
+            break
+        twin_out = twin.step(action)
+    else:
+        pytest.fail("no obstacle respawned in the episode: the test did not exercise a respawn")
+    assert_same_state(full_state(env), before)
+    assert_same_state(full_state(env), full_state(twin))
+    assert assert_same_rest_of_episode(env, twin, actions[i:]) == 250 - i
+    del twin_out
+
+
+def test_error_message_and_type_come_through_unchanged(make_env):
+    class Custom(Exception):
+        pass
+
+    env = make_env(scenario="static")
+    env.unwrapped.add_torque_hook(RaisingHook(2, Custom("exact message, 42 N m")), "nominal")
+    env.reset(seed=0)
+    with pytest.raises(Custom) as excinfo:
+        env.step(np.zeros(6, np.float32))
+    assert type(excinfo.value) is Custom and str(excinfo.value) == "exact message, 42 N m"
+    assert excinfo.value.__cause__ is None and excinfo.value.__context__ is None
+    assert env.unwrapped.data.time == 0.0
+
+
+# ----------------------------------------------------------------------------- 14. scenarios that cannot be placed
+
+
+def test_scenario_the_envelope_can_never_place_is_rejected_at_construction():
+    """An obstacle whose every spawn point lies within the envelope's spawn clearance of the tool's
+    start cannot be placed: the env says so when it is made, not after seconds of sampling."""
+    near_tool = Scenario("near_tool", (ObstacleSpec("crossing"), ObstacleSpec("static", path_fraction=(0.0, 0.02))))
+    with pytest.raises(ValueError) as excinfo:
+        C3BFReachEnv(scenario=near_tool)
+    message = str(excinfo.value)
+    for part in ("'near_tool'", "obstacle 1", "static", "path_fraction", "spawn_clearance", "must be >="):
+        assert part in message, part
+    # a moving obstacle at rest (speed range 0) that meets the path at the tool: the same
+    at_rest = Scenario("at_rest", (ObstacleSpec("head_on", path_fraction=(0.0, 0.02)),))
+    with pytest.raises(ValueError, match=r"(?s)'at_rest'.*obstacle 0.*path_fraction"):
+        C3BFReachEnv(scenario=at_rest, obstacle_speed_range=(0.0, 0.0))
+    C3BFReachEnv(scenario=at_rest).close()  # with the default speeds it spawns far enough away
+
+
+def test_reset_fails_fast_when_a_spec_cannot_be_placed_from_this_start():
+    env = C3BFReachEnv(scenario="static")
+    try:
+        env.scenario = Scenario("stuck", (ObstacleSpec("static", path_fraction=(0.0, 0.01)),))  # set after the check
+        start = time.perf_counter()
+        with pytest.raises(RuntimeError) as excinfo:
+            env.reset(seed=0)
+        assert time.perf_counter() - start < 0.5
+        message = str(excinfo.value)
+        assert "could not place scenario 'stuck'" in message and "obstacle 0" in message
+        assert "path_fraction=(0.0, 0.01)" in message
+        with pytest.raises(gym.error.ResetNeeded):  # a failed reset places nothing to step from
+            env.step(np.zeros(6, np.float32))
+    finally:
+        env.close()

@@ -284,6 +284,66 @@ def test_envelope_validation(kwargs, message):
         Envelope(**kwargs)
 
 
+@pytest.mark.parametrize(
+    "make, message",
+    [
+        (lambda: Envelope(speed_range=(0.1, 0.2, 0.3)), r"speed_range must be \(low, high\).*got \(0.1, 0.2, 0.3\)"),
+        (lambda: Envelope(radius_range=0.05), r"radius_range must be \(low, high\).*both > 0 \[m\], got 0.05"),
+        (lambda: Envelope(spawn_clearance="0.2"), r"spawn_clearance must be a finite number >= 0 \[m\], got '0.2'"),
+        (lambda: Envelope(horizon=True), r"horizon must be a finite number >= 0 \[s\], got True"),
+        (lambda: Envelope(workspace="big"), r"workspace must be \(\(xlo, ylo, zlo\), \(xhi, yhi, zhi\)\)"),
+        (lambda: ObstacleSpec("static", path_fraction=(0.1, 0.2, 0.3)), r"path_fraction must be \(low, high\)"),
+        (lambda: ObstacleSpec("head_on", meet_time=(1.0,)), r"meet_time must be \(low, high\).*both > 0 \[s\]"),
+        (lambda: ObstacleSpec("crossing", crossing_angle="60"), r"crossing_angle must be \(low, high\).*got '60'"),
+        (lambda: ObstacleSpec("static", lateral_jitter=-0.01), r"lateral_jitter must be a finite number >= 0 \[m\]"),
+        (lambda: ObstacleSpec("static", lateral_jitter="0.02"), r"lateral_jitter must be a finite number"),
+        (lambda: ObstacleSpec(3), r"unknown obstacle kind 3; valid choices: 'static', 'head_on', 'crossing'"),
+        # a static obstacle at the tool's start sits inside the arm, whatever the envelope
+        (lambda: ObstacleSpec("static", path_fraction=(0, 0)), r"path_fraction.*high > 0.*got \(0, 0\)"),
+    ],
+)
+def test_envelope_and_spec_fields_name_field_value_and_form(make, message):
+    with pytest.raises(ValueError, match=message):
+        make()
+
+
+def test_numpy_numbers_are_numbers_in_envelope_and_spec():
+    envelope = Envelope(speed_range=(np.float32(0.1), np.int64(1)), spawn_clearance=np.float32(0.1))
+    assert envelope.speed_range == (float(np.float32(0.1)), 1.0) and type(envelope.spawn_clearance) is float
+    spec = ObstacleSpec("crossing", path_fraction=np.array([0.3, 0.6]), lateral_jitter=np.float32(0.01))
+    assert spec.path_fraction == (0.3, 0.6) and type(spec.lateral_jitter) is float
+    assert spec == ObstacleSpec("crossing", path_fraction=(0.3, 0.6), lateral_jitter=float(np.float32(0.01)))
+    hash(spec)
+
+
+@pytest.mark.parametrize(
+    "make, message",
+    [
+        # obstacles and a mixture: the obstacles used to be ignored without a word
+        (
+            lambda: Scenario("both", (ObstacleSpec("static"),), mixture=("static", "head_on")),
+            r"scenario 'both' has both obstacles and a mixture",
+        ),
+        (lambda: Scenario("typo", mixture=("static", "head-on")), r"unknown scenario 'head-on'; valid choices: 'static'"),
+        (lambda: Scenario("nested", mixture=("static", "random")), r"'random' is itself a mixture"),
+        (lambda: Scenario("bad", (ObstacleSpec("static"), "crossing")), r"obstacles must be ObstacleSpec.*'crossing'"),
+        (lambda: Scenario("bad", ObstacleSpec("static")), r"obstacles must be ObstacleSpec"),
+        (lambda: Scenario("bad", mixture="static"), r"mixture must be a tuple of scenario names"),
+        (lambda: Scenario(3), r"name must be a string"),
+    ],
+)
+def test_scenario_is_validated_when_built(make, message):
+    with pytest.raises(ValueError, match=message):
+        make()
+
+
+def test_scenario_accepts_lists_and_stores_tuples():
+    scenario = Scenario("listed", [ObstacleSpec("static"), ObstacleSpec("crossing")])
+    assert scenario.obstacles == (ObstacleSpec("static"), ObstacleSpec("crossing"))
+    assert Scenario("mix", mixture=["static", "multi"]).mixture == ("static", "multi")
+    hash(scenario)
+
+
 def test_obstacle_spec_and_scenario_validation():
     with pytest.raises(ValueError, match=r"valid choices: 'static', 'head_on', 'crossing'"):
         ObstacleSpec("orbiting")

@@ -7,7 +7,7 @@ from typing import Any, Callable, Literal
 
 import mujoco
 import numpy as np
-from gymnasium import spaces, utils
+from gymnasium import error, spaces, utils
 from gymnasium.envs.mujoco.mujoco_env import MujocoEnv
 
 from c3bf_gym.robot import ArmModel, segment_closest_points
@@ -15,9 +15,12 @@ from c3bf_gym.scenarios import (
     MAX_OBSTACLES,
     Envelope,
     ObstacleSampler,
+    ObstacleSpec,
     Scenario,
     get_scenario,
+    max_spawn_distance,
 )
+from c3bf_gym.validation import boolean, choice, integer, number, number_range
 
 __all__ = ["C3BFReachEnv", "DISTANCE_CUTOFF", "HOOK_STAGES", "OBSERVATION_LAYOUT", "OBSERVATION_SLICES", "TorqueHook"]
 
@@ -58,8 +61,15 @@ DISTANCE_CUTOFF = 3.0
 #: Goal region (m): an axis-aligned box in front of the robot.
 _GOAL_LOW = np.array([0.3, -0.4, 0.15])
 _GOAL_HIGH = np.array([0.65, 0.4, 0.6])
+#: The goal box's eight corners (the farthest goal from any start is one of them).
+_GOAL_CORNERS = np.array([[hi if bit else lo for lo, hi, bit in zip(_GOAL_LOW, _GOAL_HIGH, bits)]
+                          for bits in np.ndindex(2, 2, 2)])
 _GOAL_MIN_TRAVEL = 0.3  # m, minimum start-to-goal distance
 _HOME_NOISE = 0.05  # rad, uniform joint noise around the home keyframe at reset
+#: What ``step`` saves to undo itself: every part of MuJoCo's state that integration reads
+#: (time, qpos, qvel, act, history, warmstart, ctrl, applied forces, eq_active, mocap poses,
+#: userdata, plugin and plastic state), so that restoring it continues bit-identically.
+_STEP_STATE = mujoco.mjtState.mjSTATE_INTEGRATION
 
 
 def _asset(name: str) -> str:
@@ -131,7 +141,22 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
 
     ## Episode End
     Truncation after ``max_episode_steps`` (250 steps, 5 s, set at registration). Termination only
-    on collision and only with ``terminate_on_collision=True``.
+    on collision and only with ``terminate_on_collision=True``. ``step`` before the first
+    ``reset`` (or after a ``reset`` that raised) raises ``gymnasium.error.ResetNeeded``, also on
+    the bare class (``gym.make`` adds Gymnasium's ``OrderEnforcing`` on top).
+
+    ## Errors during a step
+    A ``step`` that raises (a torque hook mid-step, e.g. the safety filter's
+    ``SafetyInfeasibleError`` with ``on_infeasible="raise"``, an interrupt, a renderer error)
+    leaves the environment as it was before the call, then re-raises the same exception
+    unchanged: MuJoCo's integration state (``mjSTATE_INTEGRATION``: time, joints, obstacle
+    positions, warm start, ...) with its derived quantities recomputed, the obstacles' velocity,
+    radius, activity and spec, their geom sizes in the model, the episode's reward and cost
+    bookkeeping, and ``np_random`` (respawns draw from it). Stepping on then continues exactly as
+    if the failed call had never been made. ``state_version`` is the exception: it moves on to a
+    number never used before, so no cache keyed on a version seen before or during the failed
+    call takes itself for current. Hooks' own state (a filter's counters and warm start) is
+    theirs to manage.
 
     ## Scenarios
     ``static``, ``head_on``, ``crossing``, ``multi`` (the paper's four), ``random`` (uniform mixture
@@ -147,7 +172,11 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
     ``terminate_on_collision``, ``success_tolerance`` (m), ``obstacle_speed_range`` (m/s),
     ``obstacle_radius_range`` (m), ``progress_weight``, ``success_bonus``, ``effort_weight``,
     ``distance_weight``, ``render_mode`` (``human``, ``rgb_array``, ``depth_array``), ``width``, ``height``,
-    ``camera_name``.
+    ``camera_name``. Numbers may be Python or numpy numbers (not bools or strings), the two flags
+    must be bools, ranges exactly ``(low, high)``; anything else raises ``ValueError`` naming the
+    argument, the value and the valid form. A scenario with an obstacle the envelope can never
+    place (every point it could spawn at lies within ``spawn_clearance`` plus its radius of the
+    tool's start) is refused here too, naming the obstacle and the ``path_fraction`` it needs.
     """
 
     metadata = {"render_modes": ["human", "rgb_array", "depth_array"], "render_fps": 50}
@@ -177,47 +206,36 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
             success_bonus, effort_weight, distance_weight, render_mode, width, height, camera_name,
         )  # fmt: skip
         self.scenario = scenario if isinstance(scenario, Scenario) else get_scenario(scenario)
-        self._check_scenario(self.scenario)
         #: The concrete scenario of the current episode: ``scenario`` itself, or the mixture
         #: component ``reset`` drew (``random`` draws one of the paper's four per episode).
         self.episode_scenario: Scenario = self.scenario
-        if isinstance(frame_skip, bool) or not isinstance(frame_skip, (int, np.integer)) or frame_skip < 1:
-            raise ValueError(f"frame_skip must be an integer >= 1, got {frame_skip!r}")
-        for name, value, low in (
-            ("sensing_radius", sensing_radius, 0.0),
-            ("success_tolerance", success_tolerance, 0.0),
-        ):
-            if not (isinstance(value, (int, float)) and value > low):
-                raise ValueError(f"{name} must be a number > {low}, got {value!r}")
-        for name, value in (
-            ("progress_weight", progress_weight),
-            ("success_bonus", success_bonus),
-            ("effort_weight", effort_weight),
-            ("distance_weight", distance_weight),
-        ):
-            if not (isinstance(value, (int, float)) and np.isfinite(value) and value >= 0):
-                raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
-        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
-            raise ValueError(
-                f"unknown render_mode {render_mode!r}; valid choices: None, "
-                + ", ".join(map(repr, self.metadata["render_modes"]))
+        frame_skip = integer("frame_skip", frame_skip, low=1)
+        self.gravity_compensation = boolean("gravity_compensation", gravity_compensation)
+        self.sensing_radius = number("sensing_radius", sensing_radius, low=0.0, low_open=True, unit="m")
+        self.terminate_on_collision = boolean("terminate_on_collision", terminate_on_collision)
+        self.success_tolerance = number("success_tolerance", success_tolerance, low=0.0, low_open=True, unit="m")
+        self.envelope = Envelope(
+            speed_range=number_range("obstacle_speed_range", obstacle_speed_range, low=0.0, unit="m/s"),
+            radius_range=number_range("obstacle_radius_range", obstacle_radius_range, low=0.0, low_open=True, unit="m"),
+        )
+        self._weights = tuple(
+            number(name, value, low=0.0)
+            for name, value in (
+                ("progress_weight", progress_weight),
+                ("success_bonus", success_bonus),
+                ("effort_weight", effort_weight),
+                ("distance_weight", distance_weight),
             )
-        try:
-            self.envelope = Envelope(speed_range=obstacle_speed_range, radius_range=obstacle_radius_range)
-        except ValueError as error:  # name the keyword the caller used
-            raise ValueError(f"obstacle_{error}") from None
-        self.sensing_radius = float(sensing_radius)
-        self.terminate_on_collision = bool(terminate_on_collision)
-        self.success_tolerance = float(success_tolerance)
-        self.gravity_compensation = bool(gravity_compensation)
-        self._weights = (float(progress_weight), float(success_bonus), float(effort_weight), float(distance_weight))
+        )
+        render_mode = choice("render_mode", render_mode, (None, *self.metadata["render_modes"]))
+        width, height = integer("width", width, low=1), integer("height", height, low=1)
 
         self.metadata = {**self.metadata, "render_fps": int(round(1.0 / (0.002 * frame_skip)))}
         observation_space = spaces.Box(-np.inf, np.inf, shape=(_OBS_SIZE,), dtype=np.float32)
         MujocoEnv.__init__(
             self,
             _asset("scene.xml"),
-            int(frame_skip),
+            frame_skip,
             observation_space=observation_space,
             render_mode=render_mode,
             width=width,
@@ -225,9 +243,11 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
             camera_name=camera_name,
         )
         self._setup_model()
+        self._check_scenario(self.scenario)
         self._hooks: dict[str, TorqueHook] = {}
         #: Incremented whenever ``data`` moves to a new state (each physics step, reset,
-        #: respawn): consumers key their per-state caches on it.
+        #: respawn, a failed step's roll-back): consumers key their per-state caches on it. It
+        #: only grows, so a number once seen never stands for another state.
         self.state_version = 0
         self._arm = None
         self._hook_chain: tuple[TorqueHook, ...] = ()
@@ -235,6 +255,21 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
         self._workspace = tuple(np.asarray(c, dtype=float) for c in self.envelope.workspace)
         self._goal_distance = 0.0
         self._episode_cost = 0.0
+        self._needs_reset = True
+        # step's undo record: MuJoCo's state, saved at every step, and the obstacles' bookkeeping,
+        # saved only when a step is about to respawn (see _save_obstacles)
+        self._saved_state = np.empty(mujoco.mj_stateSize(self.model, _STEP_STATE))
+        self._saved_obstacles = (
+            np.empty_like(self.obstacle_vel),
+            np.empty_like(self.obstacle_acc),
+            np.empty_like(self.obstacle_radius),
+            np.empty_like(self.obstacle_active),
+            self.model.geom_size[self.obstacle_geom_ids].copy(),
+            self.model.geom_rbound[self.obstacle_geom_ids].copy(),
+        )
+        self._saved_specs: list = []
+        self._saved_rng: dict | None = None
+        self._obstacles_saved = False
 
     # ------------------------------------------------------------------ model and spaces
     def _setup_model(self) -> None:
@@ -277,6 +312,7 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
             self._obs[parts["obstacle_sensed"]],
         )
         self._tool_vel = np.zeros(6)
+        self._setup_reach_bounds()
 
     def _initialize_simulation(self) -> tuple[mujoco.MjModel, mujoco.MjData]:
         """Compile scene.xml plus one distance sensor per (obstacle, arm geom) pair."""
@@ -302,15 +338,58 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
         self.action_space = spaces.Box(-1.0, 1.0, shape=(self.model.nu,), dtype=np.float32)
         return self.action_space
 
-    @staticmethod
-    def _check_scenario(scenario: Scenario) -> None:
+    def _check_scenario(self, scenario: Scenario) -> None:
+        """Refuse a scenario the scene cannot hold or the envelope can never place (``ValueError``)."""
         if len(scenario.obstacles) > MAX_OBSTACLES:
             raise ValueError(
                 f"scenario {scenario.name!r} has {len(scenario.obstacles)} obstacles; "
                 f"the scene and the observation hold at most {MAX_OBSTACLES}"
             )
-        for name in scenario.mixture:
-            get_scenario(name)
+        for component in [get_scenario(name) for name in scenario.mixture] or [scenario]:
+            for index, spec in enumerate(component.obstacles):
+                reason = self._unplaceable(spec, self._longest_path)
+                if reason is not None:
+                    raise ValueError(f"scenario {component.name!r}, obstacle {index} ({spec!r}) can never be placed: {reason}")
+
+    def _setup_reach_bounds(self) -> None:
+        """What ``_unplaceable`` needs: how deep ``ee_site`` lies in the arm geoms of its own body
+        (signed, m), and the longest start-to-goal path any reset can draw (m).
+
+        The start is the tool at the home keyframe moved by the reset noise: turning each joint by
+        at most ``theta`` moves the tool by at most ``theta (R + n delta)`` for lever arms ``R``
+        summed over the ``n`` joints (anchor to tool, at home), so ``delta <= theta R / (1 - n theta)``.
+        """
+        m = self.model
+        home = mujoco.MjData(m)
+        mujoco.mj_resetDataKeyframe(m, home, 0)
+        mujoco.mj_forward(m, home)
+        tool = home.site_xpos[self.ee_site_id].copy()
+        rigid = self.arm_geom_ids[m.geom_bodyid[self.arm_geom_ids] == m.site_bodyid[self.ee_site_id]]
+        self._tool_depth = -self._surface_gaps(home, rigid, tool, 0.0).min()
+        levers = np.linalg.norm(home.xanchor[: m.njnt] - tool, axis=1).sum()
+        noise = _HOME_NOISE * levers / (1.0 - m.njnt * _HOME_NOISE)
+        self._longest_path = float(np.linalg.norm(_GOAL_CORNERS - tool, axis=1).max()) + noise
+
+    def _unplaceable(self, spec: ObstacleSpec, path_length: float) -> str | None:
+        """Why no obstacle of ``spec`` fits for paths up to ``path_length`` m, or None if one may.
+
+        ``ee_site`` (the path's start) lies ``_tool_depth`` deep in the arm, so a centre closer
+        than ``spawn_clearance + radius + _tool_depth`` to it is too close to the arm; the sampler
+        never spawns farther than :func:`~c3bf_gym.scenarios.max_spawn_distance`.
+        """
+        envelope = self.envelope
+        needed = envelope.spawn_clearance + envelope.radius_range[0] + self._tool_depth
+        reach = max_spawn_distance(spec, envelope, path_length)
+        if reach >= needed:
+            return None
+        fraction = spec.path_fraction[1] + (needed - reach) / path_length
+        return (
+            f"it spawns at most {reach:.3g} m from the tool's start (paths up to {path_length:.3g} m), but every "
+            f"obstacle spawns at least spawn_clearance {envelope.spawn_clearance:g} m + its radius "
+            f"(>= {envelope.radius_range[0]:g} m) from the arm, and the start lies {self._tool_depth:.3g} m inside "
+            f"the tool: {needed:.3g} m from the start; path_fraction's high end must be >= {fraction:.3g}"
+            + (" (or meet_time's, or the speed range's, larger)" if spec.kind != "static" else "")
+        )
 
     @property
     def goal(self) -> np.ndarray:
@@ -345,7 +424,31 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
 
     # ------------------------------------------------------------------ gym API
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        """Apply ``action`` (6,) for ``frame_skip`` physics steps; Gymnasium's 5-tuple.
+
+        Raises ``gymnasium.error.ResetNeeded`` before the first ``reset`` and ``ValueError`` for
+        an invalid action (both before anything changes). Whatever raises during the step (a
+        torque hook, a respawn, rendering) leaves the environment as it was before the call,
+        except for a fresh ``state_version``, and propagates unchanged (the class docstring's
+        "Errors during a step" lists what is restored).
+        """
+        if self._needs_reset:
+            raise error.ResetNeeded(
+                "C3BFReachEnv.step() was called before reset(): call reset() first (after a reset that "
+                "raised, too)"
+            )
         torque = self._validate_action(action) * self.torque_limit
+        mujoco.mj_getState(self.model, self.data, self._saved_state, _STEP_STATE)
+        self._obstacles_saved = False
+        goal_distance, episode_cost = self._goal_distance, self._episode_cost
+        try:
+            return self._step(torque)
+        except BaseException:
+            self._goal_distance, self._episode_cost = goal_distance, episode_cost
+            self._restore()
+            raise
+
+    def _step(self, torque: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         min_distance, effort = self._simulate(torque)
         self._respawn_departed()
 
@@ -376,6 +479,44 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
             self.render()
         terminated = self.terminate_on_collision and cost > 0.0
         return self._get_obs(), reward, terminated, False, info
+
+    def _save_obstacles(self) -> None:
+        """Save what a respawn changes besides MuJoCo's state (once per step, before the first)."""
+        if self._obstacles_saved:
+            return
+        vel, acc, radius, active, size, rbound = self._saved_obstacles
+        geoms = self.obstacle_geom_ids
+        np.copyto(vel, self.obstacle_vel)
+        np.copyto(acc, self.obstacle_acc)
+        np.copyto(radius, self.obstacle_radius)
+        np.copyto(active, self.obstacle_active)
+        size[:] = self.model.geom_size[geoms]
+        rbound[:] = self.model.geom_rbound[geoms]
+        self._saved_specs = list(self._obstacle_specs)
+        self._saved_rng = self.np_random.bit_generator.state
+        self._obstacles_saved = True
+
+    def _restore(self) -> None:
+        """Undo the current step: the state saved at its start, and the obstacles' bookkeeping if
+        a respawn saved it; then recompute what ``_simulate``'s invariant promises
+        (``mj_step1``: kinematics, dynamics, sensors) and move ``state_version`` past every
+        number used so far."""
+        m, d = self.model, self.data
+        if self._obstacles_saved:
+            vel, acc, radius, active, size, rbound = self._saved_obstacles
+            geoms = self.obstacle_geom_ids
+            np.copyto(self.obstacle_vel, vel)
+            np.copyto(self.obstacle_acc, acc)
+            np.copyto(self.obstacle_radius, radius)
+            np.copyto(self.obstacle_active, active)
+            m.geom_size[geoms] = size
+            m.geom_rbound[geoms] = rbound
+            self._obstacle_specs = list(self._saved_specs)
+            self.np_random.bit_generator.state = self._saved_rng
+            self._obstacles_saved = False
+        mujoco.mj_setState(m, d, self._saved_state, _STEP_STATE)
+        mujoco.mj_step1(m, d)
+        self.state_version += 1
 
     def _validate_action(self, action: Any) -> np.ndarray:
         a = np.asarray(action)
@@ -455,6 +596,7 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
 
     # ------------------------------------------------------------------ reset and scenarios
     def reset_model(self) -> np.ndarray:
+        self._needs_reset = True  # until this reset has placed everything
         m, d, rng = self.model, self.data, self.np_random
         mujoco.mj_resetDataKeyframe(m, d, 0)
         d.qpos[:] += rng.uniform(-_HOME_NOISE, _HOME_NOISE, size=m.nq)
@@ -462,13 +604,27 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
         mujoco.mj_forward(m, d)
         start = d.site_xpos[self.ee_site_id].copy()
         scenario = self.episode_scenario = self.scenario.resolve(rng)
+        longest = float(np.linalg.norm(_GOAL_CORNERS - start, axis=1).max())
+        for index, spec in enumerate(scenario.obstacles):  # draws nothing: a placeable scenario is unaffected
+            reason = self._unplaceable(spec, longest)
+            if reason is not None:
+                raise RuntimeError(
+                    f"could not place scenario {scenario.name!r} from this start: obstacle {index} ({spec!r}) does not "
+                    f"fit: {reason}"
+                )
+        failures = np.zeros(len(scenario.obstacles), dtype=int)
         for _ in range(100):
             goal = self._sample_goal(start, rng)
             samples = [self._sampler.sample(spec, start, goal, rng) for spec in scenario.obstacles]
             if all(s is not None for s in samples):
                 break
+            failures += [s is None for s in samples]
         else:
-            raise RuntimeError(f"could not place scenario {scenario.name!r} inside the envelope in 100 attempts")
+            worst = int(failures.argmax())
+            raise RuntimeError(
+                f"could not place scenario {scenario.name!r} inside the envelope in 100 attempts (goal draws); "
+                f"obstacle {worst} ({scenario.obstacles[worst]!r}) did not fit in {failures[worst]} of them"
+            )
         d.mocap_pos[self._goal_mocap] = goal
         for slot, (spec, sample) in enumerate(zip(scenario.obstacles, samples)):
             self._place(slot, sample)
@@ -477,6 +633,7 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
         self._goal_distance = float(np.linalg.norm(goal - start))
         self._episode_cost = 0.0
         self.state_version += 1
+        self._needs_reset = False
         return self._get_obs()
 
     def _sample_goal(self, start: np.ndarray, rng: np.random.Generator) -> np.ndarray:
@@ -509,6 +666,7 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
         outside = ((self.obstacle_pos < low) | (self.obstacle_pos > high)).any(axis=1) & self.obstacle_active
         if not outside.any():
             return
+        self._save_obstacles()
         for slot in np.flatnonzero(outside):
             tool = self.data.site_xpos[self.ee_site_id].copy()
             goal = self.data.mocap_pos[self._goal_mocap].copy()
@@ -524,9 +682,12 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
 
     def _arm_clearance(self, centre: np.ndarray, radius: float) -> float:
         """Smallest surface distance from a sphere to the arm's geoms (capsule/cylinder axes)."""
-        d, m = self.data, self.model
-        ids = self.arm_geom_ids
+        return float(self._surface_gaps(self.data, self.arm_geom_ids, centre, radius).min())
+
+    def _surface_gaps(self, d: mujoco.MjData, ids: np.ndarray, centre: np.ndarray, radius: float) -> np.ndarray:
+        """Surface distances (m) from a sphere to geoms ``ids`` in state ``d``, each taken as a
+        capsule about its axis (exact for capsules)."""
+        m = self.model
         axis = d.geom_xmat[ids][:, 2::3] * m.geom_size[ids, 1][:, None]  # z column, half length
         closest = segment_closest_points(d.geom_xpos[ids] - axis, d.geom_xpos[ids] + axis, centre[None])[0]
-        gap = np.linalg.norm(centre - closest, axis=1) - m.geom_size[ids, 0] - radius
-        return float(gap.min())
+        return np.linalg.norm(centre - closest, axis=1) - m.geom_size[ids, 0] - radius
