@@ -605,3 +605,26 @@ def test_numpy_scalars_are_numbers(make_env):
     env = SafetyFilter(make_env(scenario="none"), margin=np.float32(0.03), gamma=np.int64(4))
     assert env.config.margin == pytest.approx(0.03) and type(env.config.margin) is float
     assert env.hook.barrier.gamma == 4.0
+
+
+def test_raise_on_infeasible_leaves_the_env_as_before_the_step(make_env):
+    """``on_infeasible="raise"``: the step with no safe torque raises SafetyInfeasibleError with
+    the environment restored to its state before that step (no substep integrated, no cost
+    counted); the caller may then step again, e.g. with another action."""
+    env = SafetyFilter(make_env(scenario="multi"), on_infeasible="raise")
+    env.reset(seed=2)
+    u = env.unwrapped
+    rng = np.random.default_rng(2)
+    for _ in range(250):
+        before = (u.data.time, u.data.qpos.copy(), u.data.qvel.copy(), u.obstacle_pos.copy(), u._episode_cost)
+        try:
+            env.step(rng.choice([-1.0, 1.0], size=6).astype(np.float32))
+        except c3bf_gym.SafetyInfeasibleError:
+            break
+    else:
+        pytest.fail("chattering torques in multi found no infeasible step (seed 2 did at step 6)")
+    after = (u.data.time, u.data.qpos, u.data.qvel, u.obstacle_pos, u._episode_cost)
+    assert after[0] == before[0] and after[4] == before[4]
+    for a, b in zip(after[1:4], before[1:4]):
+        np.testing.assert_array_equal(a, b)
+    env.step(np.zeros(6, np.float32))  # still usable
