@@ -610,7 +610,7 @@ def test_numpy_scalars_are_numbers(make_env):
 def test_raise_on_infeasible_leaves_the_env_as_before_the_step(make_env):
     """``on_infeasible="raise"``: the step with no safe torque raises SafetyInfeasibleError with
     the environment restored to its state before that step (no substep integrated, no cost
-    counted); the caller may then step again, e.g. with another action."""
+    counted); what to do next is the caller's choice."""
     env = SafetyFilter(make_env(scenario="multi"), on_infeasible="raise")
     env.reset(seed=2)
     u = env.unwrapped
@@ -627,4 +627,3 @@ def test_raise_on_infeasible_leaves_the_env_as_before_the_step(make_env):
     assert after[0] == before[0] and after[4] == before[4]
     for a, b in zip(after[1:4], before[1:4]):
         np.testing.assert_array_equal(a, b)
-    env.step(np.zeros(6, np.float32))  # still usable
