@@ -149,12 +149,13 @@ class DaqpWorkspace:
 
 
 @numba.njit(nogil=True)  # not cacheable: the ctypes functions are compiled in as addresses
-def solve(u_nom, A, b, scale, m, f, Aw, bl, x, res_i32, m_prev, addr):
-    """One call: rows (A diag(scale)) u ≥ b (the first m rows of A, b), cost ½‖u − u_nom‖². Writes u
-    into x; returns (exitflag, iterations). Rows from m to the previous call's count are zeroed."""
-    n = u_nom.shape[0]
+def solve(tau_nom, A, b, scale, m, f, Aw, bl, x, res_i32, m_prev, addr):
+    """One call in u = τ / scale: rows (A diag(scale)) u ≥ b (the first m rows of A, b), cost
+    ½‖u − τ_nom / scale‖². Writes u into x; returns (exitflag, iterations). Rows from m to the
+    previous call's count are zeroed (DAQP ignores zero rows)."""
+    n = tau_nom.shape[0]
     for j in range(n):
-        f[j] = -u_nom[j]
+        f[j] = -tau_nom[j] / scale[j]
     for k in range(m):
         for j in range(n):
             Aw[k, j] = A[k, j] * scale[j]
