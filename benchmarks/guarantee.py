@@ -37,7 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
-from c3bf_gym.filter import GUARD_GAMMA, FilterConfig
+from c3bf_gym.safety import GUARD_GAMMA, FilterConfig
 
 SCENARIOS = ("static", "head_on", "crossing", "multi")
 POLICIES = ("random", "adversarial")

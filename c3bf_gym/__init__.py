@@ -7,7 +7,17 @@ from gymnasium.envs.registration import register, registry
 
 from c3bf_gym.controllers import CartesianImpedance
 from c3bf_gym.envs import C3BFReachEnv
-from c3bf_gym.filter import DEFAULT_FILTER, FILTERS, FilterConfig, SafetyInfeasibleError
+from c3bf_gym.safety import (
+    DEFAULT_FILTER,
+    FILTERS,
+    FilterConfig,
+    MocapSpheres,
+    Obstacles,
+    RobotDescription,
+    SafetyController,
+    SafetyInfeasibleError,
+    UnsupportedModelError,
+)
 from c3bf_gym.scenarios import SCENARIOS, Envelope, ObstacleSpec, Scenario
 from c3bf_gym.wrappers import ActionPenalty, CartesianImpedanceAction, SafetyFilter
 
@@ -20,11 +30,16 @@ __all__ = [
     "Envelope",
     "FILTERS",
     "FilterConfig",
+    "MocapSpheres",
     "ObstacleSpec",
+    "Obstacles",
+    "RobotDescription",
     "SCENARIOS",
+    "SafetyController",
     "SafetyFilter",
     "SafetyInfeasibleError",
     "Scenario",
+    "UnsupportedModelError",
 ]
 __version__ = "0.1.0"
 

@@ -191,14 +191,37 @@ def capsule_ends(geom_xpos, geom_xmat, ids, half, chain, cdof, cdof_dot, com, qv
 
 
 @njit(**_opts)
+def _axis_parameter(ends_ab, a_dot_ab, length2, s, o):
+    """The parameter ``t`` (unclamped) of the point of capsule ``s``'s axis ``a + t (b − a)``
+    closest to ``o``; 0 for a sphere (an axis of length 0)."""
+    t = (o[0] * ends_ab[s, 0, 0] + o[1] * ends_ab[s, 1, 0] + o[2] * ends_ab[s, 2, 0]) - a_dot_ab[s]
+    if length2[s] > 0.0:
+        return t / length2[s]
+    return 0.0
+
+
+@njit(**_opts)
+def _surface_gap(ends_a, ends_ab, a_dot_ab, length2, capsule_radius, o, radius):
+    """The smallest signed surface distance [m] from the sphere (``o``, ``radius``) to the
+    capsules (negative: overlapping)."""
+    gap = np.inf
+    for s in range(ends_ab.shape[0]):
+        tc = min(max(_axis_parameter(ends_ab, a_dot_ab, length2, s, o), 0.0), 1.0)
+        d0 = (tc * ends_ab[s, 0, 0] + ends_a[s, 0, 0]) - o[0]
+        d1 = (tc * ends_ab[s, 1, 0] + ends_a[s, 1, 0]) - o[1]
+        d2 = (tc * ends_ab[s, 2, 0] + ends_a[s, 2, 0]) - o[2]
+        gap = min(gap, math.sqrt(d0 * d0 + d1 * d1 + d2 * d2) - capsule_radius[s] - radius)
+    return gap
+
+
+@njit(**_opts)
 def _closest_pair(ends_a, ends_ab, a_dot_ab, length2, s, o, vo, ao, p, v, c, G, slide):
     """Closest point of capsule ``s``'s axis to the centre ``o`` (moving with ``vo``, ``ao``):
     ``p = x* − o``, ``v = ẋ − vo``, ``c = (material c) − ao + ṫ (ḃ − ȧ)``, ``G`` (3, nv) and
     ``slide = ṫ (b − a)`` (:meth:`ArmModel.closest_relative`). Returns the unclamped axis
     parameter ``t``."""
     nv = G.shape[1]
-    t = (o[0] * ends_ab[s, 0, 0] + o[1] * ends_ab[s, 1, 0] + o[2] * ends_ab[s, 2, 0]) - a_dot_ab[s]
-    t /= length2[s]
+    t = _axis_parameter(ends_ab, a_dot_ab, length2, s, o)
     tc = min(max(t, 0.0), 1.0)
     for i in range(3):
         p[i] = (tc * ends_ab[s, i, 0] + ends_a[s, i, 0]) - o[i]
@@ -209,7 +232,8 @@ def _closest_pair(ends_a, ends_ab, a_dot_ab, length2, s, o, vo, ao, p, v, c, G, 
     rate = (v[0] * ends_ab[s, 0, 0] + v[1] * ends_ab[s, 1, 0] + v[2] * ends_ab[s, 2, 0]) + (
         p[0] * ends_ab[s, 0, 1] + p[1] * ends_ab[s, 1, 1] + p[2] * ends_ab[s, 2, 1]
     )
-    rate /= -length2[s]
+    if length2[s] > 0.0:
+        rate /= -length2[s]
     if not (t > 0.0 and t < 1.0):
         rate *= 0.0  # clamped to an end: the point does not slide
     for i in range(3):
@@ -334,7 +358,7 @@ def joint_limit_rows(q, qd, Minv, c_q, q_lo, q_hi, qd_max, g1, g2, gv, A, b):
 
 @njit(**_opts)
 def floor_rows(ends, idx, z_min, gamma, A, b):
-    """Floor rows of :class:`~c3bf_gym.filter.SafetyHook`: capsule end ``idx[k]`` of the packed
+    """Floor rows of :class:`~c3bf_gym.safety.SafetyController`: capsule end ``idx[k]`` of the packed
     ``ends`` (2S, 3, 3 + nv) stays at ``z ≥ z_min[k]``, as the second-order barrier
     ``z̈ + 2γ ż + γ² (z − z_min) ≥ 0`` with ``z̈ = G_z τ + c_z``: ``A_k = G_z``,
     ``b_k = −γ² (z − z_min) − 2γ ż − c_z``."""
@@ -354,12 +378,13 @@ def hook_rows_whole_arm(stage, M, qfrc_passive, qfrc_bias, geom_xpos, geom_xmat,
                         arm_i, arm_f, chain, scratch, Minv, qacc_free, ends, ends_ab, a_dot_ab,
                         active, distances, obs_pos, obs_vel, obs_acc, obs_radius, kind, floor_idx, floor_min,
                         joint_rows, hook_f, work, A, b):
-    """All rows of the whole-arm filter (:meth:`~c3bf_gym.filter.SafetyHook.rows`) in one call.
+    """All rows of the whole-arm filter (:meth:`~c3bf_gym.safety.SafetyController.rows`) in one call.
 
     1. ``stage`` 2: ``Minv``, ``qacc_free`` (:func:`step_inverse`), then (``stage`` ≥ 1) the
        capsule ends (:func:`capsule_ends`), into the :class:`~c3bf_gym.robot.ArmModel`'s arrays
        (``arm_i``, ``arm_f``, ``scratch``: its packed constants and scratch).
-    2. For every sensed obstacle (active and ``distances[k].min() <= sensing_radius``), one row
+    2. For every sensed obstacle (active and ``distances[k].min() <= sensing_radius``, or with
+       ``distances`` of shape (K, 0) its surface distance to the capsules), one row
        per capsule: closest point (:func:`_closest_pair`), barrier ``kind`` (:func:`_c3bf_point`
        or :func:`_hocbf_point`), row (:func:`_sliding_row`: the sliding term ``−⟨grad_p, ṫ (b − a)⟩``);
        with a guard (``hook_f``'s entries after ``qd_max``: gains γ₁, γ₂ of a distance HOCBF,
@@ -410,6 +435,8 @@ def hook_rows_whole_arm(stage, M, qfrc_passive, qfrc_bias, geom_xpos, geom_xmat,
         dmin = np.inf
         for g in range(distances.shape[1]):
             dmin = min(dmin, distances[k, g])
+        if distances.shape[1] == 0:  # no distances kept by the obstacles' owner: to the capsules
+            dmin = _surface_gap(ends_a, ends_ab, a_dot_ab, length2, capsule_radius, obs_pos[k], obs_radius[k])
         if not dmin <= sensing_radius:
             continue
         n_sensed += 1
@@ -958,7 +985,7 @@ def step_views(qf, qi, layout):
 
 @njit(**_opts)
 def guard_weights(weights, n_obstacle_rows, barrier_weight):
-    """The relaxation weights of a guarded filter's rows (:class:`~c3bf_gym.filter.SafetyHook`):
+    """The relaxation weights of a guarded filter's rows (:class:`~c3bf_gym.safety.SafetyController`):
     the first ``n_obstacle_rows`` alternate barrier row, guard row; the barrier's weigh
     ``barrier_weight``, every other row 1."""
     for i in range(weights.shape[0]):
@@ -971,7 +998,7 @@ def hook_step(stage, tau_nom, m_prev, k_prev, max_iter, tol, row_slack_weight, d
               arm_i, arm_f, chain, scratch, Minv, qacc_free, ends, ends_ab, a_dot_ab,
               active, distances, obs_pos, obs_vel, obs_acc, obs_radius, kind, floor_idx, floor_min,
               joint_rows, hook_f, work, A, b, weights, scale, limit, qf, qi, layout):
-    """One whole-arm filter step in one call (:meth:`~c3bf_gym.filter.SafetyHook.__call__`): the
+    """One whole-arm filter step in one call (:meth:`~c3bf_gym.safety.SafetyController.__call__`): the
     rows (:func:`hook_rows_whole_arm`), :meth:`~c3bf_gym.qp.TorqueQP.solve_scaled`'s active-set
     call (:func:`qp_step`, the same code the layer runs) and :func:`hook_post`; what saves time
     is one dispatch instead of three and no Python in between.

@@ -45,7 +45,7 @@ _nonnegative_float = _number(float, 0.0, strict=False)
 
 def _add_train(sub: argparse._SubParsersAction) -> None:
     from c3bf_gym.scenarios import SCENARIOS
-    from c3bf_gym.filter import GUARD_GAMMA
+    from c3bf_gym.safety import GUARD_GAMMA
     from c3bf_gym.training import ACTIONS, ALGORITHMS, OBSTACLE_ENCODERS, POLICY_RATES, TRAIN_FILTERS, TrainConfig
 
     d = TrainConfig()  # the defaults live there

@@ -22,14 +22,15 @@ from typing import Any, Sequence
 import numpy as np
 
 from c3bf_gym.envs.reach import C3BFReachEnv
-from c3bf_gym.filter import FILTERS, POINTS
+from c3bf_gym.safety import FILTERS
+from c3bf_gym.safety.config import POINTS
 from c3bf_gym.metrics import EpisodeRecord, summarize
 from c3bf_gym.wrappers import ImpedanceHook, SafetyFilter, default_impedance
 
 __all__ = ["ExperimentConfig", "MinimumJerk", "add_parser", "run_episode", "run_experiments"]
 
 PAPER_SCENARIOS = ("static", "head_on", "crossing", "multi")
-#: "none" and the named filters (:data:`~c3bf_gym.filter.FILTERS`): "c3bf" is the paper's filter,
+#: "none" and the named filters (:data:`~c3bf_gym.safety.FILTERS`): "c3bf" is the paper's filter,
 #: the C3BF's rows alone, so the default set compares the barriers themselves; "c3bf+hocbf" is
 #: ``SafetyFilter``'s default, the C3BF with its distance-HOCBF guard.
 EXPERIMENT_FILTERS = ("none", *FILTERS)

@@ -9,7 +9,7 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from c3bf_gym.filter import GUARD_GAMMA
+from c3bf_gym.safety import GUARD_GAMMA
 from c3bf_gym.metrics import EpisodeRecord
 from c3bf_gym.training import FINAL_EVAL_FILE, filter_label
 

@@ -92,22 +92,25 @@ class ArmModel:
 
     Args:
         model: the compiled MuJoCo model (``C3BFReachEnv.model``).
-        arm_geom_ids: geoms of the arm; capsules among them on moving bodies become protected
-            segments (the fixed base cannot move and is left to the scenario's keep-out zone).
-        site_id: the tool site (``ee_site``).
+        arm_geom_ids: geoms of the arm; capsules and spheres (segments of length 0) among them on
+            moving bodies become protected segments (the fixed base cannot move and is left to the
+            scenario's keep-out zone).
+        site_id: the tool site (``ee_site``), or -1 for none (then :meth:`site_dynamics` is
+            unavailable).
     """
 
     def __init__(self, model: mujoco.MjModel, arm_geom_ids: np.ndarray, site_id: int) -> None:
         self.model = model
         self.nv = model.nv
         self.site_id = int(site_id)
+        kinds = (int(mujoco.mjtGeom.mjGEOM_CAPSULE), int(mujoco.mjtGeom.mjGEOM_SPHERE))
         ids = [
             int(g)
             for g in arm_geom_ids
-            if model.geom_type[g] == mujoco.mjtGeom.mjGEOM_CAPSULE and self._chain_mask(model, model.geom_bodyid[g]).any()
+            if int(model.geom_type[g]) in kinds and self._chain_mask(model, model.geom_bodyid[g]).any()
         ]
         if not ids:
-            raise ValueError("the model has no capsule geoms on moving arm bodies")
+            raise ValueError("the model has no capsule or sphere geoms on moving arm bodies")
         self.capsule_ids = np.array(ids)
         # a slice (a view, no gather) when the capsules are consecutive geoms, as in ur5e.xml
         contiguous = ids == list(range(ids[0], ids[0] + len(ids)))
@@ -120,7 +123,7 @@ class ArmModel:
             raise ValueError("all arm capsules must belong to one kinematic tree")
         self._root = roots.pop()
         self.capsule_chain = np.array([self._chain_mask(model, model.geom_bodyid[g]) for g in self.capsule_ids])
-        self.site_chain = self._chain_mask(model, model.site_bodyid[self.site_id])
+        self.site_chain = self._chain_mask(model, model.site_bodyid[self.site_id]) if self.site_id >= 0 else None
         s, nv = len(self.capsule_ids), self.nv
         #: ``h D``, the implicit damping the integrator adds to the mass matrix's diagonal (nv,).
         implicit_damping = self._implicit_damping(model)
@@ -157,7 +160,7 @@ class ArmModel:
         self._version: int | None = None
         self._ends_current = False
         self._views_of: mujoco.MjData | None = None
-        self._site_body = int(model.site_bodyid[self.site_id])
+        self._site_body = int(model.site_bodyid[self.site_id]) if self.site_id >= 0 else -1
         self._site_jac = np.zeros((1, 3, self.nv))
         self._site_jac_dot = np.zeros((3, self.nv))
 
@@ -268,7 +271,8 @@ class ArmModel:
         clamping to the segment: ``t = ((o - a) . (b - a)) / |b - a|^2`` (0 at end a, 1 at b)."""
         t = centres @ self._ends_ab[:, :, 0].T
         t -= self._a_dot_ab
-        t /= self._length2
+        np.divide(t, self._length2, out=t, where=self._length2 > 0.0)  # spheres (length 0): t = 0
+        t[:, self._length2 == 0.0] = 0.0
         return t
 
     def _closest(self, centres: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -306,8 +310,8 @@ class ArmModel:
         ab = self._ends_ab
         rate = np.vecdot(v, ab[:, :, 0])
         rate += np.vecdot(p, ab[:, :, 1])
-        rate /= -self._length2
-        rate *= (t > 0.0) & (t < 1.0)  # 0 where the point is clamped to an end
+        np.divide(rate, -self._length2, out=rate, where=self._length2 > 0.0)
+        rate *= (t > 0.0) & (t < 1.0)  # 0 where the point is clamped to an end (always, on a sphere)
         return rate[..., None]
 
     def closest_sliding(self, centres: np.ndarray, p: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

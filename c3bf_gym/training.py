@@ -29,7 +29,7 @@ import gymnasium as gym
 import numpy as np
 
 from c3bf_gym import validation
-from c3bf_gym.filter import DEFAULT_FILTER, FILTERS, FilterConfig
+from c3bf_gym.safety import DEFAULT_FILTER, FILTERS, FilterConfig
 from c3bf_gym.wrappers import ActionPenalty, CartesianImpedanceAction, SafetyFilter
 
 __all__ = [
@@ -72,13 +72,13 @@ DEFAULT_TRAIN_HZ = 10
 
 ALGORITHMS = ("sac", "ppo")
 ACTIONS = ("impedance", "residual", "torque")
-#: A run's ``filter``: "none" or a name of :data:`~c3bf_gym.filter.FILTERS` (the default
-#: :data:`~c3bf_gym.filter.DEFAULT_FILTER`, the C3BF with its distance-HOCBF guard).
+#: A run's ``filter``: "none" or a name of :data:`~c3bf_gym.safety.FILTERS` (the default
+#: :data:`~c3bf_gym.safety.DEFAULT_FILTER`, the C3BF with its distance-HOCBF guard).
 TRAIN_FILTERS = ("none", *FILTERS)
 
 
 def filter_config(filter: str | FilterConfig | None, guard_gamma: float | None = None) -> FilterConfig | None:
-    """The :class:`~c3bf_gym.filter.FilterConfig` a run's filter names (None for ``"none"`` or
+    """The :class:`~c3bf_gym.safety.FilterConfig` a run's filter names (None for ``"none"`` or
     None), with ``guard_gamma`` the guard's gains (None: the default; only with a guard)."""
     if isinstance(filter, FilterConfig):
         return filter if guard_gamma is None else filter.replace(guard_gamma=guard_gamma)
@@ -93,7 +93,7 @@ def filter_config(filter: str | FilterConfig | None, guard_gamma: float | None =
 
 def filter_label(filter: str | FilterConfig | None, guard_gamma: float | None = None) -> str:
     """A run's filter as its name and the training tables spell it: ``"none"`` or the
-    configuration's :attr:`~c3bf_gym.filter.FilterConfig.name` (``"c3bf+hocbf20"`` for the guard
+    configuration's :attr:`~c3bf_gym.safety.FilterConfig.name` (``"c3bf+hocbf20"`` for the guard
     with gains 20)."""
     config = filter_config(filter, guard_gamma)
     return "none" if config is None else config.name
@@ -145,7 +145,7 @@ HYPERPARAMS: dict[tuple[str, str], dict[str, Any]] = {
 @dataclass
 class TrainConfig:
     """One training run. ``filter`` is one of :data:`TRAIN_FILTERS` and ``guard_gamma`` the
-    guard's gains where the filter has one (None: :data:`~c3bf_gym.filter.GUARD_GAMMA`).
+    guard's gains where the filter has one (None: :data:`~c3bf_gym.safety.GUARD_GAMMA`).
 
     The defaults are the recipe of the README's RL table (the one place they are kept; the
     command line takes them from here): SAC, residual Cartesian actions at 10 Hz, the reward's
@@ -255,8 +255,8 @@ def make_env(
 ) -> Callable[[], gym.Env]:
     """A thunk building ``Monitor(ActionPenalty(SafetyFilter(CartesianImpedanceAction(C3BFReach-v0))))``
     (the parts the options ask for; ``ActionPenalty`` when ``action_weight > 0``), for SB3 vector
-    envs. ``filter``: "none"/None, a name of :data:`~c3bf_gym.filter.FILTERS` or a
-    :class:`~c3bf_gym.filter.FilterConfig`; ``guard_gamma``: the guard's gains where it has one
+    envs. ``filter``: "none"/None, a name of :data:`~c3bf_gym.safety.FILTERS` or a
+    :class:`~c3bf_gym.safety.FilterConfig`; ``guard_gamma``: the guard's gains where it has one
     (None: the default). The env is seeded on its first reset."""
     from stable_baselines3.common.monitor import Monitor
 

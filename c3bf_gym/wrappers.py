@@ -18,7 +18,8 @@ import numpy as np
 
 from c3bf_gym.controllers.impedance import CartesianImpedance
 from c3bf_gym.envs.reach import C3BFReachEnv
-from c3bf_gym.filter import FILTERS, FilterConfig, SafetyHook, StepSafety
+from c3bf_gym.filter import SafetyHook
+from c3bf_gym.safety import FILTERS, FilterConfig, StepSafety
 from c3bf_gym.robot import ArmModel
 
 __all__ = [
@@ -50,10 +51,10 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs, gym.utils.EzPic
 
     The filter runs at every physics step (500 Hz) on whatever total torque arrives (the policy's
     torque plus gravity compensation, or the impedance controller's), so the policy's rate does
-    not weaken it. Its settings are one :class:`~c3bf_gym.filter.FilterConfig`; by default the
-    C3BF with its distance-HOCBF guard (``"c3bf+hocbf"``, :data:`~c3bf_gym.filter.DEFAULT_FILTER`).
+    not weaken it. Its settings are one :class:`~c3bf_gym.safety.FilterConfig`; by default the
+    C3BF with its distance-HOCBF guard (``"c3bf+hocbf"``, :data:`~c3bf_gym.safety.DEFAULT_FILTER`).
 
-    Adds ``info["safety"]`` (a dict, see :class:`~c3bf_gym.filter.StepSafety`; deterministic:
+    Adds ``info["safety"]`` (a dict, see :class:`~c3bf_gym.safety.StepSafety`; deterministic:
     wall-clock timings are kept on ``filter.hook`` for benchmarks, not in ``info``) and flat
     scalars for SB3's ``Monitor(info_keywords=...)``: ``safety_intervened`` (0/1 this step),
     ``safety_infeasible`` (0/1), ``episode_interventions`` and ``episode_infeasible`` (counts of
@@ -61,11 +62,11 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs, gym.utils.EzPic
 
     Args:
         env: a ``C3BFReach-v0`` environment (possibly wrapped).
-        config: a :class:`~c3bf_gym.filter.FilterConfig`, or the name of one in
-            :data:`~c3bf_gym.filter.FILTERS` (``"c3bf+hocbf"``, ``"c3bf"``: the paper's C3BF
+        config: a :class:`~c3bf_gym.safety.FilterConfig`, or the name of one in
+            :data:`~c3bf_gym.safety.FILTERS` (``"c3bf+hocbf"``, ``"c3bf"``: the paper's C3BF
             alone, ``"hocbf"``); None for the default configuration.
         **settings: changes to fields of ``config`` (e.g. ``margin=0.03``, ``barrier="hocbf"``,
-            ``on_infeasible="raise"``); see :class:`~c3bf_gym.filter.FilterConfig` for each
+            ``on_infeasible="raise"``); see :class:`~c3bf_gym.safety.FilterConfig` for each
             field, its unit and its default.
 
     Raises:
@@ -74,7 +75,7 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs, gym.utils.EzPic
         TypeError: when ``env`` is not a ``C3BFReach`` environment.
 
     Failure paths: with ``on_infeasible="raise"`` a step with no safe torque raises
-    :class:`~c3bf_gym.filter.SafetyInfeasibleError` and leaves the environment as it was before
+    :class:`~c3bf_gym.safety.SafetyInfeasibleError` and leaves the environment as it was before
     the step. After :meth:`close`, ``step`` and ``reset`` raise: a closed filter never steps the
     environment unfiltered.
 
@@ -293,7 +294,7 @@ def make_reach(safety_filter: FilterConfig | str | None = None, **kwargs: Any) -
 
     ``gym.make("C3BFReach-v0", safety_filter=NAME)`` is the shortcut for
     ``SafetyFilter(gym.make("C3BFReach-v0"), NAME)``: ``safety_filter`` is None (no filter), a
-    name of :data:`~c3bf_gym.filter.FILTERS` or a :class:`~c3bf_gym.filter.FilterConfig`. Every
+    name of :data:`~c3bf_gym.safety.FILTERS` or a :class:`~c3bf_gym.safety.FilterConfig`. Every
     other keyword goes to :class:`~c3bf_gym.envs.C3BFReachEnv`.
     """
     if not (safety_filter is None or isinstance(safety_filter, FilterConfig)

@@ -14,7 +14,9 @@ import pytest
 
 from c3bf_gym import SafetyFilter
 from c3bf_gym.barriers import C3BF, DistanceHOCBF
-from c3bf_gym.filter import UR5E_JOINT_SPEED, FilterConfig, SafetyHook, SafetyInfeasibleError
+from c3bf_gym.envs.reach import UR5E_JOINT_SPEED
+from c3bf_gym.filter import SafetyHook
+from c3bf_gym.safety import FilterConfig, SafetyInfeasibleError
 from c3bf_gym.scenarios import ObstacleSample, ObstacleSpec
 
 # ----------------------------------------------------------------------------- helpers

@@ -16,7 +16,8 @@ from numba.core.caching import NullCache
 
 from c3bf_gym import _kernels as K
 from c3bf_gym.barriers import C3BF, DistanceHOCBF, JointLimits
-from c3bf_gym.filter import FilterConfig, SafetyHook
+from c3bf_gym.filter import SafetyHook
+from c3bf_gym.safety import FilterConfig
 from c3bf_gym.qp import PROXSUITE_INF, TorqueQP
 from c3bf_gym.robot import ArmModel
 from c3bf_gym.scenarios import ObstacleSample, ObstacleSpec

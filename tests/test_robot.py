@@ -123,7 +123,7 @@ def test_protected_capsules_are_the_moving_capsule_geoms(env):
 
 def test_model_without_moving_capsules_rejected(env):
     u = env
-    with pytest.raises(ValueError, match="no capsule geoms"):
+    with pytest.raises(ValueError, match="no capsule or sphere geoms"):
         ArmModel(u.model, np.array([u.arm_geom_ids[0]]), u.ee_site_id)  # the base cylinder only
 
 

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from c3bf_gym.cli import main
-from c3bf_gym.filter import GUARD_GAMMA, FilterConfig
+from c3bf_gym.safety import GUARD_GAMMA, FilterConfig
 from c3bf_gym.plots import plot_training
 from c3bf_gym.training import (
     NORMALIZATION_FILE,

@@ -12,7 +12,7 @@ import pytest
 import c3bf_gym
 from c3bf_gym import DEFAULT_FILTER, FILTERS, ActionPenalty, CartesianImpedanceAction, FilterConfig, SafetyFilter
 from c3bf_gym.barriers import C3BF, DistanceHOCBF
-from c3bf_gym.filter import GUARD_GAMMA
+from c3bf_gym.safety import GUARD_GAMMA
 
 from conftest import ENV_ID
 

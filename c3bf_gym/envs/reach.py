@@ -11,6 +11,8 @@ from gymnasium import error, spaces, utils
 from gymnasium.envs.mujoco.mujoco_env import MujocoEnv
 
 from c3bf_gym.robot import ArmModel, segment_closest_points
+from c3bf_gym.safety.obstacles import Obstacles
+from c3bf_gym.safety.robot import RobotDescription
 from c3bf_gym.scenarios import (
     MAX_OBSTACLES,
     Envelope,
@@ -22,7 +24,9 @@ from c3bf_gym.scenarios import (
 )
 from c3bf_gym.validation import boolean, choice, integer, number, number_range
 
-__all__ = ["C3BFReachEnv", "DISTANCE_CUTOFF", "HOOK_STAGES", "OBSERVATION_LAYOUT", "OBSERVATION_SLICES", "TorqueHook"]
+__all__ = [
+    "C3BFReachEnv", "DISTANCE_CUTOFF", "HOOK_STAGES", "OBSERVATION_LAYOUT", "OBSERVATION_SLICES", "TorqueHook", "UR5E_JOINT_SPEED",
+]
 
 #: A per-physics-step torque transformation: total joint torque in (N m, gravity compensation
 #: included), total joint torque out. It may read ``env.data`` (kinematics and dynamics are
@@ -58,6 +62,9 @@ _PARK_DEPTH = -50.0  # unused obstacles wait here, far beyond the distance cutof
 #: (``mjSENS_GEOMDIST``), computed in C at every physics step; beyond this cutoff (m) they read
 #: the cutoff itself.
 DISTANCE_CUTOFF = 3.0
+#: UR5e joint speed limit, 180 deg/s on every joint (UR5e technical specifications): the filter's
+#: joint-speed rows bound each joint at ``FilterConfig.joint_speed_fraction`` of it.
+UR5E_JOINT_SPEED = np.pi
 #: Goal region (m): an axis-aligned box in front of the robot.
 _GOAL_LOW = np.array([0.3, -0.4, 0.15])
 _GOAL_HIGH = np.array([0.65, 0.4, 0.6])
@@ -312,6 +319,14 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
             self._obs[parts["obstacle_sensed"]],
         )
         self._tool_vel = np.zeros(6)
+        #: The obstacles as the safety filter reads them: views of the arrays above and of the
+        #: distance sensors, so they are current at every physics step.
+        self.obstacles = Obstacles(
+            MAX_OBSTACLES, position=self.obstacle_pos, velocity=self.obstacle_vel, acceleration=self.obstacle_acc,
+            radius=self.obstacle_radius, active=self.obstacle_active, distances=self.distances,
+        )  # fmt: skip
+        #: The arm as the safety filter sees it: its protected capsules, torque and joint limits.
+        self.robot = RobotDescription.from_model(self.model, site="ee_site", joint_speed_limit=UR5E_JOINT_SPEED)
         self._setup_reach_bounds()
 
     def _initialize_simulation(self) -> tuple[mujoco.MjModel, mujoco.MjData]:

@@ -1,0 +1,41 @@
+"""The safety filter as a library: any MuJoCo arm, any obstacles, with or without Gymnasium.
+
+The data flow, one module each: the robot (:mod:`.robot`: what the filter needs to know about
+an arm, read from its MuJoCo model) → the obstacles (:mod:`.obstacles`) → the settings
+(:mod:`.config`) → the controller (:mod:`.controller`: constraint rows and the QP, one physics
+step per call). ``c3bf_gym.filter.SafetyHook`` runs the controller inside ``C3BFReachEnv`` and
+``c3bf_gym.SafetyFilter`` is the Gymnasium wrapper around that.
+
+Example, on a user's own arm (``model`` with torque motors and capsule collision geoms, a mocap
+sphere ``ball``)::
+
+    robot = RobotDescription.from_model(model, bodies=["upper_arm", "forearm"], site="tool",
+                                        joint_speed_limit=2.0)
+    obstacles = MocapSpheres(model, ["ball"])
+    controller = SafetyController(model, data, robot, obstacles, FilterConfig(margin=0.03))
+    # every physics step:
+    mujoco.mj_step1(model, data)
+    obstacles.velocity[0] = ball_velocity
+    tau, report = controller.filter(tau_nominal)
+    data.ctrl[:] = tau
+    mujoco.mj_step2(model, data)
+"""
+
+from c3bf_gym.safety.config import DEFAULT_FILTER, FILTERS, GUARD_GAMMA, FilterConfig
+from c3bf_gym.safety.controller import SafetyController, SafetyInfeasibleError, StepSafety
+from c3bf_gym.safety.obstacles import MocapSpheres, Obstacles
+from c3bf_gym.safety.robot import RobotDescription, UnsupportedModelError
+
+__all__ = [
+    "DEFAULT_FILTER",
+    "FILTERS",
+    "GUARD_GAMMA",
+    "FilterConfig",
+    "MocapSpheres",
+    "Obstacles",
+    "RobotDescription",
+    "SafetyController",
+    "SafetyInfeasibleError",
+    "StepSafety",
+    "UnsupportedModelError",
+]

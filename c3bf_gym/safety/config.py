@@ -1,0 +1,217 @@
+"""The safety filter's settings: one frozen, validated :class:`FilterConfig`, and the named filters.
+
+Every default of the filter lives here once; the wrappers, training, the experiments, the
+benchmarks and the command-line help read them from :class:`FilterConfig`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import Any, Literal
+
+from c3bf_gym import validation
+from c3bf_gym.barriers import BARRIERS, C3BF, Barrier, make_barrier
+from c3bf_gym.qp import SOLVERS
+
+__all__ = ["DEFAULT_FILTER", "FILTERS", "FilterConfig", "GUARD_GAMMA", "GUARDS", "ON_INFEASIBLE", "POINTS", "WEIGHTS"]
+
+POINTS = ("whole_arm", "ee")
+ON_INFEASIBLE = ("relax", "raise")
+WEIGHTS = ("limits", "identity")
+#: ``FilterConfig.guard``'s named choices besides a Barrier instance and the barrier names.
+GUARDS = ("auto", None, "none")
+
+#: The gains γ₁ = γ₂ [1/s] of the guard ``guard="auto"`` puts beside the C3BF (a distance
+#: HOCBF) when ``guard_gamma`` is None. Chosen by the guarantee sweep (docs/design-decisions.md).
+GUARD_GAMMA = 10.0
+
+
+@dataclass(frozen=True)
+class FilterConfig:
+    """Every setting of the safety filter, validated when built; the one place its defaults live.
+
+    ``SafetyFilter``, ``gym.make(..., safety_filter=...)``, the experiments, training and the
+    benchmarks all take or build one. Named configurations (:data:`FILTERS`) come from
+    :meth:`named`; ``dataclasses.replace`` (or :meth:`replace`) derives variants, validated again.
+
+    Attributes:
+        barrier: the obstacle barrier, ``"c3bf"`` (:class:`~c3bf_gym.barriers.C3BF`) or
+            ``"hocbf"`` (:class:`~c3bf_gym.barriers.DistanceHOCBF`), or a
+            :class:`~c3bf_gym.barriers.Barrier` instance.
+        gamma: the named barrier's class-K gain [1/s] (C3BF: γ; HOCBF: γ₁ = γ₂); None for the
+            barrier's own default (5). Must be None with a Barrier instance (it carries its own).
+        guard: a second barrier whose row, for every (sensed obstacle, protected point), holds
+            beside the barrier's. ``"auto"``: a distance HOCBF beside the C3BF and nothing beside
+            any other barrier; None (or ``"none"``, read as None): no guard; a barrier name or a
+            Barrier instance. The C3BF bounds only the direction of approach; the distance HOCBF
+            bounds the approach speed by the distance left.
+        guard_gamma: the named guard's gains [1/s] (HOCBF: γ₁ = γ₂); None for
+            :data:`GUARD_GAMMA` with ``"auto"``, else the named barrier's default. Must be None
+            without a named guard.
+        points: ``"whole_arm"`` (the closest point of every link capsule) or ``"ee"`` (a sphere
+            of ``ee_radius`` at the tool site, as in the paper).
+        margin: extra clearance added to every combined radius [m], >= 0.
+        sensing_radius: obstacles whose surface is farther than this from the arm add no row
+            [m], > 0; None for the environment's own (the paper's perception boundary).
+        ee_radius: radius of the protected tool sphere with ``points="ee"`` [m], >= 0.
+        joint_limits: add the ``4 n`` joint position and speed rows.
+        joint_speed_fraction: the joint speed bound as a fraction of the UR5e's 180 deg/s,
+            in (0, 1].
+        floor_gamma: gain [1/s] of the floor rows' second-order barrier, > 0: every capsule end
+            that can move vertically keeps ``margin`` above an upright world plane.
+        weight: the QP metric: ``"limits"`` (W = diag(1/τ_max²): relative changes weigh the same
+            on every joint) or ``"identity"`` (the paper's plain ‖τ − τ_nom‖²).
+        relaxation_weight: with a guard, the weight of the barrier's rows in the relaxation
+            (every other row weighs 1), in (0, 1]: when no torque satisfies every row, the
+            barrier's rows give way first.
+        on_infeasible: ``"relax"`` (apply the least-violating torque and report it) or
+            ``"raise"`` (raise :class:`~c3bf_gym.safety.SafetyInfeasibleError`; the environment is restored to its
+            state before the step).
+        intervention_tol: ‖τ − τ_nom‖ above which a physics step counts as an intervention
+            [N m], >= 0.
+        solver: the QP solver, one of :data:`~c3bf_gym.qp.SOLVERS`.
+
+    Raises:
+        ValueError: on an unknown name or choice (the message lists the valid ones), a value
+            out of its range, or inconsistent settings (a gain beside a Barrier instance, a
+            ``guard_gamma`` without a named guard).
+    """
+
+    barrier: str | Barrier = "c3bf"
+    gamma: float | None = None
+    guard: str | Barrier | None = "auto"
+    guard_gamma: float | None = None
+    points: Literal["whole_arm", "ee"] = "whole_arm"
+    margin: float = 0.02
+    sensing_radius: float | None = None
+    ee_radius: float = 0.05
+    joint_limits: bool = True
+    joint_speed_fraction: float = 0.5
+    floor_gamma: float = 10.0
+    weight: Literal["limits", "identity"] = "limits"
+    relaxation_weight: float = 0.1
+    on_infeasible: Literal["relax", "raise"] = "relax"
+    intervention_tol: float = 1e-3
+    solver: str = "active_set"
+
+    def __post_init__(self) -> None:
+        check = validation
+        set_ = object.__setattr__
+        if not isinstance(self.barrier, Barrier):
+            _choice_or_barrier("barrier", self.barrier, BARRIERS)
+        if self.gamma is not None:
+            if isinstance(self.barrier, Barrier):
+                raise ValueError("gamma was given beside a Barrier instance: pass the gain to the instance, or name "
+                                 "the barrier")  # fmt: skip
+            set_(self, "gamma", check.number("gamma", self.gamma, low=0.0, low_open=True, unit="1/s"))
+        guard = self.guard
+        if not isinstance(guard, Barrier):
+            guard = _choice_or_barrier("guard", guard, (*GUARDS, *BARRIERS))
+            set_(self, "guard", None if guard == "none" else guard)
+        if self.guard_gamma is not None:
+            if not isinstance(self.guard, str) or (self.guard == "auto" and self.resolved_guard() is None):
+                raise ValueError(
+                    f"guard_gamma was given, but guard={self.guard!r} puts no named guard beside barrier "
+                    f"{self.barrier!r} (guard_gamma sets the gains of 'auto' beside the C3BF, or of a guard named "
+                    f"by {', '.join(map(repr, BARRIERS))})"
+                )
+            set_(self, "guard_gamma", check.number("guard_gamma", self.guard_gamma, low=0.0, low_open=True,
+                                                   unit="1/s"))  # fmt: skip
+        check.choice("points", self.points, POINTS)
+        set_(self, "margin", check.number("margin", self.margin, low=0.0, unit="m"))
+        if self.sensing_radius is not None:
+            set_(self, "sensing_radius", check.number("sensing_radius", self.sensing_radius, low=0.0, low_open=True,
+                                                      unit="m"))  # fmt: skip
+        set_(self, "ee_radius", check.number("ee_radius", self.ee_radius, low=0.0, unit="m"))
+        set_(self, "joint_limits", check.boolean("joint_limits", self.joint_limits))
+        set_(self, "joint_speed_fraction", check.number("joint_speed_fraction", self.joint_speed_fraction, low=0.0,
+                                                        low_open=True, high=1.0))  # fmt: skip
+        set_(self, "floor_gamma", check.number("floor_gamma", self.floor_gamma, low=0.0, low_open=True, unit="1/s"))
+        check.choice("weight", self.weight, WEIGHTS)
+        set_(self, "relaxation_weight", check.number("relaxation_weight", self.relaxation_weight, low=0.0,
+                                                     low_open=True, high=1.0))  # fmt: skip
+        check.choice("on_infeasible", self.on_infeasible, ON_INFEASIBLE)
+        set_(self, "intervention_tol", check.number("intervention_tol", self.intervention_tol, low=0.0, unit="N m"))
+        check.choice("solver", self.solver, SOLVERS)
+
+    @classmethod
+    def named(cls, name: str, **changes: Any) -> FilterConfig:
+        """The configuration :data:`FILTERS` names ``name``, with ``changes`` to its fields."""
+        settings = FILTERS.get(name) if isinstance(name, str) else None
+        if settings is None:
+            raise ValueError(f"unknown filter {name!r}; valid choices: {', '.join(map(repr, FILTERS))}")
+        return cls(**settings).replace(**changes)
+
+    def replace(self, **changes: Any) -> FilterConfig:
+        """A copy with ``changes`` to its fields (validated); unknown names are a ValueError."""
+        unknown = sorted(set(changes) - {f.name for f in dataclasses.fields(self)})
+        if unknown:
+            raise ValueError(f"unknown filter setting(s) {', '.join(map(repr, unknown))}; valid settings: "
+                             f"{', '.join(f.name for f in dataclasses.fields(self))}")  # fmt: skip
+        return dataclasses.replace(self, **changes) if changes else self
+
+    @property
+    def name(self) -> str | None:
+        """The :data:`FILTERS` name of this configuration's rows (barrier and guard, whatever the
+        other settings), with the guard's gains appended when they are not the default
+        (``"c3bf+hocbf20"``); None for Barrier instances."""
+        if isinstance(self.barrier, Barrier) or isinstance(self.guard, Barrier):
+            return None
+        guard = self.resolved_guard()
+        if guard is None:
+            return self.barrier
+        gains = self.guard_object().gamma
+        return f"{self.barrier}+{guard}" + ("" if gains == GUARD_GAMMA else f"{gains:g}")
+
+    def resolved_guard(self) -> str | Barrier | None:
+        """The guard itself: ``"auto"`` resolved against the barrier (``"hocbf"`` beside the C3BF)."""
+        if self.guard != "auto":
+            return self.guard
+        is_c3bf = self.barrier == "c3bf" or isinstance(self.barrier, C3BF)
+        return "hocbf" if is_c3bf else None
+
+    def resolved_guard_gamma(self) -> float | None:
+        """The named guard's gains (None: the named barrier's default, or no named guard)."""
+        if self.guard_gamma is not None or self.guard != "auto":
+            return self.guard_gamma
+        return GUARD_GAMMA if self.resolved_guard() is not None else None
+
+    def barrier_object(self) -> Barrier:
+        """The barrier as a :class:`~c3bf_gym.barriers.Barrier`."""
+        return self.barrier if isinstance(self.barrier, Barrier) else _named_barrier(self.barrier, self.gamma)
+
+    def guard_object(self) -> Barrier | None:
+        """The guard as a :class:`~c3bf_gym.barriers.Barrier`, or None."""
+        guard = self.resolved_guard()
+        if guard is None or isinstance(guard, Barrier):
+            return guard
+        return _named_barrier(guard, self.resolved_guard_gamma())
+
+
+def _choice_or_barrier(name: str, value: Any, choices: tuple) -> Any:
+    """:func:`~c3bf_gym.validation.choice`, whose error also offers a Barrier instance."""
+    try:
+        return validation.choice(name, value, choices)
+    except ValueError as error:
+        raise ValueError(f"{error}, or a Barrier instance") from None
+
+
+def _named_barrier(name: str, gamma: float | None) -> Barrier:
+    """The barrier of :data:`~c3bf_gym.barriers.BARRIERS` named ``name``, with ``gamma`` as all its
+    gains (None: its defaults)."""
+    if gamma is None:
+        return make_barrier(name)
+    return make_barrier(name, **({"gamma1": gamma, "gamma2": gamma} if name == "hocbf" else {"gamma": gamma}))
+
+
+#: The named filters: each a :class:`FilterConfig`'s barrier and guard (the other settings at
+#: their defaults). One name means one filter everywhere: the API, ``gym.make``, the command
+#: line, the experiments, training runs, tables and plots.
+FILTERS: dict[str, dict[str, Any]] = {
+    "c3bf+hocbf": {"barrier": "c3bf", "guard": "auto"},
+    "c3bf": {"barrier": "c3bf", "guard": None},
+    "hocbf": {"barrier": "hocbf", "guard": None},
+}
+#: The filter :class:`~c3bf_gym.SafetyFilter` applies by default: the C3BF with its distance-HOCBF guard.
+DEFAULT_FILTER = "c3bf+hocbf"

@@ -1,0 +1,499 @@
+"""The safety filter on any MuJoCo arm: barrier rows + floor + joint limits -> QP, per physics step.
+
+Its settings are one :class:`~c3bf_gym.safety.FilterConfig`; :data:`~c3bf_gym.safety.FILTERS` names the
+configurations the project At every physics step (between ``mj_step1`` and ``mj_step2``; ``C3BFReachEnv`` calls it as its
+``filter`` torque hook, :class:`~c3bf_gym.filter.SafetyHook`):
+
+1. the arm's dynamics at the protected points are refreshed (:class:`~c3bf_gym.robot.ArmModel`):
+   for a point ``x`` on the arm, ``ẍ = G τ + c`` with ``G = J M⁻¹`` (``M`` including the
+   integrator's joint damping) and ``c = J M⁻¹ (τ_passive − b) + J̇ q̇``;
+2. every *sensed* obstacle (active, surface within ``sensing_radius`` of the arm) contributes one
+   row per protected point (``whole_arm``: the closest point of every link capsule, with the
+   capsule radius added to the obstacle's; ``ee``: the tool site with ``ee_radius``), and with a
+   guard one more, the guard barrier's, right after it. Closest points slide along their links;
+   the rows include the sliding terms of ``ḣ``;
+3. the floor contributes one row per capsule end that can move vertically (``2 S`` at most):
+   the second-order barrier ``z̈ + 2γ ż + γ² (z − z_min) ≥ 0`` (γ = ``floor_gamma``), with
+   ``z_min`` the floor plus the capsule radius plus ``margin``. Contact forces are not in the
+   model ``ẍ = G τ + c``, so the arm must not lean on the floor;
+4. joint position and velocity limits contribute ``4 n`` rows
+   (:class:`~c3bf_gym.barriers.JointLimits`);
+5. :class:`~c3bf_gym.qp.TorqueQP` returns the torque closest to the nominal one (weighted by
+   ``W``) that satisfies every row within the actuator limits. When none does, it applies a
+   repaired least-violating torque: each row the conflict needs gets its own slack, weighted
+   ``relaxation_weight`` for the barrier's rows beside a guard and 1 for every other row, and
+   rows outside the conflict keep holding (:mod:`c3bf_gym.qp`, "Relaxation"). The step is then
+   reported infeasible, with the largest slack; ``on_infeasible="raise"`` raises instead.
+
+Steps 1–4 for ``whole_arm`` with the built-in barriers (:class:`~c3bf_gym.barriers.C3BF`,
+:class:`~c3bf_gym.barriers.DistanceHOCBF`, and a distance-HOCBF guard) are one compiled kernel,
+:func:`c3bf_gym._kernels.hook_rows_whole_arm`, built from the same per-point functions the
+barrier classes and :class:`~c3bf_gym.robot.ArmModel` call; other barriers (or ``points="ee"``)
+go through ``Barrier.terms`` and ``rows_from_terms`` and give the same rows. With the
+``"active_set"`` solver the rows kernel and the QP are one compiled call
+(:func:`c3bf_gym._kernels.hook_step`); Python runs only what the active-set solver hands to
+proxsuite. Why each of these choices was made, with the measurements and the commands that
+repeat them: ``docs/design-decisions.md``.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import mujoco
+import numba
+import numpy as np
+
+from c3bf_gym import _kernels
+from c3bf_gym.barriers import JointLimits, Rows
+from c3bf_gym.qp import QPResult, TorqueQP
+from c3bf_gym.robot import ArmModel, segment_closest_points
+from c3bf_gym.safety.config import FilterConfig
+from c3bf_gym.safety.obstacles import Obstacles
+from c3bf_gym.safety.robot import RobotDescription, UnsupportedModelError
+
+__all__ = ["SafetyController", "SafetyInfeasibleError", "StepSafety"]
+
+_perf_counter = time.perf_counter
+
+
+class SafetyInfeasibleError(RuntimeError):
+    """Raised with ``on_infeasible="raise"`` when no torque within the limits satisfies the rows."""
+
+
+@dataclass
+class StepSafety:
+    """What the filter did over one policy step (all its physics steps).
+
+    Attributes:
+        feasible: every physics step's QP was solved without slack.
+        slack: the largest slack used [N m, row-normalised]; 0.0 when feasible.
+        min_h: the smallest barrier value over the barrier's rows (not the guard's) and physics
+            steps (inf with no row).
+        correction: the largest ``‖τ − τ_nom‖`` [N m] (``τ_nom`` clipped to the torque limits,
+            so plain saturation is not counted as a safety intervention).
+        active_rows: the largest number of binding rows.
+        sensed: the largest number of sensed obstacles.
+        solve_time: total wall time of the filter over the step's physics steps [s] (rows and
+            QP). Not in :meth:`as_info`: wall-clock time would make ``info`` nondeterministic.
+        intervened: some physics step changed the torque by more than ``intervention_tol``.
+        inside: some protected point was already inside an obstacle's (margin-inflated) radius.
+        infeasible_steps: number of physics steps whose QP needed slack.
+        min_constraint: the smallest row residual ``A τ − b`` at the applied torque (the QP
+            constraint value: >= 0 when every row holds) [row units]; inf with no row.
+        tau_nominal, tau: the last physics step's nominal and filtered torques [N m].
+    """
+
+    feasible: bool = True
+    slack: float = 0.0
+    min_h: float = np.inf
+    correction: float = 0.0
+    active_rows: int = 0
+    sensed: int = 0
+    solve_time: float = 0.0
+    intervened: bool = False
+    inside: bool = False
+    infeasible_steps: int = 0
+    min_constraint: float = np.inf
+    substeps: int = 0
+    tau_nominal: np.ndarray | None = None
+    tau: np.ndarray | None = None
+
+    def as_info(self) -> dict[str, float | bool | int]:
+        return {
+            "feasible": self.feasible,
+            "slack": self.slack,
+            "min_h": self.min_h,
+            "correction": self.correction,
+            "active_rows": self.active_rows,
+            "sensed": self.sensed,
+            "intervened": self.intervened,
+            "inside": self.inside,
+            "infeasible_steps": self.infeasible_steps,
+            "min_constraint": self.min_constraint,
+        }
+
+
+class SafetyController:
+    """The safety filter on any MuJoCo arm, without Gymnasium: nominal torque in, safe torque out.
+
+    Build it once per ``(model, data)``; then, at every physics step, after ``mj_step1`` (or
+    ``mj_forward``) and with the obstacles current::
+
+        controller = SafetyController(model, data, robot, obstacles, FilterConfig())
+        tau, report = controller.filter(tau_nom)
+        data.ctrl[:] = tau          # (minus any gravity compensation the model applies itself)
+        mujoco.mj_step2(model, data)
+
+    Args:
+        model, data: the MuJoCo model and the data the filter reads (it never writes to it).
+        robot: the arm (:class:`~c3bf_gym.safety.RobotDescription`).
+        obstacles: the spheres to keep off the arm (:class:`~c3bf_gym.safety.Obstacles`); their
+            ``refresh(data)`` runs before every call.
+        config: the filter's settings (:class:`FilterConfig`; None: the default). A
+            ``sensing_radius`` of None senses every active obstacle (``sensing_radius`` below).
+        arm: an :class:`~c3bf_gym.robot.ArmModel` of ``robot`` to share with other controllers
+            (None: a new one).
+        sensing_radius: the sensing radius [m] used when ``config.sensing_radius`` is None
+            (default: inf, every active obstacle).
+
+    The torque passed in and returned is the total joint torque [N m] (n,), in dof order, with
+    the limits ``robot.torque_limit``. The fused whole-arm kernel computes the C3BF's, the
+    distance HOCBF's and a distance-HOCBF guard's rows itself; any other barrier or guard, and
+    ``points="ee"``, take the per-class path (``Barrier.terms``). ``min_h`` in the report is the
+    barrier's, not the guard's.
+
+    Raises:
+        ValueError / :class:`~c3bf_gym.safety.UnsupportedModelError`: a config that needs what
+            the robot lacks (joint limits, a tool site for ``points="ee"``).
+
+    Attributes:
+        config: the settings it was built with.
+        report: the :class:`StepSafety` accumulated since :meth:`begin_step`.
+        last: the last call's :class:`~c3bf_gym.qp.QPResult`.
+        solve_times: when a list (set ``record_times=True``), every call's wall time [s] is
+            appended, for latency percentiles.
+    """
+
+    def __init__(self, model: mujoco.MjModel, data: mujoco.MjData, robot: RobotDescription, obstacles: Obstacles,
+                 config: FilterConfig | None = None, *, arm: ArmModel | None = None,
+                 sensing_radius: float = np.inf) -> None:
+        config = FilterConfig() if config is None else config
+        if not isinstance(config, FilterConfig):
+            raise TypeError(f"config must be a FilterConfig, got {type(config).__name__}")
+        if not isinstance(robot, RobotDescription):
+            raise TypeError(f"robot must be a RobotDescription, got {type(robot).__name__}")
+        if not isinstance(obstacles, Obstacles):
+            raise TypeError(f"obstacles must be an Obstacles, got {type(obstacles).__name__}")
+        if robot.n != model.nv:
+            raise ValueError(f"robot has {robot.n} joints but the model {model.nv} dofs: describe this model")
+        if config.points == "ee" and robot.site_id < 0:
+            raise UnsupportedModelError("points='ee' protects the tool site, and the robot has none: pass site= to "
+                                        "RobotDescription.from_model")  # fmt: skip
+        self.model, self.data, self.robot, self.obstacles = model, data, robot, obstacles
+        self._refresh = type(obstacles).refresh is not Obstacles.refresh
+        self._distances = obstacles.distances if obstacles.distances is not None else np.zeros((obstacles.capacity, 0))
+        self.config = config
+        self.barrier = barrier = config.barrier_object()
+        self.guard = guard = config.guard_object()
+        self.points = points = config.points
+        self.margin = config.margin
+        self.sensing_radius = float(sensing_radius) if config.sensing_radius is None else config.sensing_radius
+        self.ee_radius = config.ee_radius
+        self.on_infeasible = config.on_infeasible
+        self.intervention_tol = config.intervention_tol
+        self.floor_gamma = config.floor_gamma
+        joint_limits = None
+        if config.joint_limits:
+            robot.require_joint_limits(model)
+            q_lo, q_hi = robot.joint_range.T
+            joint_limits = JointLimits(q_lo, q_hi, config.joint_speed_fraction * robot.joint_speed_limit)
+        self.joint_limits = joint_limits
+        weight = config.weight
+        self.arm: ArmModel = ArmModel(model, robot.geom_ids, robot.site_id) if arm is None else arm
+        n = model.nv
+        limit = np.array(robot.torque_limit)
+        # rows per sensed obstacle: one per protected point, and its guard's
+        points_count = len(self.arm.capsule_ids) if points == "whole_arm" else 1
+        self._per_obstacle = points_count * (1 if guard is None else 2)
+        n_obstacles = obstacles.capacity
+        self._n_joint_rows = 0 if joint_limits is None else 4 * n
+        self._floor_ends, self._floor_min = self._floor_setup(model)
+        self._n_floor_rows = len(self._floor_ends)
+        max_rows = n_obstacles * self._per_obstacle + self._n_floor_rows + self._n_joint_rows
+        # The QP runs in normalised torque u = τ / s with s = τ_max ("limits": W = diag(1/τ_max²)
+        # becomes the identity, box ±1) or s = 1 ("identity"): a well-conditioned problem either way.
+        self._scale = limit.copy() if weight == "limits" else np.ones(n)
+        self.qp = TorqueQP(n, max_rows, -limit / self._scale, limit / self._scale, solver=config.solver)
+        self._limit = limit
+        self._A = np.zeros((max_rows, n))
+        self._b = np.zeros(max_rows)
+        self._weights = np.ones(max_rows)  # the relaxation weights, with a guard (_kernels.guard_weights)
+        self._capsule_radius = self.arm.capsule_radius
+        # The whole-arm rows of the built-in barriers come from one compiled kernel
+        # (c3bf_gym._kernels.hook_rows_whole_arm, sharing the barrier classes' per-point code);
+        # any other barrier or points="ee" goes through Barrier.terms / rows_from_terms.
+        spec = getattr(barrier, "fused_spec", None)
+        spec = spec() if spec is not None and points == "whole_arm" else None
+        # the kernel's guard gains (γ₁, γ₂) of a distance HOCBF (0: no guard) and the barrier rows'
+        # relaxation weight
+        guard_f = np.zeros(3)
+        if guard is not None:
+            guard_spec = guard.fused_spec() if hasattr(guard, "fused_spec") else None
+            if guard_spec is not None and guard_spec[0] == _kernels.HOCBF_KIND:
+                guard_f = np.array([guard_spec[1][1], guard_spec[1][0], config.relaxation_weight])
+            else:
+                spec = None
+        self._fused = spec is not None
+        self._kind, params = spec if spec is not None else (-1, np.zeros(3))
+        if joint_limits is not None:
+            jl = [np.array(joint_limits.gains), joint_limits.q_lo, joint_limits.q_hi, joint_limits.qd_max]
+        else:
+            jl = [np.ones(3), np.zeros(n), np.ones(n), np.ones(n)]
+        # the fused kernel's float parameters (c3bf_gym._kernels.hook_rows_whole_arm)
+        self._hook_f = np.concatenate([[self.sensing_radius, self.margin, self.floor_gamma], params, *jl, guard_f])
+        self._floor_idx = self._floor_ends.astype(np.int64)
+        self._work = np.zeros((3, 6 + n))
+        self._bound_qp: TorqueQP | None = None  # the QP whose buffers _bound holds (_bind)
+        self._bound: tuple = ()
+        self._hook_step = _kernels.hook_step  # its compiled entry point once bound (_bind)
+        self.last: QPResult | None = None
+        self.report = StepSafety()
+        self.solve_times: list[float] | None = None
+
+    def __getstate__(self) -> dict:
+        """Pickled without what :meth:`_bind` gathered (views of this process's arrays and a compiled
+        entry point): the unpickled hook binds again on its first call, to its own env's arrays."""
+        state = self.__dict__.copy()
+        state.update(_bound=(), _bound_qp=None, _hook_step=_kernels.hook_step)
+        return state
+
+    def _version(self) -> int | None:
+        """A number that changes whenever ``data`` moves to a new state, for the arm model's
+        per-state cache; None: unknown, so every call recomputes the dynamics."""
+        return None
+
+    def _clearance(self) -> np.ndarray:
+        """(K,) each obstacle's smallest signed surface distance to the arm [m], for sensing: the
+        obstacles' own ``distances`` when they keep them, else to the protected geoms."""
+        if self.obstacles.distances is not None:
+            return self.obstacles.distances.min(axis=1)
+        a, b = self.arm.capsule_segments(self.data)
+        closest = segment_closest_points(a, b, self.obstacles.position)  # (K, S, 3)
+        gap = np.linalg.norm(self.obstacles.position[:, None] - closest, axis=2) - self.arm.capsule_radius
+        return gap.min(axis=1) - self.obstacles.radius
+
+    def filter(self, tau_nom: np.ndarray) -> tuple[np.ndarray, StepSafety]:
+        """The safe torque for the current state of ``data`` and the obstacles, and the report of
+        this one call (:class:`StepSafety`): :meth:`begin_step`, then :meth:`__call__`.
+
+        Args:
+            tau_nom: (n,) the nominal total joint torque [N m].
+
+        Returns:
+            ``(tau, report)``: tau (n,) [N m], within ``robot.torque_limit``.
+
+        Raises:
+            ValueError: ``tau_nom`` of the wrong shape, or with NaN or inf.
+            SafetyInfeasibleError: with ``on_infeasible="raise"``, when no torque within the
+                limits satisfies every row.
+        """
+        self.begin_step()
+        return self(tau_nom), self.report
+
+    def record_times(self, enabled: bool = True) -> None:
+        """Start (or stop) keeping every physics step's filter time in ``solve_times``."""
+        self.solve_times = [] if enabled else None
+
+    def begin_step(self) -> None:
+        """Start a new policy step's report."""
+        self.report = StepSafety()
+
+    def rows(self) -> tuple[np.ndarray, np.ndarray, float, bool, int]:
+        """Assemble the rows for the current state: (A, b, min h, any inside, sensed count)."""
+        arm, obstacles, data = self.arm, self.obstacles, self.data
+        if self._refresh:
+            obstacles.refresh(data)
+        if self._fused:
+            v = arm.views(data)
+            m, min_h, inside, n_sensed = _kernels.hook_rows_whole_arm(
+                arm.claim(data, self._version()), v.M, v.qfrc_passive, v.qfrc_bias, v.geom_xpos, v.geom_xmat,
+                v.cdof, v.cdof_dot, v.com, v.qpos, v.qvel, arm._arm_i, arm._arm_f, arm.capsule_chain, arm._scratch,
+                arm.Minv, arm.qacc_free, arm._ends, arm._ends_ab, arm._a_dot_ab, obstacles.active, self._distances,
+                obstacles.position, obstacles.velocity, obstacles.acceleration, obstacles.radius, self._kind,
+                self._floor_idx, self._floor_min, self.joint_limits is not None, self._hook_f, self._work,
+                self._A, self._b,
+            )
+            return self._A[:m], self._b[:m], min_h, inside, n_sensed
+        arm.update(data, self._version())
+        sensed = np.flatnonzero(obstacles.active & (self._clearance() <= self.sensing_radius))
+        m = 0
+        min_h, inside = np.inf, False
+        if len(sensed):
+            centres = obstacles.position[sensed]
+            radius = obstacles.radius[sensed]
+            if self.points == "whole_arm":
+                # The closest points slide along the links as things move, so their ḣ has the
+                # terms ⟨∂h/∂p, ṗ_slide⟩ + ⟨∂h/∂v, v̇_slide⟩ besides the material point's; without
+                # them ḣ is overestimated and links drift into obstacles (ArmModel.closest_sliding).
+                # closest_relative puts v̇_slide into c and returns ṗ_slide.
+                rel, slide_p = arm.closest_relative(centres, obstacles.velocity[sensed], obstacles.acceleration[sensed])
+                p, v, G, c = rel.pos, rel.vel, rel.G, rel.c
+                r = radius[:, None] + self._capsule_radius
+                r += self.margin
+                r = r.reshape(-1)
+            else:
+                site = arm.site_dynamics(data)
+                p = site.pos - centres
+                v = site.vel - obstacles.velocity[sensed]
+                c = site.c - obstacles.acceleration[sensed]
+                G = np.broadcast_to(site.G, (len(sensed),) + site.G.shape[1:])
+                r = radius + self.ee_radius
+                r += self.margin
+            # one row per point, followed (as in the fused kernel) by the guard's row for that point
+            barriers = (self.barrier,) if self.guard is None else (self.barrier, self.guard)
+            for i, barrier in enumerate(barriers):
+                terms = barrier.terms(p, v, r)
+                rows = barrier.rows_from_terms(terms, G, c)
+                if self.points == "whole_arm":
+                    rows.b[:] -= np.vecdot(terms.grad_p, slide_p)
+                self._A[i:len(barriers) * len(p):len(barriers)] = rows.A
+                self._b[i:len(barriers) * len(p):len(barriers)] = rows.b
+                if i == 0:
+                    min_h = float(terms.h.min())
+                    inside = bool(terms.inside.any())
+            m = len(barriers) * len(p)
+        if self._n_floor_rows:
+            m += self._floor_rows(self._A[m:], self._b[m:])
+        if self.joint_limits is not None:
+            self.joint_limits.rows(
+                data.qpos, data.qvel, arm.Minv, arm.qacc_free, out=Rows(self._A[m:], self._b[m:])
+            )
+            m += self._n_joint_rows
+        return self._A[:m], self._b[:m], min_h, inside, len(sensed)
+
+    def relaxation_weights(self, m: int) -> np.ndarray | None:
+        """The relaxation weights of :meth:`rows`' ``m`` rows: None without a guard (all rows weigh
+        1), else ``config.relaxation_weight`` for the barrier's rows and 1 for the others."""
+        if self.guard is None:
+            return None
+        _kernels.guard_weights(self._weights[:m], m - self._n_floor_rows - self._n_joint_rows,
+                               self.config.relaxation_weight)
+        return self._weights[:m]
+
+    def _floor_setup(self, model: mujoco.MjModel) -> tuple[np.ndarray, np.ndarray]:
+        """Which capsule ends get a floor row, and their lowest allowed height (floor + capsule
+        radius + margin); both empty without an upright plane geom in the world body. Capsules moved
+        only by hinges about vertical axes (link 1, on the base's pan joint) keep their height
+        and get no row: theirs could only be a constant, possibly unsatisfiable, 0 ≥ b. A sphere
+        (a capsule of length 0) gets one row."""
+        plane = mujoco.mjtGeom.mjGEOM_PLANE
+        floors = [g for g in range(model.ngeom) if model.geom_type[g] == plane and model.geom_bodyid[g] == 0]
+        floors = [g for g in floors if np.allclose(model.geom_quat[g], (1.0, 0.0, 0.0, 0.0))]
+        if not floors:
+            return np.zeros(0, dtype=int), np.zeros(0)
+        scratch = mujoco.MjData(model)
+        mujoco.mj_kinematics(model, scratch)
+        hinge = model.jnt_type == int(mujoco.mjtJoint.mjJNT_HINGE)
+        level = hinge & (np.abs(scratch.xaxis[:, 2]) > 1.0 - 1e-12)  # (njnt,) hinges about world z
+        moving = []
+        for chain in self.arm.capsule_chain:
+            joints = model.dof_jntid[np.flatnonzero(chain)]
+            moving.append(not level[joints].all())
+        moving = np.array(moving)
+        # both ends of a capsule; one of a sphere (its two ends coincide)
+        ends = np.flatnonzero(np.concatenate([moving, moving & (self.arm.capsule_half > 0.0)]))
+        radius = np.tile(self.arm.capsule_radius, 2)[ends]
+        return ends, model.geom_pos[floors[0], 2] + radius + self.margin
+
+    def _floor_rows(self, A: np.ndarray, b: np.ndarray) -> int:
+        """Rows keeping every capsule end ``z ≥ z_min`` (floor + radius + margin): the
+        second-order barrier ``z̈ + 2γ ż + γ² (z − z_min) ≥ 0`` with ``z̈ = G_z τ + c_z``.
+        (The fused kernel's :func:`c3bf_gym._kernels.floor_rows`.)"""
+        self.arm.end_dynamics()  # refreshes the packed capsule ends (arm._ends) if stale
+        k = self._n_floor_rows
+        _kernels.floor_rows(self.arm._ends, self._floor_idx, self._floor_min, self.floor_gamma, A[:k], b[:k])
+        return k
+
+    def _bind(self, qp: TorqueQP) -> tuple:
+        """The buffers :func:`c3bf_gym._kernels.hook_step` works in (env, arm and hook, then
+        ``qp``'s :meth:`~c3bf_gym.qp.TorqueQP.packed_step_buffers`; all allocated once by their
+        constructors and updated in place), gathered once per QP object: fetching them attribute
+        by attribute on every call cost more than the kernel's dispatch."""
+        arm, obstacles = self.arm, self.obstacles
+        v = arm.views(self.data)
+        self._bound = (
+            v.M, v.qfrc_passive, v.qfrc_bias, v.geom_xpos, v.geom_xmat, v.cdof, v.cdof_dot, v.com, v.qpos, v.qvel,
+            arm._arm_i, arm._arm_f, arm.capsule_chain, arm._scratch, arm.Minv, arm.qacc_free, arm._ends,
+            arm._ends_ab, arm._a_dot_ab, obstacles.active, self._distances, obstacles.position, obstacles.velocity,
+            obstacles.acceleration, obstacles.radius, self._kind, self._floor_idx, self._floor_min,
+            self.joint_limits is not None, self._hook_f, self._work, self._A, self._b, self._weights, self._scale,
+            self._limit,
+            *qp.packed_step_buffers(),
+        )
+        self._bound_qp = qp
+        # hook_step's compiled entry point for exactly these argument types, called directly: the
+        # dispatcher's type resolution of its ~50 arguments cost ~1.5 µs per call. The types are
+        # fixed: the buffers above, fresh C-contiguous float64 (n,) arrays tau_nom and tau
+        # (__call__ checks the shape: the entry point takes any array as the type it was compiled
+        # for), and for the scalars Python ints, floats and a bool (which the entry point converts
+        # to its types, as the dispatcher does).
+        vec = np.zeros(qp.n)
+        args = (0, vec, qp._m_prev, qp._kr, qp.active_set_max_iter, qp.active_tol, qp.row_slack_weight,
+                qp._diag_W, vec, *self._bound)
+        self._hook_step = _kernels.hook_step.compile(tuple(numba.typeof(a) for a in args))
+        return self._bound
+
+    def _step(self, tau_nom: np.ndarray, tau: np.ndarray, start: float) -> tuple[QPResult, float, bool, int, float, float]:
+        """Rows, QP and :func:`~c3bf_gym._kernels.hook_post` through the fused kernel
+        (:func:`~c3bf_gym._kernels.hook_step`); Python only for what it hands back, through the
+        layer's own :meth:`~c3bf_gym.qp.TorqueQP.finish_step` (proxsuite where the active-set
+        solver did not finish)."""
+        qp = self.qp
+        bound = self._bound if qp is self._bound_qp else self._bind(qp)
+        if self._refresh:
+            self.obstacles.refresh(self.data)
+        status, m, min_h, inside, n_sensed, steps, k, active, slack, residual, correction = self._hook_step(
+            self.arm.claim(self.data, self._version()), tau_nom, qp._m_prev, qp._kr, qp.active_set_max_iter,
+            qp.active_tol, qp.row_slack_weight, qp._diag_W, tau, *bound)
+        result = qp.finish_step(status, m, steps, k, active, slack, None if self.guard is None else self._weights[:m],
+                                start)
+        if status > _kernels.STEP_RELAXED_AS_IS:  # proxsuite's torque: the kernel did not finish the step
+            residual, correction = _kernels.hook_post(self._A[:m], self._b[:m], result.tau, self._scale, tau_nom,
+                                                      self._limit, tau)
+        return result, min_h, inside, n_sensed, residual, correction
+
+    def __call__(self, tau_nom: np.ndarray) -> np.ndarray:
+        """The safe torque (n,) [N m] for ``tau_nom`` (n,) [N m], the report accumulating into
+        :attr:`report` (the torque-hook protocol; :meth:`filter` for one call's own report).
+        Raises as :meth:`filter` does."""
+        start = _perf_counter()
+        # a copy of the caller's torque (float64; 1-D copies are contiguous): the kernels read it and the
+        # report keeps it. Its shape is checked here: the compiled entry point (_bind) cannot.
+        tau_nom = np.array(tau_nom, np.float64)
+        shape = self._limit.shape
+        if tau_nom.shape != shape:
+            raise ValueError(f"tau_nom must have shape {shape}, got {tau_nom.shape}")
+        tau = np.empty(shape)
+        if self._fused and self.qp.solver == "active_set":
+            result, min_h, inside, n_sensed, residual, correction = self._step(tau_nom, tau, start)
+        else:
+            A, b, min_h, inside, n_sensed = self.rows()
+            result = self.qp.solve_scaled(tau_nom, A, b, self._scale, self.relaxation_weights(len(b)))  # (A s) u ≥ b
+            # τ = u s, the smallest row residual A u − b and ‖τ − clip(τ_nom)‖ (the filter's change)
+            residual, correction = _kernels.hook_post(A, b, result.tau, self._scale, tau_nom, self._limit, tau)
+        elapsed = _perf_counter() - start
+        if self.solve_times is not None:
+            self.solve_times.append(elapsed)
+        self.last = result
+        # the running extremes as plain comparisons (what min / max do, without their call cost)
+        report = self.report
+        report.substeps += 1
+        report.solve_time += elapsed
+        if residual < report.min_constraint:
+            report.min_constraint = residual
+        report.tau_nominal, report.tau = tau_nom, tau
+        if min_h < report.min_h:
+            report.min_h = min_h
+        if inside:
+            report.inside = True
+        if n_sensed > report.sensed:
+            report.sensed = n_sensed
+        if result.active_rows > report.active_rows:
+            report.active_rows = result.active_rows
+        if correction > report.correction:
+            report.correction = correction
+        if correction > self.intervention_tol:
+            report.intervened = True
+        if not result.feasible:
+            report.feasible = False
+            report.infeasible_steps += 1
+            report.slack = max(report.slack, result.slack)
+            if self.on_infeasible == "raise":
+                raise SafetyInfeasibleError(
+                    f"no torque within the limits satisfies the safety rows (status {result.status!r}, "
+                    f"slack {result.slack:.3g}, min h {min_h:.3g}); pass on_infeasible='relax' to apply "
+                    "the least-violating torque instead"
+                )
+        return tau

@@ -1,0 +1,219 @@
+"""The filter as a library (c3bf_gym.safety): a robot description read from any MuJoCo model, the
+obstacle interface, and SafetyController on an inline 3-joint arm that is not the UR5e.
+
+Collisions are judged independently of the filter, by MuJoCo's own ``mj_geomDistance``."""
+
+from __future__ import annotations
+
+import mujoco
+import numpy as np
+import pytest
+
+from c3bf_gym.safety import (
+    FilterConfig,
+    MocapSpheres,
+    Obstacles,
+    RobotDescription,
+    SafetyController,
+    SafetyInfeasibleError,
+    UnsupportedModelError,
+)
+
+#: A planar-ish 3-joint arm: a yaw joint and two pitch joints, capsule links, a sphere at the
+#: wrist, a tool site, torque motors, a floor, and one mocap ball.
+ARM = """
+<mujoco model="three_link">
+  <compiler angle="radian"/>
+  <option timestep="0.002"/>
+  <worldbody>
+    <geom name="floor" type="plane" size="2 2 0.1"/>
+    <body name="base" pos="0 0 0.1">
+      <joint name="yaw" axis="0 0 1" range="-3 3" damping="1"/>
+      <geom name="post" type="capsule" fromto="0 0 0 0 0 0.3" size="0.05" mass="2"/>
+      <body name="upper" pos="0 0 0.3">
+        <joint name="shoulder" axis="0 1 0" range="-2 2" damping="1"/>
+        <geom name="upper" type="capsule" fromto="0 0 0 0.4 0 0" size="0.04" mass="1.5"/>
+        <body name="fore" pos="0.4 0 0">
+          <joint name="elbow" axis="0 1 0" range="-2.5 2.5" damping="0.5"/>
+          <geom name="fore" type="capsule" fromto="0 0 0 0.35 0 0" size="0.035" mass="1"/>
+          <geom name="wrist" type="sphere" pos="0.35 0 0" size="0.05" mass="0.2"/>
+          <site name="tool" pos="0.4 0 0"/>
+        </body>
+      </body>
+    </body>
+    <body name="ball" mocap="true" pos="0.6 0 1.2">
+      <geom name="ball" type="sphere" size="0.06" contype="0" conaffinity="0"/>
+    </body>
+  </worldbody>
+  <actuator>
+    <motor name="yaw" joint="yaw" ctrlrange="-40 40"/>
+    <motor name="shoulder" joint="shoulder" ctrlrange="-40 40"/>
+    <motor name="elbow" joint="elbow" ctrlrange="-20 20"/>
+  </actuator>
+</mujoco>
+"""
+
+
+def _model(xml: str = ARM) -> mujoco.MjModel:
+    return mujoco.MjModel.from_xml_string(xml)
+
+
+def test_description_reads_the_model():
+    model = _model()
+    robot = RobotDescription.from_model(model, site="tool", joint_speed_limit=2.0)
+    names = [model.geom(g).name for g in robot.geom_ids]
+    assert names == ["post", "upper", "fore", "wrist"]  # capsules and spheres on moving bodies
+    np.testing.assert_array_equal(robot.torque_limit, [40.0, 40.0, 20.0])
+    np.testing.assert_array_equal(robot.joint_range, [[-3, 3], [-2, 2], [-2.5, 2.5]])
+    np.testing.assert_array_equal(robot.joint_speed_limit, [2.0, 2.0, 2.0])
+    assert robot.n == 3 and model.site(robot.site_id).name == "tool"
+    by_body = RobotDescription.from_model(model, bodies=["fore"])
+    assert [model.geom(g).name for g in by_body.geom_ids] == ["fore", "wrist"]
+    assert by_body.joint_speed_limit is None and by_body.site_id == -1
+
+
+BAD_MODELS = [
+    (ARM.replace('<motor name="elbow" joint="elbow" ctrlrange="-20 20"/>', ""), {}, r"joint 'elbow' has no torque motor"),
+    (ARM.replace('<motor name="elbow" joint="elbow" ctrlrange="-20 20"/>', '<position name="elbow" joint="elbow" kp="10" ctrlrange="-1 1"/>'),
+     {}, r"actuator 'elbow' is not a torque motor"),
+    (ARM.replace('<motor name="elbow" joint="elbow" ctrlrange="-20 20"/>', '<motor name="elbow" joint="elbow"/>'),
+     {}, r"actuator 'elbow' has no torque limit"),
+    (ARM.split("<actuator>")[0] + "</mujoco>", {}, r"no actuators"),
+    (ARM, {"geoms": ["floor"]}, r"geom 'floor' is a plane.*capsules"),
+    (ARM, {"geoms": ["upper", "nope"]}, r"unknown geom 'nope'.*post.*upper"),
+    (ARM.replace('<geom name="fore" type="capsule" fromto="0 0 0 0.35 0 0" size="0.035" mass="1"/>',
+                 '<geom name="fore" type="box" size="0.17 0.03 0.03" pos="0.17 0 0" mass="1"/>'),
+     {"bodies": ["fore"]}, r"geom 'fore' is a box"),
+    (ARM.replace('<body name="ball" mocap="true" pos="0.6 0 1.2">', '<body name="ball" pos="0.6 0 1.2"><freejoint/>'),
+     {}, r"is a free joint"),
+    (ARM, {"site": "hand"}, r"unknown site 'hand'; the model's named sites: tool"),
+    (ARM, {"joint_speed_limit": [1.0, 2.0]}, r"joint_speed_limit must be one finite number > 0 or 3"),
+]  # fmt: skip
+
+
+@pytest.mark.parametrize("xml, kwargs, message", BAD_MODELS, ids=[m for *_, m in BAD_MODELS])
+def test_models_the_filter_cannot_protect_are_refused_by_name(xml, kwargs, message):
+    with pytest.raises(UnsupportedModelError, match=message):
+        RobotDescription.from_model(_model(xml), **kwargs)
+
+
+def test_joint_limits_need_ranges_and_speed_limits():
+    model = _model(ARM.replace(' range="-2.5 2.5"', ""))
+    robot = RobotDescription.from_model(model, joint_speed_limit=2.0)
+    data = mujoco.MjData(model)
+    with pytest.raises(UnsupportedModelError, match=r"joint 'elbow' has no position limits"):
+        SafetyController(model, data, robot, Obstacles(1))
+    SafetyController(model, data, robot, Obstacles(1), FilterConfig(joint_limits=False))  # fine without them
+    robot = RobotDescription.from_model(_model(), site="tool")
+    with pytest.raises(UnsupportedModelError, match="joint speed limits"):
+        SafetyController(_model(), mujoco.MjData(_model()), robot, Obstacles(1))
+
+
+def _ball_clearance(model, data) -> float:
+    """MuJoCo's own smallest signed distance between the ball and any arm geom [m]."""
+    ball = model.geom("ball").id
+    arm = [model.geom(n).id for n in ("post", "upper", "fore", "wrist")]
+    return min(mujoco.mj_geomDistance(model, data, ball, g, 1.0, None) for g in arm)
+
+
+def _run(filtered: bool, config: FilterConfig | None = None, seconds: float = 1.5):
+    """The arm pulled up towards a ball that falls onto it at 1 m/s; returns (lowest clearance,
+    interventions, the controller)."""
+    model = _model()
+    data = mujoco.MjData(model)
+    data.qpos[:] = (0.0, -0.3, 0.4)
+    mujoco.mj_forward(model, data)
+    robot = RobotDescription.from_model(model, site="tool", joint_speed_limit=3.0)
+    balls = MocapSpheres(model, ["ball"])
+    controller = SafetyController(model, data, robot, balls, config) if filtered else None
+    ball_velocity = np.array([0.0, 0.0, -1.0])
+    lowest, interventions = np.inf, 0
+    for _ in range(int(seconds / model.opt.timestep)):
+        mujoco.mj_step1(model, data)
+        lowest = min(lowest, _ball_clearance(model, data))
+        # nominal: a PD pull towards an upright pose, plus gravity compensation
+        tau_nom = 60.0 * (np.array([0.0, -1.2, 0.0]) - data.qpos) - 8.0 * data.qvel + data.qfrc_bias
+        tau_nom = np.clip(tau_nom, -robot.torque_limit, robot.torque_limit)
+        if controller is not None:
+            balls.velocity[0] = ball_velocity
+            tau, report = controller.filter(tau_nom)
+            interventions += report.intervened
+        else:
+            tau = tau_nom
+        data.ctrl[:] = tau
+        mujoco.mj_step2(model, data)
+        data.mocap_pos[0] += ball_velocity * model.opt.timestep
+    return lowest, interventions, controller
+
+
+def test_standalone_controller_keeps_a_falling_ball_off_an_inline_arm():
+    unfiltered, _, _ = _run(filtered=False)
+    assert unfiltered < 0.0, "the scenario must collide without the filter, or the test proves nothing"
+    lowest, interventions, controller = _run(filtered=True)
+    assert lowest > 0.0 and interventions > 0
+    assert controller.report.substeps == 1  # filter(): one call's own report
+
+
+def test_standalone_fused_and_per_class_paths_agree():
+    """The whole-arm kernel (which measures sensing distances to the protected geoms itself when
+    the obstacles keep none, and treats the wrist sphere as a capsule of length 0) gives the rows
+    of the per-class path, which uses numpy geometry."""
+    model = _model()
+    data = mujoco.MjData(model)
+    data.qpos[:] = (0.3, -0.6, 0.9)
+    data.qvel[:] = (0.5, -1.0, 0.7)
+    data.mocap_pos[0] = (0.45, 0.1, 0.75)
+    mujoco.mj_forward(model, data)
+    robot = RobotDescription.from_model(model, site="tool", joint_speed_limit=3.0)
+    balls = MocapSpheres(model, ["ball"])
+    balls.velocity[0] = (-0.2, 0.0, -0.4)
+    config = FilterConfig(sensing_radius=0.5, guard=None)
+    fused = SafetyController(model, data, robot, balls, config)
+    generic = SafetyController(model, data, robot, balls, config.replace(solver="proxsuite"))
+    generic._fused = False  # the per-class path, as a barrier the kernel cannot fuse takes
+    A1, b1, h1, in1, n1 = (x.copy() if isinstance(x, np.ndarray) else x for x in fused.rows())
+    A2, b2, h2, in2, n2 = generic.rows()
+    assert n1 == n2 == 1 and in1 == in2 and h1 == pytest.approx(h2, rel=1e-12)
+    np.testing.assert_allclose(A1, A2, rtol=0, atol=1e-10)
+    np.testing.assert_allclose(b1, b2, rtol=0, atol=1e-10)
+    assert len(b1) == 4 + 5 + 12  # 4 protected geoms; floor: both ends of 2 capsules, 1 of the sphere, none of the post (yaw only); 4n
+
+
+def test_controller_input_errors():
+    model = _model()
+    data = mujoco.MjData(model)
+    mujoco.mj_forward(model, data)
+    robot = RobotDescription.from_model(model, site="tool", joint_speed_limit=3.0)
+    controller = SafetyController(model, data, robot, MocapSpheres(model, ["ball"]))
+    with pytest.raises(ValueError, match=r"tau_nom must have shape \(3,\)"):
+        controller.filter(np.zeros(6))
+    with pytest.raises(ValueError, match="NaN or inf"):
+        controller.filter(np.array([0.0, np.nan, 0.0]))
+    with pytest.raises(ValueError, match="not a mocap body; the model's mocap bodies: ball"):
+        MocapSpheres(model, ["upper"])
+    with pytest.raises(UnsupportedModelError, match="points='ee'.*site"):
+        SafetyController(model, data, RobotDescription.from_model(model, joint_speed_limit=3.0), Obstacles(1),
+                         FilterConfig(points="ee"))
+    obstacles = Obstacles(2)
+    with pytest.raises(ValueError, match="radius must be a finite number > 0"):
+        obstacles.set(0, (0, 0, 1), radius=0.0)
+    with pytest.raises(ValueError, match="position must be 3 finite numbers"):
+        obstacles.set(0, (0, 0, np.inf), radius=0.1)
+    with pytest.raises(ValueError, match=r"position must be a \(2, 3\) float64 array"):
+        Obstacles(2, position=np.zeros((3, 3)))
+
+
+def test_raise_policy_on_the_standalone_controller():
+    """``on_infeasible="raise"`` raises from filter(); the data is untouched (the controller never
+    writes to it), so the caller decides what to apply instead."""
+    model = _model()
+    data = mujoco.MjData(model)
+    data.qpos[:] = (0.0, -0.3, 0.4)
+    data.qvel[:] = (0.0, -60.0, 60.0)  # far beyond the speed bound: no torque can hold it this step
+    mujoco.mj_forward(model, data)
+    robot = RobotDescription.from_model(model, site="tool", joint_speed_limit=1.0)
+    controller = SafetyController(model, data, robot, Obstacles(1), FilterConfig(on_infeasible="raise"))
+    qpos = data.qpos.copy()
+    with pytest.raises(SafetyInfeasibleError):
+        controller.filter(data.qfrc_bias.copy())
+    np.testing.assert_array_equal(data.qpos, qpos)
