@@ -72,7 +72,7 @@ import proxsuite
 
 from c3bf_gym import _active_set, _kernels
 
-__all__ = ["QPResult", "TorqueQP", "build_qp", "PROXSUITE_INF", "SOLVERS"]
+__all__ = ["QPResult", "TorqueQP", "PROXSUITE_INF", "SOLVERS"]
 
 #: the ``solver`` choices of :class:`TorqueQP`
 SOLVERS = ("active_set", "proxsuite")
@@ -166,34 +166,6 @@ def _box(tau_min, tau_max, n: int) -> tuple[np.ndarray, np.ndarray]:
     if not np.all(lo < hi):
         raise ValueError("tau_min must be strictly less than tau_max elementwise")
     return lo, hi
-
-
-def build_qp(tau_nom, A, b, W, tau_min, tau_max):
-    """Pure construction of the proxsuite dense data of the *hard* problem.
-
-    Args:
-        tau_nom: (n,) nominal torque [N·m].
-        A: (m, n) safety rows;  b: (m,) right-hand side (A τ ≥ b).
-        W: None (identity), (n,) positive diagonal or (n, n) SPD weight.
-        tau_min, tau_max: scalars or (n,) actuator limits [N·m], tau_min < tau_max.
-
-    Returns:
-        (H, g, C, l, u, l_box, u_box): H (n, n) = W, g (n,) = −W τ_nom, C (m, n) = A,
-        l (m,) = b, u (m,) = +PROXSUITE_INF, l_box = tau_min, u_box = tau_max
-        (new arrays; rows *not* normalised — :class:`TorqueQP` solves the
-        equivalent row-normalised problem).
-    """
-    tau_nom = np.asarray(tau_nom, dtype=np.float64)
-    if tau_nom.ndim != 1:
-        raise ValueError(f"tau_nom must be 1-D (n,); got shape {tau_nom.shape}")
-    n = tau_nom.shape[0]
-    A = np.asarray(A, dtype=np.float64)
-    b = np.asarray(b, dtype=np.float64)
-    if A.ndim != 2 or A.shape[1] != n or b.shape != (A.shape[0],):
-        raise ValueError(f"A must be (m, {n}) and b (m,); got {A.shape} and {b.shape}")
-    H = _weight_matrix(W, n)
-    lo, hi = _box(tau_min, tau_max, n)
-    return H, -(H @ tau_nom), A.copy(), b.copy(), np.full(A.shape[0], PROXSUITE_INF), lo, hi
 
 
 # ----------------------------------------------------------------------------- layer

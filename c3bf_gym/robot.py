@@ -222,7 +222,7 @@ class ArmModel:
         Each capsule's axis lies on one rigid body, so position, velocity, ``c`` and ``G`` are
         all affine along it: ``_ends_a`` holds them at end a and ``_ends_ab`` the difference to
         end b, packed as (S, 3, 3 + nv) arrays ``[pos | vel | c | G]`` so that one broadcast
-        product evaluates all of them at any points of the axes (:meth:`_closest`).
+        product evaluates all of them at any points of the axes.
         """
         if self._ends_current:
             return
@@ -266,56 +266,17 @@ class ArmModel:
         centre, axis = self._capsule_axes(data)
         return centre - axis, centre + axis
 
-    def _axis_parameter(self, centres: np.ndarray) -> np.ndarray:
-        """(K, S) position along each capsule axis of the point nearest each centre, before
-        clamping to the segment: ``t = ((o - a) . (b - a)) / |b - a|^2`` (0 at end a, 1 at b)."""
-        t = centres @ self._ends_ab[:, :, 0].T
-        t -= self._a_dot_ab
-        np.divide(t, self._length2, out=t, where=self._length2 > 0.0)  # spheres (length 0): t = 0
-        t[:, self._length2 == 0.0] = 0.0
-        return t
-
-    def _closest(self, centres: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The packed ``[pos | vel | c | G]`` (K, S, 3, 3 + nv) of the closest points, and the
-        unclamped axis parameter (K, S)."""
-        self._ensure_ends()
-        t = self._axis_parameter(centres)
-        clamped = np.maximum(t, 0.0)
-        np.minimum(clamped, 1.0, out=clamped)
-        packed = np.multiply(clamped[:, :, None, None], self._ends_ab)
-        packed += self._ends_a
-        return packed, t
-
     @staticmethod
     def _unpack(packed: np.ndarray) -> PointDynamics:
         """:class:`PointDynamics` (views, leading dimension K * S) of a packed (K, S, 3, 3 + nv)."""
         flat = packed.reshape(-1, *packed.shape[2:])
         return PointDynamics(flat[:, :, 0], flat[:, :, 1], None, flat[:, :, 3:], flat[:, :, 2])
 
-    def closest_dynamics(self, centres: np.ndarray) -> PointDynamics:
-        """:class:`PointDynamics` of the point on every capsule axis closest to every centre.
-
-        Args:
-            centres: (K, 3) query points [m] (obstacle centres).
-
-        Returns:
-            arrays of leading dimension ``K * S``, obstacle-major (row ``k * S + s`` is obstacle
-            ``k`` and capsule ``s``); ``jac`` is None (the filter needs ``G`` and ``c`` only).
-            Call :meth:`update` first in the same physics step.
-        """
-        return self._unpack(self._closest(centres)[0])
-
-    def _sliding_rate(self, t: np.ndarray, p: np.ndarray, v: np.ndarray) -> np.ndarray:
-        """(K, S, 1) ``ṫ`` of :meth:`closest_sliding` from the unclamped axis parameter ``t``."""
-        ab = self._ends_ab
-        rate = np.vecdot(v, ab[:, :, 0])
-        rate += np.vecdot(p, ab[:, :, 1])
-        np.divide(rate, -self._length2, out=rate, where=self._length2 > 0.0)
-        rate *= (t > 0.0) & (t < 1.0)  # 0 where the point is clamped to an end (always, on a sphere)
-        return rate[..., None]
-
-    def closest_sliding(self, centres: np.ndarray, p: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """How fast the closest points of :meth:`closest_dynamics` slide along their axes.
+    def closest_relative(
+        self, centres: np.ndarray, velocities: np.ndarray, accelerations: np.ndarray
+    ) -> tuple[PointDynamics, np.ndarray]:
+        """The dynamics of the point on every capsule axis closest to every centre, relative to
+        moving obstacles: what a barrier row on the closest points needs.
 
         A closest point is not a material point: while the arm and the obstacle move it slides
         along the capsule axis, ``x*(t) = a + t*(t) (b − a)``. Its offset ``p = x* − o`` and the
@@ -325,29 +286,10 @@ class ArmModel:
             ṫ = −(⟨v, b − a⟩ + ⟨p, ḃ − ȧ⟩) / |b − a|²
 
         where the closest point lies inside the segment, and ``ṫ = 0`` where it is clamped to an
-        end (``⟨b − a, ḃ − ȧ⟩ = 0``: the axis is rigid). A barrier on ``(p, v)`` that leaves these
-        terms out overestimates its own rate (for the distance HOCBF by exactly
-        ``2 (⟨v, b − a⟩ + ⟨p, ḃ − ȧ⟩)² / |b − a|²``), which lets a link drift into an obstacle.
-
-        Args:
-            centres: (K, 3) the centres given to :meth:`closest_dynamics` (same physics step).
-            p, v: (K * S, 3) closest point minus centre, and that arm point's velocity minus the
-                centre's, obstacle-major.
-
-        Returns:
-            ``(ṫ (b − a), ṫ (ḃ − ȧ))``: the sliding terms of ``ṗ`` and ``v̇``, both (K * S, 3).
-        """
-        self._ensure_ends()
-        k, s = len(centres), len(self.capsule_ids)
-        rate = self._sliding_rate(self._axis_parameter(centres), p.reshape(k, s, 3), v.reshape(k, s, 3))
-        ab = self._ends_ab
-        return (rate * ab[:, :, 0]).reshape(-1, 3), (rate * ab[:, :, 1]).reshape(-1, 3)
-
-    def closest_relative(
-        self, centres: np.ndarray, velocities: np.ndarray, accelerations: np.ndarray
-    ) -> tuple[PointDynamics, np.ndarray]:
-        """:meth:`closest_dynamics` and :meth:`closest_sliding` in one pass, relative to moving
-        obstacles: what a barrier row on the closest points needs.
+        end (``⟨b − a, ḃ − ȧ⟩ = 0``: the axis is rigid), and always on a sphere (an axis of
+        length 0). A barrier on ``(p, v)`` that leaves these terms out overestimates its own rate
+        (for the distance HOCBF by exactly ``2 (⟨v, b − a⟩ + ⟨p, ḃ − ȧ⟩)² / |b − a|²``), which
+        lets a link drift into an obstacle. Call :meth:`update` first in the same physics step.
 
         Args:
             centres, velocities, accelerations: (K, 3) the obstacles' [m, m/s, m/s²].
@@ -367,24 +309,6 @@ class ArmModel:
                                   as_f64(centres, dtype=np.float64), as_f64(velocities, dtype=np.float64),
                                   as_f64(accelerations, dtype=np.float64), p, v, c, G, slide_p, np.empty((k, s)))
         return PointDynamics(p, v, None, G, c), slide_p
-
-    def _packed_dynamics(self, data: mujoco.MjData, chain: np.ndarray, packed: np.ndarray, jac: np.ndarray) -> None:
-        """Fill ``packed[:, :, 1:]`` (velocity, ``c``, ``G``) of the points in ``packed[:, :, 0]``
-        (P, 3, 3 + nv) moving with bodies whose dof masks are ``chain`` (P, nv), and their
-        Jacobians ``jac`` (P, 3, nv). ``Minv`` and ``qacc_free`` must be current."""
-        v = self.views(data)
-        _kernels.point_dynamics(np.ascontiguousarray(chain, dtype=np.float64), v.cdof, v.cdof_dot, v.com, v.qvel,
-                                self.Minv, self.qacc_free, packed, jac)
-
-    def point_dynamics(self, data: mujoco.MjData, points: np.ndarray, chain: np.ndarray) -> PointDynamics:
-        """:class:`PointDynamics` for ``points`` (P, 3) moving with bodies whose dof masks are
-        ``chain`` (P, nv). ``Minv`` and ``qacc_free`` must be current (:meth:`update`)."""
-        n = len(points)
-        packed = np.empty((n, 3, 3 + self.nv))
-        packed[:, :, 0] = points
-        jac = np.empty((n, 3, self.nv))
-        self._packed_dynamics(data, np.asarray(chain, dtype=float), packed, jac)
-        return PointDynamics(points, packed[:, :, 1], jac, packed[:, :, 3:], packed[:, :, 2])
 
     def site_dynamics(self, data: mujoco.MjData) -> PointDynamics:
         """:class:`PointDynamics` of the tool site (P = 1), from ``mj_jacSite`` and ``mj_jacDot``.

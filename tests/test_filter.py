@@ -19,6 +19,8 @@ from c3bf_gym.filter import SafetyHook
 from c3bf_gym.safety import FilterConfig, SafetyInfeasibleError
 from c3bf_gym.scenarios import ObstacleSample, ObstacleSpec
 
+import reference
+
 # ----------------------------------------------------------------------------- helpers
 
 
@@ -467,7 +469,7 @@ def test_overlap_is_reported_and_the_recovery_row_pushes_apart(env):
     hook.begin_step()
     tau = hook(tau_nom.copy())
     assert hook.report.inside
-    pd = u.arm.closest_dynamics(u.obstacle_pos[:1])
+    pd = reference.closest_dynamics(u.arm, u.obstacle_pos[:1])
     s = list(u.arm.capsule_ids).index(u.arm.capsule_ids[2])
     away = pd.pos[s] - u.obstacle_pos[0]
     assert away @ (pd.G[s] @ (tau - tau_nom)) > 0.0

@@ -22,6 +22,8 @@ from c3bf_gym.qp import PROXSUITE_INF, TorqueQP
 from c3bf_gym.robot import ArmModel
 from c3bf_gym.scenarios import ObstacleSample, ObstacleSpec
 
+import reference
+
 RTOL = 1e-12
 
 
@@ -178,10 +180,10 @@ def test_closest_relative_matches_closest_dynamics_and_sliding(make_env, seed):
     centres, vel, acc = u.obstacle_pos[:3].copy(), u.obstacle_vel[:3].copy(), u.obstacle_acc[:3].copy()
     s = len(arm.capsule_ids)
     rel, slide_p = arm.closest_relative(centres, vel, acc)
-    mat = arm.closest_dynamics(centres)
+    mat = reference.closest_dynamics(arm, centres)
     p = mat.pos - np.repeat(centres, s, axis=0)
     v = mat.vel - np.repeat(vel, s, axis=0)
-    slide_p_ref, slide_v_ref = arm.closest_sliding(centres, p, v)
+    slide_p_ref, slide_v_ref = reference.closest_sliding(arm, centres, p, v)
     close(rel.pos, p)
     close(rel.vel, v)
     close(rel.G, mat.G)
@@ -202,7 +204,7 @@ def test_point_dynamics_kernel_matches_mj_jac(make_env):
     body = int(m.geom_bodyid[arm.capsule_ids[4]])
     points = d.xpos[body] + np.random.default_rng(5).normal(scale=0.1, size=(4, 3))
     chain = np.repeat(ArmModel._chain_mask(m, body)[None], 4, axis=0)
-    got = arm.point_dynamics(d, points, chain)
+    got = reference.point_dynamics(arm, d, points, chain)
     for k, x in enumerate(points):
         jac, jdot = np.zeros((3, m.nv)), np.zeros((3, m.nv))
         mujoco.mj_jac(m, d, jac, None, x, body)
@@ -234,10 +236,10 @@ def numpy_rows(u, hook):
     sensed = np.flatnonzero(u.obstacle_active & (u.obstacle_distances() <= hook.sensing_radius))
     s = len(arm.capsule_ids)
     centres, vel, acc = u.obstacle_pos[sensed], u.obstacle_vel[sensed], u.obstacle_acc[sensed]
-    mat = arm.closest_dynamics(centres)
+    mat = reference.closest_dynamics(arm, centres)
     p = mat.pos - np.repeat(centres, s, axis=0)
     v = mat.vel - np.repeat(vel, s, axis=0)
-    slide_p, slide_v = arm.closest_sliding(centres, p, v)
+    slide_p, slide_v = reference.closest_sliding(arm, centres, p, v)
     c = mat.c - np.repeat(acc, s, axis=0) + slide_v
     r = (u.obstacle_radius[sensed][:, None] + arm.capsule_radius[None] + hook.margin).reshape(-1)
     bar = hook.barrier

@@ -5,7 +5,7 @@ import itertools
 import numpy as np
 import pytest
 
-from c3bf_gym.qp import PROXSUITE_INF, SOLVERS, TorqueQP, build_qp
+from c3bf_gym.qp import SOLVERS, TorqueQP
 
 TOL = 1e-6
 both_solvers = pytest.mark.parametrize("solver", SOLVERS)
@@ -48,21 +48,6 @@ def _random_feasible(rng, n, m, W_kind="diag"):
         Wm = L @ L.T + n * np.eye(n)
         W = Wm
     return tau_nom, A, b, W, Wm, lo, hi
-
-
-def test_build_qp_tiny():
-    W = np.array([2.0, 3.0])
-    A = np.array([[1.0, 1.0]])
-    H, g, C, l, u, lb, ub = build_qp([1.0, -1.0], A, [0.5], W, -2.0, [2.0, 4.0])
-    np.testing.assert_array_equal(H, np.diag([2.0, 3.0]))
-    np.testing.assert_array_equal(g, [-2.0, 3.0])
-    np.testing.assert_array_equal(C, A)
-    np.testing.assert_array_equal(l, [0.5])
-    np.testing.assert_array_equal(u, [PROXSUITE_INF])
-    np.testing.assert_array_equal(lb, [-2.0, -2.0])
-    np.testing.assert_array_equal(ub, [2.0, 4.0])
-    H2, *_ = build_qp([0.0, 0.0], A, [0.5], None, -1, 1)
-    np.testing.assert_array_equal(H2, np.eye(2))
 
 
 @both_solvers

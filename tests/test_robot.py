@@ -17,6 +17,8 @@ import pytest
 from c3bf_gym.robot import ArmModel, segment_closest_points
 from c3bf_gym.scenarios import MAX_OBSTACLES, ObstacleSample, ObstacleSpec
 
+import reference
+
 SEEDS = range(8)
 
 
@@ -141,7 +143,7 @@ def test_point_dynamics_matches_mj_jac_jacdot_and_solveM(env, seed):
     body_of = rng.choice(bodies, size=12)
     points = u.data.xpos[body_of] + rng.uniform(-0.3, 0.3, (12, 3))
     chain = np.array([ArmModel._chain_mask(u.model, b) for b in body_of])
-    got = arm.point_dynamics(u.data, points, chain)
+    got = reference.point_dynamics(arm, u.data, points, chain)
     assert got.pos.shape == (12, 3) and got.jac.shape == (12, 3, 6) and got.G.shape == (12, 3, 6)
     for k, b in enumerate(body_of):
         assert_point_matches(got, k, expected_dynamics(u, points[k], b))
@@ -222,7 +224,7 @@ def test_closest_dynamics_matches_segment_geometry_and_mujoco(env, seed):
     arm.update(d, u.state_version)
     # centres near the arm, including beyond both ends of every capsule
     centres = d.geom_xpos[rng.choice(arm.capsule_ids, 5)] + rng.uniform(-0.4, 0.4, (5, 3))
-    got = arm.closest_dynamics(centres)
+    got = reference.closest_dynamics(arm, centres)
     s = len(arm.capsule_ids)
     assert got.pos.shape == (5 * s, 3) and got.jac is None
     clamped = 0
@@ -271,7 +273,7 @@ def test_closest_points_reproduce_mujoco_distance_sensors(env, seed):
     mujoco.mj_forward(m, d)
     u.state_version += 1
     arm.update(d, u.state_version)
-    got = arm.closest_dynamics(u.obstacle_pos.copy())
+    got = reference.closest_dynamics(arm, u.obstacle_pos.copy())
     s = len(arm.capsule_ids)
     columns = [list(u.arm_geom_ids).index(g) for g in arm.capsule_ids]
     gap = np.linalg.norm(got.pos - np.repeat(centres, s, axis=0), axis=1).reshape(MAX_OBSTACLES, s)
@@ -293,7 +295,7 @@ def test_update_caches_on_state_version(env):
     centres = np.array([[0.3, 0.2, 0.4], [-0.2, 0.3, 0.6]])
     random_state(u, rng)
     arm.update(d, u.state_version)
-    before = arm.closest_dynamics(centres)
+    before = reference.closest_dynamics(arm, centres)
     site_before = arm.site_dynamics(d)
     minv_before = arm.Minv.copy()
     free_before = arm.qacc_free.copy()
@@ -304,14 +306,14 @@ def test_update_caches_on_state_version(env):
     arm.update(d, u.state_version)
     np.testing.assert_array_equal(arm.Minv, minv_before)
     np.testing.assert_array_equal(arm.qacc_free, free_before)
-    same = arm.closest_dynamics(centres)
+    same = reference.closest_dynamics(arm, centres)
     for x, y in zip(before, same):
         if x is not None:
             np.testing.assert_array_equal(x, y)
     # a new version recomputes from the new state
     u.state_version += 1
     arm.update(d, u.state_version)
-    after = arm.closest_dynamics(centres)
+    after = reference.closest_dynamics(arm, centres)
     assert not np.allclose(after.pos, before.pos)
     s = len(arm.capsule_ids)
     for j, gid in enumerate(arm.capsule_ids):
@@ -325,7 +327,7 @@ def test_update_caches_on_state_version(env):
     d.qpos[:] -= 0.2
     mujoco.mj_forward(m, d)
     arm.update(d)
-    again = arm.closest_dynamics(centres)
+    again = reference.closest_dynamics(arm, centres)
     for j, gid in enumerate(arm.capsule_ids):
         a, b = capsule_frame(u, gid)
         np.testing.assert_allclose(again.pos[j], closest_on_segment(a, b, centres[0]), atol=1e-12)
@@ -340,7 +342,7 @@ def test_env_steps_advance_the_version_and_the_cache_follows(env):
         u.arm.update(u.data, u.state_version)
         centre = np.array([[0.4, 0.1, 0.5]])
         a, b = capsule_frame(u, u.arm.capsule_ids[2])
-        seen.append((u.state_version, u.arm.closest_dynamics(centre).pos[2].copy(), closest_on_segment(a, b, centre[0])))
+        seen.append((u.state_version, reference.closest_dynamics(u.arm, centre).pos[2].copy(), closest_on_segment(a, b, centre[0])))
         return tau
 
     u.add_torque_hook(hook, "nominal")
@@ -400,7 +402,7 @@ def test_predicted_acceleration_matches_one_physics_step(make_env, seed):
         tau = delta + d.qfrc_gravcomp  # total actuator torque
         site = arm.site_dynamics(d)
         centre = d.geom_xpos[arm.capsule_ids[2]] + np.array([0.0, 0.0, 0.2])
-        closest = arm.closest_dynamics(centre[None])
+        closest = reference.closest_dynamics(arm, centre[None])
         bodies = [m.site_bodyid[u.ee_site_id]] + [m.geom_bodyid[g] for g in arm.capsule_ids]
         points = np.concatenate([site.pos, closest.pos])
         full = np.zeros((m.nv, m.nv))
@@ -474,10 +476,10 @@ def test_closest_sliding_is_the_rate_of_the_moving_closest_point(env, seed):
     rng, arm, s, centres = scene_near_capsules(u, seed, 4)
     centre_vel = rng.uniform(-0.5, 0.5, (4, 3))
     qacc = rng.uniform(-5, 5, m.nv)
-    got = arm.closest_dynamics(centres)
+    got = reference.closest_dynamics(arm, centres)
     p = got.pos - np.repeat(centres, s, axis=0)
     v = got.vel - np.repeat(centre_vel, s, axis=0)
-    slide_p, slide_v = arm.closest_sliding(centres, p, v)
+    slide_p, slide_v = reference.closest_sliding(arm, centres, p, v)
     assert slide_p.shape == slide_v.shape == (4 * s, 3)
     tau = step_inertia(u) @ qacc - (d.qfrc_passive - d.qfrc_bias)  # the torque giving q̈
     material_acc = np.einsum("pij,j->pi", got.G, tau) + got.c  # = J q̈ + J̇ q̇
@@ -508,10 +510,10 @@ def test_closest_relative_combines_dynamics_and_sliding(env, seed):
     rng, arm, s, centres = scene_near_capsules(env, seed, 3)
     vel, acc = rng.uniform(-0.5, 0.5, (3, 3)), rng.uniform(-1.0, 1.0, (3, 3))
     rel, slide_p = arm.closest_relative(centres, vel, acc)
-    pd = arm.closest_dynamics(centres)
+    pd = reference.closest_dynamics(arm, centres)
     p = pd.pos - np.repeat(centres, s, axis=0)
     v = pd.vel - np.repeat(vel, s, axis=0)
-    want_p, want_v = arm.closest_sliding(centres, p, v)
+    want_p, want_v = reference.closest_sliding(arm, centres, p, v)
     np.testing.assert_allclose(rel.pos, p, rtol=0, atol=1e-14)
     np.testing.assert_allclose(rel.vel, v, rtol=0, atol=1e-14)
     np.testing.assert_allclose(rel.G, pd.G, rtol=0, atol=1e-14)

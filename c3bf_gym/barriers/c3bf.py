@@ -8,7 +8,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from .. import _kernels
-from .base import Barrier, BarrierTerms, FloatArray, check_points, contiguous, radii, require_positive
+from .base import Barrier, BarrierTerms, check_points, contiguous, radii, require_positive
 
 __all__ = ["C3BF"]
 
@@ -106,10 +106,3 @@ class C3BF(Barrier):
         if type(self).terms is not C3BF.terms:
             return None
         return _kernels.C3BF_KIND, np.array([float(self.gamma), float(self.eps), float(self.delta)])
-
-    def partials(
-        self, p: ArrayLike, v: ArrayLike, r: ArrayLike
-    ) -> tuple[FloatArray, FloatArray, FloatArray]:
-        """Value and both gradients ``(h (P,), ∂h/∂p (P, 3), ∂h/∂v (P, 3))``, as in :meth:`terms`."""
-        t = self.terms(p, v, r)
-        return t.h, t.grad_p, t.grad_v

@@ -104,13 +104,3 @@ class DistanceHOCBF(Barrier):
         if type(self).terms is not DistanceHOCBF.terms:
             return None
         return _kernels.HOCBF_KIND, np.array([float(self.gamma), float(self.gamma1), 0.0])
-
-    def partials(
-        self, p: ArrayLike, v: ArrayLike, r: ArrayLike
-    ) -> tuple[FloatArray, FloatArray, FloatArray]:
-        """Value and both gradients ``(ψ₁ (P,), ∂ψ₁/∂p (P, 3), ∂ψ₁/∂v (P, 3))``.
-
-        ``∂ψ₁/∂p = 2v + 2γ₁ p``, ``∂ψ₁/∂v = 2p``. For diagnostics and tests.
-        """
-        t = self.terms(p, v, r)
-        return t.h, t.grad_p, t.grad_v

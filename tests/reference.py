@@ -1,0 +1,68 @@
+"""Reference implementations that only the tests use: the arm's closest-point dynamics in plain
+numpy (the compiled kernels are checked against them, and they against MuJoCo), material point
+dynamics, and a barrier's value and gradients.
+
+They read an :class:`~c3bf_gym.robot.ArmModel`'s packed capsule ends (``_ends_a``, ``_ends_ab``:
+``[pos | vel | c | G]`` at end a and the difference to end b, (S, 3, 3 + nv)), computed by
+``arm.update(data)`` in the same physics step."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from c3bf_gym.robot import ArmModel, PointDynamics
+
+
+def _axis_parameter(arm: ArmModel, centres: np.ndarray) -> np.ndarray:
+    """(K, S) ``t = ((o − a) · (b − a)) / |b − a|²`` before clamping (0 at end a, 1 at b; 0 on a
+    sphere)."""
+    t = centres @ arm._ends_ab[:, :, 0].T
+    t -= arm._a_dot_ab
+    np.divide(t, arm._length2, out=t, where=arm._length2 > 0.0)
+    t[:, arm._length2 == 0.0] = 0.0
+    return t
+
+
+def closest_dynamics(arm: ArmModel, centres: np.ndarray) -> PointDynamics:
+    """:class:`PointDynamics` of the point on every capsule axis closest to every centre (K, 3):
+    leading dimension ``K * S``, obstacle-major (row ``k * S + s``); ``jac`` is None."""
+    arm._ensure_ends()
+    t = np.clip(_axis_parameter(arm, centres), 0.0, 1.0)
+    packed = t[:, :, None, None] * arm._ends_ab + arm._ends_a
+    return arm._unpack(packed)
+
+
+def closest_sliding(arm: ArmModel, centres: np.ndarray, p: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The sliding terms ``(ṫ (b − a), ṫ (ḃ − ȧ))`` (K * S, 3) of the closest points' ``ṗ`` and
+    ``v̇``, with ``ṫ = −(⟨v, b − a⟩ + ⟨p, ḃ − ȧ⟩) / |b − a|²`` inside the segment and 0 at a
+    clamped end (:meth:`~c3bf_gym.robot.ArmModel.closest_relative`'s derivation)."""
+    arm._ensure_ends()
+    k, s = len(centres), len(arm.capsule_ids)
+    t = _axis_parameter(arm, centres)
+    ab = arm._ends_ab
+    rate = np.vecdot(v.reshape(k, s, 3), ab[:, :, 0]) + np.vecdot(p.reshape(k, s, 3), ab[:, :, 1])
+    np.divide(rate, -arm._length2, out=rate, where=arm._length2 > 0.0)
+    rate = (rate * ((t > 0.0) & (t < 1.0)))[..., None]
+    return (rate * ab[:, :, 0]).reshape(-1, 3), (rate * ab[:, :, 1]).reshape(-1, 3)
+
+
+def point_dynamics(arm: ArmModel, data, points: np.ndarray, chain: np.ndarray) -> PointDynamics:
+    """:class:`PointDynamics` of ``points`` (P, 3) moving with bodies whose dof masks are
+    ``chain`` (P, nv), through the compiled per-point kernel (``arm.update`` first)."""
+    from c3bf_gym import _kernels
+
+    n = len(points)
+    packed = np.empty((n, 3, 3 + arm.nv))
+    packed[:, :, 0] = points
+    jac = np.empty((n, 3, arm.nv))
+    view = arm.views(data)
+    _kernels.point_dynamics(np.ascontiguousarray(chain, dtype=np.float64), view.cdof, view.cdof_dot, view.com,
+                            view.qvel, arm.Minv, arm.qacc_free, packed, jac)  # fmt: skip
+    return PointDynamics(points, packed[:, :, 1], jac, packed[:, :, 3:], packed[:, :, 2])
+
+
+def partials(barrier, p, v, r) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A barrier's value and both gradients ``(h (P,), ∂h/∂p (P, 3), ∂h/∂v (P, 3))`` from its
+    :meth:`~c3bf_gym.barriers.Barrier.terms`."""
+    t = barrier.terms(p, v, r)
+    return t.h, t.grad_p, t.grad_v
