@@ -70,6 +70,11 @@ class EpisodeRecord:
             self.intervened.append(bool(safety["intervened"]))
             self.feasible.append(bool(safety["feasible"]))
 
+    def contact_steps(self) -> np.ndarray:
+        """Indices of the policy steps with contact (``info["cost"] > 0``: some arm geom touched
+        an obstacle)."""
+        return np.flatnonzero(np.asarray(self.cost, dtype=float) > 0)
+
     def as_arrays(self) -> dict[str, np.ndarray]:
         return {
             name: np.asarray(getattr(self, name))

@@ -14,6 +14,8 @@ from c3bf_gym.metrics import EpisodeRecord
 from c3bf_gym.training import FINAL_EVAL_FILE, filter_label
 
 __all__ = [
+    "barrier_figure",
+    "barrier_quantity",
     "plot_barrier",
     "plot_clearance",
     "plot_sensing",
@@ -21,6 +23,7 @@ __all__ = [
     "plot_torques",
     "plot_training",
     "plot_trajectories",
+    "trajectory_figure",
 ]
 
 COLORS = {"none": "tab:red", "hocbf": "tab:orange", "c3bf": "tab:blue", "c3bf+hocbf": "tab:green", "c3bf+hocbf5": "tab:olive",
@@ -62,8 +65,21 @@ def _save(fig, path: Path) -> Path:
     return path
 
 
+#: The ``gid`` of the trajectory plots' contact markers.
+CONTACT_GID = "contacts"
+
+
 def plot_trajectories(records: Mapping[str, EpisodeRecord], title: str, path: Path) -> Path:
-    """Tool paths of each filter with the obstacle paths, top (x-y) and side (x-z) views."""
+    """Tool paths of each filter with the obstacle paths, top (x-y) and side (x-z) views
+    (:func:`trajectory_figure`, saved to ``path``)."""
+    return _save(trajectory_figure(records, title), path)
+
+
+def trajectory_figure(records: Mapping[str, EpisodeRecord], title: str):
+    """The figure of :func:`plot_trajectories`. The tool's position at every contact step (the
+    environment's geometric ``cost``: some arm geom touches an obstacle) is marked with an x in
+    the filter's colour, one marker per contact step and view (artists with gid
+    :data:`CONTACT_GID`)."""
     plt = _pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.8))
     any_record = next(iter(records.values()))
@@ -78,6 +94,10 @@ def plot_trajectories(records: Mapping[str, EpisodeRecord], title: str, path: Pa
         for name, record in records.items():
             tool = np.asarray(record.tool)
             ax.plot(tool[:, i], tool[:, j], color=COLORS.get(name), lw=2, label=LABELS.get(name, name))
+            hits = tool[record.contact_steps() + 1]  # tool[0] is the reset state, tool[s + 1] after step s
+            if len(hits):
+                ax.plot(hits[:, i], hits[:, j], "X", mfc=COLORS.get(name), mec="k", ms=7, mew=0.6, ls="none", gid=CONTACT_GID,
+                        label=f"contact ({LABELS.get(name, name)}, {len(hits)} steps)")  # fmt: skip
         tool0 = np.asarray(any_record.tool)[0]
         ax.plot(tool0[i], tool0[j], "ko", ms=6, label="start")
         ax.plot(any_record.goal[i], any_record.goal[j], "g*", ms=14, label="goal")
@@ -87,8 +107,8 @@ def plot_trajectories(records: Mapping[str, EpisodeRecord], title: str, path: Pa
         ax.set_aspect("equal", adjustable="datalim")
         ax.grid(alpha=0.3)
     axes[0].legend(fontsize=8, loc="best")
-    fig.suptitle(f"{title}: tool trajectories (obstacles shaded at spawn and at the end)")
-    return _save(fig, path)
+    fig.suptitle(f"{title}: tool trajectories (obstacles shaded at spawn and at the end; x: tool at a contact step)")
+    return fig
 
 
 def plot_clearance(records: Mapping[str, EpisodeRecord], title: str, margin: float, path: Path) -> Path:
@@ -108,8 +128,27 @@ def plot_clearance(records: Mapping[str, EpisodeRecord], title: str, margin: flo
     return _save(fig, path)
 
 
+def barrier_quantity(name: str) -> tuple[str, str]:
+    """``(symbol, definition)`` of what ``info["safety"]["min_h"]`` holds under the filter
+    ``name``: the barrier's own rows' value (not the guard's), the C3BF's ``h`` or the distance
+    HOCBF's ``ψ₁``, both in m²/s (p, v: the obstacle's position and velocity relative to the
+    point, r: the inflated radius)."""
+    if name.startswith("c3bf"):
+        return "h", "C3BF h = ⟨p, v⟩ + ‖v‖ √(‖p‖² − r²)"
+    if name == "hocbf":
+        return "ψ₁", "HOCBF ψ₁ = ḣ + γ₁h, h = ‖p‖² − r²"
+    return "h", "barrier value h"
+
+
 def plot_barrier(records: Mapping[str, EpisodeRecord], title: str, path: Path) -> Path:
-    """The smallest barrier value h(t) and the QP constraint value (min_k A_k τ − b_k) over time."""
+    """:func:`barrier_figure`, saved to ``path``."""
+    return _save(barrier_figure(records, title), path)
+
+
+def barrier_figure(records: Mapping[str, EpisodeRecord], title: str):
+    """The smallest barrier value over time, each filter's panel titled and labelled with the
+    quantity it shows (:func:`barrier_quantity`: the C3BF's h, the HOCBF's ψ₁), above the QP
+    constraint value (min_k A_k τ − b_k); one column per filter that recorded a barrier."""
     plt = _pyplot()
     filtered = {n: r for n, r in records.items() if r.min_h}
     fig, axes = plt.subplots(2, len(filtered), figsize=(5.5 * len(filtered), 5.5), squeeze=False)
@@ -117,18 +156,21 @@ def plot_barrier(records: Mapping[str, EpisodeRecord], title: str, path: Path) -
         t = record.time[1:]
         h = np.asarray(record.min_h, dtype=float)
         g = np.asarray(record.min_constraint, dtype=float)
+        symbol, quantity = barrier_quantity(name)
         axes[0, col].plot(t, np.where(np.isfinite(h), h, np.nan), color=COLORS.get(name))
         axes[0, col].axhline(0.0, color="k", lw=1)
-        axes[0, col].set_title(f"{LABELS.get(name, name)}: min h over rows")
-        axes[0, col].set_ylabel("h" + (" [m²/s]"))
+        axes[0, col].set_title(f"{LABELS.get(name, name)}: min over rows of\n{quantity}", fontsize=10)
+        axes[0, col].set_ylabel(f"min {symbol} [m²/s]")
         axes[1, col].plot(t, np.where(np.isfinite(g), g, np.nan), color=COLORS.get(name))
         axes[1, col].axhline(0.0, color="k", lw=1)
-        axes[1, col].set_title("QP constraint value min(Aτ − b) (>= 0: all rows hold)")
+        axes[1, col].set_title("QP constraint value min(Aτ − b) (>= 0: all rows hold)", fontsize=10)
+        axes[1, col].set_ylabel("min(Aτ − b) [row units]")
         axes[1, col].set_xlabel("time [s]")
         for ax in axes[:, col]:
             ax.grid(alpha=0.3)
     fig.suptitle(f"{title}: barrier and constraint over time (inf = no sensed obstacle, not drawn)")
-    return _save(fig, path)
+    fig.tight_layout()
+    return fig
 
 
 def plot_torques(record: EpisodeRecord, title: str, path: Path) -> Path:

@@ -1,0 +1,94 @@
+#!/usr/bin/env python
+"""Write every table in docs/ from the committed results, with the code that writes them in a run.
+
+    python scripts/regenerate_tables.py                       # rewrite docs/*table*.md (and the training curves)
+    python scripts/regenerate_tables.py --from-run results    # first copy a main job's results into docs/experiments/
+    python scripts/regenerate_tables.py --out /tmp/tables     # write elsewhere (docs/ is only read)
+
+* ``experiments_table.md`` and ``sensing_table.md``: ``docs/experiments/table.json`` and
+  ``docs/experiments/sensing.json``, copies of what ``c3bf-gym experiments`` (the main job, default
+  options; its ``config.json`` beside them) wrote, through
+  :func:`c3bf_gym.experiments.markdown_table`: the run's own ``table.md`` and ``sensing.md``.
+* ``training_table*.md``: what ``c3bf-gym plot-training docs/runs/GLOB --evaluation FILE --out
+  docs/FIGURE --table docs/TABLE`` writes, for each row of :data:`TRAINING_TABLES`, with the
+  table's curves (``training_curves*.png``).
+
+``tests/test_tables.py`` checks that the committed tables equal what this script writes.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import sys
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parent.parent
+DOCS = REPO / "docs"
+
+#: The files of a ``c3bf-gym experiments`` run that docs/experiments/ keeps.
+RESULT_FILES = ("table.json", "sensing.json", "config.json")
+
+#: Training tables: ``(table, run directories under docs/runs (glob), evaluation file, figure)``.
+TRAINING_TABLES = (
+    ("training_table.md", "sac_residual_10hz_dw10_aw3_set_*", "eval_200.json", "training_curves.png"),
+    ("training_table_aw10.md", "sac_residual_10hz_dw10_aw10_set_*", "eval_200.json", "training_curves_aw10.png"),
+    ("training_table_aw1_set.md", "sac_residual_10hz_dw10_aw1_set_*", "final_eval.json", "training_curves_aw1_set.png"),
+    ("training_table_aw1.md", "sac_residual_10hz_dw10_aw1_[!s]*", "final_eval.json", "training_curves_aw1.png"),
+)
+
+
+def experiment_tables(docs: Path) -> dict[str, str]:
+    """``{file name: text}`` of the experiments' tables, from ``docs/experiments``."""
+    from c3bf_gym.experiments import COLUMNS, SENSING_COLUMNS, markdown_table
+
+    tables = {}
+    for name, source, columns in (
+        ("experiments_table.md", "table.json", COLUMNS),
+        ("sensing_table.md", "sensing.json", SENSING_COLUMNS),
+    ):
+        rows = json.loads((docs / "experiments" / source).read_text())
+        tables[name] = markdown_table(rows, columns) + "\n"
+    return tables
+
+
+def training_tables(docs: Path, out: Path) -> dict[str, str]:
+    """``{file name: text}`` of the training tables, from ``docs/runs``; their figures go to ``out``."""
+    from c3bf_gym.plots import plot_training
+
+    tables = {}
+    for name, pattern, evaluation, figure in TRAINING_TABLES:
+        runs = sorted((docs / "runs").glob(pattern))
+        tables[name] = plot_training(runs, out / figure, evaluation=evaluation) + "\n"
+    return tables
+
+
+def regenerate(docs: Path = DOCS, out: Path | None = None) -> dict[str, str]:
+    """Write every table (and the training curves) from ``docs``' results into ``out`` (default:
+    ``docs``); returns ``{file name: text}``."""
+    out = docs if out is None else out
+    out.mkdir(parents=True, exist_ok=True)
+    tables = {**experiment_tables(docs), **training_tables(docs, out)}
+    for name, text in tables.items():
+        (out / name).write_text(text)
+    return tables
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    parser.add_argument("--from-run", type=Path, default=None,
+                        help=f"first copy {', '.join(RESULT_FILES)} of this c3bf-gym experiments output into docs/experiments/")  # fmt: skip
+    parser.add_argument("--out", type=Path, default=DOCS, help="where the tables and the training curves go")
+    args = parser.parse_args(argv)
+    if args.from_run is not None:
+        (DOCS / "experiments").mkdir(exist_ok=True)
+        for name in RESULT_FILES:
+            shutil.copyfile(args.from_run / name, DOCS / "experiments" / name)
+    for name in regenerate(DOCS, args.out):
+        print(args.out / name)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
