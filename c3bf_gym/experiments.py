@@ -24,7 +24,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from c3bf_gym.envs.reach import C3BFReachEnv
-from c3bf_gym.safety import FILTERS
+from c3bf_gym.safety import FILTERS, FilterConfig
 from c3bf_gym.safety.config import POINTS
 from c3bf_gym.metrics import EpisodeRecord, summarize
 from c3bf_gym.wrappers import ImpedanceHook, SafetyFilter, default_impedance
@@ -85,7 +85,7 @@ class ExperimentConfig:
     seeds: tuple[int, ...] = (0, 1, 2)
     points: str = "whole_arm"
     gamma: float | None = None
-    margin: float = 0.02
+    margin: float = FilterConfig.margin
     duration: float = 5.0
     move_time: float = 2.5
     video: bool = False
