@@ -35,6 +35,9 @@ for _ in range(3):
     obs, reward, terminated, truncated, info = filtered.step(filtered.action_space.sample())
 assert info['safety']['sensed'] >= 0, info
 scene = resources.files('c3bf_gym.assets').joinpath('scene.xml')
+import mujoco  # the Panda scene compiles from the installed files too (its <include> resolves there)
+panda = mujoco.MjModel.from_xml_path(str(resources.files('c3bf_gym.assets').joinpath('panda_scene.xml')))
+assert panda.nu == 7, panda.nu
 shipped = sorted(str(f) for f in metadata.files('c3bf-gym') if str(f).endswith('.xml'))
 print('PACKAGE', c3bf_gym.__file__)
 print('SCENE', scene)
@@ -86,6 +89,9 @@ def test_pip_install_dot_into_fresh_venv_ships_assets(tmp_path):
     site = str(prefix.resolve())
     assert Path(lines["PACKAGE"]).resolve().as_posix().startswith(site), lines["PACKAGE"]  # not the checkout
     assert Path(lines["SCENE"]).resolve().as_posix().startswith(site), lines["SCENE"]
-    assert lines["SHIPPED"].split() == ["c3bf_gym/assets/scene.xml", "c3bf_gym/assets/ur5e.xml"]
+    assert lines["SHIPPED"].split() == [
+        "c3bf_gym/assets/panda.xml", "c3bf_gym/assets/panda_scene.xml", "c3bf_gym/assets/scene.xml",
+        "c3bf_gym/assets/ur5e.xml",
+    ]
 
 
