@@ -12,15 +12,19 @@ from typing import Any, Literal
 
 from c3bf_gym import validation
 from c3bf_gym.barriers import BARRIERS, C3BF, Barrier, make_barrier
-from c3bf_gym.qp import SOLVERS
+from c3bf_gym import qp
 
-__all__ = ["DEFAULT_FILTER", "FILTERS", "FilterConfig", "GUARD_GAMMA", "GUARDS", "ON_INFEASIBLE", "POINTS", "WEIGHTS"]
+__all__ = [
+    "DEFAULT_FILTER", "FILTERS", "FilterConfig", "GUARD_GAMMA", "GUARDS", "ON_INFEASIBLE", "POINTS", "SOLVERS", "WEIGHTS",
+]
 
 POINTS = ("whole_arm", "ee")
 ON_INFEASIBLE = ("relax", "raise")
 WEIGHTS = ("limits", "identity")
 #: ``FilterConfig.guard``'s named choices besides a Barrier instance and the barrier names.
 GUARDS = ("auto", None, "none")
+#: The QP solvers (``FilterConfig.solver``).
+SOLVERS = (*qp.SOLVERS, "daqp")
 
 #: The gains γ₁ = γ₂ [1/s] of the guard ``guard="auto"`` puts beside the C3BF (a distance
 #: HOCBF) when ``guard_gamma`` is None. Chosen by the guarantee sweep (docs/design-decisions.md).
@@ -64,13 +68,18 @@ class FilterConfig:
             on every joint) or ``"identity"`` (the paper's plain ‖τ − τ_nom‖²).
         relaxation_weight: with a guard, the weight of the barrier's rows in the relaxation
             (every other row weighs 1), in (0, 1]: when no torque satisfies every row, the
-            barrier's rows give way first.
+            barrier's rows give way first. Unused by the ``"daqp"`` solver, which orders the rows
+            by priority instead.
         on_infeasible: ``"relax"`` (apply the least-violating torque and report it) or
             ``"raise"`` (raise :class:`~c3bf_gym.safety.SafetyInfeasibleError`; the environment is restored to its
             state before the step).
         intervention_tol: ‖τ − τ_nom‖ above which a physics step counts as an intervention
             [N m], >= 0.
-        solver: the QP solver, one of :data:`~c3bf_gym.qp.SOLVERS`.
+        solver: the QP solver, one of :data:`SOLVERS`: ``"active_set"`` (the compiled active-set
+            solver, rows relaxed by weight when they conflict), ``"proxsuite"`` (proxsuite, the
+            same relaxation) or ``"daqp"`` (DAQP, rows relaxed by priority when they conflict:
+            the joint limits, floor and guard before the barrier's rows;
+            :mod:`c3bf_gym.safety.priority_qp`; needs the ``daqp`` extra).
 
     Raises:
         ValueError: on an unknown name or choice (the message lists the valid ones), a value

@@ -51,6 +51,7 @@ from c3bf_gym.qp import QPResult, TorqueQP
 from c3bf_gym.robot import ArmModel, segment_closest_points
 from c3bf_gym.safety.config import FilterConfig
 from c3bf_gym.safety.obstacles import Obstacles
+from c3bf_gym.safety.priority_qp import PriorityQP
 from c3bf_gym.safety.robot import RobotDescription, UnsupportedModelError
 
 __all__ = ["SafetyController", "SafetyInfeasibleError", "StepSafety"]
@@ -205,7 +206,10 @@ class SafetyController:
         # The QP runs in normalised torque u = τ / s with s = τ_max ("limits": W = diag(1/τ_max²)
         # becomes the identity, box ±1) or s = 1 ("identity"): a well-conditioned problem either way.
         self._scale = limit.copy() if weight == "limits" else np.ones(n)
-        self.qp = TorqueQP(n, max_rows, -limit / self._scale, limit / self._scale, solver=config.solver)
+        if config.solver == "daqp":
+            self.qp = PriorityQP(n, -limit / self._scale, limit / self._scale)
+        else:
+            self.qp = TorqueQP(n, max_rows, -limit / self._scale, limit / self._scale, solver=config.solver)
         self._limit = limit
         self._A = np.zeros((max_rows, n))
         self._b = np.zeros(max_rows)
@@ -353,6 +357,15 @@ class SafetyController:
             m += self._n_joint_rows
         return self._A[:m], self._b[:m], min_h, inside, len(sensed)
 
+    def priorities(self, m: int) -> np.ndarray:
+        """(m,) the priority of each of :meth:`rows`' ``m`` rows for the ``"daqp"`` solver: 2 for
+        the barrier's rows (they give way first), 1 for the guard's, the floor's and the joint
+        limits'."""
+        levels = np.ones(m, dtype=int)
+        n_obstacle = m - self._n_floor_rows - self._n_joint_rows
+        levels[:n_obstacle:1 if self.guard is None else 2] = 2
+        return levels
+
     def relaxation_weights(self, m: int) -> np.ndarray | None:
         """The relaxation weights of :meth:`rows`' ``m`` rows: None without a guard (all rows weigh
         1), else ``config.relaxation_weight`` for the barrier's rows and 1 for the others."""
@@ -460,7 +473,10 @@ class SafetyController:
             result, min_h, inside, n_sensed, residual, correction = self._step(tau_nom, tau, start)
         else:
             A, b, min_h, inside, n_sensed = self.rows()
-            result = self.qp.solve_scaled(tau_nom, A, b, self._scale, self.relaxation_weights(len(b)))  # (A s) u ≥ b
+            if self.qp.solver == "daqp":
+                result = self.qp.solve_scaled(tau_nom, A, b, self._scale, levels=self.priorities(len(b)))
+            else:
+                result = self.qp.solve_scaled(tau_nom, A, b, self._scale, self.relaxation_weights(len(b)))  # (A s) u ≥ b
             # τ = u s, the smallest row residual A u − b and ‖τ − clip(τ_nom)‖ (the filter's change)
             residual, correction = _kernels.hook_post(A, b, result.tau, self._scale, tau_nom, self._limit, tau)
         elapsed = _perf_counter() - start
