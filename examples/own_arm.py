@@ -12,11 +12,17 @@ filter) and how often the filter intervened.
 
 What the model needs (the filter checks and names what is missing): a torque motor (<motor>) on
 every joint, torque limits (ctrlrange, forcerange or the joint's actuatorfrcrange), capsule or
-sphere collision geoms on the links to protect, a tool site, and joint ranges. MuJoCo Menagerie
-models often use meshes for collision: protect capsules added beside them (e.g. a geom group of
-capsules, --group N). The mujoco-menagerie package downloads Menagerie's models on first use; pass
-the path of the downloaded arm's XML (e.g. its franka_emika_panda/panda.xml), after replacing its
-position actuators by motors.
+sphere collision geoms on the links to protect, a tool site, and joint ranges. The project's own
+arms run as they are:
+
+    python examples/own_arm.py assets/ur5e.xml --site ee_site --joint-speed-limit 3.14159
+    python examples/own_arm.py assets/panda.xml --site ee_site --joint-speed-limit 2.175
+
+MuJoCo Menagerie models often use meshes for collision and position servos for actuators: protect
+capsules added beside the meshes (e.g. a geom group of capsules, --group N) and replace the servos
+by <motor> actuators; the filter refuses, by name, any model it cannot protect. The
+mujoco-menagerie package downloads Menagerie's models on first use; pass the path of the
+downloaded arm's XML.
 """
 
 from __future__ import annotations
