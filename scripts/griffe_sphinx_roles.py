@@ -2,8 +2,9 @@
 
 The docstrings are Google style with reST cross-reference roles (``:class:`~c3bf_gym.x.Y```),
 which Markdown would print literally. This turns each role into inline code: ``~a.b.C`` shows as
-``C``, ``a.b.C`` as ``a.b.C``, ``.robot`` (relative) as ``robot``. Loaded by mkdocstrings only; the
-package does not import it.
+``C``, ``a.b.C`` as ``a.b.C``, ``.robot`` (relative) as ``robot``. A paragraph ending in the reST
+literal-block marker ``::`` ends in ``:`` (the indented block after it is already a Markdown code
+block). Loaded by mkdocstrings only; the package does not import it.
 """
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ import re
 
 import griffe
 
+_LITERAL = re.compile(r"(?<=\S)::$", re.M)
 _ROLE = re.compile(r":(?:py:)?(?:class|func|meth|attr|mod|data|obj|exc|const):`(~?)\.?([^`]+)`")
 
 
@@ -25,4 +27,4 @@ class SphinxRoles(griffe.Extension):
 
     def on_object(self, *, obj: griffe.Object, **kwargs) -> None:
         if obj.docstring is not None and ":" in obj.docstring.value:
-            obj.docstring.value = _ROLE.sub(_code, obj.docstring.value)
+            obj.docstring.value = _LITERAL.sub(":", _ROLE.sub(_code, obj.docstring.value))
