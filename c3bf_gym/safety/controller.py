@@ -1,8 +1,8 @@
 """The safety filter on any MuJoCo arm: barrier rows + floor + joint limits -> QP, per physics step.
 
 Its settings are one :class:`~c3bf_gym.safety.FilterConfig`; :data:`~c3bf_gym.safety.FILTERS` names the
-configurations the project At every physics step (between ``mj_step1`` and ``mj_step2``; ``C3BFReachEnv`` calls it as its
-``filter`` torque hook, :class:`~c3bf_gym.filter.SafetyHook`):
+configurations the project compares. At every physics step (between ``mj_step1`` and ``mj_step2``;
+``C3BFReachEnv`` calls it as its ``filter`` torque hook, :class:`~c3bf_gym.filter.SafetyHook`):
 
 1. the arm's dynamics at the protected points are refreshed (:class:`~c3bf_gym.robot.ArmModel`):
    for a point ``x`` on the arm, ``ẍ = G τ + c`` with ``G = J M⁻¹`` (``M`` including the
