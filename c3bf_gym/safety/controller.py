@@ -193,6 +193,9 @@ class SafetyController:
         self.joint_limits = joint_limits
         weight = config.weight
         self.arm: ArmModel = ArmModel(model, robot.geom_ids, robot.site_id) if arm is None else arm
+        if not np.array_equal(self.arm.capsule_ids, robot.geom_ids):
+            raise ValueError(f"arm protects geoms {self.arm.capsule_ids.tolist()}, the robot {robot.geom_ids.tolist()}: "
+                             "share an ArmModel built from this robot")  # fmt: skip
         n = model.nv
         limit = np.array(robot.torque_limit)
         # rows per sensed obstacle: one per protected point, and its guard's
