@@ -150,8 +150,8 @@ class TrainConfig:
     The defaults are the recipe of the README's RL table (the one place they are kept; the
     command line takes them from here): SAC, residual Cartesian actions at 10 Hz, the reward's
     distance term (``distance_weight=10``) and action penalty (``action_weight=3``), the set
-    encoder for the obstacle slots, 25k steps. Each was chosen by measured runs (README, "Results:
-    RL baselines" and "Earlier sets"); the PPO defaults share them untested.
+    encoder for the obstacle slots, 25k steps. Each was chosen by measured runs (the docs' RL
+    results page, ``docs/results/rl.md``); the PPO defaults share them untested.
     """
 
     algo: Literal["sac", "ppo"] = "sac"
