@@ -1,6 +1,6 @@
 """The long guarantee sweep: does the filter keep every obstacle off the arm?
 
-Episodes of ``C3BFReach-v0`` over the paper's four scenarios (static, head_on, crossing, multi),
+Episodes of ``C3BFReach-v0`` (or ``--env C3BFReachPanda-v0``, the same task on the Panda) over the paper's four scenarios (static, head_on, crossing, multi),
 for two policies (uniformly random torques; an adversary that drives the arm point nearest to an
 obstacle straight at it at full torque), and filters named as ``c3bf_gym.FILTERS`` names them, each
 protecting the whole arm or the tool only: by default the default filter (``c3bf+hocbf``: the C3BF
@@ -41,6 +41,7 @@ from c3bf_gym.safety import GUARD_GAMMA, FilterConfig
 from c3bf_gym.safety.config import SOLVERS
 
 SCENARIOS = ("static", "head_on", "crossing", "multi")
+ENVS = ("C3BFReach-v0", "C3BFReachPanda-v0")
 POLICIES = ("random", "adversarial")
 #: (filter name, points) in table order; DEFAULT_FILTERS run unless --filters says otherwise.
 FILTERS = (("c3bf+hocbf", "whole_arm"), ("c3bf", "whole_arm"), ("hocbf", "whole_arm"), ("c3bf+hocbf", "ee"),
@@ -88,27 +89,27 @@ def adversarial_action(u) -> np.ndarray:
             if best is None or gap < best[0]:
                 best = (gap, x, m.geom_bodyid[gid], centre.copy())
     if best is None:
-        return np.zeros(6, np.float32)
+        return np.zeros(m.nu, np.float32)
     _, x, body, centre = best
     jac = np.zeros((3, m.nv))
     mujoco.mj_jac(m, d, jac, None, x, body)
     action = jac.T @ ((centre - x) / max(np.linalg.norm(centre - x), 1e-9)) / u.torque_limit
     peak = np.abs(action).max()
-    return np.zeros(6, np.float32) if peak < 1e-12 else np.clip(action / peak, -1, 1).astype(np.float32)
+    return np.zeros(m.nu, np.float32) if peak < 1e-12 else np.clip(action / peak, -1, 1).astype(np.float32)
 
 
 # ----------------------------------------------------------------------------- one episode
 
 
-def run_episode(task: tuple[str, str, str, str, int, int, float | None, float | None, str | None]) -> Episode:
-    scenario, policy, name, points, seed, steps, margin, guard_gamma, solver = task
+def run_episode(task: tuple[str, str, str, str, int, int, float | None, float | None, str | None, str]) -> Episode:
+    scenario, policy, name, points, seed, steps, margin, guard_gamma, solver, env_id = task
     import gymnasium as gym
 
     import c3bf_gym  # noqa: F401  (registers C3BFReach-v0)
     from c3bf_gym import SafetyFilter
 
     start = time.perf_counter()
-    env = gym.make("C3BFReach-v0", scenario=scenario)
+    env = gym.make(env_id, scenario=scenario)
     filtered = name != "none"
     if filtered:
         settings = {"points": points, **({} if margin is None else {"margin": margin}),
@@ -121,7 +122,8 @@ def run_episode(task: tuple[str, str, str, str, int, int, float | None, float | 
     env.reset(seed=seed)
     rng = np.random.default_rng(seed)
     for _ in range(steps):
-        action = rng.uniform(-1, 1, 6).astype(np.float32) if policy == "random" else adversarial_action(u)
+        action = (rng.uniform(-1, 1, env.action_space.shape).astype(np.float32) if policy == "random"
+                  else adversarial_action(u))  # fmt: skip
         _, _, terminated, truncated, info = env.step(action)
         out.steps += 1
         out.collision_steps += int(info["cost"] > 0)
@@ -196,6 +198,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     parser.add_argument("--margin", type=float, help=f"the filters' margin [m] (default {FilterConfig.margin})")
     parser.add_argument("--guard-gamma", type=float,
                         help=f"the gains [1/s] of c3bf+hocbf's guard (default {GUARD_GAMMA:g})")
+    parser.add_argument("--env", choices=ENVS, default=ENVS[0], help="the environment (robot)")
     parser.add_argument("--solver", choices=SOLVERS, help=f"the filters' QP solver (default {FilterConfig.solver})")
     parser.add_argument("--out", type=Path, default=Path("benchmarks/results/guarantee"), help="output directory")
     parser.add_argument("--quick", action="store_true", help="smoke run: 2 episodes of 100 steps per configuration")
@@ -212,9 +215,9 @@ def main(argv: list[str] | None = None) -> list[dict]:
         parser.error("--guard-gamma sets the gains of c3bf+hocbf's guard; --filters has no c3bf+hocbf")
 
     filters = [tuple(f.split("/")) if f != "none" else ("none", "-") for f in args.filters]
-    tasks = [(s, p, b, pts, args.seed + i, args.steps, args.margin, args.guard_gamma, args.solver)
+    tasks = [(s, p, b, pts, args.seed + i, args.steps, args.margin, args.guard_gamma, args.solver, args.env)
              for s in args.scenarios for p in args.policies for b, pts in filters for i in range(args.episodes)]  # fmt: skip
-    print(f"{len(tasks)} episodes ({args.episodes} per configuration, {args.steps} steps) on {args.workers} workers"
+    print(f"{args.env}: {len(tasks)} episodes ({args.episodes} per configuration, {args.steps} steps) on {args.workers} workers"
           + ("" if args.margin is None else f", filter margin {args.margin} m")
           + ("" if args.guard_gamma is None else f", guard gains {args.guard_gamma:g}")
           + ("" if args.solver is None else f", solver {args.solver}"))
@@ -237,7 +240,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
         for e in sorted(episodes, key=lambda e: (e.scenario, e.policy, e.filter, e.points, e.seed)):
             writer.writerow(asdict(e))
     meta = {"episodes_per_configuration": args.episodes, "steps": args.steps, "seed": args.seed, "margin": args.margin,
-            "guard_gamma": args.guard_gamma, "solver": args.solver, "workers": args.workers, "quick": args.quick, "cpu_count": os.cpu_count()}  # fmt: skip
+            "guard_gamma": args.guard_gamma, "solver": args.solver, "env": args.env, "workers": args.workers, "quick": args.quick, "cpu_count": os.cpu_count()}  # fmt: skip
     with open(args.out / "summary.json", "w") as f:
         json.dump({"settings": meta, "configurations": rows}, f, indent=2)
     print(f"wrote {args.out / 'episodes.csv'} and {args.out / 'summary.json'}")

@@ -1,6 +1,7 @@
 """c3bf-gym: safe robot-arm reinforcement learning with Collision Cone Control Barrier Functions.
 
-Importing the package registers ``C3BFReach-v0`` with Gymnasium.
+Importing the package registers ``C3BFReach-v0`` (the UR5e) and ``C3BFReachPanda-v0`` (the
+Franka Emika Panda, the same task) with Gymnasium.
 """
 
 from gymnasium.envs.registration import register, registry
@@ -47,5 +48,12 @@ if "C3BFReach-v0" not in registry:
     register(
         id="C3BFReach-v0",
         entry_point="c3bf_gym.wrappers:make_reach",
+        max_episode_steps=250,
+    )
+if "C3BFReachPanda-v0" not in registry:
+    register(
+        id="C3BFReachPanda-v0",
+        entry_point="c3bf_gym.wrappers:make_reach",
+        kwargs={"robot": "panda"},
         max_episode_steps=250,
     )

@@ -20,7 +20,7 @@ import torch
 from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
 from torch import nn
 
-from c3bf_gym.envs.reach import OBSERVATION_SLICES
+from c3bf_gym.envs.reach import observation_slices
 from c3bf_gym.scenarios import MAX_OBSTACLES
 
 __all__ = ["ObstacleSetExtractor"]
@@ -41,13 +41,14 @@ class ObstacleSetExtractor(BaseFeaturesExtractor):
     """
 
     def __init__(self, observation_space: gym.spaces.Box, slot_features: int = 64) -> None:
-        parts = OBSERVATION_SLICES
-        size = sum(s.stop - s.start for s in parts.values())
-        if observation_space.shape != (size,):
-            raise ValueError(
-                f"ObstacleSetExtractor needs C3BFReach-v0's observation of shape ({size},), "
-                f"got {observation_space.shape}"
-            )
+        # the arm's joints, from the observation's length 2 n + 73 (c3bf_gym.envs.reach.observation_layout)
+        fixed = sum(s.stop - s.start for s in observation_slices(0).values())
+        shape = observation_space.shape
+        n_joints = (shape[0] - fixed) // 2 if len(shape) == 1 else -1
+        if n_joints < 1 or shape != (2 * n_joints + fixed,):
+            raise ValueError(f"ObstacleSetExtractor needs a C3BFReach observation of shape (2 n + {fixed},) for an arm of "
+                             f"n >= 1 joints, got {shape}")  # fmt: skip
+        parts = observation_slices(n_joints)
         if isinstance(slot_features, bool) or not isinstance(slot_features, int) or slot_features < 1:
             raise ValueError(f"slot_features must be an integer >= 1, got {slot_features!r}")
         own = torch.cat([torch.arange(s.start, s.stop) for name, s in parts.items() if name not in _PER_SLOT])

@@ -932,3 +932,30 @@ def test_reset_fails_fast_when_a_spec_cannot_be_placed_from_this_start():
             env.step(np.zeros(6, np.float32))
     finally:
         env.close()
+
+
+def test_panda_env_is_the_same_task_on_seven_joints():
+    """``C3BFReachPanda-v0``: the task on the Panda, with its own observation layout (2 n + 73
+    entries), torque limits and joint speed limits; Gymnasium's checker passes."""
+    import warnings
+
+    from gymnasium.utils.env_checker import check_env
+
+    from c3bf_gym.envs.reach import ROBOTS, observation_slices
+
+    env = gym.make("C3BFReachPanda-v0", scenario="multi")
+    try:
+        u = env.unwrapped
+        obs, _ = env.reset(seed=0)
+        assert obs.shape == (87,) and env.action_space.shape == (7,)
+        assert u.observation_slices == observation_slices(7)
+        np.testing.assert_array_equal(obs[u.observation_slices["joint_pos"]], u.data.qpos.astype(np.float32))
+        np.testing.assert_array_equal(u.robot.torque_limit, [87.0] * 4 + [12.0] * 3)
+        np.testing.assert_array_equal(u.robot.joint_speed_limit, ROBOTS["panda"].joint_speed_limit)
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", message=".*(infinity|different from the unwrapped).*")
+            check_env(u, skip_render_check=True)
+    finally:
+        env.close()
+    with pytest.raises(ValueError, match=r"unknown robot 'kuka'; valid choices: 'ur5e', 'panda'"):
+        C3BFReachEnv(robot="kuka")

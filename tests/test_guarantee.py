@@ -59,7 +59,7 @@ def adversarial_action(u) -> np.ndarray:
     of gravity compensation), scaled so the largest joint is at its limit."""
     best = nearest_arm_point(u)
     if best is None:
-        return np.zeros(6, np.float32)
+        return np.zeros(u.model.nu, np.float32)
     _, x, body, centre = best
     m, d = u.model, u.data
     jac = np.zeros((3, m.nv))
@@ -68,12 +68,12 @@ def adversarial_action(u) -> np.ndarray:
     action = (jac.T @ direction) / u.torque_limit
     peak = np.abs(action).max()
     if peak < 1e-12:
-        return np.zeros(6, np.float32)
+        return np.zeros(u.model.nu, np.float32)
     return np.clip(action / peak, -1.0, 1.0).astype(np.float32)
 
 
-def random_action(rng) -> np.ndarray:
-    return rng.uniform(-1.0, 1.0, 6).astype(np.float32)
+def random_action(rng, n: int = 6) -> np.ndarray:
+    return rng.uniform(-1.0, 1.0, n).astype(np.float32)
 
 
 def goal_action(u, max_offset) -> np.ndarray:
@@ -87,9 +87,9 @@ def goal_action(u, max_offset) -> np.ndarray:
 
 
 def run_episode(make_env, scenario, seed, policy, barrier="c3bf", points="whole_arm", steps=STEPS,
-                stop_at_collision=False, guard="auto"):  # fmt: skip
+                stop_at_collision=False, guard="auto", robot="ur5e"):  # fmt: skip
     """Roll out one episode; returns a summary dict. ``barrier=None``: no filter."""
-    env = make_env(scenario=scenario)
+    env = make_env(scenario=scenario, robot=robot)
     if policy == "impedance":
         env = CartesianImpedanceAction(env)
     if barrier is not None:
@@ -101,7 +101,7 @@ def run_episode(make_env, scenario, seed, policy, barrier="c3bf", points="whole_
                first_collision=None)  # fmt: skip
     for t in range(steps):
         if policy == "random":
-            action = random_action(rng)
+            action = random_action(rng, u.model.nu)
         elif policy == "adversarial":
             action = adversarial_action(u)
         else:
@@ -338,3 +338,19 @@ def test_guarantee_benchmark_passes_the_guard_gains(tmp_path):
                           (["--solver", "osqp"], "invalid choice")):  # fmt: skip
         refused = run(*argv)
         assert refused.returncode == 2 and message in refused.stderr
+
+
+@pytest.mark.parametrize("policy", ["random", "adversarial"])
+@pytest.mark.parametrize("scenario", ["static", "head_on", "crossing", "multi"])
+def test_panda_smoke_sweep_never_collides(make_env, scenario, policy):
+    """The default filter, unchanged, on the 7-joint Panda (``C3BFReachPanda-v0``): 2 seeded
+    episodes per scenario and policy, judged by the environment's geometric cost."""
+    for seed in range(2):
+        summary = run_episode(make_env, scenario, seed, policy, robot="panda")
+        assert_safe(summary, f"panda {scenario} seed {seed} {policy}")
+
+
+def test_panda_without_a_filter_collides(make_env):
+    """The adversary reaches an obstacle on the Panda too, or the sweep above proves nothing."""
+    summary = run_episode(make_env, "head_on", 0, "adversarial", barrier=None, robot="panda", stop_at_collision=True)
+    assert summary["collision_steps"] > 0

@@ -82,7 +82,8 @@ def test_unsensed_slots_are_ignored(multi_obs):
 @pytest.mark.parametrize(
     "shape, slot_features, message",
     [
-        ((84,), 64, r"needs C3BFReach-v0's observation of shape \(85,\), got \(84,\)"),
+        ((84,), 64, r"needs a C3BFReach observation of shape \(2 n \+ 73,\) .* got \(84,\)"),
+        ((73,), 64, r"needs a C3BFReach observation .* n >= 1 joints, got \(73,\)"),
         ((85,), 0, "slot_features must be an integer >= 1"),
         ((85,), 8.0, "slot_features must be an integer >= 1"),
     ],
@@ -90,3 +91,19 @@ def test_unsensed_slots_are_ignored(multi_obs):
 def test_bad_extractor_arguments(shape, slot_features, message):
     with pytest.raises(ValueError, match=message):
         ObstacleSetExtractor(gym.spaces.Box(-np.inf, np.inf, shape), slot_features=slot_features)
+
+
+def test_extractor_reads_any_arms_observation():
+    """The Panda's observation (7 joints: 87 entries) has its own slices; the extractor finds them
+    from the length and gives every slot the same encoder."""
+    import c3bf_gym  # noqa: F401
+
+    env = gym.make("C3BFReachPanda-v0", scenario="multi")
+    try:
+        obs, _ = env.reset(seed=0)
+        assert obs.shape == (87,)
+        extractor = ObstacleSetExtractor(env.observation_space, slot_features=8)
+        features = extractor(torch.as_tensor(obs[None]))
+        assert features.shape == (1, extractor.features_dim) and torch.isfinite(features).all()
+    finally:
+        env.close()

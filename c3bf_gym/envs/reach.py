@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from importlib import resources
 from typing import Any, Callable, Literal
 
@@ -25,7 +26,8 @@ from c3bf_gym.scenarios import (
 from c3bf_gym.validation import boolean, choice, integer, number, number_range
 
 __all__ = [
-    "C3BFReachEnv", "DISTANCE_CUTOFF", "HOOK_STAGES", "OBSERVATION_LAYOUT", "OBSERVATION_SLICES", "TorqueHook", "UR5E_JOINT_SPEED",
+    "C3BFReachEnv", "DISTANCE_CUTOFF", "HOOK_STAGES", "OBSERVATION_LAYOUT", "OBSERVATION_SLICES", "ROBOTS", "ReachRobot",
+    "TorqueHook", "UR5E_JOINT_SPEED", "observation_layout", "observation_slices",
 ]
 
 #: A per-physics-step torque transformation: total joint torque in (N m, gravity compensation
@@ -37,24 +39,33 @@ TorqueHook = Callable[[np.ndarray], np.ndarray]
 #: replace the commanded torque), then a ``filter`` (the last word before the physics).
 HOOK_STAGES = ("nominal", "filter")
 
-#: Observation layout: (name, size, unit). Obstacle entries repeat for each of the 8 slots.
-OBSERVATION_LAYOUT: tuple[tuple[str, int, str], ...] = (
-    ("joint_pos", 6, "rad"),
-    ("joint_vel", 6, "rad/s"),
-    ("tool_pos", 3, "m (world frame)"),
-    ("tool_vel", 3, "m/s"),
-    ("goal_rel", 3, "m (goal - tool)"),
-    ("obstacle_rel_pos", 3 * MAX_OBSTACLES, "m (obstacle centre - tool), slot-major"),
-    ("obstacle_vel", 3 * MAX_OBSTACLES, "m/s"),
-    ("obstacle_radius", MAX_OBSTACLES, "m"),
-    ("obstacle_sensed", MAX_OBSTACLES, "1 if sensed, else 0 (and the slot's other entries are 0)"),
-)
-_OBS_ENDS = np.cumsum([size for _, size, _ in OBSERVATION_LAYOUT]).tolist()
-_OBS_SIZE = _OBS_ENDS[-1]
-#: Where each part of ``OBSERVATION_LAYOUT`` lies in the observation vector.
-OBSERVATION_SLICES: dict[str, slice] = {
-    name: slice(end - size, end) for (name, size, _), end in zip(OBSERVATION_LAYOUT, _OBS_ENDS)
-}
+
+def observation_layout(n_joints: int) -> tuple[tuple[str, int, str], ...]:
+    """The observation of an arm with ``n_joints`` joints: (name, size, unit) in order. Obstacle
+    entries repeat for each of the 8 slots. Its length is ``2 n + 73``."""
+    return (
+        ("joint_pos", n_joints, "rad"),
+        ("joint_vel", n_joints, "rad/s"),
+        ("tool_pos", 3, "m (world frame)"),
+        ("tool_vel", 3, "m/s"),
+        ("goal_rel", 3, "m (goal - tool)"),
+        ("obstacle_rel_pos", 3 * MAX_OBSTACLES, "m (obstacle centre - tool), slot-major"),
+        ("obstacle_vel", 3 * MAX_OBSTACLES, "m/s"),
+        ("obstacle_radius", MAX_OBSTACLES, "m"),
+        ("obstacle_sensed", MAX_OBSTACLES, "1 if sensed, else 0 (and the slot's other entries are 0)"),
+    )
+
+
+def observation_slices(n_joints: int) -> dict[str, slice]:
+    """Where each part of :func:`observation_layout` lies in the observation vector."""
+    layout = observation_layout(n_joints)
+    ends = np.cumsum([size for _, size, _ in layout]).tolist()
+    return {name: slice(end - size, end) for (name, size, _), end in zip(layout, ends)}
+
+
+#: The UR5e's (``C3BFReach-v0``'s) observation layout and slices; other arms: the functions above.
+OBSERVATION_LAYOUT = observation_layout(6)
+OBSERVATION_SLICES = observation_slices(6)
 
 _ARM_CONTYPE = 2  # arm geoms: contype 2, conaffinity 1 (see assets/ur5e.xml)
 _PARK_DEPTH = -50.0  # unused obstacles wait here, far beyond the distance cutoff
@@ -65,14 +76,44 @@ DISTANCE_CUTOFF = 3.0
 #: UR5e joint speed limit, 180 deg/s on every joint (UR5e technical specifications): the filter's
 #: joint-speed rows bound each joint at ``FilterConfig.joint_speed_fraction`` of it.
 UR5E_JOINT_SPEED = np.pi
-#: Goal region (m): an axis-aligned box in front of the robot.
-_GOAL_LOW = np.array([0.3, -0.4, 0.15])
-_GOAL_HIGH = np.array([0.65, 0.4, 0.6])
-#: The goal box's eight corners (the farthest goal from any start is one of them).
-_GOAL_CORNERS = np.array([[hi if bit else lo for lo, hi, bit in zip(_GOAL_LOW, _GOAL_HIGH, bits)]
-                          for bits in np.ndindex(2, 2, 2)])
 _GOAL_MIN_TRAVEL = 0.3  # m, minimum start-to-goal distance
-_HOME_NOISE = 0.05  # rad, uniform joint noise around the home keyframe at reset
+
+
+@dataclass(frozen=True)
+class ReachRobot:
+    """One arm's numbers for the reaching task, in one place.
+
+    Attributes:
+        name: the ``robot`` argument that selects it.
+        scene: the MJCF scene in ``c3bf_gym.assets`` (the arm, a floor, ``goal`` and the mocap
+            spheres ``obstacle_0..7``).
+        n_joints: the arm's joints (the observation's first two parts).
+        joint_speed_limit: the joint speed limits [rad/s], one per joint.
+        goal_low, goal_high: the goal region, an axis-aligned box in front of the robot [m].
+        home_noise: the uniform joint noise around the ``home`` keyframe at reset [rad].
+    """
+
+    name: str
+    scene: str
+    n_joints: int
+    joint_speed_limit: tuple[float, ...]
+    goal_low: tuple[float, float, float] = (0.3, -0.4, 0.15)
+    goal_high: tuple[float, float, float] = (0.65, 0.4, 0.6)
+    home_noise: float = 0.05
+
+    def goal_corners(self) -> np.ndarray:
+        """(8, 3) the goal box's corners (the farthest goal from any start is one of them)."""
+        return np.array([[hi if bit else lo for lo, hi, bit in zip(self.goal_low, self.goal_high, bits)]
+                         for bits in np.ndindex(2, 2, 2)])  # fmt: skip
+
+
+#: The arms the task runs on. Both reach the same goal box: its farthest corner from the
+#: shoulder is 0.79 m for the Panda (reach 0.855 m, Franka's datasheet) and less for the UR5e.
+ROBOTS: dict[str, ReachRobot] = {
+    "ur5e": ReachRobot("ur5e", "scene.xml", 6, (UR5E_JOINT_SPEED,) * 6),
+    # Franka FCI limits: 2.175 rad/s on joints 1-4, 2.61 rad/s on joints 5-7 (assets/panda.xml)
+    "panda": ReachRobot("panda", "panda_scene.xml", 7, (2.175,) * 4 + (2.61,) * 3),
+}
 #: What ``step`` saves to undo itself: every part of MuJoCo's state that integration reads
 #: (time, qpos, qvel, act, history, warmstart, ctrl, applied forces, eq_active, mocap poses,
 #: userdata, plugin and plastic state), so that restoring it continues bit-identically.
@@ -179,7 +220,11 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
     ``terminate_on_collision``, ``success_tolerance`` (m), ``obstacle_speed_range`` (m/s),
     ``obstacle_radius_range`` (m), ``progress_weight``, ``success_bonus``, ``effort_weight``,
     ``distance_weight``, ``render_mode`` (``human``, ``rgb_array``, ``depth_array``), ``width``, ``height``,
-    ``camera_name``. Numbers may be Python or numpy numbers (not bools or strings), the two flags
+    ``camera_name``, ``robot`` (``"ur5e"``, the default, or ``"panda"``: the Franka Emika Panda,
+    7 joints, ``assets/panda_scene.xml``; :data:`ROBOTS` holds each arm's numbers, and
+    ``C3BFReachPanda-v0`` registers it). With n joints the observation has ``2 n + 73`` entries
+    (:func:`observation_layout`; the table above is the UR5e's), the action n, and the torque
+    limits are the arm's. Numbers may be Python or numpy numbers (not bools or strings), the two flags
     must be bools, ranges exactly ``(low, high)``; anything else raises ``ValueError`` naming the
     argument, the value and the valid form. A scenario with an obstacle the envelope can never
     place (every point it could spawn at lies within ``spawn_clearance`` plus its radius of the
@@ -206,12 +251,15 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
         width: int = 480,
         height: int = 480,
         camera_name: str = "overview",
+        robot: str = "ur5e",
     ) -> None:
         utils.EzPickle.__init__(
             self, scenario, frame_skip, gravity_compensation, sensing_radius, terminate_on_collision,
             success_tolerance, obstacle_speed_range, obstacle_radius_range, progress_weight,
-            success_bonus, effort_weight, distance_weight, render_mode, width, height, camera_name,
+            success_bonus, effort_weight, distance_weight, render_mode, width, height, camera_name, robot,
         )  # fmt: skip
+        #: The arm's task numbers (:data:`ROBOTS`).
+        self.task_robot: ReachRobot = ROBOTS[choice("robot", robot, ROBOTS)]
         self.scenario = scenario if isinstance(scenario, Scenario) else get_scenario(scenario)
         #: The concrete scenario of the current episode: ``scenario`` itself, or the mixture
         #: component ``reset`` drew (``random`` draws one of the paper's four per episode).
@@ -238,10 +286,13 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
         width, height = integer("width", width, low=1), integer("height", height, low=1)
 
         self.metadata = {**self.metadata, "render_fps": int(round(1.0 / (0.002 * frame_skip)))}
-        observation_space = spaces.Box(-np.inf, np.inf, shape=(_OBS_SIZE,), dtype=np.float32)
+        #: Where each part of the observation lies (:func:`observation_slices`).
+        self.observation_slices = observation_slices(self.task_robot.n_joints)
+        size = max(part.stop for part in self.observation_slices.values())
+        observation_space = spaces.Box(-np.inf, np.inf, shape=(size,), dtype=np.float32)
         MujocoEnv.__init__(
             self,
-            _asset("scene.xml"),
+            _asset(self.task_robot.scene),
             frame_skip,
             observation_space=observation_space,
             render_mode=render_mode,
@@ -310,8 +361,10 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
         self.obstacle_active = np.zeros(MAX_OBSTACLES, dtype=bool)
         self._obstacle_specs: list = [None] * MAX_OBSTACLES
         self._step_displacement = np.zeros((MAX_OBSTACLES, 3))
-        self._obs = np.zeros(_OBS_SIZE)
-        parts = OBSERVATION_SLICES
+        if m.nv != self.task_robot.n_joints:
+            raise RuntimeError(f"{self.task_robot.scene} has {m.nv} dofs, robot {self.task_robot.name!r} {self.task_robot.n_joints}")
+        parts = self.observation_slices
+        self._obs = np.zeros(max(part.stop for part in parts.values()))
         self._obs_obstacles = (  # views into self._obs
             self._obs[parts["obstacle_rel_pos"]].reshape(MAX_OBSTACLES, 3),
             self._obs[parts["obstacle_vel"]].reshape(MAX_OBSTACLES, 3),
@@ -326,7 +379,8 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
             radius=self.obstacle_radius, active=self.obstacle_active, distances=self.distances,
         )  # fmt: skip
         #: The arm as the safety filter sees it: its protected capsules, torque and joint limits.
-        self.robot = RobotDescription.from_model(self.model, site="ee_site", joint_speed_limit=UR5E_JOINT_SPEED)
+        self.robot = RobotDescription.from_model(self.model, site="ee_site",
+                                                 joint_speed_limit=self.task_robot.joint_speed_limit)  # fmt: skip
         self._setup_reach_bounds()
 
     def _initialize_simulation(self) -> tuple[mujoco.MjModel, mujoco.MjData]:
@@ -382,8 +436,9 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
         rigid = self.arm_geom_ids[m.geom_bodyid[self.arm_geom_ids] == m.site_bodyid[self.ee_site_id]]
         self._tool_depth = -self._surface_gaps(home, rigid, tool, 0.0).min()
         levers = np.linalg.norm(home.xanchor[: m.njnt] - tool, axis=1).sum()
-        noise = _HOME_NOISE * levers / (1.0 - m.njnt * _HOME_NOISE)
-        self._longest_path = float(np.linalg.norm(_GOAL_CORNERS - tool, axis=1).max()) + noise
+        home_noise = self.task_robot.home_noise
+        noise = home_noise * levers / (1.0 - m.njnt * home_noise)
+        self._longest_path = float(np.linalg.norm(self.task_robot.goal_corners() - tool, axis=1).max()) + noise
 
     def _unplaceable(self, spec: ObstacleSpec, path_length: float) -> str | None:
         """Why no obstacle of ``spec`` fits for paths up to ``path_length`` m, or None if one may.
@@ -591,11 +646,12 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
         obs = self._obs
         tool = d.site_xpos[self.ee_site_id]
         mujoco.mj_objectVelocity(self.model, d, mujoco.mjtObj.mjOBJ_SITE, self.ee_site_id, self._tool_vel, 0)
-        obs[0:6] = d.qpos
-        obs[6:12] = d.qvel
-        obs[12:15] = tool
-        obs[15:18] = self._tool_vel[3:]
-        obs[18:21] = d.mocap_pos[self._goal_mocap] - tool
+        parts = self.observation_slices
+        obs[parts["joint_pos"]] = d.qpos
+        obs[parts["joint_vel"]] = d.qvel
+        obs[parts["tool_pos"]] = tool
+        obs[parts["tool_vel"]] = self._tool_vel[3:]
+        obs[parts["goal_rel"]] = d.mocap_pos[self._goal_mocap] - tool
         sensed = self.sensed_mask()
         rel, vel, radius, flag = self._obs_obstacles
         np.subtract(self.obstacle_pos, tool, out=rel)
@@ -614,12 +670,13 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
         self._needs_reset = True  # until this reset has placed everything
         m, d, rng = self.model, self.data, self.np_random
         mujoco.mj_resetDataKeyframe(m, d, 0)
-        d.qpos[:] += rng.uniform(-_HOME_NOISE, _HOME_NOISE, size=m.nq)
+        noise = self.task_robot.home_noise
+        d.qpos[:] += rng.uniform(-noise, noise, size=m.nq)
         self._park_all()
         mujoco.mj_forward(m, d)
         start = d.site_xpos[self.ee_site_id].copy()
         scenario = self.episode_scenario = self.scenario.resolve(rng)
-        longest = float(np.linalg.norm(_GOAL_CORNERS - start, axis=1).max())
+        longest = float(np.linalg.norm(self.task_robot.goal_corners() - start, axis=1).max())
         for index, spec in enumerate(scenario.obstacles):  # draws nothing: a placeable scenario is unaffected
             reason = self._unplaceable(spec, longest)
             if reason is not None:
@@ -653,7 +710,7 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
 
     def _sample_goal(self, start: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         for _ in range(1000):
-            goal = rng.uniform(_GOAL_LOW, _GOAL_HIGH)
+            goal = rng.uniform(np.array(self.task_robot.goal_low), np.array(self.task_robot.goal_high))
             if np.linalg.norm(goal - start) >= _GOAL_MIN_TRAVEL:
                 return goal
         raise RuntimeError("could not draw a goal far enough from the tool")
