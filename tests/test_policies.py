@@ -96,8 +96,6 @@ def test_bad_extractor_arguments(shape, slot_features, message):
 def test_extractor_reads_any_arms_observation():
     """The Panda's observation (7 joints: 87 entries) has its own slices; the extractor finds them
     from the length and gives every slot the same encoder."""
-    import c3bf_gym  # noqa: F401
-
     env = gym.make("C3BFReachPanda-v0", scenario="multi")
     try:
         obs, _ = env.reset(seed=0)
