@@ -125,10 +125,12 @@ def _asset(name: str) -> str:
 
 
 class C3BFReachEnv(MujocoEnv, utils.EzPickle):
-    r"""Reach a goal with a torque-controlled 6-DOF arm while spheres move through the workspace.
+    r"""Reach a goal with a torque-controlled arm while spheres move through the workspace.
 
     The arm is a UR5e-class manipulator written in MJCF from Universal Robots' published DH
-    parameters, masses, centres of mass and torque limits (``assets/ur5e.xml`` cites each number).
+    parameters, masses, centres of mass and torque limits (``assets/ur5e.xml`` cites each number);
+    with ``robot="panda"`` (``C3BFReachPanda-v0``) the 7-joint Franka Emika Panda
+    (``assets/panda.xml``), in the same task. The spaces below are the UR5e's; see Arguments.
     Physics runs at 500 Hz; the policy acts every ``frame_skip`` physics steps (default 10: 50 Hz).
 
     ## Action Space
