@@ -959,3 +959,13 @@ def test_panda_env_is_the_same_task_on_seven_joints():
         env.close()
     with pytest.raises(ValueError, match=r"unknown robot 'kuka'; valid choices: 'ur5e', 'panda'"):
         C3BFReachEnv(robot="kuka")
+
+
+@pytest.mark.parametrize("scenario, seed", [("head_on", 16), ("multi", 10), ("multi", 29), ("multi", 593)])
+def test_panda_resets_where_the_ur5e_keep_out_found_no_path(scenario, seed):
+    """With the UR5e's 0.3 m keep-out cylinder these Panda resets found no obstacle path outside
+    it (the Panda's tool starts 0.31 m from the base axis); the Panda's own 0.2 m places them."""
+    env = C3BFReachEnv(robot="panda", scenario=scenario)
+    env.reset(seed=seed)
+    assert env.envelope.keep_out_radius == 0.2 and env.obstacle_active.any()
+    env.close()

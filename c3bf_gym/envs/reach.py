@@ -91,6 +91,9 @@ class ReachRobot:
         joint_speed_limit: the joint speed limits [rad/s], one per joint.
         goal_low, goal_high: the goal region, an axis-aligned box in front of the robot [m].
         home_noise: the uniform joint noise around the ``home`` keyframe at reset [rad].
+        keep_out_radius: the radius of the :class:`~c3bf_gym.scenarios.Envelope`'s keep-out
+            cylinder around the base's vertical axis [m]: the base and the first links, which
+            cannot dodge, lie inside it.
     """
 
     name: str
@@ -100,6 +103,7 @@ class ReachRobot:
     goal_low: tuple[float, float, float] = (0.3, -0.4, 0.15)
     goal_high: tuple[float, float, float] = (0.65, 0.4, 0.6)
     home_noise: float = 0.05
+    keep_out_radius: float = 0.3
 
     def goal_corners(self) -> np.ndarray:
         """(8, 3) the goal box's corners (the farthest goal from any start is one of them)."""
@@ -111,8 +115,11 @@ class ReachRobot:
 #: shoulder is 0.79 m for the Panda (reach 0.855 m, Franka's datasheet) and less for the UR5e.
 ROBOTS: dict[str, ReachRobot] = {
     "ur5e": ReachRobot("ur5e", "scene.xml", 6, (UR5E_JOINT_SPEED,) * 6),
-    # Franka FCI limits: 2.175 rad/s on joints 1-4, 2.61 rad/s on joints 5-7 (assets/panda.xml)
-    "panda": ReachRobot("panda", "panda_scene.xml", 7, (2.175,) * 4 + (2.61,) * 3),
+    # Franka FCI limits: 2.175 rad/s on joints 1-4, 2.61 rad/s on joints 5-7 (assets/panda.xml).
+    # Keep-out 0.2 m: the base and links 1-2 (capsules of radius 0.06 m on the base axis) lie
+    # within it; with the UR5e's 0.3 m, head-on and multi obstacles aimed at the Panda's tool
+    # (0.31 m from the axis at home) found no path outside it for some seeds.
+    "panda": ReachRobot("panda", "panda_scene.xml", 7, (2.175,) * 4 + (2.61,) * 3, keep_out_radius=0.2),
 }
 #: What ``step`` saves to undo itself: every part of MuJoCo's state that integration reads
 #: (time, qpos, qvel, act, history, warmstart, ctrl, applied forces, eq_active, mocap poses,
@@ -272,6 +279,7 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
         self.terminate_on_collision = boolean("terminate_on_collision", terminate_on_collision)
         self.success_tolerance = number("success_tolerance", success_tolerance, low=0.0, low_open=True, unit="m")
         self.envelope = Envelope(
+            keep_out_radius=self.task_robot.keep_out_radius,
             speed_range=number_range("obstacle_speed_range", obstacle_speed_range, low=0.0, unit="m/s"),
             radius_range=number_range("obstacle_radius_range", obstacle_radius_range, low=0.0, low_open=True, unit="m"),
         )
