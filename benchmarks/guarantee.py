@@ -38,7 +38,6 @@ from pathlib import Path
 import numpy as np
 
 from c3bf_gym.safety import GUARD_GAMMA, FilterConfig
-from c3bf_gym.safety.config import SOLVERS
 
 SCENARIOS = ("static", "head_on", "crossing", "multi")
 ENVS = ("C3BFReach-v0", "C3BFReachPanda-v0")
@@ -101,8 +100,8 @@ def adversarial_action(u) -> np.ndarray:
 # ----------------------------------------------------------------------------- one episode
 
 
-def run_episode(task: tuple[str, str, str, str, int, int, float | None, float | None, str | None, str]) -> Episode:
-    scenario, policy, name, points, seed, steps, margin, guard_gamma, solver, env_id = task
+def run_episode(task: tuple[str, str, str, str, int, int, float | None, float | None, str]) -> Episode:
+    scenario, policy, name, points, seed, steps, margin, guard_gamma, env_id = task
     import gymnasium as gym
 
     import c3bf_gym  # noqa: F401  (registers C3BFReach-v0)
@@ -112,8 +111,7 @@ def run_episode(task: tuple[str, str, str, str, int, int, float | None, float | 
     env = gym.make(env_id, scenario=scenario)
     filtered = name != "none"
     if filtered:
-        settings = {"points": points, **({} if margin is None else {"margin": margin}),
-                    **({} if solver is None else {"solver": solver})}
+        settings = {"points": points, **({} if margin is None else {"margin": margin})}
         if guard_gamma is not None and name == "c3bf+hocbf":  # the filter here with a named guard
             settings["guard_gamma"] = guard_gamma
         env = SafetyFilter(env, name, **settings)
@@ -199,7 +197,6 @@ def main(argv: list[str] | None = None) -> list[dict]:
     parser.add_argument("--guard-gamma", type=float,
                         help=f"the gains [1/s] of c3bf+hocbf's guard (default {GUARD_GAMMA:g})")
     parser.add_argument("--env", choices=ENVS, default=ENVS[0], help="the environment (robot)")
-    parser.add_argument("--solver", choices=SOLVERS, help=f"the filters' QP solver (default {FilterConfig.solver})")
     parser.add_argument("--out", type=Path, default=Path("benchmarks/results/guarantee"), help="output directory")
     parser.add_argument("--quick", action="store_true", help="smoke run: 2 episodes of 100 steps per configuration")
     args = parser.parse_args(argv)
@@ -215,12 +212,11 @@ def main(argv: list[str] | None = None) -> list[dict]:
         parser.error("--guard-gamma sets the gains of c3bf+hocbf's guard; --filters has no c3bf+hocbf")
 
     filters = [tuple(f.split("/")) if f != "none" else ("none", "-") for f in args.filters]
-    tasks = [(s, p, b, pts, args.seed + i, args.steps, args.margin, args.guard_gamma, args.solver, args.env)
+    tasks = [(s, p, b, pts, args.seed + i, args.steps, args.margin, args.guard_gamma, args.env)
              for s in args.scenarios for p in args.policies for b, pts in filters for i in range(args.episodes)]  # fmt: skip
     print(f"{args.env}: {len(tasks)} episodes ({args.episodes} per configuration, {args.steps} steps) on {args.workers} workers"
           + ("" if args.margin is None else f", filter margin {args.margin} m")
-          + ("" if args.guard_gamma is None else f", guard gains {args.guard_gamma:g}")
-          + ("" if args.solver is None else f", solver {args.solver}"))
+          + ("" if args.guard_gamma is None else f", guard gains {args.guard_gamma:g}"))
     start = time.perf_counter()
     ctx = mp.get_context("spawn")  # fresh interpreters: no MuJoCo state or GL context inherited
     with ctx.Pool(args.workers) as pool:
@@ -240,7 +236,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
         for e in sorted(episodes, key=lambda e: (e.scenario, e.policy, e.filter, e.points, e.seed)):
             writer.writerow(asdict(e))
     meta = {"episodes_per_configuration": args.episodes, "steps": args.steps, "seed": args.seed, "margin": args.margin,
-            "guard_gamma": args.guard_gamma, "solver": args.solver, "env": args.env, "workers": args.workers, "quick": args.quick, "cpu_count": os.cpu_count()}  # fmt: skip
+            "guard_gamma": args.guard_gamma, "env": args.env, "workers": args.workers, "quick": args.quick, "cpu_count": os.cpu_count()}  # fmt: skip
     with open(args.out / "summary.json", "w") as f:
         json.dump({"settings": meta, "configurations": rows}, f, indent=2)
     print(f"wrote {args.out / 'episodes.csv'} and {args.out / 'summary.json'}")

@@ -26,7 +26,7 @@ __all__ = ["KERNEL_SOURCES", "sources_digest"]
 
 _PACKAGE = Path(__file__).resolve().parent
 #: The modules whose ``@njit(cache=True)`` functions are compiled into each other.
-KERNEL_SOURCES = ("_kernels.py", "_active_set.py")
+KERNEL_SOURCES = ("_kernels.py", "_daqp.py")
 _PATHS = tuple(str(_PACKAGE / name) for name in KERNEL_SOURCES)
 
 

@@ -12,10 +12,9 @@ from typing import Any, Literal
 
 from c3bf_gym import validation
 from c3bf_gym.barriers import BARRIERS, C3BF, Barrier, make_barrier
-from c3bf_gym import qp
 
 __all__ = [
-    "DEFAULT_FILTER", "FILTERS", "FilterConfig", "GUARD_GAMMA", "GUARDS", "ON_INFEASIBLE", "POINTS", "SOLVERS", "WEIGHTS",
+    "DEFAULT_FILTER", "FILTERS", "FilterConfig", "GUARD_GAMMA", "GUARDS", "ON_INFEASIBLE", "POINTS", "WEIGHTS",
 ]
 
 POINTS = ("whole_arm", "ee")
@@ -23,8 +22,6 @@ ON_INFEASIBLE = ("relax", "raise")
 WEIGHTS = ("limits", "identity")
 #: ``FilterConfig.guard``'s named choices besides a Barrier instance and the barrier names.
 GUARDS = ("auto", None, "none")
-#: The QP solvers (``FilterConfig.solver``).
-SOLVERS = (*qp.SOLVERS, "daqp")
 
 #: The gains γ₁ = γ₂ [1/s] of the guard ``guard="auto"`` puts beside the C3BF (a distance
 #: HOCBF) when ``guard_gamma`` is None. Chosen by the guarantee sweep (docs/design-decisions.md).
@@ -66,20 +63,13 @@ class FilterConfig:
             that can move vertically keeps ``margin`` above an upright world plane.
         weight: the QP metric: ``"limits"`` (W = diag(1/τ_max²): relative changes weigh the same
             on every joint) or ``"identity"`` (the paper's plain ‖τ − τ_nom‖²).
-        relaxation_weight: with a guard, the weight of the barrier's rows in the relaxation
-            (every other row weighs 1), in (0, 1]: when no torque satisfies every row, the
-            barrier's rows give way first. Unused by the ``"daqp"`` solver, which orders the rows
-            by priority instead.
-        on_infeasible: ``"relax"`` (apply the least-violating torque and report it) or
+        on_infeasible: what happens when no torque within the limits satisfies every row:
+            ``"relax"`` (the rows give way by priority, the barrier's first, and the step is
+            reported: :mod:`c3bf_gym.safety.priority_qp`) or
             ``"raise"`` (raise :class:`~c3bf_gym.safety.SafetyInfeasibleError`; the environment is restored to its
             state before the step).
         intervention_tol: ‖τ − τ_nom‖ above which a physics step counts as an intervention
             [N m], >= 0.
-        solver: the QP solver, one of :data:`SOLVERS`: ``"active_set"`` (the compiled active-set
-            solver, rows relaxed by weight when they conflict), ``"proxsuite"`` (proxsuite, the
-            same relaxation) or ``"daqp"`` (DAQP, rows relaxed by priority when they conflict:
-            the joint limits, floor and guard before the barrier's rows;
-            :mod:`c3bf_gym.safety.priority_qp`; needs the ``daqp`` extra).
 
     Raises:
         ValueError: on an unknown name or choice (the message lists the valid ones), a value
@@ -99,10 +89,8 @@ class FilterConfig:
     joint_speed_fraction: float = 0.5
     floor_gamma: float = 10.0
     weight: Literal["limits", "identity"] = "limits"
-    relaxation_weight: float = 0.1
     on_infeasible: Literal["relax", "raise"] = "relax"
     intervention_tol: float = 1e-3
-    solver: str = "active_set"
 
     def __post_init__(self) -> None:
         check = validation
@@ -138,11 +126,8 @@ class FilterConfig:
                                                         low_open=True, high=1.0))  # fmt: skip
         set_(self, "floor_gamma", check.number("floor_gamma", self.floor_gamma, low=0.0, low_open=True, unit="1/s"))
         check.choice("weight", self.weight, WEIGHTS)
-        set_(self, "relaxation_weight", check.number("relaxation_weight", self.relaxation_weight, low=0.0,
-                                                     low_open=True, high=1.0))  # fmt: skip
         check.choice("on_infeasible", self.on_infeasible, ON_INFEASIBLE)
         set_(self, "intervention_tol", check.number("intervention_tol", self.intervention_tol, low=0.0, unit="N m"))
-        check.choice("solver", self.solver, SOLVERS)
 
     @classmethod
     def named(cls, name: str, **changes: Any) -> FilterConfig:

@@ -18,43 +18,45 @@ configurations the project compares. At every physics step (between ``mj_step1``
    model ``ẍ = G τ + c``, so the arm must not lean on the floor;
 4. joint position and velocity limits contribute ``4 n`` rows
    (:class:`~c3bf_gym.barriers.JointLimits`);
-5. :class:`~c3bf_gym.qp.TorqueQP` returns the torque closest to the nominal one (weighted by
-   ``W``) that satisfies every row within the actuator limits. When none does, it applies a
-   repaired least-violating torque: each row the conflict needs gets its own slack, weighted
-   ``relaxation_weight`` for the barrier's rows beside a guard and 1 for every other row, and
-   rows outside the conflict keep holding (:mod:`c3bf_gym.qp`, "Relaxation"). The step is then
-   reported infeasible, with the largest slack; ``on_infeasible="raise"`` raises instead.
+5. :class:`~c3bf_gym.safety.priority_qp.PriorityQP` (DAQP) returns the torque closest to the
+   nominal one (in the metric ``weight``) that satisfies every row within the actuator limits.
+   When none does, the rows give way by priority: the barrier's rows first, while the joint
+   limits, the floor and the guard hold as well as the torque limits allow. The step is then
+   reported infeasible, with the largest violation of each kind of row
+   (:attr:`StepSafety.violation`); ``on_infeasible="raise"`` raises instead.
 
 Steps 1–4 for ``whole_arm`` with the built-in barriers (:class:`~c3bf_gym.barriers.C3BF`,
 :class:`~c3bf_gym.barriers.DistanceHOCBF`, and a distance-HOCBF guard) are one compiled kernel,
 :func:`c3bf_gym._kernels.hook_rows_whole_arm`, built from the same per-point functions the
 barrier classes and :class:`~c3bf_gym.robot.ArmModel` call; other barriers (or ``points="ee"``)
-go through ``Barrier.terms`` and ``rows_from_terms`` and give the same rows. With the
-``"active_set"`` solver the rows kernel and the QP are one compiled call
-(:func:`c3bf_gym._kernels.hook_step`); Python runs only what the active-set solver hands to
-proxsuite. Why each of these choices was made, with the measurements and the commands that
+go through ``Barrier.terms`` and ``rows_from_terms`` and give the same rows. On the fused path the
+rows, the QP and the bookkeeping are one compiled call (:func:`c3bf_gym._kernels.hook_step`). Why each of these choices was made, with the measurements and the commands that
 repeat them: ``docs/design-decisions.md``.
 """
 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import mujoco
 import numba
 import numpy as np
 
-from c3bf_gym import _kernels
+from c3bf_gym import _daqp, _kernels
 from c3bf_gym.barriers import JointLimits, Rows
-from c3bf_gym.qp import QPResult, TorqueQP
 from c3bf_gym.robot import ArmModel, segment_closest_points
 from c3bf_gym.safety.config import FilterConfig
 from c3bf_gym.safety.obstacles import Obstacles
-from c3bf_gym.safety.priority_qp import PriorityQP
+from c3bf_gym.safety.priority_qp import STATUS, PriorityQP, QPResult, raise_bad_input
 from c3bf_gym.safety.robot import RobotDescription, UnsupportedModelError
 
-__all__ = ["SafetyController", "SafetyInfeasibleError", "StepSafety"]
+__all__ = ["ROW_KINDS", "SafetyController", "SafetyInfeasibleError", "StepSafety"]
+
+#: The kinds of safety rows, in :attr:`StepSafety.violation`: the barrier's (priority 2: they give
+#: way first), the guard's, the floor's and the joint limits' (priority 1), and rows no torque can
+#: change that an obstacle violates ("unmovable").
+ROW_KINDS = ("barrier", "guard", "floor", "joint_limits", "unmovable")
 
 _perf_counter = time.perf_counter
 
@@ -83,6 +85,9 @@ class StepSafety:
         infeasible_steps: number of physics steps whose QP needed slack.
         min_constraint: the smallest row residual ``A τ − b`` at the applied torque (the QP
             constraint value: >= 0 when every row holds) [row units]; inf with no row.
+        violation: what gave way: for each of :data:`ROW_KINDS`, the largest row-normalised
+            violation ``(b_k − A_k τ) / ‖A_k s‖`` over the step's infeasible physics steps [N m
+            in the scaled torque], 0.0 where none (for "unmovable", the violated ``b_k``).
         tau_nominal, tau: the last physics step's nominal and filtered torques [N m].
     """
 
@@ -100,6 +105,7 @@ class StepSafety:
     substeps: int = 0
     tau_nominal: np.ndarray | None = None
     tau: np.ndarray | None = None
+    violation: dict[str, float] = field(default_factory=lambda: dict.fromkeys(ROW_KINDS, 0.0))
 
     def as_info(self) -> dict[str, float | bool | int]:
         return {
@@ -113,6 +119,7 @@ class StepSafety:
             "inside": self.inside,
             "infeasible_steps": self.infeasible_steps,
             "min_constraint": self.min_constraint,
+            "violation": dict(self.violation),
         }
 
 
@@ -205,31 +212,28 @@ class SafetyController:
         self._n_joint_rows = 0 if joint_limits is None else 4 * n
         self._floor_ends, self._floor_min = self._floor_setup(model)
         self._n_floor_rows = len(self._floor_ends)
+        self._stride = 1 if guard is None else 2  # obstacle rows: barrier, guard, barrier, guard, ...
+        barrier_rows = n_obstacles * points_count
         max_rows = n_obstacles * self._per_obstacle + self._n_floor_rows + self._n_joint_rows
         # The QP runs in normalised torque u = τ / s with s = τ_max ("limits": W = diag(1/τ_max²)
         # becomes the identity, box ±1) or s = 1 ("identity"): a well-conditioned problem either way.
         self._scale = limit.copy() if weight == "limits" else np.ones(n)
-        if config.solver == "daqp":
-            self.qp = PriorityQP(n, -limit / self._scale, limit / self._scale)
-        else:
-            self.qp = TorqueQP(n, max_rows, -limit / self._scale, limit / self._scale, solver=config.solver)
+        self.qp = PriorityQP(n, -limit / self._scale, limit / self._scale, max_rows - barrier_rows, barrier_rows)
         self._limit = limit
         self._A = np.zeros((max_rows, n))
         self._b = np.zeros(max_rows)
-        self._weights = np.ones(max_rows)  # the relaxation weights, with a guard (_kernels.guard_weights)
         self._capsule_radius = self.arm.capsule_radius
         # The whole-arm rows of the built-in barriers come from one compiled kernel
         # (c3bf_gym._kernels.hook_rows_whole_arm, sharing the barrier classes' per-point code);
         # any other barrier or points="ee" goes through Barrier.terms / rows_from_terms.
         spec = getattr(barrier, "fused_spec", None)
         spec = spec() if spec is not None and points == "whole_arm" else None
-        # the kernel's guard gains (γ₁, γ₂) of a distance HOCBF (0: no guard) and the barrier rows'
-        # relaxation weight
-        guard_f = np.zeros(3)
+        # the kernel's guard gains (γ₁, γ₂) of a distance HOCBF (0: no guard)
+        guard_f = np.zeros(2)
         if guard is not None:
             guard_spec = guard.fused_spec() if hasattr(guard, "fused_spec") else None
             if guard_spec is not None and guard_spec[0] == _kernels.HOCBF_KIND:
-                guard_f = np.array([guard_spec[1][1], guard_spec[1][0], config.relaxation_weight])
+                guard_f = np.array([guard_spec[1][1], guard_spec[1][0]])
             else:
                 spec = None
         self._fused = spec is not None
@@ -242,8 +246,7 @@ class SafetyController:
         self._hook_f = np.concatenate([[self.sensing_radius, self.margin, self.floor_gamma], params, *jl, guard_f])
         self._floor_idx = self._floor_ends.astype(np.int64)
         self._work = np.zeros((3, 6 + n))
-        self._bound_qp: TorqueQP | None = None  # the QP whose buffers _bound holds (_bind)
-        self._bound: tuple = ()
+        self._bound: tuple = ()  # hook_step's arguments after the first three (_bind)
         self._hook_step = _kernels.hook_step  # its compiled entry point once bound (_bind)
         self.last: QPResult | None = None
         self.report = StepSafety()
@@ -253,7 +256,7 @@ class SafetyController:
         """Pickled without what :meth:`_bind` gathered (views of this process's arrays and a compiled
         entry point): the unpickled hook binds again on its first call, to its own env's arrays."""
         state = self.__dict__.copy()
-        state.update(_bound=(), _bound_qp=None, _hook_step=_kernels.hook_step)
+        state.update(_bound=(), _hook_step=_kernels.hook_step)
         return state
 
     def _version(self) -> int | None:
@@ -360,24 +363,6 @@ class SafetyController:
             m += self._n_joint_rows
         return self._A[:m], self._b[:m], min_h, inside, len(sensed)
 
-    def priorities(self, m: int) -> np.ndarray:
-        """(m,) the priority of each of :meth:`rows`' ``m`` rows for the ``"daqp"`` solver: 2 for
-        the barrier's rows (they give way first), 1 for the guard's, the floor's and the joint
-        limits'."""
-        levels = np.ones(m, dtype=int)
-        n_obstacle = m - self._n_floor_rows - self._n_joint_rows
-        levels[:n_obstacle:1 if self.guard is None else 2] = 2
-        return levels
-
-    def relaxation_weights(self, m: int) -> np.ndarray | None:
-        """The relaxation weights of :meth:`rows`' ``m`` rows: None without a guard (all rows weigh
-        1), else ``config.relaxation_weight`` for the barrier's rows and 1 for the others."""
-        if self.guard is None:
-            return None
-        _kernels.guard_weights(self._weights[:m], m - self._n_floor_rows - self._n_joint_rows,
-                               self.config.relaxation_weight)
-        return self._weights[:m]
-
     def _floor_setup(self, model: mujoco.MjModel) -> tuple[np.ndarray, np.ndarray]:
         """Which capsule ends get a floor row, and their lowest allowed height (floor + capsule
         radius + margin); both empty without an upright plane geom in the world body. Capsules moved
@@ -412,11 +397,10 @@ class SafetyController:
         _kernels.floor_rows(self.arm._ends, self._floor_idx, self._floor_min, self.floor_gamma, A[:k], b[:k])
         return k
 
-    def _bind(self, qp: TorqueQP) -> tuple:
-        """The buffers :func:`c3bf_gym._kernels.hook_step` works in (env, arm and hook, then
-        ``qp``'s :meth:`~c3bf_gym.qp.TorqueQP.packed_step_buffers`; all allocated once by their
-        constructors and updated in place), gathered once per QP object: fetching them attribute
-        by attribute on every call cost more than the kernel's dispatch."""
+    def _bind(self) -> tuple:
+        """The buffers :func:`c3bf_gym._kernels.hook_step` works in (env, arm, hook and QP; all
+        allocated once by their constructors and updated in place), gathered once: fetching them
+        attribute by attribute on every call cost more than the kernel's dispatch."""
         arm, obstacles = self.arm, self.obstacles
         v = arm.views(self.data)
         self._bound = (
@@ -424,41 +408,17 @@ class SafetyController:
             arm._arm_i, arm._arm_f, arm.capsule_chain, arm._scratch, arm.Minv, arm.qacc_free, arm._ends,
             arm._ends_ab, arm._a_dot_ab, obstacles.active, self._distances, obstacles.position, obstacles.velocity,
             obstacles.acceleration, obstacles.radius, self._kind, self._floor_idx, self._floor_min,
-            self.joint_limits is not None, self._hook_f, self._work, self._A, self._b, self._weights, self._scale,
-            self._limit,
-            *qp.packed_step_buffers(),
+            self.joint_limits is not None, self._hook_f, self._work, self._A, self._b, self._scale, self._limit,
+            self.qp.buffers,
         )
-        self._bound_qp = qp
         # hook_step's compiled entry point for exactly these argument types, called directly: the
-        # dispatcher's type resolution of its ~50 arguments cost ~1.5 µs per call. The types are
+        # dispatcher's type resolution of its ~40 arguments cost ~1.5 µs per call. The types are
         # fixed: the buffers above, fresh C-contiguous float64 (n,) arrays tau_nom and tau
         # (__call__ checks the shape: the entry point takes any array as the type it was compiled
-        # for), and for the scalars Python ints, floats and a bool (which the entry point converts
-        # to its types, as the dispatcher does).
-        vec = np.zeros(qp.n)
-        args = (0, vec, qp._m_prev, qp._kr, qp.active_set_max_iter, qp.active_tol, qp.row_slack_weight,
-                qp._diag_W, vec, *self._bound)
-        self._hook_step = _kernels.hook_step.compile(tuple(numba.typeof(a) for a in args))
+        # for), and a Python int stage.
+        vec = np.zeros(len(self._limit))
+        self._hook_step = _kernels.hook_step.compile(tuple(numba.typeof(a) for a in (0, vec, vec, *self._bound)))
         return self._bound
-
-    def _step(self, tau_nom: np.ndarray, tau: np.ndarray, start: float) -> tuple[QPResult, float, bool, int, float, float]:
-        """Rows, QP and :func:`~c3bf_gym._kernels.hook_post` through the fused kernel
-        (:func:`~c3bf_gym._kernels.hook_step`); Python only for what it hands back, through the
-        layer's own :meth:`~c3bf_gym.qp.TorqueQP.finish_step` (proxsuite where the active-set
-        solver did not finish)."""
-        qp = self.qp
-        bound = self._bound if qp is self._bound_qp else self._bind(qp)
-        if self._refresh:
-            self.obstacles.refresh(self.data)
-        status, m, min_h, inside, n_sensed, steps, k, active, slack, residual, correction = self._hook_step(
-            self.arm.claim(self.data, self._version()), tau_nom, qp._m_prev, qp._kr, qp.active_set_max_iter,
-            qp.active_tol, qp.row_slack_weight, qp._diag_W, tau, *bound)
-        result = qp.finish_step(status, m, steps, k, active, slack, None if self.guard is None else self._weights[:m],
-                                start)
-        if status > _kernels.STEP_RELAXED_AS_IS:  # proxsuite's torque: the kernel did not finish the step
-            residual, correction = _kernels.hook_post(self._A[:m], self._b[:m], result.tau, self._scale, tau_nom,
-                                                      self._limit, tau)
-        return result, min_h, inside, n_sensed, residual, correction
 
     def __call__(self, tau_nom: np.ndarray) -> np.ndarray:
         """The safe torque (n,) [N m] for ``tau_nom`` (n,) [N m], the report accumulating into
@@ -472,20 +432,27 @@ class SafetyController:
         if tau_nom.shape != shape:
             raise ValueError(f"tau_nom must have shape {shape}, got {tau_nom.shape}")
         tau = np.empty(shape)
-        if self._fused and self.qp.solver == "active_set":
-            result, min_h, inside, n_sensed, residual, correction = self._step(tau_nom, tau, start)
+        qp = self.qp.buffers
+        if self._fused:
+            bound = self._bound or self._bind()
+            if self._refresh:
+                self.obstacles.refresh(self.data)
+            status, m, min_h, inside, n_sensed, iterations, active, slack, residual, correction = self._hook_step(
+                self.arm.claim(self.data, self._version()), tau_nom, tau, *bound)
+            raise_bad_input(status)
         else:
             A, b, min_h, inside, n_sensed = self.rows()
-            if self.qp.solver == "daqp":
-                result = self.qp.solve_scaled(tau_nom, A, b, self._scale, levels=self.priorities(len(b)))
-            else:
-                result = self.qp.solve_scaled(tau_nom, A, b, self._scale, self.relaxation_weights(len(b)))  # (A s) u ≥ b
+            m = len(b)
+            status, iterations, active, slack = _daqp.solve_rows(
+                tau_nom, A, b, self._scale, m - self._n_floor_rows - self._n_joint_rows, self._stride, qp)
+            raise_bad_input(status)
             # τ = u s, the smallest row residual A u − b and ‖τ − clip(τ_nom)‖ (the filter's change)
-            residual, correction = _kernels.hook_post(A, b, result.tau, self._scale, tau_nom, self._limit, tau)
+            residual, correction = _kernels.hook_post(A, b, qp.u, self._scale, tau_nom, self._limit, tau)
         elapsed = _perf_counter() - start
         if self.solve_times is not None:
             self.solve_times.append(elapsed)
-        self.last = result
+        feasible = status == _daqp.SOLVED
+        self.last = QPResult(qp.u, slack, feasible, STATUS[status], iterations, active, elapsed)
         # the running extremes as plain comparisons (what min / max do, without their call cost)
         report = self.report
         report.substeps += 1
@@ -499,20 +466,40 @@ class SafetyController:
             report.inside = True
         if n_sensed > report.sensed:
             report.sensed = n_sensed
-        if result.active_rows > report.active_rows:
-            report.active_rows = result.active_rows
+        if active > report.active_rows:
+            report.active_rows = active
         if correction > report.correction:
             report.correction = correction
         if correction > self.intervention_tol:
             report.intervened = True
-        if not result.feasible:
+        if not feasible:
             report.feasible = False
             report.infeasible_steps += 1
-            report.slack = max(report.slack, result.slack)
+            report.slack = max(report.slack, slack)
+            self._record_violation(report.violation, qp.residual[:m], m)
             if self.on_infeasible == "raise":
                 raise SafetyInfeasibleError(
-                    f"no torque within the limits satisfies the safety rows (status {result.status!r}, "
-                    f"slack {result.slack:.3g}, min h {min_h:.3g}); pass on_infeasible='relax' to apply "
-                    "the least-violating torque instead"
+                    f"no torque within the limits satisfies the safety rows (status {STATUS[status]!r}, "
+                    f"largest violation by kind {self._violation_text(report.violation)}, min h {min_h:.3g}); pass "
+                    "on_infeasible='relax' to let the rows give way by priority instead"
                 )
         return tau
+
+    def row_kinds(self, m: int) -> list[str]:
+        """The kind (:data:`ROW_KINDS`, "unmovable" aside) of each of :meth:`rows`' ``m`` rows."""
+        n_obstacle = m - self._n_floor_rows - self._n_joint_rows
+        kinds = ["barrier" if k % self._stride == 0 else "guard" for k in range(n_obstacle)]
+        return kinds + ["floor"] * self._n_floor_rows + ["joint_limits"] * self._n_joint_rows
+
+    def _record_violation(self, violation: dict[str, float], residual: np.ndarray, m: int) -> None:
+        """Fold one infeasible physics step's row residuals (the QP's, row-normalised; rows no
+        torque can change hold ``−b_k``) into ``violation`` by kind."""
+        norm = self.qp.buffers.norm[:m]
+        for kind, r, k_norm in zip(self.row_kinds(m), residual, norm):
+            key = kind if k_norm > 0.0 else "unmovable"
+            if -r > violation[key] and -r > _daqp.ACTIVE_TOL:
+                violation[key] = float(-r)
+
+    @staticmethod
+    def _violation_text(violation: dict[str, float]) -> str:
+        return ", ".join(f"{kind} {value:.3g}" for kind, value in violation.items() if value > 0.0) or "none"

@@ -1,114 +1,136 @@
-"""The filter's QP with DAQP and priority levels (``FilterConfig(solver="daqp")``).
+"""The filter's QP: the torque closest to the nominal one that keeps every safety row, by priority.
 
-Problem, in the scaled torque ``u = τ / s`` (``s``: the controller's scale, so the box is
+In the scaled torque ``u = τ / s`` (``s`` the controller's scale, so the box is
 ``u_min ≤ u ≤ u_max``)::
 
     minimise    ½ ‖u − u_nom‖²
-    subject to  Â u ≥ b̂        (rows divided by their norms ‖A_k s‖: residuals in N·m)
+    subject to  â_k u ≥ b̂_k   (the rows A_k s u ≥ b_k divided by ‖A_k s‖: residuals in N·m)
                 u_min ≤ u ≤ u_max
 
-solved by DAQP, a dual active-set solver for small dense QPs (``daqp.solve``). When no ``u`` in
-the box satisfies every row (DAQP's exit flag −1), the rows are solved by priority instead of by
-weights: DAQP's hierarchical mode (``break_points``) satisfies each level as well as the levels
-above it allow, in the least-squares sense of its rows' violations, and only then minimises the
-cost. The levels:
+solved by DAQP (:mod:`c3bf_gym._daqp`), a dual active-set solver for small dense QPs, from
+compiled code. When no ``u`` in the box satisfies every row, the rows give way **by priority,
+not by weights**: DAQP's hierarchical mode satisfies each level as well as the levels above it
+allow (least squares of the level's violations), and only then minimises the cost. The levels:
 
 0. the torque box: hard;
-1. rows of priority 1: the joint position and speed limits, the floor and the distance guard;
-2. rows of priority 2: the barrier's (the C3BF's) rows, which give way first.
+1. every row that is not the barrier's: the joint position and speed limits, the floor and the
+   distance guard;
+2. the barrier's rows (the C3BF's), which give way first.
 
 So the joint-speed bound holds whenever some torque within the limits can hold it together with
-the floor and the guard. Rows whose normalised coefficients are all zero cannot change with the
-torque: those with ``b̂ ≤ 0`` hold and are left out; those with ``b̂ > 0`` can never hold (a link
-the joints cannot move, headed for by an obstacle) and are left out of the solve, their violation
-counted in ``slack``. The result is a :class:`~c3bf_gym.qp.QPResult` like
-:class:`~c3bf_gym.qp.TorqueQP`'s: status ``"solved"``, ``"relaxed"`` (by priority; ``slack`` the
-largest normalised violation) or ``"failed"`` (DAQP found no solution even by priority; the
-torque is the box projection of the nominal one, reported infeasible, never silently).
+the floor and the guard. Rows whose scaled coefficients are all (numerically) zero cannot change
+with the torque: with ``b_k ≤ 0`` they hold; with ``b_k > 0`` (a link the joints cannot move,
+headed for by an obstacle) they can never hold, and are left out of the solve with their ``b_k``
+counted in ``slack``.
 """
 
 from __future__ import annotations
 
 import time
+from typing import NamedTuple
 
 import numpy as np
 
-from c3bf_gym.qp import QPResult
+from c3bf_gym import _daqp
 
-__all__ = ["PriorityQP"]
+__all__ = ["PriorityQP", "QPResult"]
 
-_INF = 1e30  # DAQP's "no bound"
-_ROW_NORM_MIN = 1e-12
-_ACTIVE_TOL = 1e-6  # [N m, normalised]: a row within this of its bound counts as active
+#: :attr:`QPResult.status` by :func:`c3bf_gym._daqp.solve_rows` outcome
+STATUS = {_daqp.SOLVED: "solved", _daqp.RELAXED: "relaxed", _daqp.FAILED: "failed"}
+
+
+class QPResult(NamedTuple):
+    """One solve of :class:`PriorityQP`.
+
+    Attributes:
+        tau: (n,) the solution ``u`` (a view of a buffer the next solve overwrites; copy it to
+            keep it), inside the box exactly.
+        slack: 0.0 when every row holds; otherwise the largest row-normalised violation
+            ``max_k (b̂_k − â_k u)`` [N·m], or a row no torque can change's ``b_k`` if larger.
+        feasible: every row holds (status ``"solved"``).
+        status: ``"solved"``; ``"relaxed"`` (rows gave way by priority); ``"failed"`` (DAQP
+            found no solution even by priority: ``tau`` is the box projection of the nominal
+            torque, never hidden: reported like any infeasible step).
+        iterations: DAQP's active-set iterations, both solves together.
+        active_rows: rows within 1e-6 of their bound (or violated).
+        solve_time: wall time of the call [s].
+    """
+
+    tau: np.ndarray
+    slack: float
+    feasible: bool
+    status: str
+    iterations: int
+    active_rows: int
+    solve_time: float
 
 
 class PriorityQP:
-    """DAQP on the filter's rows, by priority when they conflict (module docstring).
+    """The filter's QP (module docstring) on DAQP, with workspaces set up once.
 
     Args:
         n: number of joints.
-        tau_min, tau_max: (n,) box of the scaled torque.
+        tau_min, tau_max: (n,) box of the scaled torque ``u``.
+        level1_rows: the largest number of priority-1 rows (guard, floor, joint limits).
+        level2_rows: the largest number of priority-2 rows (the barrier's).
 
-    Raises:
-        ModuleNotFoundError: without the ``daqp`` package (``pip install "c3bf-gym[daqp]"``).
+    Which row is which is given per solve: of the rows, those with index ``k <
+    n_obstacle_rows`` and ``k % stride == 0`` are the barrier's (``stride`` 2 when each barrier
+    row is followed by its guard's, else 1); every other row is priority 1.
     """
 
     solver = "daqp"
 
-    def __init__(self, n: int, tau_min: np.ndarray, tau_max: np.ndarray) -> None:
-        try:
-            import daqp
-        except ModuleNotFoundError as error:
-            raise ModuleNotFoundError("solver='daqp' needs the daqp package: pip install 'c3bf-gym[daqp]'") from error
-        self._solve = daqp.solve
+    def __init__(self, n: int, tau_min: np.ndarray, tau_max: np.ndarray, level1_rows: int, level2_rows: int) -> None:
         self.n = int(n)
         self.tau_min = np.array(tau_min, dtype=np.float64)
         self.tau_max = np.array(tau_max, dtype=np.float64)
-        self._H = np.eye(self.n)
-        self._tau = np.zeros(self.n)
+        rows = int(level1_rows) + int(level2_rows)
+        points = [n] + [n + level1_rows] * (level1_rows > 0) + [n + rows] * (level2_rows > 0)
+        self._plain = _daqp.DaqpWorkspace(n, rows, self.tau_min, self.tau_max)
+        self._hier = _daqp.DaqpWorkspace(n, rows, self.tau_min, self.tau_max, break_points=points)
+        self.max_rows = rows
+        self.buffers = _daqp.QPBuffers(self._plain.buffers, self._hier.buffers,
+                                       np.array([level1_rows, level2_rows], np.int64), self.tau_min, self.tau_max,
+                                       np.zeros(n), np.zeros(max(rows, 1)), np.zeros(max(rows, 1)))
 
     def solve_scaled(self, tau_nom: np.ndarray, A: np.ndarray, b: np.ndarray, scale: np.ndarray,
-                     weights: np.ndarray | None = None, levels: np.ndarray | None = None) -> QPResult:
-        """Solve for ``u`` with rows ``(A s) u ≥ b``; ``tau_nom`` in torque units, ``levels`` (m,)
-        each row's priority (1 or 2; None: all 1). ``weights`` is accepted for the caller's
-        interface and unused: priorities replace weights. Returns a :class:`QPResult` whose
-        ``tau`` is ``u`` (a view of a buffer the next call overwrites)."""
+                     n_obstacle_rows: int | None = None, stride: int = 1) -> QPResult:
+        """Solve for ``u`` with rows ``(A s) u ≥ b``; ``tau_nom`` in torque units.
+
+        Args:
+            tau_nom: (n,) nominal torque [N·m].
+            A, b: (m, n), (m,) the rows, ``m ≤`` the capacity.
+            scale: (n,) ``s``.
+            n_obstacle_rows, stride: which rows are the barrier's (class docstring); None: all m
+                rows.
+
+        Raises:
+            ValueError: wrong shapes, more rows than the capacity, NaN or inf in the input.
+        """
         start = time.perf_counter()
-        u_nom = np.asarray(tau_nom, dtype=np.float64) / scale
-        if not np.all(np.isfinite(u_nom)):
-            raise ValueError("tau_nom contains NaN or inf")
-        rows = A * scale
-        if not (np.all(np.isfinite(rows)) and np.all(np.isfinite(b))):
-            raise ValueError("A or b contains NaN or inf")
-        norm = np.linalg.norm(rows, axis=1)
-        live = norm >= _ROW_NORM_MIN
-        rows = rows[live] / norm[live, None]
-        bounds = b[live] / norm[live]
-        dead = b[~live]
-        impossible = float(dead.max(initial=0.0))  # rows no torque can change, violated by b
-        level = np.ones(len(bounds), dtype=int) if levels is None else np.asarray(levels)[live]
-        n, m = self.n, len(bounds)
-        upper = np.concatenate([self.tau_max, np.full(m, _INF)])
-        lower = np.concatenate([self.tau_min, bounds])
-        sense = np.zeros(n + m, dtype=np.intc)
-        u, _, flag, info = self._solve(self._H, -u_nom, rows, upper, lower, sense)
-        iterations = int(info.get("iterations", 0)) if isinstance(info, dict) else 0
-        feasible = flag == 1 and impossible <= 0.0
-        status = "solved"
-        if flag != 1:
-            order = np.concatenate([np.flatnonzero(level == 1), np.flatnonzero(level != 1)])
-            first = int(np.count_nonzero(level == 1))
-            points = [n] + ([n + first] if 0 < first < m else []) + [n + m]
-            u, _, flag, info = self._solve(self._H, -u_nom, np.ascontiguousarray(rows[order]), upper[np.r_[:n, n + order]],
-                                           lower[np.r_[:n, n + order]], sense, break_points=np.array(points, np.intc))  # fmt: skip
-            iterations += int(info.get("iterations", 0)) if isinstance(info, dict) else 0
-            status = "relaxed" if flag >= 1 else "failed"
-            if flag < 1:
-                u = u_nom
-        elif impossible > 0.0:
-            status = "relaxed"
-        np.clip(u, self.tau_min, self.tau_max, out=self._tau)
-        residual = rows @ self._tau - bounds
-        slack = 0.0 if feasible else max(impossible, float(-residual.min(initial=0.0)))
-        active = int(np.count_nonzero(residual <= _ACTIVE_TOL))
-        return QPResult(self._tau, slack, feasible, status, iterations, active, time.perf_counter() - start)
+        tau_nom = np.ascontiguousarray(tau_nom, dtype=np.float64)
+        A = np.ascontiguousarray(A, dtype=np.float64)
+        b = np.ascontiguousarray(b, dtype=np.float64)
+        scale = np.ascontiguousarray(scale, dtype=np.float64)
+        m = len(b)
+        if tau_nom.shape != (self.n,) or scale.shape != (self.n,) or A.shape != (m, self.n):
+            raise ValueError(f"expected tau_nom and scale of shape ({self.n},) and A of shape (m, {self.n}) with "
+                             f"b (m,); got {tau_nom.shape}, {scale.shape}, {A.shape}, {b.shape}")
+        if m > self.max_rows:
+            raise ValueError(f"{m} rows exceed the {self.max_rows} this QP was built for")
+        if n_obstacle_rows is None:
+            n_obstacle_rows = m
+        code, iterations, active, slack = _daqp.solve_rows(tau_nom, A, b, scale, int(n_obstacle_rows), int(stride),
+                                                           self.buffers)
+        raise_bad_input(code)
+        return QPResult(self.buffers.u, slack, code == _daqp.SOLVED, STATUS[code], iterations, active,
+                        time.perf_counter() - start)
+
+
+def raise_bad_input(code: int) -> None:
+    """Turn :func:`c3bf_gym._daqp.solve_rows`' invalid-input codes into ``ValueError``."""
+    if code == _daqp.BAD_NOMINAL:
+        raise ValueError("tau_nom contains NaN or inf")
+    if code == _daqp.BAD_ROWS:
+        raise ValueError("the safety rows contain NaN or inf (the state or the obstacles are not finite)")
