@@ -7,24 +7,17 @@ sensing radius so every one adds a row per link; re-placed every 50 steps), and 
 policy drives the arm point nearest to an obstacle straight at it, so the rows bind and the QP
 has work to do (``--policy random``: uniformly random torques instead). Every ``hook(tau)`` call
 is timed as a whole; with ``--split`` also (same call, no second evaluation) its rows
-(``SafetyHook.rows``: arm dynamics, barrier, joint limits) and QP solve (``TorqueQP.solve_scaled``),
-for a hook that calls them: the whole-arm hook runs both in one kernel (``_kernels.hook_step``),
-so its split columns stay empty ("nan"). Median, p99 and max in µs of all calls, the median of
-the solved ones, and median and p99 of the relaxed ones (no torque satisfied every row: the
-elastic and the per-row repair QPs ran), the
-share of calls the QP answered on its fast path (nominal already safe), and the QP's status
-counts (and the calls the active-set solver handed to proxsuite, "fallback"; the repairs settled
-in τ alone with their mean rounds, and those left to the slack QP: ``TorqueQP.repair_stats``).
+(``SafetyHook.rows``: arm dynamics, barrier, joint limits) and QP solve (the QP object's
+``solve_scaled``), for a hook that calls them: the whole-arm hook runs both in one kernel
+(``_kernels.hook_step``), so its split columns stay empty ("nan"). Median, p99, max and mean in µs
+of all calls, the median of the solved ones, and median and p99 of the relaxed ones (no torque
+satisfied every row: the rows gave way), and the QP's status counts.
 
-``--qp-solver active_set proxsuite`` compares :class:`~c3bf_gym.qp.TorqueQP` solvers: the hook's
-QP is replaced by one with that ``solver`` (same rows, box and weight; ``slack_repair`` is
-``active_set`` with ``repair_rounds = 0``, the per-row repair as the QP in (τ, t_K)), and each obstacle count
-runs ``--latency-rounds`` rounds (default 2) of ``--calls / rounds`` calls per solver, the order
-rotating per round and round r using seed ``--seed + r`` for both, so machine noise and the
-arrangements hit the solvers alike. One line per solver (calls pooled over the rounds), then the
-ratios of the first solver over the second (total and QP, median and p99). ``--guard auto none``
-compares the same way the filter with and without its guard (``SafetyFilter(guard=...)``: the
-distance HOCBF's rows beside the C3BF's, or the C3BF's alone; label ``/unguarded``).
+``--guard auto none`` compares the filter with and without its guard (``SafetyFilter(guard=...)``:
+the distance HOCBF's rows beside the C3BF's, or the C3BF's alone; label ``/unguarded``): each
+obstacle count runs ``--latency-rounds`` rounds (default 2) of ``--calls / rounds`` calls per
+variant, the order rotating per round and round r using seed ``--seed + r`` for both, so machine
+noise and the arrangements hit the variants alike; then the ratios of the first over the second.
 
 (b) **Throughput.** Env steps/s of unfiltered ``C3BFReach-v0``, filtered
 (``SafetyFilter(barrier="c3bf")``) and Gymnasium's ``Pusher-v5``, all from ``gymnasium.make``,
@@ -33,11 +26,10 @@ order) so machine noise hits all three alike; the ratios filtered/unfiltered and
 filtered/Pusher are per round, the headline is their median.
 
 Usage: ``python benchmarks/filter_speed.py [--calls 3000] [--obstacles 1 4 8] [--policy adversarial]
-[--qp-solver S [S ...]] [--guard G [G ...]] [--latency-rounds R] [--rounds 5] [--steps 1000] [--split] [--profile] [--no-throughput]
+[--guard G [G ...]] [--latency-rounds R] [--rounds 5] [--steps 1000] [--split] [--profile] [--no-throughput]
 [--json PATH]``. The script also times
 other versions of the package (``PYTHONPATH=/path/to/other/checkout``): it prints which
-``c3bf_gym`` it imported, and the QP timer wraps ``TorqueQP.solve_scaled`` (the hook's call) or, in
-older versions, ``TorqueQP.solve``.
+``c3bf_gym`` it imported, so two trees can be timed alternately with the same script.
 """
 
 from __future__ import annotations
@@ -58,7 +50,6 @@ import numpy as np
 import c3bf_gym  # noqa: F401  (registers C3BFReach-v0)
 from c3bf_gym import SafetyFilter
 from c3bf_gym.envs.reach import DISTANCE_CUTOFF
-from c3bf_gym.qp import TorqueQP
 from c3bf_gym.scenarios import ObstacleSample, ObstacleSpec
 from env_speed import runner_for  # this folder's shared timing loop
 
@@ -134,13 +125,10 @@ class TimedHook:
         self.total: list[float] = []
         self.rows: list[float] = []
         self.qp: list[float] = []
-        self.fast: list[bool] = []
         self.status: dict[str, int] = {}
         self.sensed: list[int] = []
         self.n_rows: list[int] = []
         self.relaxed: list[bool] = []
-        self._fallbacks0 = getattr(hook.qp, "active_set_fallbacks", 0)
-        self._repair0 = dict(getattr(hook.qp, "repair_stats", {}))  # older versions: no repair in τ alone
         if not split:
             return
         rows = hook.rows
@@ -161,7 +149,7 @@ class TimedHook:
             return timed_solve
 
         hook.rows = timed_rows  # instance attributes shadow the methods for this hook only
-        # the hook calls TorqueQP.solve_scaled (TorqueQP.solve in older versions of the filter)
+        # the hook calls its QP's solve_scaled (solve in older versions of the filter)
         for name in ("solve", "solve_scaled"):
             if hasattr(hook.qp, name):
                 setattr(hook.qp, name, timed(getattr(hook.qp, name)))
@@ -171,22 +159,11 @@ class TimedHook:
         hook = self.hook
         result = hook.last
         self.calls += 1
-        self.fast.append(result.iterations == 0)
         self.status[result.status] = self.status.get(result.status, 0) + 1
         self.relaxed.append(result.status == "relaxed")
         self.sensed.append(hook.report.sensed)
-        self.n_rows.append(hook.qp._m_prev)
-
-    @property
-    def repair(self) -> dict[str, int]:
-        """``TorqueQP.repair_stats`` since this timer was installed (empty for older versions)."""
-        now = getattr(self.hook.qp, "repair_stats", {})
-        return {k: now[k] - self._repair0.get(k, 0) for k in now}
-
-    @property
-    def fallbacks(self) -> int:
-        """Calls the active-set solver handed to proxsuite since this timer was installed."""
-        return getattr(self.hook.qp, "active_set_fallbacks", 0) - self._fallbacks0
+        qp = hook.qp  # the rows of this call (older versions kept the count as _m_prev)
+        self.n_rows.append(int(qp.buffers.plain.used[0]) if hasattr(qp, "buffers") else qp._m_prev)
 
     def __call__(self, tau: np.ndarray) -> np.ndarray:
         if self.profiler is not None:
@@ -201,24 +178,10 @@ class TimedHook:
         return out
 
 
-def use_solver(hook, solver: str) -> None:
-    """Give the hook a TorqueQP with ``solver`` (same size and box; the filter's W is the default).
-    ``slack_repair``: the active-set solver with ``repair_rounds = 0`` (the per-row repair always
-    as the QP in (τ, t_K), as before the repair in τ alone)."""
-    qp = hook.qp
-    if solver == "slack_repair":
-        hook.qp = TorqueQP(qp.n, qp.max_rows, qp.tau_min, qp.tau_max, solver="active_set")
-        hook.qp.repair_rounds = 0
-    elif getattr(qp, "solver", "proxsuite") != solver:
-        hook.qp = TorqueQP(qp.n, qp.max_rows, qp.tau_min, qp.tau_max, solver=solver)
-
-
 def hook_latency(count: int, calls: int, seed: int, policy: str = "adversarial", profile: bool = False,
-                 qp_solver: str | None = None, split: bool = False, guard: str = "auto") -> TimedHook:
+                 split: bool = False, guard: str = "auto") -> TimedHook:
     env = SafetyFilter(gym.make("C3BFReach-v0", scenario="none"), barrier="c3bf",
                        **({} if guard == "auto" else {"guard": None}))
-    if qp_solver is not None:
-        use_solver(env.hook, qp_solver)
     u = env.unwrapped
     rng = np.random.default_rng(seed)
     env.reset(seed=seed)
@@ -253,32 +216,29 @@ def us(values: list[float], q: float) -> float:
     return float(np.percentile(np.asarray(values) * 1e6, q)) if values else math.nan
 
 
-def variant_name(variant: tuple[str | None, str]) -> str:
-    """A latency variant's label: its solver (or "default"), "/unguarded" without the guard."""
-    solver, guard = variant
-    return (solver or "default") + ("/unguarded" if guard == "none" else "")
+def variant_name(guard: str) -> str:
+    """A latency variant's label: "default", or "unguarded" without the guard."""
+    return "unguarded" if guard == "none" else "default"
 
 
 def summary(timed: list[TimedHook]) -> dict:
     """The table row of the hook timers ``timed`` (calls pooled)."""
-    pool = {key: [v for t in timed for v in getattr(t, key)] for key in ("total", "rows", "qp", "fast", "sensed")}
+    pool = {key: [v for t in timed for v in getattr(t, key)] for key in ("total", "rows", "qp", "sensed")}
     status: dict[str, int] = {}
-    repair: dict[str, int] = {}
     for t in timed:
         for k, v in t.status.items():
             status[k] = status.get(k, 0) + v
-        for k, v in t.repair.items():
-            repair[k] = repair.get(k, 0) + v
     relaxed_total = [v for t in timed for v, relaxed in zip(t.total, t.relaxed) if relaxed]
     solved_total = [v for t in timed for v, relaxed in zip(t.total, t.relaxed) if not relaxed]
     return {
         "total_median_us": us(pool["total"], 50), "total_p99_us": us(pool["total"], 99),
-        "total_max_us": us(pool["total"], 100), "relaxed_median_us": us(relaxed_total, 50),
+        "total_max_us": us(pool["total"], 100), "total_mean_us": float(np.mean(pool["total"]) * 1e6),
+        "relaxed_median_us": us(relaxed_total, 50),
         "solved_median_us": us(solved_total, 50),
-        "relaxed_p99_us": us(relaxed_total, 99), "repair": repair,
+        "relaxed_p99_us": us(relaxed_total, 99),
         "rows_median_us": us(pool["rows"], 50), "rows_p99_us": us(pool["rows"], 99),
         "qp_median_us": us(pool["qp"], 50), "qp_p99_us": us(pool["qp"], 99), "qp_max_us": us(pool["qp"], 100),
-        "fast_path": float(np.mean(pool["fast"])), "status": status, "fallbacks": sum(t.fallbacks for t in timed),
+        "status": status,
         "sensed_median": float(np.median(pool["sensed"])),
         "rows_count": int(np.median([n for t in timed for n in t.n_rows])),
     }  # fmt: skip
@@ -305,12 +265,9 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--steps", type=int, default=1000, help="env steps per environment per round (default 1000)")
     parser.add_argument("--policy", choices=("adversarial", "random"), default="adversarial",
                         help="policy during the latency runs (default adversarial: the rows bind)")
-    parser.add_argument("--qp-solver", nargs="+", choices=("active_set", "proxsuite", "slack_repair"),
-                        help="TorqueQP solver(s) of the latency runs (default: the filter's own); two are compared. "
-                             "slack_repair: active_set with the per-row repair as the QP in (tau, t_K)")
     parser.add_argument("--guard", nargs="+", choices=("auto", "none"),
-                        help="the filter's guard in the latency runs (default: SafetyFilter's, 'auto'); with two "
-                             "(or a solver and a guard each) they are compared, as two variants are")  # fmt: skip
+                        help="the filter's guard in the latency runs (default: SafetyFilter's, 'auto'); two are "
+                             "compared")  # fmt: skip
     parser.add_argument("--latency-rounds", type=int,
                         help="interleaved latency rounds per obstacle count (default 1, or 2 with two variants)")
     parser.add_argument("--seed", type=int, default=0)
@@ -322,10 +279,7 @@ def main(argv: list[str] | None = None) -> dict:
     args = parser.parse_args(argv)
     if args.calls < 1 or args.rounds < 1 or args.steps < 1 or any(not 1 <= k <= 8 for k in args.obstacles):
         parser.error("--calls, --rounds, --steps must be >= 1 and obstacle counts in 1..8")
-    # the variants compared: (solver, guard) pairs
-    variants = [(s, g) for s in args.qp_solver or [None] for g in args.guard or ["auto"]]
-    if len(variants) > 2:
-        parser.error("compare at most two variants: two solvers, or two guards")
+    variants = list(dict.fromkeys(args.guard or ["auto"]))  # the guards compared
     rounds = args.latency_rounds or (2 if len(variants) > 1 else 1)
     if rounds < 1 or args.calls < rounds:
         parser.error("--latency-rounds must be >= 1 and <= --calls")
@@ -335,9 +289,9 @@ def main(argv: list[str] | None = None) -> dict:
     print(f"(a) filter hook per physics step, whole-arm C3BF, {args.policy} policy, {args.calls} calls each [µs]"
           + (f", {' vs '.join(map(variant_name, variants))} in {rounds} interleaved rounds" if len(variants) > 1 else ""))
     label = len(variants) > 1 or rounds > 1  # one line per variant, headed by its name
-    header = (f"{'obst':>4} {'variant':>18} " if label else f"{'obst':>4} ") + (
-              f"{'sensed':>6} {'rows':>4} | {'total med':>9} {'p99':>7} {'max':>8} | {'solved med':>10} | {'relaxed med':>11} {'p99':>6} | "
-              f"{'rows med':>8} {'p99':>6} | {'QP med':>7} {'p99':>7} {'max':>8} | {'fast path':>9}  QP status")  # fmt: skip
+    header = (f"{'obst':>4} {'variant':>10} " if label else f"{'obst':>4} ") + (
+              f"{'sensed':>6} {'rows':>4} | {'total med':>9} {'p99':>7} {'max':>8} {'mean':>6} | {'solved med':>10} | {'relaxed med':>11} {'p99':>6} | "
+              f"{'rows med':>8} {'p99':>6} | {'QP med':>7} {'p99':>7} {'max':>8} |  QP status")  # fmt: skip
     print(header)
     print("-" * len(header))
     for count in args.obstacles:
@@ -345,30 +299,25 @@ def main(argv: list[str] | None = None) -> dict:
         per_round = args.calls // rounds
         for r in range(rounds):
             for s in variants[r % len(variants):] + variants[: r % len(variants)]:  # rotate who goes first
-                timed[s].append(hook_latency(count, per_round, args.seed + r, args.policy, qp_solver=s[0],
-                                            split=args.split, guard=s[1]))
+                timed[s].append(hook_latency(count, per_round, args.seed + r, args.policy,
+                                            split=args.split, guard=s))
         rows_by_variant = {s: summary(timed[s]) for s in variants}
         out["hook"][count] = ({variant_name(s): row for s, row in rows_by_variant.items()} if len(variants) > 1
                               else rows_by_variant[variants[0]])
         for s, row in rows_by_variant.items():
             status = ", ".join(f"{k} {v}" for k, v in sorted(row["status"].items()))
-            if row["fallbacks"]:
-                status += f"; fallback {row['fallbacks']}"
-            rep = row["repair"]
-            if rep.get("settled") or rep.get("slack_qp"):
-                status += (f"; repair in tau settled {rep['settled']} (mean rounds "
-                           f"{rep['rounds'] / max(rep['settled'], 1):.2f}), to the slack QP {rep['slack_qp']}")
-            head = f"{count:>4} {variant_name(s):>18} " if label else f"{count:>4} "
+            head = f"{count:>4} {variant_name(s):>10} " if label else f"{count:>4} "
             print(f"{head}{row['sensed_median']:>6.0f} {row['rows_count']:>4} | {row['total_median_us']:>9.0f} "
-                  f"{row['total_p99_us']:>7.0f} {row['total_max_us']:>8.0f} | {row['solved_median_us']:>10.0f} | "
+                  f"{row['total_p99_us']:>7.0f} {row['total_max_us']:>8.0f} {row['total_mean_us']:>6.0f} | "
+                  f"{row['solved_median_us']:>10.0f} | "
                   f"{row['relaxed_median_us']:>11.0f} "
                   f"{row['relaxed_p99_us']:>6.0f} | {row['rows_median_us']:>8.0f} "
                   f"{row['rows_p99_us']:>6.0f} | {row['qp_median_us']:>7.0f} {row['qp_p99_us']:>7.0f} "
-                  f"{row['qp_max_us']:>8.0f} | {100 * row['fast_path']:>8.0f}%  {status}")  # fmt: skip
+                  f"{row['qp_max_us']:>8.0f} |  {status}")  # fmt: skip
         if len(variants) > 1:
             a, b = (rows_by_variant[s] for s in variants[:2])
-            print(f"{count:>4} {'ratio':>18} {'':>11} | {a['total_median_us'] / b['total_median_us']:>9.2f} "
-                  f"{a['total_p99_us'] / b['total_p99_us']:>7.2f} {'':>8} | "
+            print(f"{count:>4} {'ratio':>10} {'':>11} | {a['total_median_us'] / b['total_median_us']:>9.2f} "
+                  f"{a['total_p99_us'] / b['total_p99_us']:>7.2f} {'':>8} {a['total_mean_us'] / b['total_mean_us']:>6.2f} | "
                   f"{a['solved_median_us'] / b['solved_median_us']:>10.2f} | "
                   f"{a['relaxed_median_us'] / b['relaxed_median_us']:>11.2f} "
                   f"{a['relaxed_p99_us'] / b['relaxed_p99_us']:>6.2f} | {'':>15} | "

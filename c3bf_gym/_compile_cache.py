@@ -6,9 +6,9 @@ edit to ``_active_set.py`` alone would leave the old solver inside the cached ``
 the cache stamp of every function defined in :data:`KERNEL_SOURCES` is the hash of all those
 files together: changing any of them recompiles every kernel on its next use.
 
-Importing this module installs cache locators in front of numba's own, for the same places
-numba would use (``NUMBA_CACHE_DIR`` when set, else beside the sources, else the user-wide cache
-when that folder is not writable);
+Importing this module installs cache locators in front of numba's own, for the places numba
+would use (``NUMBA_CACHE_DIR`` when set, else beside the sources (in :data:`CACHE_FOLDER`), else
+the user-wide cache when that folder is not writable);
 functions defined anywhere else keep numba's behaviour. It must be imported before the kernel
 modules define their functions, which they do by importing it first.
 """
@@ -22,7 +22,10 @@ from pathlib import Path
 
 from numba.core import caching
 
-__all__ = ["KERNEL_SOURCES", "sources_digest"]
+__all__ = ["CACHE_FOLDER", "KERNEL_SOURCES", "sources_digest"]
+
+#: The folder beside the kernel sources that holds their cache (unless ``NUMBA_CACHE_DIR`` is set).
+CACHE_FOLDER = "_numba_cache"
 
 _PACKAGE = Path(__file__).resolve().parent
 #: The modules whose ``@njit(cache=True)`` functions are compiled into each other.
@@ -67,7 +70,13 @@ class _UserProvidedKernelLocator(_KernelStamp, caching.UserProvidedCacheLocator)
 
 
 class _InTreeKernelLocator(_KernelStamp, caching.InTreeCacheLocator):
-    """Beside the sources (``__pycache__``), as numba's default."""
+    """Beside the sources, in the package's own ``_numba_cache`` folder (numba's default is
+    ``__pycache__``, which a wheel does not carry): ``pip install .`` fills it at build time
+    (``c3bf_gym/_precompile.py``), so the installed package ships its kernels' machine code."""
+
+    def __init__(self, py_func, py_file):
+        super().__init__(py_func, py_file)
+        self._cache_path = os.path.join(os.path.dirname(py_file), CACHE_FOLDER)
 
 
 class _UserWideKernelLocator(_KernelStamp, caching.UserWideCacheLocator):

@@ -295,6 +295,7 @@ class QPBuffers(NamedTuple):
         norm: (rows,) each row's norm ``‖A_k s‖`` (0: left out).
         residual: (rows,) each row's normalised residual ``â_k u − b̂_k`` at the solution (> −tol:
             held); for a zero row, ``−b_k``.
+        cold: int64 (1,) 1: the next solve starts from an empty working set (then 0).
     """
 
     plain: DaqpBuffers
@@ -305,6 +306,7 @@ class QPBuffers(NamedTuple):
     u: np.ndarray
     norm: np.ndarray
     residual: np.ndarray
+    cold: np.ndarray
 
 
 @njit(cache=True, nogil=True, error_model="numpy", boundscheck=False)
@@ -325,7 +327,9 @@ def solve_rows(tau_nom, A, b, scale, n_obstacle_rows, stride, qp):
     1. Rows are scaled (``A_k s``) and normalised; a row shorter than :data:`ROW_NORM_MIN` cannot
        change with the torque: with ``b_k ≤ 0`` it holds, with ``b_k > 0`` it can never hold
        (``impossible``, its ``b_k``). Both are left out of the solves.
-    2. All rows hard, warm-started. If DAQP finds the optimum and every row holds within
+    2. All rows hard, warm-started from the previous solve's working set (unless ``qp.cold[0]``:
+       from an empty one, so that a sequence of solves after a reset depends on nothing before
+       it). If DAQP finds the optimum and every row holds within
        :data:`ACTIVE_TOL`, that is the answer (:data:`SOLVED`).
     3. Otherwise, by priority (:data:`RELAXED`): level 1 holds the rows that are not the barrier's
        (the guard's, the floor's, the joint limits'), level 2 the barrier's: rows
@@ -366,7 +370,13 @@ def solve_rows(tau_nom, A, b, scale, n_obstacle_rows, stride, qp):
         plain.lower[n + k] = b[k] / norm
     _clear(plain, m, plain.used[0])
     plain.used[0] = m
-    flag, iterations = daqp_call(plain, UPDATE_M | UPDATE_V | UPDATE_D)
+    mask = UPDATE_M | UPDATE_V | UPDATE_D
+    if qp.cold[0]:
+        qp.cold[0] = 0
+        for i in range(plain.sense.shape[0]):
+            plain.sense[i] = 0
+        mask |= UPDATE_SENSE
+    flag, iterations = daqp_call(plain, mask)
     status = SOLVED
     if flag >= 1:
         for j in range(n):

@@ -28,6 +28,7 @@ it matters), so results agree with it to rounding (~1e-15 relative).
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
@@ -366,50 +367,130 @@ def floor_rows(ends, idx, z_min, gamma, A, b):
 # ----------------------------------------------------------------------------- the fused filter rows
 
 
+class ArmArrays(NamedTuple):
+    """What the fused kernels read and write of an arm (:meth:`~c3bf_gym.robot.ArmModel.kernel_arrays`):
+    views, updated in place, never replaced. ``S`` protected geoms, ``nv`` dofs.
+
+    Attributes:
+        M, qfrc_passive, qfrc_bias, geom_xpos, geom_xmat, cdof, cdof_dot, com, qpos, qvel: the
+            ``MjData`` arrays the dynamics read (``com``: the arm's root subtree centre of mass).
+        capsule_ids: (S,) the protected geoms.
+        M_rowadr, M_rownnz, M_colind: MuJoCo's sparse layout of ``M``.
+        damping: (nv,) ``h D``, the integrator's implicit damping.
+        capsule_half, length2, capsule_radius: (S,) half-lengths, squared lengths, radii [m].
+        chain: (S, nv) bool, the dofs that move each geom.
+        factor: (nv, nv) scratch for the factorisation of ``M + h D``.
+        end_jac: (2S, 3, nv) scratch for the capsule ends' Jacobians.
+        Minv, qacc_free: (nv, nv), (nv,) ``(M + h D)⁻¹`` and the joint acceleration at zero torque.
+        ends, ends_ab, a_dot_ab: the capsule ends' packed dynamics (:func:`capsule_ends`).
+    """
+
+    M: np.ndarray
+    qfrc_passive: np.ndarray
+    qfrc_bias: np.ndarray
+    geom_xpos: np.ndarray
+    geom_xmat: np.ndarray
+    cdof: np.ndarray
+    cdof_dot: np.ndarray
+    com: np.ndarray
+    qpos: np.ndarray
+    qvel: np.ndarray
+    capsule_ids: np.ndarray
+    M_rowadr: np.ndarray
+    M_rownnz: np.ndarray
+    M_colind: np.ndarray
+    damping: np.ndarray
+    capsule_half: np.ndarray
+    length2: np.ndarray
+    capsule_radius: np.ndarray
+    chain: np.ndarray
+    factor: np.ndarray
+    end_jac: np.ndarray
+    Minv: np.ndarray
+    qacc_free: np.ndarray
+    ends: np.ndarray
+    ends_ab: np.ndarray
+    a_dot_ab: np.ndarray
+
+
+class ObstacleArrays(NamedTuple):
+    """The obstacles as the fused kernels read them (:class:`~c3bf_gym.safety.Obstacles`' arrays):
+    ``active`` (K,) bool; ``distances`` (K, G) their surface distances to the arm's geoms [m]
+    ((K, 0): none kept, the kernel measures them); ``position``, ``velocity``, ``acceleration``
+    (K, 3) [m, m/s, m/s²]; ``radius`` (K,) [m]."""
+
+    active: np.ndarray
+    distances: np.ndarray
+    position: np.ndarray
+    velocity: np.ndarray
+    acceleration: np.ndarray
+    radius: np.ndarray
+
+
+class RowParams(NamedTuple):
+    """The fused rows' settings (:class:`~c3bf_gym.safety.SafetyController` builds them once).
+
+    Attributes:
+        kind: :data:`C3BF_KIND` or :data:`HOCBF_KIND`, the barrier.
+        gamma, p1, p2: the barrier's gains (its ``fused_spec``): C3BF γ, ε, δ; HOCBF γ₂, γ₁, unused.
+        guard_gamma1, guard_gamma2: a distance-HOCBF guard's gains (0: no guard).
+        sensing_radius, margin: [m].
+        floor_gamma: the floor rows' gain [1/s]; ``floor_ends`` (F,) the capsule ends that get
+            one, ``floor_min`` (F,) their lowest allowed heights [m].
+        joint_rows: add the ``4 nv`` joint-limit rows, with ``joint_gains`` (γ₁, γ₂, γ_v) and the
+            limits ``q_lo``, ``q_hi``, ``qd_max`` (nv,).
+    """
+
+    kind: int
+    gamma: float
+    p1: float
+    p2: float
+    guard_gamma1: float
+    guard_gamma2: float
+    sensing_radius: float
+    margin: float
+    floor_gamma: float
+    floor_ends: np.ndarray
+    floor_min: np.ndarray
+    joint_rows: bool
+    joint_gains: np.ndarray
+    q_lo: np.ndarray
+    q_hi: np.ndarray
+    qd_max: np.ndarray
+
+
 @njit(**_opts)
-def hook_rows_whole_arm(stage, M, qfrc_passive, qfrc_bias, geom_xpos, geom_xmat, cdof, cdof_dot, com, qpos, qvel,
-                        arm_i, arm_f, chain, scratch, Minv, qacc_free, ends, ends_ab, a_dot_ab,
-                        active, distances, obs_pos, obs_vel, obs_acc, obs_radius, kind, floor_idx, floor_min,
-                        joint_rows, hook_f, work, A, b):
+def hook_rows_whole_arm(stage, arm, obstacles, params, work, A, b):
     """All rows of the whole-arm filter (:meth:`~c3bf_gym.safety.SafetyController.rows`) in one call.
 
     1. ``stage`` 2: ``Minv``, ``qacc_free`` (:func:`step_inverse`), then (``stage`` ≥ 1) the
-       capsule ends (:func:`capsule_ends`), into the :class:`~c3bf_gym.robot.ArmModel`'s arrays
-       (``arm_i``, ``arm_f``, ``scratch``: its packed constants and scratch).
-    2. For every sensed obstacle (active and ``distances[k].min() <= sensing_radius``, or with
-       ``distances`` of shape (K, 0) its surface distance to the capsules), one row
-       per capsule: closest point (:func:`_closest_pair`), barrier ``kind`` (:func:`_c3bf_point`
-       or :func:`_hocbf_point`), row (:func:`_sliding_row`: the sliding term ``−⟨grad_p, ṫ (b − a)⟩``);
-       with a guard (``hook_f``'s entries after ``qd_max``: gains γ₁, γ₂ of a distance HOCBF,
-       > 0), the guard's row for the same point right after it.
-    3. The floor rows of the capsule ends ``floor_idx`` (:func:`floor_rows`, heights
-       ``floor_min``).
-    4. With ``joint_rows``, the ``4n`` joint-limit rows (:func:`joint_limit_rows`).
+       capsule ends (:func:`capsule_ends`), into ``arm`` (:class:`ArmArrays`).
+    2. For every sensed obstacle (:class:`ObstacleArrays`: active and ``distances[k].min() <=
+       sensing_radius``, or with ``distances`` of shape (K, 0) its surface distance to the
+       capsules), one row per capsule: closest point (:func:`_closest_pair`), barrier
+       ``params.kind`` (:func:`_c3bf_point` or :func:`_hocbf_point`), row (:func:`_sliding_row`:
+       the sliding term ``−⟨grad_p, ṫ (b − a)⟩``); with a guard (``params.guard_gamma2 > 0``), the
+       guard's row for the same point right after it.
+    3. The floor rows of the capsule ends ``params.floor_ends`` (:func:`floor_rows`).
+    4. With ``params.joint_rows``, the ``4 nv`` joint-limit rows (:func:`joint_limit_rows`).
 
-    ``hook_f`` = ``[sensing_radius, margin, floor γ, γ, barrier params (2), γ₁, γ₂, γ_v,
-    q_lo (n), q_hi (n), qd_max (n), guard γ₁, guard γ₂]`` (guard gains 0: no guard); ``work`` a
-    (3, 6 + nv) scratch. Returns ``(rows, min h of the barrier's rows (not the guard's), any
-    inside, sensed count)``.
+    ``work`` is a (3, 6 + nv) scratch; the rows go to ``A``, ``b``. Returns ``(rows, min h of the
+    barrier's rows (not the guard's), any inside, sensed count)``.
     """
-    s_count = ends_ab.shape[0]
-    nv = Minv.shape[0]
-    ids = arm_i[:s_count]
-    length2 = arm_f[nv + s_count:nv + 2 * s_count]
-    capsule_radius = arm_f[nv + 2 * s_count:nv + 3 * s_count]
+    s_count = arm.ends_ab.shape[0]
+    nv = arm.Minv.shape[0]
     if stage >= 2:
-        step_inverse(M, arm_i[s_count:s_count + nv], arm_i[s_count + nv:s_count + 2 * nv], arm_i[s_count + 2 * nv:],
-                     arm_f[:nv], qfrc_passive, qfrc_bias, scratch[:nv * nv].reshape((nv, nv)), Minv, qacc_free)
+        step_inverse(arm.M, arm.M_rowadr, arm.M_rownnz, arm.M_colind, arm.damping, arm.qfrc_passive, arm.qfrc_bias,
+                     arm.factor, arm.Minv, arm.qacc_free)
     if stage >= 1:
-        capsule_ends(geom_xpos, geom_xmat, ids, arm_f[nv:nv + s_count], chain, cdof, cdof_dot, com, qvel, Minv,
-                     qacc_free, ends, ends_ab, a_dot_ab, scratch[nv * nv:].reshape((2 * s_count, 3, nv)))
-    ends_a = ends[:s_count]
-    sensing_radius = hook_f[0]
-    margin = hook_f[1]
-    floor_gamma = hook_f[2]
-    gamma = hook_f[3]
-    guard_gamma1 = hook_f[9 + 3 * nv]
-    guard_gamma2 = hook_f[10 + 3 * nv]
-    guard = guard_gamma2 > 0.0
+        capsule_ends(arm.geom_xpos, arm.geom_xmat, arm.capsule_ids, arm.capsule_half, arm.chain, arm.cdof,
+                     arm.cdof_dot, arm.com, arm.qvel, arm.Minv, arm.qacc_free, arm.ends, arm.ends_ab, arm.a_dot_ab,
+                     arm.end_jac)
+    ends_a = arm.ends[:s_count]
+    ends_ab, a_dot_ab, length2, capsule_radius = arm.ends_ab, arm.a_dot_ab, arm.length2, arm.capsule_radius
+    gamma = params.gamma
+    guard = params.guard_gamma2 > 0.0
+    distances = obstacles.distances
     p = work[0, :3]
     v = work[1, :3]
     c = work[2, :3]
@@ -421,40 +502,41 @@ def hook_rows_whole_arm(stage, M, qfrc_passive, qfrc_bias, geom_xpos, geom_xmat,
     n_sensed = 0
     min_h = np.inf
     inside_any = False
-    for k in range(active.shape[0]):
-        if not active[k]:
+    for k in range(obstacles.active.shape[0]):
+        if not obstacles.active[k]:
             continue
         dmin = np.inf
         for g in range(distances.shape[1]):
             dmin = min(dmin, distances[k, g])
         if distances.shape[1] == 0:  # no distances kept by the obstacles' owner: to the capsules
-            dmin = _surface_gap(ends_a, ends_ab, a_dot_ab, length2, capsule_radius, obs_pos[k], obs_radius[k])
-        if not dmin <= sensing_radius:
+            dmin = _surface_gap(ends_a, ends_ab, a_dot_ab, length2, capsule_radius, obstacles.position[k],
+                                obstacles.radius[k])
+        if not dmin <= params.sensing_radius:
             continue
         n_sensed += 1
         for s in range(s_count):
-            _closest_pair(ends_a, ends_ab, a_dot_ab, length2, s, obs_pos[k], obs_vel[k], obs_acc[k],
-                          p, v, c, G, slide)
-            r = (obs_radius[k] + capsule_radius[s]) + margin
-            if kind == C3BF_KIND:
-                h, drift, inside = _c3bf_point(p, v, r, gamma, hook_f[4], hook_f[5], grad_v, grad_p)
+            _closest_pair(ends_a, ends_ab, a_dot_ab, length2, s, obstacles.position[k], obstacles.velocity[k],
+                          obstacles.acceleration[k], p, v, c, G, slide)
+            r = (obstacles.radius[k] + capsule_radius[s]) + params.margin
+            if params.kind == C3BF_KIND:
+                h, drift, inside = _c3bf_point(p, v, r, gamma, params.p1, params.p2, grad_v, grad_p)
             else:
-                h, drift, inside = _hocbf_point(p, v, r, hook_f[4], grad_v, grad_p)
+                h, drift, inside = _hocbf_point(p, v, r, params.p1, grad_v, grad_p)
             b[m] = _sliding_row(grad_v, grad_p, slide, G, c, drift, h, gamma, A[m])
             min_h = min(min_h, h)
             inside_any = inside_any or inside
             m += 1
             if guard:
-                h, drift, inside = _hocbf_point(p, v, r, guard_gamma1, grad_v, grad_p)
-                b[m] = _sliding_row(grad_v, grad_p, slide, G, c, drift, h, guard_gamma2, A[m])
+                h, drift, inside = _hocbf_point(p, v, r, params.guard_gamma1, grad_v, grad_p)
+                b[m] = _sliding_row(grad_v, grad_p, slide, G, c, drift, h, params.guard_gamma2, A[m])
                 m += 1
-    n_floor = floor_idx.shape[0]
-    floor_rows(ends, floor_idx, floor_min, floor_gamma, A[m:m + n_floor], b[m:m + n_floor])
+    n_floor = params.floor_ends.shape[0]
+    floor_rows(arm.ends, params.floor_ends, params.floor_min, params.floor_gamma, A[m:m + n_floor], b[m:m + n_floor])
     m += n_floor
-    if joint_rows:
-        joint_limit_rows(qpos, qvel, Minv, qacc_free, hook_f[9:9 + nv], hook_f[9 + nv:9 + 2 * nv],
-                         hook_f[9 + 2 * nv:9 + 3 * nv], hook_f[6], hook_f[7], hook_f[8],
-                         A[m:m + 4 * nv], b[m:m + 4 * nv])
+    if params.joint_rows:
+        gains = params.joint_gains
+        joint_limit_rows(arm.qpos, arm.qvel, arm.Minv, arm.qacc_free, params.q_lo, params.q_hi, params.qd_max,
+                         gains[0], gains[1], gains[2], A[m:m + 4 * nv], b[m:m + 4 * nv])
         m += 4 * nv
     return m, min_h, inside_any, n_sensed
 
@@ -482,26 +564,20 @@ def hook_post(A, b, u, scale, tau_nom, limit, tau):
 
 
 @njit(**_opts)
-def hook_step(stage, tau_nom, tau, M, qfrc_passive, qfrc_bias, geom_xpos, geom_xmat, cdof, cdof_dot, com, qpos, qvel,
-              arm_i, arm_f, chain, scratch, Minv, qacc_free, ends, ends_ab, a_dot_ab,
-              active, distances, obs_pos, obs_vel, obs_acc, obs_radius, kind, floor_idx, floor_min,
-              joint_rows, hook_f, work, A, b, scale, limit, qp):
+def hook_step(stage, tau_nom, tau, arm, obstacles, params, work, A, b, scale, limit, qp):
     """One whole-arm filter step in one call (:meth:`~c3bf_gym.safety.SafetyController.__call__`): the
-    rows (:func:`hook_rows_whole_arm`), the QP (:func:`c3bf_gym._daqp.solve_rows`, the barrier's rows
-    at priority 2) and :func:`hook_post`, which writes the torque into ``tau``.
+    rows (:func:`hook_rows_whole_arm`, whose arguments ``stage`` … ``b`` are), the QP
+    (:func:`c3bf_gym._daqp.solve_rows` on ``qp``, the barrier's rows at priority 2) in the scaled torque
+    ``τ / scale``, and :func:`hook_post`, which writes the torque into ``tau``.
 
-    ``M`` … ``b`` are :func:`hook_rows_whole_arm`'s arguments (``M`` here is MuJoCo's mass matrix);
-    ``qp`` the :class:`~c3bf_gym._daqp.QPBuffers`. Returns ``(status, rows, min h, any inside,
-    sensed count, iterations, active rows, slack, min row residual, correction)``, status one of
-    :func:`~c3bf_gym._daqp.solve_rows`' codes; the last five are 0 for invalid input.
+    Returns ``(status, rows, min h, any inside, sensed count, iterations, active rows, slack, min
+    row residual, correction)``, status one of :func:`~c3bf_gym._daqp.solve_rows`' codes; the last
+    five are 0 for invalid input.
     """
-    m, min_h, inside, n_sensed = hook_rows_whole_arm(
-        stage, M, qfrc_passive, qfrc_bias, geom_xpos, geom_xmat, cdof, cdof_dot, com, qpos, qvel, arm_i, arm_f,
-        chain, scratch, Minv, qacc_free, ends, ends_ab, a_dot_ab, active, distances, obs_pos, obs_vel, obs_acc,
-        obs_radius, kind, floor_idx, floor_min, joint_rows, hook_f, work, A, b)
-    nv = Minv.shape[0]
-    n_fixed = floor_idx.shape[0] + (4 * nv if joint_rows else 0)
-    stride = 2 if hook_f[10 + 3 * nv] > 0.0 else 1
+    m, min_h, inside, n_sensed = hook_rows_whole_arm(stage, arm, obstacles, params, work, A, b)
+    nv = arm.Minv.shape[0]
+    n_fixed = params.floor_ends.shape[0] + (4 * nv if params.joint_rows else 0)
+    stride = 2 if params.guard_gamma2 > 0.0 else 1
     status, iterations, n_active, slack = solve_rows(tau_nom, A[:m], b[:m], scale, m - n_fixed, stride, qp)
     if status < 0:
         return status, m, min_h, inside, n_sensed, 0, 0, 0.0, 0.0, 0.0

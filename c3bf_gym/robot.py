@@ -127,22 +127,15 @@ class ArmModel:
         s, nv = len(self.capsule_ids), self.nv
         #: ``h D``, the implicit damping the integrator adds to the mass matrix's diagonal (nv,).
         implicit_damping = self._implicit_damping(model)
-        # The model's constants as the compiled kernels read them, packed into one int and one
-        # float array (fewer arguments per kernel call); the attributes below are views of them.
-        self._arm_i = np.concatenate(
-            [self.capsule_ids, model.M_rowadr, model.M_rownnz, model.M_colind]
-        ).astype(np.int64)
-        self._arm_f = np.concatenate(
-            [implicit_damping, self.capsule_half, (2.0 * self.capsule_half) ** 2, self.capsule_radius]
-        )
-        self._capsule_ids = self._arm_i[:s]
-        self._M_rowadr = self._arm_i[s : s + nv]
-        self._M_rownnz = self._arm_i[s + nv : s + 2 * nv]
-        self._M_colind = self._arm_i[s + 2 * nv :]
-        self.implicit_damping = self._arm_f[:nv]
-        self.capsule_half = self._arm_f[nv : nv + s]
-        self._length2 = self._arm_f[nv + s : nv + 2 * s]
-        self.capsule_radius = self._arm_f[nv + 2 * s :]
+        # the model's constants as the compiled kernels read them
+        self._capsule_ids = np.asarray(self.capsule_ids, dtype=np.int64)
+        self._M_rowadr = np.asarray(model.M_rowadr, dtype=np.int64)
+        self._M_rownnz = np.asarray(model.M_rownnz, dtype=np.int64)
+        self._M_colind = np.asarray(model.M_colind, dtype=np.int64)
+        self.implicit_damping = np.asarray(implicit_damping, dtype=np.float64)
+        self.capsule_half = np.asarray(self.capsule_half, dtype=np.float64)
+        self._length2 = (2.0 * self.capsule_half) ** 2
+        self.capsule_radius = np.asarray(self.capsule_radius, dtype=np.float64)
         self._ends = np.zeros((2 * s, 3, 3 + nv))  # ends a then b, packed [pos | vel | c | G]
         self._ends_a = self._ends[:s]
         self._ends_ab = np.zeros((s, 3, 3 + nv))
@@ -214,6 +207,17 @@ class ArmModel:
             )
             self._views_of = data
         return self._views
+
+    def kernel_arrays(self, data: mujoco.MjData) -> _kernels.ArmArrays:
+        """The arrays of this arm and of ``data`` that the fused filter kernels read and write
+        (:class:`~c3bf_gym._kernels.ArmArrays`; views, valid while both live)."""
+        v = self.views(data)
+        return _kernels.ArmArrays(
+            v.M, v.qfrc_passive, v.qfrc_bias, v.geom_xpos, v.geom_xmat, v.cdof, v.cdof_dot, v.com, v.qpos, v.qvel,
+            self._capsule_ids, self._M_rowadr, self._M_rownnz, self._M_colind, self.implicit_damping,
+            self.capsule_half, self._length2, self.capsule_radius, self.capsule_chain, self._factor, self._end_jac,
+            self.Minv, self.qacc_free, self._ends, self._ends_ab, self._a_dot_ab,
+        )
 
     def _ensure_ends(self) -> None:
         """The capsule end points' dynamics, computed on first use after :meth:`update` (a no-op

@@ -118,6 +118,7 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs, gym.utils.EzPic
         self._check_open()
         self._episode_interventions = 0
         self._episode_infeasible = 0
+        self.hook.reset()  # a seeded episode repeats bit for bit, whatever ran before it
         return self.env.reset(**kwargs)
 
     def step(self, action):

@@ -19,8 +19,9 @@ PROBE = """
 import json, numpy as np
 from c3bf_gym import _kernels
 out = np.empty(3)
-_kernels.clip(np.array([2.0, -2.0, 0.5]), -np.ones(3), np.ones(3), out)
-stats = _kernels.clip.stats
+_kernels.hook_post(np.zeros((0, 3)), np.zeros(0), np.array([2.0, -2.0, 0.5]), np.full(3, 0.5), np.zeros(3),
+                   np.ones(3), out)
+stats = _kernels.hook_post.stats
 print(json.dumps({"hits": sum(stats.cache_hits.values()), "misses": sum(stats.cache_misses.values()),
                   "file": _kernels.__file__, "out": out.tolist()}))
 """
@@ -35,13 +36,13 @@ def _probe(root: Path) -> dict:
 
 def test_an_edit_to_any_kernel_source_recompiles(tmp_path):
     package = Path(c3bf_gym.__file__).parent
-    shutil.copytree(package, tmp_path / "c3bf_gym", ignore=shutil.ignore_patterns("__pycache__", "assets"))
+    shutil.copytree(package, tmp_path / "c3bf_gym", ignore=shutil.ignore_patterns("__pycache__", "_numba_cache", "assets"))
     first = _probe(tmp_path)
-    assert first["file"].startswith(str(tmp_path)) and first["out"] == [1.0, -1.0, 0.5]
+    assert first["file"].startswith(str(tmp_path)) and first["out"] == [1.0, -1.0, 0.25]
     assert first["misses"] == 1 and first["hits"] == 0  # compiled, then saved
     assert _probe(tmp_path)["hits"] == 1  # unchanged sources: loaded from the cache
-    # an edit to _active_set.py alone (clip is defined in _kernels.py) must invalidate the cache
-    with open(tmp_path / "c3bf_gym" / "_active_set.py", "a") as fh:
+    # an edit to _daqp.py alone (the probed kernel is defined in _kernels.py) must invalidate the cache
+    with open(tmp_path / "c3bf_gym" / "_daqp.py", "a") as fh:
         fh.write("\n# edited\n")
     edited = _probe(tmp_path)
     assert edited["misses"] == 1 and edited["hits"] == 0

@@ -303,7 +303,7 @@ def test_no_sensed_obstacle_returns_nominal_unchanged(env, seed):
         np.testing.assert_allclose(tau, tau_nom, rtol=1e-14, atol=1e-12)
         assert hook.report.sensed == 0 and hook.report.min_h == np.inf
         assert not hook.report.intervened and hook.report.feasible and hook.report.correction < 1e-9
-        assert hook.last.iterations == 0  # the QP's fast path: nothing was solved
+        assert hook.last.status == "solved" and hook.last.active_rows == 0
 
 
 def test_far_obstacle_pushing_nominal_is_not_filtered(env):
@@ -509,7 +509,6 @@ def test_point_inside_the_margin_gets_a_bounded_recovery_row(env, clearance):
     tau = hook(u.data.qfrc_gravcomp.copy())
     assert hook.report.inside
     assert np.all(np.isfinite(tau))
-    assert hook.last.iterations <= 2 * hook.qp.max_iter + hook.qp.hard_max_iter
     assert hook.last.iterations < 500
 
 
@@ -594,24 +593,24 @@ def test_relaxed_solve_keeps_rows_outside_the_conflict(make_env):
 
 
 def _unfused_call(hook, tau_nom):
-    """The hook's step as separate calls (rows, ``TorqueQP.solve_scaled``, ``hook_post``): the
-    path :func:`c3bf_gym._kernels.hook_step` fuses."""
+    """The hook's step as separate calls (rows, the QP, ``hook_post``): the path
+    :func:`c3bf_gym._kernels.hook_step` fuses."""
     from c3bf_gym import _kernels
 
     A, b, *_ = hook.rows()
     tau_nom = np.ascontiguousarray(tau_nom, dtype=np.float64)
-    result = hook.qp.solve_scaled(tau_nom, A, b, hook._scale, hook.relaxation_weights(len(b)))
+    result = hook.qp.solve_scaled(tau_nom, A, b, hook._scale, len(b) - hook._n_floor_rows - hook._n_joint_rows,
+                                  hook._stride)
     tau = np.empty_like(tau_nom)
     _kernels.hook_post(A, b, result.tau, hook._scale, tau_nom, hook._limit, tau)
     return tau, result
 
 
-@pytest.mark.parametrize("scenario", ["multi", "crossing"])
-def test_fused_step_replays_the_unfused_path(make_env, scenario):
-    """A seeded filtered rollout: the fused kernel gives the torques, outcomes and solver counters
-    of the unfused calls bit for bit. (With the active-set solves capped, so that proxsuite runs,
-    two proxsuite QP objects differed by 2e-8 even on the unfused path alone: not compared.)"""
-    envs = [SafetyFilter(make_env(scenario=scenario), barrier="c3bf") for _ in range(2)]
+@pytest.mark.parametrize(("scenario", "name"), [("multi", "c3bf"), ("crossing", "c3bf"), ("multi", "c3bf+hocbf")])
+def test_fused_step_replays_the_unfused_path(make_env, scenario, name):
+    """A seeded filtered rollout: the fused kernel gives the torques and outcomes (slack,
+    status, iterations, active rows) of the unfused calls bit for bit."""
+    envs = [SafetyFilter(make_env(scenario=scenario), name) for _ in range(2)]
     hooks = [e.hook for e in envs]
     assert hooks[0]._fused
     seen = [[], []]
@@ -642,40 +641,6 @@ def test_fused_step_replays_the_unfused_path(make_env, scenario):
         assert res_f == res_p
     statuses = {res[2] for _, res in seen[0]}
     assert "solved" in statuses and (scenario == "crossing" or "relaxed" in statuses)
-    for name in ("relax_calls", "active_set_fallbacks", "active_set_troubles", "retries", "_kr", "_m_prev"):
-        assert getattr(fused.qp, name) == getattr(plain.qp, name), name
-
-
-def test_fused_hand_over_to_proxsuite_matches_the_unfused_path(make_env):
-    """The fused kernel's hand-overs (hard or repair solve capped → proxsuite in Python) give the
-    unfused path's torque and status. Two envs step in lockstep, uncapped (so they stay identical);
-    at each step both hooks are also called directly with the cap at 1 on the same state."""
-    envs = [SafetyFilter(make_env(scenario="multi"), barrier="c3bf") for _ in range(2)]
-    fused, plain = (e.hook for e in envs)
-    for e in envs:
-        e.reset(seed=7)
-    rng = np.random.default_rng(7)
-    handed, statuses = 0, set()
-    for _ in range(25):
-        action = np.sign(rng.uniform(-1, 1, 6)).astype(np.float32)
-        for e in envs:
-            e.step(action)
-        tau_nom = np.sign(rng.uniform(-1, 1, 6)) * fused._limit
-        before = fused.qp.active_set_fallbacks
-        for hook in (fused, plain):
-            hook.qp.active_set_max_iter = 1
-        tau_f = fused(tau_nom)
-        result_f = fused.last
-        tau_p, result_p = _unfused_call(plain, tau_nom)
-        for hook in (fused, plain):
-            hook.qp.active_set_max_iter = 50
-        handed += fused.qp.active_set_fallbacks > before
-        statuses.add(result_f.status)
-        assert result_f.status == result_p.status and result_f.feasible == result_p.feasible
-        np.testing.assert_allclose(tau_f, tau_p, rtol=0, atol=1e-6 * fused._limit.max())
-    assert handed > 0 and "relaxed" in statuses  # the hand-over paths ran
-    assert fused.qp.active_set_fallbacks == plain.qp.active_set_fallbacks
-
 
 
 def test_a_bound_hook_pickles_and_binds_again(make_env):
@@ -688,9 +653,9 @@ def test_a_bound_hook_pickles_and_binds_again(make_env):
     env.step(np.zeros(6, np.float32))  # binds the hook
     assert env.hook._bound
     hook = pickle.loads(pickle.dumps(env.hook))  # the hook alone (a wrapped env pickles as its arguments)
-    assert hook._bound == () and hook._bound_qp is None
+    assert hook._bound == ()
     hook(np.zeros(6))
-    assert hook._bound_qp is hook.qp and hook._bound[0] is not env.hook._bound[0]
+    assert hook._bound and hook._bound[0] is not env.hook._bound[0] and hook.qp is not env.hook.qp
 
 
 def test_nominal_of_the_wrong_shape_is_refused(make_env):

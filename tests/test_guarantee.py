@@ -334,8 +334,7 @@ def test_guarantee_benchmark_passes_the_guard_gains(tmp_path):
     assert [(c["filter"], c["collision_episodes"]) for c in summary["configurations"]] == [("c3bf+hocbf", 0)]
     for argv, message in ((["--guard-gamma", "0"], "finite number > 0"),
                           (["--filters", "c3bf/whole_arm", "--guard-gamma", "7"], "no c3bf+hocbf"),
-                          (["--filters", "c3bf+guard/ee"], "invalid choice"),
-                          (["--solver", "osqp"], "invalid choice")):  # fmt: skip
+                          (["--filters", "c3bf+guard/ee"], "invalid choice")):  # fmt: skip
         refused = run(*argv)
         assert refused.returncode == 2 and message in refused.stderr
 

@@ -34,6 +34,8 @@ filtered.reset(seed=0)
 for _ in range(3):
     obs, reward, terminated, truncated, info = filtered.step(filtered.action_space.sample())
 assert info['safety']['sensed'] >= 0, info
+from c3bf_gym import _kernels  # the fused step came from the machine code the build compiled
+print('KERNEL_CACHE_HITS', sum(_kernels.hook_step.stats.cache_hits.values()))
 scene = resources.files('c3bf_gym.assets').joinpath('scene.xml')
 import mujoco  # the Panda scene compiles from the installed files too (its <include> resolves there)
 panda = mujoco.MjModel.from_xml_path(str(resources.files('c3bf_gym.assets').joinpath('panda_scene.xml')))
@@ -68,7 +70,7 @@ def test_pip_install_dot_into_fresh_venv_ships_assets(tmp_path):
         REPO,
         src,
         ignore=shutil.ignore_patterns(
-            ".git", "build", "dist", "*.egg-info", "__pycache__", ".pytest_cache", ".hypothesis",
+            ".git", "build", "dist", "*.egg-info", "__pycache__", "_numba_cache", ".pytest_cache", ".hypothesis",
             ".venv", "runs", "results",
         ),
     )
@@ -89,6 +91,7 @@ def test_pip_install_dot_into_fresh_venv_ships_assets(tmp_path):
     site = str(prefix.resolve())
     assert Path(lines["PACKAGE"]).resolve().as_posix().startswith(site), lines["PACKAGE"]  # not the checkout
     assert Path(lines["SCENE"]).resolve().as_posix().startswith(site), lines["SCENE"]
+    assert int(lines["KERNEL_CACHE_HITS"]) >= 1  # pip install . compiled the kernels (setup.py)
     assert lines["SHIPPED"].split() == [
         "c3bf_gym/assets/panda.xml", "c3bf_gym/assets/panda_scene.xml", "c3bf_gym/assets/scene.xml",
         "c3bf_gym/assets/ur5e.xml",

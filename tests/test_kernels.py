@@ -18,7 +18,6 @@ from c3bf_gym import _kernels as K
 from c3bf_gym.barriers import C3BF, DistanceHOCBF, JointLimits
 from c3bf_gym.filter import SafetyHook
 from c3bf_gym.safety import FilterConfig
-from c3bf_gym.qp import PROXSUITE_INF, TorqueQP
 from c3bf_gym.robot import ArmModel
 from c3bf_gym.scenarios import ObstacleSample, ObstacleSpec
 
@@ -297,26 +296,6 @@ def test_fused_rows_equal_the_per_class_path(make_env, guard):
     close(b1, b2, 1e-10)
 
 
-def test_guard_weights_let_the_barriers_rows_give_way_first():
-    w = np.zeros(9)
-    K.guard_weights(w, 6, 0.1)  # 3 points (barrier, guard), then 3 floor / joint rows
-    np.testing.assert_array_equal(w, [0.1, 1, 0.1, 1, 0.1, 1, 1, 1, 1])
-
-
-def test_guarded_hook_relaxation_weights(make_env):
-    u = make_env(scenario="none").unwrapped
-    u.reset(seed=2)
-    scene(u, np.random.default_rng(2), 2)
-    hook = SafetyHook(u, FilterConfig())
-    _, b, _, _, n = hook.rows()
-    w = hook.relaxation_weights(len(b))
-    k = 2 * 7 * n
-    weight = FilterConfig().relaxation_weight
-    assert n == 2 and np.all(w[:k:2] == weight) and np.all(w[1:k:2] == 1.0) and np.all(w[k:] == 1.0)
-    alone = SafetyHook(u, FilterConfig(guard=None))
-    assert alone.relaxation_weights(len(alone.rows()[1])) is None  # all rows weigh 1
-
-
 def test_guard_rows_are_the_distance_hocbfs(make_env):
     """With a guard, the obstacle rows alternate: the C3BF filter's row for a point, then the row
     a distance-HOCBF filter with the guard's gains has for it. Floor and joint rows follow once."""
@@ -343,82 +322,6 @@ def test_guard_rows_are_the_distance_hocbfs(make_env):
 # ----------------------------------------------------------------------------- QP layer
 
 
-def test_qp_prepare_normalises_rows_and_pads_the_previous_ones():
-    rng = np.random.default_rng(6)
-    n, M = 6, 12
-    qp = TorqueQP(n, M, -np.ones(n), np.ones(n))
-    A = rng.normal(size=(10, n))
-    A[3] = 0.0  # a zero row stays unscaled
-    b = rng.normal(size=10)
-    qp.solve(np.zeros(n), A, b)
-    G, h = qp._G, qp._h
-    norms = np.linalg.norm(A, axis=1)
-    norms[3] = 1.0
-    close(G[:10, :n], A / norms[:, None])
-    close(h[:10], b / norms)
-    A2 = rng.normal(size=(4, n))
-    scale = rng.uniform(0.5, 2, n)
-    A2_scaled = A2 * scale
-    tau = rng.uniform(-0.9, 0.9, n) * scale  # inside the box in u = τ / scale
-    res = qp.solve_scaled(tau, A2.copy(), np.full(4, -100.0), scale)  # loose rows: fast path
-    assert res.iterations == 0 and res.status == "solved"
-    close(res.tau, tau / scale)
-    close(G[:4, :n], A2_scaled / np.linalg.norm(A2_scaled, axis=1)[:, None])
-    assert np.all(G[4:10, :n] == 0.0) and np.all(h[4:10] == -PROXSUITE_INF)  # old rows padded
-
-
-def test_solve_scaled_equals_solve_of_the_scaled_problem():
-    rng = np.random.default_rng(7)
-    n = 6
-    scale = np.array([150, 150, 150, 28, 28, 28.0])
-    A = rng.normal(size=(20, n))
-    b = A @ rng.uniform(-50, 50, n) - rng.uniform(0, 5, 20)
-    tau_nom = rng.uniform(-150, 150, n)
-    q1, q2 = TorqueQP(n, 30, -1.0, 1.0), TorqueQP(n, 30, -1.0, 1.0)
-    r1 = q1.solve(tau_nom / scale, A * scale, b)
-    r2 = q2.solve_scaled(tau_nom, A.copy(), b, scale)
-    assert r1.status == r2.status and r1.iterations == r2.iterations > 0
-    np.testing.assert_allclose(r2.tau, r1.tau, atol=1e-12)
-
-
-def test_row_reach_and_infeasibility_bound_match_numpy():
-    rng = np.random.default_rng(8)
-    n, m = 6, 15
-    G = rng.normal(size=(m, n + 1))
-    lo, hi = -rng.uniform(0.5, 1, n), rng.uniform(0.5, 1, n)
-    reach_ref = np.maximum(G[:, :n] * lo, G[:, :n] * hi).sum(1)
-    h = reach_ref + np.where(np.arange(m) % 4 == 0, 0.5, -0.5)  # every 4th row impossible
-    l = np.concatenate([h, np.full(3, -PROXSUITE_INF)])
-    l_clipped, reach = np.zeros(m + 3), np.zeros(m)
-    assert K.row_reach(G, m, lo, hi, h, 1e-6, l, l_clipped, reach)
-    close(reach, reach_ref)
-    close(l_clipped[:m], np.minimum(h, reach_ref))
-    assert np.all(l_clipped[m:] == -PROXSUITE_INF)
-    assert not K.row_reach(G, m, lo, hi, h - 1.0, 1e-6, l, l_clipped, reach)
-    z = np.concatenate([-rng.uniform(0, 1, m) * (rng.random(m) < 0.5), rng.normal(size=n)])
-    y = np.maximum(-z[:m], 0)
-    y /= y.sum()
-    v = y @ G[:m, :n]
-    want = y @ h - np.maximum(v * lo, v * hi).sum()
-    assert K.infeasibility_bound(z, G, h, m, lo, hi, np.zeros(m)) == pytest.approx(want, rel=1e-12)
-    assert K.infeasibility_bound(np.zeros(m + n), G, h, m, lo, hi, np.zeros(m)) == -np.inf
-
-
-def test_dual_signs_ok():
-    M, n = 4, 2
-    lo, hi = np.array([-1.0, -1.0]), np.array([1.0, 1.0])
-    x = np.array([0.9, -0.9])  # nearer the upper bound on joint 0, the lower on joint 1
-    good = np.array([-1.0, 0.0, 0.0, 0.0, 0.5, -0.5])
-    assert K.dual_signs_ok(good, x, 2, lo, hi, 1e-6)
-    bad_row = good.copy()
-    bad_row[1] = 0.2
-    assert not K.dual_signs_ok(bad_row, x, 2, lo, hi, 1e-6)
-    assert K.dual_signs_ok(bad_row, x, 1, lo, hi, 1e-6)  # row 1 unused (m = 1)
-    bad_box = good.copy()
-    bad_box[4] = -0.5
-    assert not K.dual_signs_ok(bad_box, x, 2, lo, hi, 1e-6)
-
-
 def test_hook_post():
     rng = np.random.default_rng(9)
     A, b, u = rng.normal(size=(5, 3)), rng.normal(size=5), rng.normal(size=3)
@@ -437,8 +340,10 @@ def test_kernels_are_cached_on_disk():
     load it instead of compiling again."""
     from numba.core.registry import CPUDispatcher
 
-    dispatchers = [f for f in vars(K).values() if isinstance(f, CPUDispatcher)]
-    assert len(dispatchers) >= 15
+    from c3bf_gym import _daqp
+
+    dispatchers = [f for module in (K, _daqp) for f in vars(module).values() if isinstance(f, CPUDispatcher)]
+    assert len(dispatchers) >= 15 and _daqp.solve_rows in dispatchers
     assert all(not isinstance(f._cache, NullCache) for f in dispatchers)
 
 

@@ -169,7 +169,7 @@ def test_standalone_fused_and_per_class_paths_agree():
     balls.velocity[0] = (-0.2, 0.0, -0.4)
     config = FilterConfig(sensing_radius=0.5, guard=None)
     fused = SafetyController(model, data, robot, balls, config)
-    generic = SafetyController(model, data, robot, balls, config.replace(solver="proxsuite"))
+    generic = SafetyController(model, data, robot, balls, config)
     generic._fused = False  # the per-class path, as a barrier the kernel cannot fuse takes
     A1, b1, h1, in1, n1 = (x.copy() if isinstance(x, np.ndarray) else x for x in fused.rows())
     A2, b2, h2, in2, n2 = generic.rows()

@@ -87,7 +87,8 @@ class StepSafety:
             constraint value: >= 0 when every row holds) [row units]; inf with no row.
         violation: what gave way: for each of :data:`ROW_KINDS`, the largest row-normalised
             violation ``(b_k − A_k τ) / ‖A_k s‖`` over the step's infeasible physics steps [N m
-            in the scaled torque], 0.0 where none (for "unmovable", the violated ``b_k``).
+            in the scaled torque], 0.0 where none (for "unmovable", the violated ``b_k``). In
+            :meth:`as_info` as ``violation_<kind>`` floats.
         tau_nominal, tau: the last physics step's nominal and filtered torques [N m].
     """
 
@@ -119,7 +120,7 @@ class StepSafety:
             "inside": self.inside,
             "infeasible_steps": self.infeasible_steps,
             "min_constraint": self.min_constraint,
-            "violation": dict(self.violation),
+            **{f"violation_{kind}": value for kind, value in self.violation.items()},
         }
 
 
@@ -229,22 +230,29 @@ class SafetyController:
         spec = getattr(barrier, "fused_spec", None)
         spec = spec() if spec is not None and points == "whole_arm" else None
         # the kernel's guard gains (γ₁, γ₂) of a distance HOCBF (0: no guard)
-        guard_f = np.zeros(2)
+        guard_gains = (0.0, 0.0)
         if guard is not None:
             guard_spec = guard.fused_spec() if hasattr(guard, "fused_spec") else None
             if guard_spec is not None and guard_spec[0] == _kernels.HOCBF_KIND:
-                guard_f = np.array([guard_spec[1][1], guard_spec[1][0]])
+                guard_gains = (float(guard_spec[1][1]), float(guard_spec[1][0]))
             else:
                 spec = None
         self._fused = spec is not None
-        self._kind, params = spec if spec is not None else (-1, np.zeros(3))
+        kind, params = spec if spec is not None else (-1, np.zeros(3))
         if joint_limits is not None:
-            jl = [np.array(joint_limits.gains), joint_limits.q_lo, joint_limits.q_hi, joint_limits.qd_max]
+            jl = [np.array(joint_limits.gains, dtype=np.float64), joint_limits.q_lo, joint_limits.q_hi,
+                  joint_limits.qd_max]
         else:
             jl = [np.ones(3), np.zeros(n), np.ones(n), np.ones(n)]
-        # the fused kernel's float parameters (c3bf_gym._kernels.hook_rows_whole_arm)
-        self._hook_f = np.concatenate([[self.sensing_radius, self.margin, self.floor_gamma], params, *jl, guard_f])
         self._floor_idx = self._floor_ends.astype(np.int64)
+        # the fused kernel's settings and obstacles (c3bf_gym._kernels.hook_rows_whole_arm)
+        self._params = _kernels.RowParams(
+            int(kind), *map(float, params), *guard_gains, float(self.sensing_radius), float(self.margin),
+            float(self.floor_gamma), self._floor_idx, self._floor_min, joint_limits is not None,
+            *(np.ascontiguousarray(x, dtype=np.float64) for x in jl),
+        )
+        self._obstacle_arrays = _kernels.ObstacleArrays(obstacles.active, self._distances, obstacles.position,
+                                                        obstacles.velocity, obstacles.acceleration, obstacles.radius)
         self._work = np.zeros((3, 6 + n))
         self._bound: tuple = ()  # hook_step's arguments after the first three (_bind)
         self._hook_step = _kernels.hook_step  # its compiled entry point once bound (_bind)
@@ -296,6 +304,11 @@ class SafetyController:
         """Start (or stop) keeping every physics step's filter time in ``solve_times``."""
         self.solve_times = [] if enabled else None
 
+    def reset(self) -> None:
+        """Start a new episode: the QP forgets its warm start (:meth:`PriorityQP.reset`), so a
+        seeded episode gives the same torques, bit for bit, whatever ran before it."""
+        self.qp.reset()
+
     def begin_step(self) -> None:
         """Start a new policy step's report."""
         self.report = StepSafety()
@@ -306,15 +319,9 @@ class SafetyController:
         if self._refresh:
             obstacles.refresh(data)
         if self._fused:
-            v = arm.views(data)
             m, min_h, inside, n_sensed = _kernels.hook_rows_whole_arm(
-                arm.claim(data, self._version()), v.M, v.qfrc_passive, v.qfrc_bias, v.geom_xpos, v.geom_xmat,
-                v.cdof, v.cdof_dot, v.com, v.qpos, v.qvel, arm._arm_i, arm._arm_f, arm.capsule_chain, arm._scratch,
-                arm.Minv, arm.qacc_free, arm._ends, arm._ends_ab, arm._a_dot_ab, obstacles.active, self._distances,
-                obstacles.position, obstacles.velocity, obstacles.acceleration, obstacles.radius, self._kind,
-                self._floor_idx, self._floor_min, self.joint_limits is not None, self._hook_f, self._work,
-                self._A, self._b,
-            )
+                arm.claim(data, self._version()), arm.kernel_arrays(data), self._obstacle_arrays, self._params,
+                self._work, self._A, self._b)
             return self._A[:m], self._b[:m], min_h, inside, n_sensed
         arm.update(data, self._version())
         sensed = np.flatnonzero(obstacles.active & (self._clearance() <= self.sensing_radius))
@@ -401,18 +408,10 @@ class SafetyController:
         """The buffers :func:`c3bf_gym._kernels.hook_step` works in (env, arm, hook and QP; all
         allocated once by their constructors and updated in place), gathered once: fetching them
         attribute by attribute on every call cost more than the kernel's dispatch."""
-        arm, obstacles = self.arm, self.obstacles
-        v = arm.views(self.data)
-        self._bound = (
-            v.M, v.qfrc_passive, v.qfrc_bias, v.geom_xpos, v.geom_xmat, v.cdof, v.cdof_dot, v.com, v.qpos, v.qvel,
-            arm._arm_i, arm._arm_f, arm.capsule_chain, arm._scratch, arm.Minv, arm.qacc_free, arm._ends,
-            arm._ends_ab, arm._a_dot_ab, obstacles.active, self._distances, obstacles.position, obstacles.velocity,
-            obstacles.acceleration, obstacles.radius, self._kind, self._floor_idx, self._floor_min,
-            self.joint_limits is not None, self._hook_f, self._work, self._A, self._b, self._scale, self._limit,
-            self.qp.buffers,
-        )
+        self._bound = (self.arm.kernel_arrays(self.data), self._obstacle_arrays, self._params, self._work, self._A,
+                       self._b, self._scale, self._limit, self.qp.buffers)
         # hook_step's compiled entry point for exactly these argument types, called directly: the
-        # dispatcher's type resolution of its ~40 arguments cost ~1.5 µs per call. The types are
+        # dispatcher's type resolution of its arguments cost ~1.5 µs per call. The types are
         # fixed: the buffers above, fresh C-contiguous float64 (n,) arrays tau_nom and tau
         # (__call__ checks the shape: the entry point takes any array as the type it was compiled
         # for), and a Python int stage.

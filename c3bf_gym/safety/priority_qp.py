@@ -85,14 +85,25 @@ class PriorityQP:
         self.n = int(n)
         self.tau_min = np.array(tau_min, dtype=np.float64)
         self.tau_max = np.array(tau_max, dtype=np.float64)
-        rows = int(level1_rows) + int(level2_rows)
+        self._levels = (int(level1_rows), int(level2_rows))
+        rows = sum(self._levels)
         points = [n] + [n + level1_rows] * (level1_rows > 0) + [n + rows] * (level2_rows > 0)
         self._plain = _daqp.DaqpWorkspace(n, rows, self.tau_min, self.tau_max)
         self._hier = _daqp.DaqpWorkspace(n, rows, self.tau_min, self.tau_max, break_points=points)
         self.max_rows = rows
         self.buffers = _daqp.QPBuffers(self._plain.buffers, self._hier.buffers,
                                        np.array([level1_rows, level2_rows], np.int64), self.tau_min, self.tau_max,
-                                       np.zeros(n), np.zeros(max(rows, 1)), np.zeros(max(rows, 1)))
+                                       np.zeros(n), np.zeros(max(rows, 1)), np.zeros(max(rows, 1)),
+                                       np.ones(1, np.int64))
+
+    def reset(self) -> None:
+        """Forget the warm start: the next solve starts from an empty working set, so a sequence
+        of solves after a reset gives the same answers, bit for bit, whatever came before."""
+        self.buffers.cold[0] = 1
+
+    def __reduce__(self):
+        """Pickled as its arguments: the copy sets up its own DAQP workspaces (cold)."""
+        return PriorityQP, (self.n, self.tau_min, self.tau_max, *self._levels)
 
     def solve_scaled(self, tau_nom: np.ndarray, A: np.ndarray, b: np.ndarray, scale: np.ndarray,
                      n_obstacle_rows: int | None = None, stride: int = 1) -> QPResult:
