@@ -4,7 +4,7 @@ Building the package (``pip install .``) runs this on the built copy of the pack
 so the installed package carries machine code for the fused filter step of the environment's arms
 (the UR5e and the Panda) in its ``__pycache__``, and a fresh process's first filtered step loads it
 instead of compiling for about half a minute. numba checks every cached entry against the numba
-version, the CPU and the kernels' sources (:mod:`c3bf_gym._compile_cache`); any mismatch, or a
+version, the CPU and the kernels' sources (:mod:`c3bf_gym.safety._compile_cache`); any mismatch, or a
 read-only install, only means the kernels compile on first use as without this step.
 """
 

@@ -20,7 +20,7 @@ from c3bf_gym.controllers.impedance import CartesianImpedance
 from c3bf_gym.envs.reach import C3BFReachEnv
 from c3bf_gym.filter import SafetyHook
 from c3bf_gym.safety import FILTERS, FilterConfig, StepSafety
-from c3bf_gym.robot import ArmModel
+from c3bf_gym.safety.dynamics import ArmModel
 
 __all__ = [
     "ActionPenalty",

@@ -2,7 +2,7 @@
 numpy (the compiled kernels are checked against them, and they against MuJoCo), material point
 dynamics, and a barrier's value and gradients.
 
-They read an :class:`~c3bf_gym.robot.ArmModel`'s packed capsule ends (``_ends_a``, ``_ends_ab``:
+They read an :class:`~c3bf_gym.safety.dynamics.ArmModel`'s packed capsule ends (``_ends_a``, ``_ends_ab``:
 ``[pos | vel | c | G]`` at end a and the difference to end b, (S, 3, 3 + nv)), computed by
 ``arm.update(data)`` in the same physics step."""
 
@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from c3bf_gym.robot import ArmModel, PointDynamics
+from c3bf_gym.safety.dynamics import ArmModel, PointDynamics
 
 
 def _axis_parameter(arm: ArmModel, centres: np.ndarray) -> np.ndarray:
@@ -35,7 +35,7 @@ def closest_dynamics(arm: ArmModel, centres: np.ndarray) -> PointDynamics:
 def closest_sliding(arm: ArmModel, centres: np.ndarray, p: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The sliding terms ``(ṫ (b − a), ṫ (ḃ − ȧ))`` (K * S, 3) of the closest points' ``ṗ`` and
     ``v̇``, with ``ṫ = −(⟨v, b − a⟩ + ⟨p, ḃ − ȧ⟩) / |b − a|²`` inside the segment and 0 at a
-    clamped end (:meth:`~c3bf_gym.robot.ArmModel.closest_relative`'s derivation)."""
+    clamped end (:meth:`~c3bf_gym.safety.dynamics.ArmModel.closest_relative`'s derivation)."""
     arm._ensure_ends()
     k, s = len(centres), len(arm.capsule_ids)
     t = _axis_parameter(arm, centres)
@@ -49,7 +49,7 @@ def closest_sliding(arm: ArmModel, centres: np.ndarray, p: np.ndarray, v: np.nda
 def point_dynamics(arm: ArmModel, data, points: np.ndarray, chain: np.ndarray) -> PointDynamics:
     """:class:`PointDynamics` of ``points`` (P, 3) moving with bodies whose dof masks are
     ``chain`` (P, nv), through the compiled per-point kernel (``arm.update`` first)."""
-    from c3bf_gym import _kernels
+    from c3bf_gym.safety import _kernels
 
     n = len(points)
     packed = np.empty((n, 3, 3 + arm.nv))
@@ -63,6 +63,6 @@ def point_dynamics(arm: ArmModel, data, points: np.ndarray, chain: np.ndarray) -
 
 def partials(barrier, p, v, r) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """A barrier's value and both gradients ``(h (P,), ∂h/∂p (P, 3), ∂h/∂v (P, 3))`` from its
-    :meth:`~c3bf_gym.barriers.Barrier.terms`."""
+    :meth:`~c3bf_gym.safety.barriers.Barrier.terms`."""
     t = barrier.terms(p, v, r)
     return t.h, t.grad_p, t.grad_v

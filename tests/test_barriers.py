@@ -1,4 +1,4 @@
-"""Tests for c3bf_gym.barriers: gradients, time-derivative consistency, rows, limits."""
+"""Tests for c3bf_gym.safety.barriers: gradients, time-derivative consistency, rows, limits."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from c3bf_gym.barriers import (
+from c3bf_gym.safety.barriers import (
     BARRIERS,
     C3BF,
     Barrier,

@@ -1,4 +1,4 @@
-"""The compiled kernels' on-disk cache follows their sources (c3bf_gym/_compile_cache.py).
+"""The compiled kernels' on-disk cache follows their sources (c3bf_gym/safety/_compile_cache.py).
 
 numba keys a cached function on the file that defines it; the filter's kernels are compiled into
 each other across files, so a stale cache could keep an edited solver's old machine code. These
@@ -17,7 +17,7 @@ import c3bf_gym
 
 PROBE = """
 import json, numpy as np
-from c3bf_gym import _kernels
+from c3bf_gym.safety import _kernels
 out = np.empty(3)
 _kernels.hook_post(np.zeros((0, 3)), np.zeros(0), np.array([2.0, -2.0, 0.5]), np.full(3, 0.5), np.zeros(3),
                    np.ones(3), out)
@@ -42,7 +42,7 @@ def test_an_edit_to_any_kernel_source_recompiles(tmp_path):
     assert first["misses"] == 1 and first["hits"] == 0  # compiled, then saved
     assert _probe(tmp_path)["hits"] == 1  # unchanged sources: loaded from the cache
     # an edit to _daqp.py alone (the probed kernel is defined in _kernels.py) must invalidate the cache
-    with open(tmp_path / "c3bf_gym" / "_daqp.py", "a") as fh:
+    with open(tmp_path / "c3bf_gym" / "safety" / "_daqp.py", "a") as fh:
         fh.write("\n# edited\n")
     edited = _probe(tmp_path)
     assert edited["misses"] == 1 and edited["hits"] == 0

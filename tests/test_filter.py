@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from c3bf_gym import SafetyFilter
-from c3bf_gym.barriers import C3BF, DistanceHOCBF
+from c3bf_gym.safety.barriers import C3BF, DistanceHOCBF
 from c3bf_gym.envs.reach import UR5E_JOINT_SPEED
 from c3bf_gym.filter import SafetyHook
 from c3bf_gym.safety import FilterConfig, SafetyInfeasibleError
@@ -594,8 +594,8 @@ def test_relaxed_solve_keeps_rows_outside_the_conflict(make_env):
 
 def _unfused_call(hook, tau_nom):
     """The hook's step as separate calls (rows, the QP, ``hook_post``): the path
-    :func:`c3bf_gym._kernels.hook_step` fuses."""
-    from c3bf_gym import _kernels
+    :func:`c3bf_gym.safety._kernels.hook_step` fuses."""
+    from c3bf_gym.safety import _kernels
 
     A, b, *_ = hook.rows()
     tau_nom = np.ascontiguousarray(tau_nom, dtype=np.float64)

@@ -24,7 +24,7 @@ import numpy as np
 import pytest
 
 from c3bf_gym import CartesianImpedanceAction, SafetyFilter
-from c3bf_gym.barriers import DistanceHOCBF
+from c3bf_gym.safety.barriers import DistanceHOCBF
 
 SCENARIOS = ("static", "head_on", "crossing", "multi")
 STEPS = 250  # a full episode: 5 s at 50 Hz
@@ -35,7 +35,7 @@ STEPS = 250  # a full episode: 5 s at 50 Hz
 
 def nearest_arm_point(u):
     """(gap, point, body, obstacle centre) of the arm capsule point nearest to any active
-    obstacle's surface, computed from MuJoCo's geom poses (independent of c3bf_gym.robot)."""
+    obstacle's surface, computed from MuJoCo's geom poses (independent of c3bf_gym.safety.dynamics)."""
     m, d = u.model, u.data
     best = None
     for k in np.flatnonzero(u.obstacle_active):

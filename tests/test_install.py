@@ -34,7 +34,7 @@ filtered.reset(seed=0)
 for _ in range(3):
     obs, reward, terminated, truncated, info = filtered.step(filtered.action_space.sample())
 assert info['safety']['sensed'] >= 0, info
-from c3bf_gym import _kernels  # the fused step came from the machine code the build compiled
+from c3bf_gym.safety import _kernels  # the fused step came from the machine code the build compiled
 print('KERNEL_CACHE_HITS', sum(_kernels.hook_step.stats.cache_hits.values()))
 scene = resources.files('c3bf_gym.assets').joinpath('scene.xml')
 import mujoco  # the Panda scene compiles from the installed files too (its <include> resolves there)

@@ -1,4 +1,4 @@
-"""Tests for c3bf_gym/_kernels.py: the compiled kernels against plain numpy reference math.
+"""Tests for c3bf_gym/safety/_kernels.py: the compiled kernels against plain numpy reference math.
 
 The references here are written independently of the kernels (vectorised numpy, the formulas of
 the barrier and robot docstrings, the numpy code the kernels replaced), so a wrong index, sign or
@@ -14,11 +14,11 @@ import numpy as np
 import pytest
 from numba.core.caching import NullCache
 
-from c3bf_gym import _kernels as K
-from c3bf_gym.barriers import C3BF, DistanceHOCBF, JointLimits
+from c3bf_gym.safety import _kernels as K
+from c3bf_gym.safety.barriers import C3BF, DistanceHOCBF, JointLimits
 from c3bf_gym.filter import SafetyHook
 from c3bf_gym.safety import FilterConfig
-from c3bf_gym.robot import ArmModel
+from c3bf_gym.safety.dynamics import ArmModel
 from c3bf_gym.scenarios import ObstacleSample, ObstacleSpec
 
 import reference
@@ -221,7 +221,7 @@ class _NumpyC3BF(C3BF):
     """C3BF with numpy terms: the filter cannot fuse it and takes the per-class path."""
 
     def terms(self, p, v, r):
-        from c3bf_gym.barriers import BarrierTerms
+        from c3bf_gym.safety.barriers import BarrierTerms
 
         r = np.broadcast_to(r, len(p))
         return BarrierTerms(*c3bf_reference(np.asarray(p), np.asarray(v), r, self.gamma, self.eps))
@@ -330,7 +330,7 @@ def test_hook_post():
     tau = np.zeros(3)
     residual, correction = K.hook_post(A, b, u, scale, tau_nom, limit, tau)
     close(tau, u * scale)
-    assert residual == pytest.approx((A @ u - b).min(), rel=1e-14)
+    assert residual == pytest.approx((A @ (u * scale) - b).min(), rel=1e-14)
     assert correction == pytest.approx(np.linalg.norm(u * scale - np.clip(tau_nom, -limit, limit)), rel=1e-14)
     assert K.hook_post(np.zeros((0, 3)), np.zeros(0), u, scale, tau_nom, limit, tau)[0] == np.inf
 
@@ -340,7 +340,7 @@ def test_kernels_are_cached_on_disk():
     load it instead of compiling again."""
     from numba.core.registry import CPUDispatcher
 
-    from c3bf_gym import _daqp
+    from c3bf_gym.safety import _daqp
 
     dispatchers = [f for module in (K, _daqp) for f in vars(module).values() if isinstance(f, CPUDispatcher)]
     assert len(dispatchers) >= 15 and _daqp.solve_rows in dispatchers

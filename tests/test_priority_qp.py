@@ -1,4 +1,4 @@
-"""The filter's QP (c3bf_gym/safety/priority_qp.py, DAQP through c3bf_gym/_daqp.py): against proxsuite
+"""The filter's QP (c3bf_gym/safety/priority_qp.py, DAQP through c3bf_gym/safety/_daqp.py): against proxsuite
 (the independent oracle) on random feasible problems, by priority on infeasible ones, and in closed
 loop the joint-speed bound that the former weighted relaxation let go (the safety-core issue's
 defect 3)."""

@@ -1,4 +1,4 @@
-"""Tests for c3bf_gym/robot.py: the arm's point dynamics against MuJoCo's own functions.
+"""Tests for c3bf_gym/safety/dynamics.py: the arm's point dynamics against MuJoCo's own functions.
 
 ``ArmModel`` reads ``cdof``/``cdof_dot`` and does its own matrix products; every quantity is
 checked here against an independent source: ``mj_jac`` / ``mj_jacSite`` / ``mj_jacDot`` for
@@ -14,7 +14,7 @@ import mujoco
 import numpy as np
 import pytest
 
-from c3bf_gym.robot import ArmModel, segment_closest_points
+from c3bf_gym.safety.dynamics import ArmModel, segment_closest_points
 from c3bf_gym.scenarios import MAX_OBSTACLES, ObstacleSample, ObstacleSpec
 
 import reference

@@ -152,7 +152,7 @@ def test_filter_names_reach_the_filter_and_name_the_run():
     """A run's filter is a FILTERS name, the same filter as SafetyFilter's of that name: "c3bf" is
     the C3BF's rows alone, the default "c3bf+hocbf" has the distance HOCBF beside them; the run
     name says which, and the guard's gains when they are not the default."""
-    from c3bf_gym.barriers import DistanceHOCBF
+    from c3bf_gym.safety.barriers import DistanceHOCBF
 
     assert TrainConfig(filter="c3bf").name == "sac_residual_10hz_dw10_aw3_set_c3bf_random_s0"
     assert TrainConfig(filter="hocbf").name == "sac_residual_10hz_dw10_aw3_set_hocbf_random_s0"

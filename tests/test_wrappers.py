@@ -11,7 +11,7 @@ import pytest
 
 import c3bf_gym
 from c3bf_gym import DEFAULT_FILTER, FILTERS, ActionPenalty, CartesianImpedanceAction, FilterConfig, SafetyFilter
-from c3bf_gym.barriers import C3BF, DistanceHOCBF
+from c3bf_gym.safety.barriers import C3BF, DistanceHOCBF
 from c3bf_gym.safety import GUARD_GAMMA
 
 from conftest import ENV_ID
@@ -175,6 +175,8 @@ def test_info_safety_keys_and_types(make_env):
         assert safety["slack"] >= 0.0 and safety["correction"] >= 0.0
         assert "solve_time" not in safety and env.hook.report.solve_time > 0.0  # timings stay off info
         assert safety["feasible"] == (safety["infeasible_steps"] == 0) == (safety["slack"] == 0.0)
+        if safety["feasible"]:  # every row held at the applied torque (A τ − b in the rows' units)
+            assert safety["min_constraint"] >= -1e-2  # (tolerance 1e-6 normalised; row norms < 1e4)
         # flat keys for SB3's Monitor(info_keywords=...)
         assert type(info["safety_intervened"]) is float and info["safety_intervened"] in (0.0, 1.0)
         assert type(info["safety_infeasible"]) is float and info["safety_infeasible"] in (0.0, 1.0)

@@ -11,7 +11,7 @@ import numpy as np
 from gymnasium import error, spaces, utils
 from gymnasium.envs.mujoco.mujoco_env import MujocoEnv
 
-from c3bf_gym.robot import ArmModel, segment_closest_points
+from c3bf_gym.safety.dynamics import ArmModel, segment_closest_points
 from c3bf_gym.safety.obstacles import Obstacles
 from c3bf_gym.safety.robot import RobotDescription
 from c3bf_gym.scenarios import (
@@ -478,7 +478,7 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
 
     @property
     def arm(self) -> ArmModel:
-        """The arm's :class:`~c3bf_gym.robot.ArmModel`, shared by every hook on this env."""
+        """The arm's :class:`~c3bf_gym.safety.dynamics.ArmModel`, shared by every hook on this env."""
         if self._arm is None:
             self._arm = ArmModel(self.model, self.arm_geom_ids, self.ee_site_id)
         return self._arm

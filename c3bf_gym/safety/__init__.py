@@ -1,9 +1,11 @@
 """The safety filter as a library: any MuJoCo arm, any obstacles, with or without Gymnasium.
 
 The data flow, one module each: the robot (:mod:`.robot`: what the filter needs to know about
-an arm, read from its MuJoCo model) → the obstacles (:mod:`.obstacles`) → the settings
-(:mod:`.config`) → the controller (:mod:`.controller`: constraint rows and the QP, one physics
-step per call). ``c3bf_gym.filter.SafetyHook`` runs the controller inside ``C3BFReachEnv`` and
+an arm, read from its MuJoCo model; :mod:`.dynamics`: its dynamics at points on it) → the
+obstacles (:mod:`.obstacles`) → the settings (:mod:`.config`) → the constraint rows
+(:mod:`.barriers` for their math, :mod:`._kernels` compiled) → the QP (:mod:`.priority_qp`, DAQP
+through :mod:`._daqp`) → the controller (:mod:`.controller`: rows and QP, one physics step per
+call). ``c3bf_gym.filter.SafetyHook`` runs the controller inside ``C3BFReachEnv`` and
 ``c3bf_gym.SafetyFilter`` is the Gymnasium wrapper around that.
 
 Example, on a user's own arm (``model`` with torque motors and capsule collision geoms, a mocap

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 from typing import Any, Literal
 
 from c3bf_gym import validation
-from c3bf_gym.barriers import BARRIERS, C3BF, Barrier, make_barrier
+from c3bf_gym.safety.barriers import BARRIERS, C3BF, Barrier, make_barrier
 
 __all__ = [
     "DEFAULT_FILTER", "FILTERS", "FilterConfig", "GUARD_GAMMA", "GUARDS", "ON_INFEASIBLE", "POINTS", "WEIGHTS",
@@ -37,9 +37,9 @@ class FilterConfig:
     :meth:`named`; ``dataclasses.replace`` (or :meth:`replace`) derives variants, validated again.
 
     Attributes:
-        barrier: the obstacle barrier, ``"c3bf"`` (:class:`~c3bf_gym.barriers.C3BF`) or
-            ``"hocbf"`` (:class:`~c3bf_gym.barriers.DistanceHOCBF`), or a
-            :class:`~c3bf_gym.barriers.Barrier` instance.
+        barrier: the obstacle barrier, ``"c3bf"`` (:class:`~c3bf_gym.safety.barriers.C3BF`) or
+            ``"hocbf"`` (:class:`~c3bf_gym.safety.barriers.DistanceHOCBF`), or a
+            :class:`~c3bf_gym.safety.barriers.Barrier` instance.
         gamma: the named barrier's class-K gain [1/s] (C3BF: γ; HOCBF: γ₁ = γ₂); None for the
             barrier's own default (5). Must be None with a Barrier instance (it carries its own).
         guard: a second barrier whose row, for every (sensed obstacle, protected point), holds
@@ -172,11 +172,11 @@ class FilterConfig:
         return GUARD_GAMMA if self.resolved_guard() is not None else None
 
     def barrier_object(self) -> Barrier:
-        """The barrier as a :class:`~c3bf_gym.barriers.Barrier`."""
+        """The barrier as a :class:`~c3bf_gym.safety.barriers.Barrier`."""
         return self.barrier if isinstance(self.barrier, Barrier) else _named_barrier(self.barrier, self.gamma)
 
     def guard_object(self) -> Barrier | None:
-        """The guard as a :class:`~c3bf_gym.barriers.Barrier`, or None."""
+        """The guard as a :class:`~c3bf_gym.safety.barriers.Barrier`, or None."""
         guard = self.resolved_guard()
         if guard is None or isinstance(guard, Barrier):
             return guard
@@ -192,7 +192,7 @@ def _choice_or_barrier(name: str, value: Any, choices: tuple) -> Any:
 
 
 def _named_barrier(name: str, gamma: float | None) -> Barrier:
-    """The barrier of :data:`~c3bf_gym.barriers.BARRIERS` named ``name``, with ``gamma`` as all its
+    """The barrier of :data:`~c3bf_gym.safety.barriers.BARRIERS` named ``name``, with ``gamma`` as all its
     gains (None: its defaults)."""
     if gamma is None:
         return make_barrier(name)

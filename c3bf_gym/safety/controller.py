@@ -4,7 +4,7 @@ Its settings are one :class:`~c3bf_gym.safety.FilterConfig`; :data:`~c3bf_gym.sa
 configurations the project compares. At every physics step (between ``mj_step1`` and ``mj_step2``;
 ``C3BFReachEnv`` calls it as its ``filter`` torque hook, :class:`~c3bf_gym.filter.SafetyHook`):
 
-1. the arm's dynamics at the protected points are refreshed (:class:`~c3bf_gym.robot.ArmModel`):
+1. the arm's dynamics at the protected points are refreshed (:class:`~c3bf_gym.safety.dynamics.ArmModel`):
    for a point ``x`` on the arm, ``ẍ = G τ + c`` with ``G = J M⁻¹`` (``M`` including the
    integrator's joint damping) and ``c = J M⁻¹ (τ_passive − b) + J̇ q̇``;
 2. every *sensed* obstacle (active, surface within ``sensing_radius`` of the arm) contributes one
@@ -17,7 +17,7 @@ configurations the project compares. At every physics step (between ``mj_step1``
    ``z_min`` the floor plus the capsule radius plus ``margin``. Contact forces are not in the
    model ``ẍ = G τ + c``, so the arm must not lean on the floor;
 4. joint position and velocity limits contribute ``4 n`` rows
-   (:class:`~c3bf_gym.barriers.JointLimits`);
+   (:class:`~c3bf_gym.safety.barriers.JointLimits`);
 5. :class:`~c3bf_gym.safety.priority_qp.PriorityQP` (DAQP) returns the torque closest to the
    nominal one (in the metric ``weight``) that satisfies every row within the actuator limits.
    When none does, the rows give way by priority: the barrier's rows first, while the joint
@@ -25,12 +25,12 @@ configurations the project compares. At every physics step (between ``mj_step1``
    reported infeasible, with the largest violation of each kind of row
    (:attr:`StepSafety.violation`); ``on_infeasible="raise"`` raises instead.
 
-Steps 1–4 for ``whole_arm`` with the built-in barriers (:class:`~c3bf_gym.barriers.C3BF`,
-:class:`~c3bf_gym.barriers.DistanceHOCBF`, and a distance-HOCBF guard) are one compiled kernel,
-:func:`c3bf_gym._kernels.hook_rows_whole_arm`, built from the same per-point functions the
-barrier classes and :class:`~c3bf_gym.robot.ArmModel` call; other barriers (or ``points="ee"``)
+Steps 1–4 for ``whole_arm`` with the built-in barriers (:class:`~c3bf_gym.safety.barriers.C3BF`,
+:class:`~c3bf_gym.safety.barriers.DistanceHOCBF`, and a distance-HOCBF guard) are one compiled kernel,
+:func:`c3bf_gym.safety._kernels.hook_rows_whole_arm`, built from the same per-point functions the
+barrier classes and :class:`~c3bf_gym.safety.dynamics.ArmModel` call; other barriers (or ``points="ee"``)
 go through ``Barrier.terms`` and ``rows_from_terms`` and give the same rows. On the fused path the
-rows, the QP and the bookkeeping are one compiled call (:func:`c3bf_gym._kernels.hook_step`). Why each of these choices was made, with the measurements and the commands that
+rows, the QP and the bookkeeping are one compiled call (:func:`c3bf_gym.safety._kernels.hook_step`). Why each of these choices was made, with the measurements and the commands that
 repeat them: ``docs/design-decisions.md``.
 """
 
@@ -43,9 +43,9 @@ import mujoco
 import numba
 import numpy as np
 
-from c3bf_gym import _daqp, _kernels
-from c3bf_gym.barriers import JointLimits, Rows
-from c3bf_gym.robot import ArmModel, segment_closest_points
+from c3bf_gym.safety import _daqp, _kernels
+from c3bf_gym.safety.barriers import JointLimits, Rows
+from c3bf_gym.safety.dynamics import ArmModel, segment_closest_points
 from c3bf_gym.safety.config import FilterConfig
 from c3bf_gym.safety.obstacles import Obstacles
 from c3bf_gym.safety.priority_qp import STATUS, PriorityQP, QPResult, raise_bad_input
@@ -142,7 +142,7 @@ class SafetyController:
             ``refresh(data)`` runs before every call.
         config: the filter's settings (:class:`FilterConfig`; None: the default). A
             ``sensing_radius`` of None senses every active obstacle (``sensing_radius`` below).
-        arm: an :class:`~c3bf_gym.robot.ArmModel` of ``robot`` to share with other controllers
+        arm: an :class:`~c3bf_gym.safety.dynamics.ArmModel` of ``robot`` to share with other controllers
             (None: a new one).
         sensing_radius: the sensing radius [m] used when ``config.sensing_radius`` is None
             (default: inf, every active obstacle).
@@ -225,7 +225,7 @@ class SafetyController:
         self._b = np.zeros(max_rows)
         self._capsule_radius = self.arm.capsule_radius
         # The whole-arm rows of the built-in barriers come from one compiled kernel
-        # (c3bf_gym._kernels.hook_rows_whole_arm, sharing the barrier classes' per-point code);
+        # (c3bf_gym.safety._kernels.hook_rows_whole_arm, sharing the barrier classes' per-point code);
         # any other barrier or points="ee" goes through Barrier.terms / rows_from_terms.
         spec = getattr(barrier, "fused_spec", None)
         spec = spec() if spec is not None and points == "whole_arm" else None
@@ -245,7 +245,7 @@ class SafetyController:
         else:
             jl = [np.ones(3), np.zeros(n), np.ones(n), np.ones(n)]
         self._floor_idx = self._floor_ends.astype(np.int64)
-        # the fused kernel's settings and obstacles (c3bf_gym._kernels.hook_rows_whole_arm)
+        # the fused kernel's settings and obstacles (c3bf_gym.safety._kernels.hook_rows_whole_arm)
         self._params = _kernels.RowParams(
             int(kind), *map(float, params), *guard_gains, float(self.sensing_radius), float(self.margin),
             float(self.floor_gamma), self._floor_idx, self._floor_min, joint_limits is not None,
@@ -398,14 +398,14 @@ class SafetyController:
     def _floor_rows(self, A: np.ndarray, b: np.ndarray) -> int:
         """Rows keeping every capsule end ``z ≥ z_min`` (floor + radius + margin): the
         second-order barrier ``z̈ + 2γ ż + γ² (z − z_min) ≥ 0`` with ``z̈ = G_z τ + c_z``.
-        (The fused kernel's :func:`c3bf_gym._kernels.floor_rows`.)"""
+        (The fused kernel's :func:`c3bf_gym.safety._kernels.floor_rows`.)"""
         self.arm.end_dynamics()  # refreshes the packed capsule ends (arm._ends) if stale
         k = self._n_floor_rows
         _kernels.floor_rows(self.arm._ends, self._floor_idx, self._floor_min, self.floor_gamma, A[:k], b[:k])
         return k
 
     def _bind(self) -> tuple:
-        """The buffers :func:`c3bf_gym._kernels.hook_step` works in (env, arm, hook and QP; all
+        """The buffers :func:`c3bf_gym.safety._kernels.hook_step` works in (env, arm, hook and QP; all
         allocated once by their constructors and updated in place), gathered once: fetching them
         attribute by attribute on every call cost more than the kernel's dispatch."""
         self._bound = (self.arm.kernel_arrays(self.data), self._obstacle_arrays, self._params, self._work, self._A,

@@ -7,7 +7,7 @@ In the scaled torque ``u = τ / s`` (``s`` the controller's scale, so the box is
     subject to  â_k u ≥ b̂_k   (the rows A_k s u ≥ b_k divided by ‖A_k s‖: residuals in N·m)
                 u_min ≤ u ≤ u_max
 
-solved by DAQP (:mod:`c3bf_gym._daqp`), a dual active-set solver for small dense QPs, from
+solved by DAQP (:mod:`c3bf_gym.safety._daqp`), a dual active-set solver for small dense QPs, from
 compiled code. When no ``u`` in the box satisfies every row, the rows give way **by priority,
 not by weights**: DAQP's hierarchical mode satisfies each level as well as the levels above it
 allow (least squares of the level's violations), and only then minimises the cost. The levels:
@@ -31,11 +31,11 @@ from typing import NamedTuple
 
 import numpy as np
 
-from c3bf_gym import _daqp
+from c3bf_gym.safety import _daqp
 
 __all__ = ["PriorityQP", "QPResult"]
 
-#: :attr:`QPResult.status` by :func:`c3bf_gym._daqp.solve_rows` outcome
+#: :attr:`QPResult.status` by :func:`c3bf_gym.safety._daqp.solve_rows` outcome
 STATUS = {_daqp.SOLVED: "solved", _daqp.RELAXED: "relaxed", _daqp.FAILED: "failed"}
 
 
@@ -140,7 +140,7 @@ class PriorityQP:
 
 
 def raise_bad_input(code: int) -> None:
-    """Turn :func:`c3bf_gym._daqp.solve_rows`' invalid-input codes into ``ValueError``."""
+    """Turn :func:`c3bf_gym.safety._daqp.solve_rows`' invalid-input codes into ``ValueError``."""
     if code == _daqp.BAD_NOMINAL:
         raise ValueError("tau_nom contains NaN or inf")
     if code == _daqp.BAD_ROWS:

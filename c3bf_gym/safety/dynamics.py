@@ -10,7 +10,7 @@ gives the translational Jacobian column of dof ``j`` on the body's chain as
 
 (the same expressions as ``mj_jac`` and ``mj_jacDot``, which the tests compare against). The
 per-step work (these sums, the factorisation of ``M + h D``, the closest points) runs in compiled
-kernels (:mod:`c3bf_gym._kernels`): at this size the cost of numpy is its per-call overhead.
+kernels (:mod:`c3bf_gym.safety._kernels`): at this size the cost of numpy is its per-call overhead.
 
 The joint acceleration is the one the next physics step integrates, not the continuous-time
 ``M⁻¹ f``. MuJoCo's Euler integrator treats joint damping ``D`` implicitly (unless
@@ -32,7 +32,7 @@ from typing import NamedTuple
 import mujoco
 import numpy as np
 
-from c3bf_gym import _kernels
+from c3bf_gym.safety import _kernels
 
 __all__ = ["ArmModel", "PointDynamics", "segment_closest_points"]
 
@@ -210,7 +210,7 @@ class ArmModel:
 
     def kernel_arrays(self, data: mujoco.MjData) -> _kernels.ArmArrays:
         """The arrays of this arm and of ``data`` that the fused filter kernels read and write
-        (:class:`~c3bf_gym._kernels.ArmArrays`; views, valid while both live)."""
+        (:class:`~c3bf_gym.safety._kernels.ArmArrays`; views, valid while both live)."""
         v = self.views(data)
         return _kernels.ArmArrays(
             v.M, v.qfrc_passive, v.qfrc_bias, v.geom_xpos, v.geom_xmat, v.cdof, v.cdof_dot, v.com, v.qpos, v.qvel,
@@ -245,7 +245,7 @@ class ArmModel:
         return self._unpack(self._ends[None])
 
     def claim(self, data: mujoco.MjData, version: int | None = None) -> int:
-        """For a fused kernel (:func:`c3bf_gym._kernels.hook_rows_whole_arm`) that refreshes the
+        """For a fused kernel (:func:`c3bf_gym.safety._kernels.hook_rows_whole_arm`) that refreshes the
         dynamics itself, in this object's arrays: which parts are stale, 2 (``Minv``,
         ``qacc_free`` and the capsule ends), 1 (the ends) or 0 (none), with :meth:`update`'s
         caching on ``version``. Marks them current: the caller must compute them now."""

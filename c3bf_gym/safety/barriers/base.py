@@ -16,7 +16,7 @@ assembly lives once, vectorised, in :meth:`Barrier.rows`.
 
 Units: positions in m, velocities in m/s, accelerations in m/s², torques in N·m
 (or whatever unit ``G`` maps from). The per-point arithmetic runs in compiled kernels
-(:mod:`c3bf_gym._kernels`), which the filter's fused kernel shares.
+(:mod:`c3bf_gym.safety._kernels`), which the filter's fused kernel shares.
 """
 
 from __future__ import annotations

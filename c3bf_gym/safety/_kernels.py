@@ -11,15 +11,15 @@ Each piece of math lives once, in an inner ``@njit`` function that works on one 
 the public classes call it through small vectorised kernels, and the filter's fused kernel
 (:func:`hook_rows_whole_arm`) calls the same inner functions directly:
 
-* :func:`step_inverse`: ``(M + h D)⁻¹`` and ``qacc_free`` (:class:`~c3bf_gym.robot.ArmModel`).
+* :func:`step_inverse`: ``(M + h D)⁻¹`` and ``qacc_free`` (:class:`~c3bf_gym.safety.dynamics.ArmModel`).
 * :func:`point_dynamics` / :func:`capsule_ends`: position, velocity, ``c``, ``G`` and Jacobian of
-  points on the arm, from ``cdof`` and ``cdof_dot`` (the formulas of :mod:`c3bf_gym.robot`).
+  points on the arm, from ``cdof`` and ``cdof_dot`` (the formulas of :mod:`c3bf_gym.safety.dynamics`).
 * :func:`closest_relative`: closest points on the capsule axes, relative to moving obstacles,
   with their sliding terms.
 * :func:`c3bf_terms`, :func:`hocbf_terms`, :func:`rows_from_terms`, :func:`joint_limit_rows`: the
-  barriers of :mod:`c3bf_gym.barriers`.
+  barriers of :mod:`c3bf_gym.safety.barriers`.
 * :func:`hook_rows_whole_arm`: every row of the whole-arm filter in one call, and
-  :func:`hook_step`: those rows, the QP (:func:`c3bf_gym._daqp.solve_rows`) and :func:`hook_post`.
+  :func:`hook_step`: those rows, the QP (:func:`c3bf_gym.safety._daqp.solve_rows`) and :func:`hook_post`.
 
 The floating-point operations follow the numpy code they replace (same formulas, same order where
 it matters), so results agree with it to rounding (~1e-15 relative).
@@ -33,11 +33,11 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit
 
-from c3bf_gym import _compile_cache  # noqa: F401  (before any @njit(cache=True): the cache keys)
+from c3bf_gym.safety import _compile_cache  # noqa: F401  (before any @njit(cache=True): the cache keys)
 
 # hook_step compiles _daqp.solve_rows into itself: _compile_cache keys the on-disk cache of both
 # files' functions on both files.
-from c3bf_gym._daqp import solve_rows
+from c3bf_gym.safety._daqp import solve_rows
 
 #: barrier kinds of the fused kernel
 C3BF_KIND = 0
@@ -104,7 +104,7 @@ def step_inverse(M, rowadr, rownnz, colind, damping, qfrc_passive, qfrc_bias, wo
 @njit(**_opts)
 def _one_point(p, x, chain, cdof, cdof_dot, com, qvel, Minv, qacc_free, packed, jac):
     """Fill ``packed[p, :, 1:]`` (velocity, ``c``, ``G``) and ``jac[p]`` of the point ``x`` (3,)
-    moving with the dofs where ``chain`` (nv,) is nonzero (:mod:`c3bf_gym.robot`'s formulas:
+    moving with the dofs where ``chain`` (nv,) is nonzero (:mod:`c3bf_gym.safety.dynamics`'s formulas:
     ``J_j = chain_j (v_j + ω_j × r)``, ``J̇q̇ = Σ q̇_j v̇_j + (Σ q̇_j ω̇_j) × r + ω × ẋ``)."""
     nv = qvel.shape[0]
     r0 = x[0] - com[0]
@@ -254,7 +254,7 @@ def closest_relative(ends_a, ends_ab, a_dot_ab, length2, centres, velocities, ac
 
 @njit(**_opts)
 def _c3bf_point(p, v, r, gamma, eps, delta, grad_v, grad_p):
-    """C3BF at one point (:class:`~c3bf_gym.barriers.C3BF`): fills ``grad_v``, ``grad_p`` (3,)
+    """C3BF at one point (:class:`~c3bf_gym.safety.barriers.C3BF`): fills ``grad_v``, ``grad_p`` (3,)
     and returns ``(h, drift, inside)``."""
     h0 = (p[0] * p[0] + p[1] * p[1] + p[2] * p[2]) - r * r
     inside = h0 <= 0.0
@@ -280,7 +280,7 @@ def _c3bf_point(p, v, r, gamma, eps, delta, grad_v, grad_p):
 
 @njit(**_opts)
 def _hocbf_point(p, v, r, gamma1, grad_v, grad_p):
-    """Distance HOCBF at one point (:class:`~c3bf_gym.barriers.DistanceHOCBF`): fills ``grad_v``,
+    """Distance HOCBF at one point (:class:`~c3bf_gym.safety.barriers.DistanceHOCBF`): fills ``grad_v``,
     ``grad_p`` (3,) and returns ``(ψ₁, drift, inside)``."""
     h0 = (p[0] * p[0] + p[1] * p[1] + p[2] * p[2]) - r * r
     pv2 = (p[0] * v[0] + p[1] * v[1] + p[2] * v[2]) * 2.0
@@ -332,7 +332,7 @@ def rows_from_terms(grad_v, drift, h, gamma, G, c, A, b):
 
 @njit(**_opts)
 def joint_limit_rows(q, qd, Minv, c_q, q_lo, q_hi, qd_max, g1, g2, gv, A, b):
-    """The ``4n`` rows of :class:`~c3bf_gym.barriers.JointLimits` into ``A`` (4n, n), ``b`` (4n,)
+    """The ``4n`` rows of :class:`~c3bf_gym.safety.barriers.JointLimits` into ``A`` (4n, n), ``b`` (4n,)
     (row blocks: position upper, position lower, speed upper, speed lower)."""
     n = q.shape[0]
     g12 = g1 * g2
@@ -368,7 +368,7 @@ def floor_rows(ends, idx, z_min, gamma, A, b):
 
 
 class ArmArrays(NamedTuple):
-    """What the fused kernels read and write of an arm (:meth:`~c3bf_gym.robot.ArmModel.kernel_arrays`):
+    """What the fused kernels read and write of an arm (:meth:`~c3bf_gym.safety.dynamics.ArmModel.kernel_arrays`):
     views, updated in place, never replaced. ``S`` protected geoms, ``nv`` dofs.
 
     Attributes:
@@ -546,20 +546,20 @@ def hook_rows_whole_arm(stage, arm, obstacles, params, work, A, b):
 
 @njit(**_opts)
 def hook_post(A, b, u, scale, tau_nom, limit, tau):
-    """The filter's bookkeeping after the QP: ``tau = u · scale``; returns ``(min_k A_k u − b_k``
-    (inf without rows), ``‖tau − clip(tau_nom, ±limit)‖``)."""
+    """The filter's bookkeeping after the QP: ``tau = u · scale``; returns ``(min_k A_k tau − b_k``
+    (the rows' own units; inf without rows), ``‖tau − clip(tau_nom, ±limit)‖``)."""
     m, n = A.shape
-    residual = np.inf
-    for i in range(m):
-        acc = 0.0
-        for j in range(n):
-            acc += A[i, j] * u[j]
-        residual = min(residual, acc - b[i])
     sq = 0.0
     for j in range(n):
         tau[j] = u[j] * scale[j]
         d = tau[j] - max(min(tau_nom[j], limit[j]), -limit[j])
         sq += d * d
+    residual = np.inf
+    for i in range(m):
+        acc = 0.0
+        for j in range(n):
+            acc += A[i, j] * tau[j]
+        residual = min(residual, acc - b[i])
     return residual, math.sqrt(sq)
 
 
@@ -567,11 +567,11 @@ def hook_post(A, b, u, scale, tau_nom, limit, tau):
 def hook_step(stage, tau_nom, tau, arm, obstacles, params, work, A, b, scale, limit, qp):
     """One whole-arm filter step in one call (:meth:`~c3bf_gym.safety.SafetyController.__call__`): the
     rows (:func:`hook_rows_whole_arm`, whose arguments ``stage`` … ``b`` are), the QP
-    (:func:`c3bf_gym._daqp.solve_rows` on ``qp``, the barrier's rows at priority 2) in the scaled torque
+    (:func:`c3bf_gym.safety._daqp.solve_rows` on ``qp``, the barrier's rows at priority 2) in the scaled torque
     ``τ / scale``, and :func:`hook_post`, which writes the torque into ``tau``.
 
     Returns ``(status, rows, min h, any inside, sensed count, iterations, active rows, slack, min
-    row residual, correction)``, status one of :func:`~c3bf_gym._daqp.solve_rows`' codes; the last
+    row residual, correction)``, status one of :func:`~c3bf_gym.safety._daqp.solve_rows`' codes; the last
     five are 0 for invalid input.
     """
     m, min_h, inside, n_sensed = hook_rows_whole_arm(stage, arm, obstacles, params, work, A, b)

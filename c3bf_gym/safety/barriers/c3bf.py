@@ -98,7 +98,7 @@ class C3BF(Barrier):
         return BarrierTerms(h, grad_v, drift, inside, grad_p)
 
     def fused_spec(self) -> tuple[int, np.ndarray] | None:
-        """``(kind, params)`` of the filter's fused kernel (:mod:`c3bf_gym._kernels`), or None
+        """``(kind, params)`` of the filter's fused kernel (:mod:`c3bf_gym.safety._kernels`), or None
         for a subclass that changes :meth:`terms`. The parameters are read through the public
         properties (:attr:`gamma`, :attr:`eps`, :attr:`delta`), as :meth:`terms` and
         :meth:`rows_from_terms` read them, so a subclass that overrides one is honoured on both
