@@ -45,6 +45,7 @@ _nonnegative_float = _number(float, 0.0, strict=False)
 
 def _add_train(sub: argparse._SubParsersAction) -> None:
     from c3bf_gym.scenarios import SCENARIOS
+    from c3bf_gym.envs.reach import ROBOTS
     from c3bf_gym.safety import GUARD_GAMMA
     from c3bf_gym.training import ACTIONS, ALGORITHMS, OBSTACLE_ENCODERS, POLICY_RATES, TRAIN_FILTERS, TrainConfig
 
@@ -60,6 +61,8 @@ def _add_train(sub: argparse._SubParsersAction) -> None:
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
     p.add_argument("--algo", choices=ALGORITHMS, default=d.algo, help="Stable-Baselines3 algorithm")
+    p.add_argument("--robot", choices=list(ROBOTS), default=d.robot,
+                   help="the arm: ur5e (C3BFReach-v0) or panda (C3BFReachPanda-v0's arm)")  # fmt: skip
     p.add_argument("--action", choices=ACTIONS, default=d.action,
                    help="impedance: Cartesian tool targets through the impedance controller; residual: corrections "
                    "to a straight step for the goal, through the same controller; torque: raw joint torques")  # fmt: skip
@@ -99,7 +102,7 @@ def _run_train(args: argparse.Namespace) -> int:
     from c3bf_gym.training import TrainConfig, train
 
     config = TrainConfig(
-        algo=args.algo, action=args.action, filter=args.filter, guard_gamma=args.guard_gamma, scenario=args.scenario,
+        algo=args.algo, robot=args.robot, action=args.action, filter=args.filter, guard_gamma=args.guard_gamma, scenario=args.scenario,
         timesteps=args.timesteps, seed=args.seed, n_envs=args.n_envs, eval_freq=args.eval_freq,
         eval_episodes=args.eval_episodes, final_eval_episodes=args.final_eval_episodes, checkpoint_freq=args.checkpoint_freq, out=args.out,
         progress_bar=not args.no_progress, normalize_obs=args.normalize_obs, policy_hz=args.policy_hz, distance_weight=args.distance_weight, action_weight=args.action_weight, obstacle_encoder=args.obstacle_encoder, hyperparams=args.hyperparams,

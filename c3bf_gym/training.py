@@ -29,6 +29,7 @@ import gymnasium as gym
 import numpy as np
 
 from c3bf_gym import validation
+from c3bf_gym.envs.reach import ROBOTS
 from c3bf_gym.safety import DEFAULT_FILTER, FILTERS, FilterConfig
 from c3bf_gym.wrappers import ActionPenalty, CartesianImpedanceAction, SafetyFilter
 
@@ -155,6 +156,7 @@ class TrainConfig:
     """
 
     algo: Literal["sac", "ppo"] = "sac"
+    robot: str = "ur5e"
     action: Literal["impedance", "residual", "torque"] = "residual"
     filter: str = DEFAULT_FILTER
     guard_gamma: float | None = None
@@ -183,6 +185,7 @@ class TrainConfig:
             ("action", self.action, ACTIONS),
             ("filter", self.filter, TRAIN_FILTERS),
             ("obstacle_encoder", self.obstacle_encoder, OBSTACLE_ENCODERS),
+            ("robot", self.robot, tuple(ROBOTS)),
         ):
             if value not in choices:
                 raise ValueError(f"unknown {name} {value!r}; valid choices: {', '.join(map(repr, choices))}")
@@ -209,23 +212,26 @@ class TrainConfig:
         dense = f"_dw{self.distance_weight:g}" if self.distance_weight else ""
         penalty = f"_aw{self.action_weight:g}" if self.action_weight else ""
         encoder = "" if self.obstacle_encoder == "flat" else f"_{self.obstacle_encoder}"
+        robot = "" if self.robot == "ur5e" else f"{self.robot}_"  # UR5e runs keep their earlier names
         return (
-            f"{self.algo}_{self.action}{norm}{rate}{dense}{penalty}{encoder}_{filter_label(self.filter, self.guard_gamma)}"
+            f"{robot}{self.algo}_{self.action}{norm}{rate}{dense}{penalty}{encoder}_{filter_label(self.filter, self.guard_gamma)}"
             f"_{self.scenario}_s{self.seed}"
         )
 
-    def env_kwargs(self) -> dict[str, float]:
-        """``gym.make`` keywords: the policy rate (the episode stays ``EPISODE_SECONDS`` long) and
-        the reward's dense distance term."""
-        return env_kwargs(self.policy_hz, self.distance_weight)
+    def env_kwargs(self) -> dict[str, Any]:
+        """``gym.make`` keywords: the policy rate (the episode stays ``EPISODE_SECONDS`` long), the
+        reward's dense distance term and the robot."""
+        return env_kwargs(self.policy_hz, self.distance_weight, self.robot)
 
     def resolved_hyperparams(self) -> dict[str, Any]:
         return {**HYPERPARAMS[(self.algo, self.action)], **self.hyperparams}
 
 
-def env_kwargs(policy_hz: int, distance_weight: float = 0.0) -> dict[str, float]:
-    """``gym.make`` keywords of a run: :func:`policy_rate_kwargs` plus ``distance_weight`` when set."""
-    return {**policy_rate_kwargs(policy_hz), **({"distance_weight": distance_weight} if distance_weight else {})}
+def env_kwargs(policy_hz: int, distance_weight: float = 0.0, robot: str = "ur5e") -> dict[str, Any]:
+    """``gym.make`` keywords of a run: :func:`policy_rate_kwargs`, plus ``distance_weight`` when set
+    and ``robot`` (:data:`~c3bf_gym.envs.ROBOTS`) when not the UR5e."""
+    return {**policy_rate_kwargs(policy_hz), **({"distance_weight": distance_weight} if distance_weight else {}),
+            **({"robot": robot} if robot != "ur5e" else {})}
 
 
 def policy_rate_kwargs(hz: int) -> dict[str, int]:
@@ -481,7 +487,8 @@ def evaluate(
     model = {"sac": SAC, "ppo": PPO}[algo].load(model_path, device="cpu")
     normalizer = _load_normalizer(run_dir / NORMALIZATION_FILE) if run_dir else None
     returns, successes, costs, collided, interventions, infeasible, kinds = [], [], [], [], [], [], []
-    run_env = env_kwargs(config.get("policy_hz", DEFAULT_POLICY_HZ), config.get("distance_weight", 0.0))
+    run_env = env_kwargs(config.get("policy_hz", DEFAULT_POLICY_HZ), config.get("distance_weight", 0.0),
+                         config.get("robot", "ur5e"))
     env = make_env(scenario, filter_, action, seed=seed, action_weight=config.get("action_weight", 0.0), **run_env)()
     for episode in range(episodes):
         obs, _ = env.reset(seed=seed + episode)

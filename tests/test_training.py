@@ -126,6 +126,31 @@ def test_set_encoder_run_names_itself_reloads_and_evaluates(tmp_path):
     assert result["episodes"] == 1 and result["collision_episodes"] == 0
 
 
+@pytest.mark.slow
+def test_panda_run_trains_under_the_filter_names_itself_and_evaluates_on_the_panda(tmp_path):
+    """``robot="panda"``: the run's envs are the 7-joint Panda's (its 87-entry observation,
+    7-joint torques under the filter), the run name says so, and evaluation rebuilds the Panda from
+    the run's config."""
+    run = train(TrainConfig(robot="panda", timesteps=250, scenario="multi", eval_freq=10_000, final_eval_episodes=0,
+                            out=str(tmp_path), progress_bar=False, hyperparams={"learning_starts": 100}))  # fmt: skip
+    assert run.name == "panda_sac_residual_10hz_dw10_aw3_set_c3bf+hocbf_multi_s0"
+    assert json.loads((run / "config.json").read_text())["robot"] == "panda"
+    summary = json.loads((run / "summary.json").read_text())
+    assert summary["training_cost"] == 0.0
+    result = evaluate(run / "model.zip", episodes=1)
+    assert result["episodes"] == 1 and result["collision_episodes"] == 0
+
+
+def test_robot_reaches_the_env_and_is_validated():
+    env = make_env("none", "c3bf+hocbf", "residual", seed=0, **TrainConfig(robot="panda").env_kwargs())()
+    assert env.unwrapped.robot.n == 7 and env.observation_space.shape == (87,)
+    env.step(env.action_space.sample())
+    env.close()
+    assert "robot" not in TrainConfig().env_kwargs()  # UR5e runs keep their earlier configs and names
+    with pytest.raises(ValueError, match="unknown robot 'ur10'; valid choices: 'ur5e', 'panda'"):
+        TrainConfig(robot="ur10").validate()
+
+
 @pytest.mark.parametrize("hz", [10, 50])
 def test_policy_rate_keeps_five_second_episodes(hz):
     env = make_env("none", "none", "impedance", seed=0, **policy_rate_kwargs(hz))()

@@ -18,6 +18,7 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
+from c3bf_gym.envs.reach import ROBOTS
 from c3bf_gym.training import ACTIONS, ALGORITHMS, OBSTACLE_ENCODERS, POLICY_RATES, TRAIN_FILTERS, TrainConfig
 
 
@@ -25,6 +26,7 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     d = TrainConfig()  # the defaults live there
     parser.add_argument("--algo", choices=ALGORITHMS, default=d.algo)
+    parser.add_argument("--robot", choices=list(ROBOTS), default=d.robot, help="the arm (default %(default)s)")
     parser.add_argument("--action", choices=ACTIONS, default=d.action)
     parser.add_argument("--filters", nargs="+", choices=TRAIN_FILTERS, default=["none", d.filter, "hocbf"])
     parser.add_argument("--guard-gamma", type=float, default=d.guard_gamma,
@@ -54,7 +56,7 @@ def main() -> int:
     jobs = []
     for seed, filter_name in itertools.product(args.seeds, args.filters):
         name = TrainConfig(
-            algo=args.algo, action=args.action, filter=filter_name, guard_gamma=gains(filter_name), scenario=args.scenario, seed=seed,
+            algo=args.algo, robot=args.robot, action=args.action, filter=filter_name, guard_gamma=gains(filter_name), scenario=args.scenario, seed=seed,
             policy_hz=args.policy_hz, normalize_obs=args.normalize_obs, distance_weight=args.distance_weight,
             action_weight=args.action_weight, obstacle_encoder=args.obstacle_encoder,
         ).name  # fmt: skip
@@ -62,7 +64,7 @@ def main() -> int:
             print(f"skip {name}: finished")
             continue
         command = [
-            sys.executable, "-m", "c3bf_gym.cli", "train", "--algo", args.algo, "--action", args.action,
+            sys.executable, "-m", "c3bf_gym.cli", "train", "--algo", args.algo, "--robot", args.robot, "--action", args.action,
             "--filter", filter_name, *(["--guard-gamma", str(gains(filter_name))] if gains(filter_name) else []),
             "--scenario", args.scenario, "--seed", str(seed),
             "--timesteps", str(args.timesteps), "--out", str(out), "--no-progress", "--policy-hz", str(args.policy_hz),
