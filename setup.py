@@ -16,7 +16,10 @@ class BuildWithKernels(build_py):
         super().run()
         if getattr(self, "editable_mode", False) or os.environ.get("C3BF_GYM_PRECOMPILE", "1") == "0":
             return
-        env = {**os.environ, "PYTHONPATH": os.path.abspath(self.build_lib)}
+        # the built package first, then this process's own path: pip's build isolation reaches the
+        # build requirements through it (a sitecustomize module with older pips)
+        paths = [os.path.abspath(self.build_lib), *(p for p in sys.path if p and os.path.isdir(p))]
+        env = {**os.environ, "PYTHONPATH": os.pathsep.join(paths)}
         env.pop("NUMBA_CACHE_DIR", None)  # the cache goes beside the built sources
         done = subprocess.run([sys.executable, "-m", "c3bf_gym._precompile"], cwd=self.build_lib, env=env,
                               capture_output=True, text=True)

@@ -599,8 +599,7 @@ def _unfused_call(hook, tau_nom):
 
     A, b, *_ = hook.rows()
     tau_nom = np.ascontiguousarray(tau_nom, dtype=np.float64)
-    result = hook.qp.solve_scaled(tau_nom, A, b, hook._scale, len(b) - hook._n_floor_rows - hook._n_joint_rows,
-                                  hook._stride)
+    result = hook.qp.solve_scaled(tau_nom, A, b, hook._scale, hook._low_priority_span(len(b)), hook._stride)
     tau = np.empty_like(tau_nom)
     _kernels.hook_post(A, b, result.tau, hook._scale, tau_nom, hook._limit, tau)
     return tau, result

@@ -162,3 +162,15 @@ def test_the_joint_speed_bound_holds_under_chattering_torques():
     env.close()
     assert fastest / bound <= 1.001 and collisions == 0
     assert gave_way <= {"barrier", "unmovable"} and "barrier" in gave_way
+
+
+def test_only_a_guarded_filters_barrier_rows_give_way_first():
+    """Beside a guard the barrier's rows are priority 2; without one (the C3BF or the HOCBF
+    alone) they are the only rows keeping obstacles off, and share priority 1 with the joint
+    limits and the floor (ranked below them, the unguarded C3BF let links reach obstacles)."""
+    guarded = SafetyFilter(gym.make("C3BFReach-v0"), "c3bf+hocbf").hook
+    capacity = guarded.obstacles.capacity * len(guarded.arm.capsule_ids)
+    assert guarded.qp._levels[1] == capacity and guarded._low_priority_span(2 * capacity + 36) == 2 * capacity
+    for name in ("c3bf", "hocbf"):
+        alone = SafetyFilter(gym.make("C3BFReach-v0"), name).hook
+        assert alone.qp._levels == (capacity + alone._n_floor_rows + 24, 0) and alone._low_priority_span(50) == 0

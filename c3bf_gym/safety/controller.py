@@ -214,7 +214,10 @@ class SafetyController:
         self._floor_ends, self._floor_min = self._floor_setup(model)
         self._n_floor_rows = len(self._floor_ends)
         self._stride = 1 if guard is None else 2  # obstacle rows: barrier, guard, barrier, guard, ...
-        barrier_rows = n_obstacles * points_count
+        # priority 2 (giving way first) only for the barrier's rows beside a guard: without one, the
+        # barrier's rows are the only ones keeping obstacles off, and they share priority 1 with the
+        # joint limits and the floor
+        barrier_rows = n_obstacles * points_count if guard is not None else 0
         max_rows = n_obstacles * self._per_obstacle + self._n_floor_rows + self._n_joint_rows
         # The QP runs in normalised torque u = τ / s with s = τ_max ("limits": W = diag(1/τ_max²)
         # becomes the identity, box ±1) or s = 1 ("identity"): a well-conditioned problem either way.
@@ -443,7 +446,7 @@ class SafetyController:
             A, b, min_h, inside, n_sensed = self.rows()
             m = len(b)
             status, iterations, active, slack = _daqp.solve_rows(
-                tau_nom, A, b, self._scale, m - self._n_floor_rows - self._n_joint_rows, self._stride, qp)
+                tau_nom, A, b, self._scale, self._low_priority_span(m), self._stride, qp)
             raise_bad_input(status)
             # τ = u s, the smallest row residual A u − b and ‖τ − clip(τ_nom)‖ (the filter's change)
             residual, correction = _kernels.hook_post(A, b, qp.u, self._scale, tau_nom, self._limit, tau)
@@ -483,6 +486,11 @@ class SafetyController:
                     "on_infeasible='relax' to let the rows give way by priority instead"
                 )
         return tau
+
+    def _low_priority_span(self, m: int) -> int:
+        """How many of the first of :meth:`rows`' ``m`` rows hold the priority-2 rows (every
+        ``_stride``-th): the obstacle rows with a guard, none without one."""
+        return m - self._n_floor_rows - self._n_joint_rows if self.guard is not None else 0
 
     def row_kinds(self, m: int) -> list[str]:
         """The kind (:data:`ROW_KINDS`, "unmovable" aside) of each of :meth:`rows`' ``m`` rows."""

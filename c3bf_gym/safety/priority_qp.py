@@ -13,12 +13,13 @@ not by weights**: DAQP's hierarchical mode satisfies each level as well as the l
 allow (least squares of the level's violations), and only then minimises the cost. The levels:
 
 0. the torque box: hard;
-1. every row that is not the barrier's: the joint position and speed limits, the floor and the
-   distance guard;
-2. the barrier's rows (the C3BF's), which give way first.
+1. the joint position and speed limits, the floor and the distance guard;
+2. the barrier's rows beside a guard (the C3BF's in the default filter), which give way first.
 
-So the joint-speed bound holds whenever some torque within the limits can hold it together with
-the floor and the guard. Rows whose scaled coefficients are all (numerically) zero cannot change
+So with a guard the joint-speed bound holds whenever some torque within the limits can hold it
+together with the floor and the guard. A filter without a guard has no level 2: its barrier's
+rows are the only ones keeping obstacles off, so they share level 1 with the joint limits and the
+floor, and a conflict spreads over all of them (least squares of the normalised violations). Rows whose scaled coefficients are all (numerically) zero cannot change
 with the torque: with ``b_k ≤ 0`` they hold; with ``b_k > 0`` (a link the joints cannot move,
 headed for by an obstacle) they can never hold, and are left out of the solve with their ``b_k``
 counted in ``slack``.
