@@ -36,6 +36,8 @@ TRAINING_TABLES = (
     ("training_table_aw10.md", "sac_residual_10hz_dw10_aw10_set_*", "eval_200.json", "training_curves_aw10.png"),
     ("training_table_aw1_set.md", "sac_residual_10hz_dw10_aw1_set_*", "final_eval.json", "training_curves_aw1_set.png"),
     ("training_table_aw1.md", "sac_residual_10hz_dw10_aw1_[!s]*", "final_eval.json", "training_curves_aw1.png"),
+    # the default filter's recipe re-run on the DAQP core (code 0293869)
+    ("training_table_daqp.md", "daqp_core/sac_residual_10hz_dw10_aw3_set_*", "eval_200.json", "training_curves_daqp.png"),
 )
 
 
