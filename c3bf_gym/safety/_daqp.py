@@ -386,7 +386,7 @@ def solve_rows(tau_nom, A, b, scale, n_obstacle_rows, stride, qp):
     if flag < 1:
         status = RELAXED
         c1 = qp.capacity[0]
-        _clear(hier, 0, hier.A.shape[0])
+        _clear(hier, 0, hier.lower.shape[0] - n)  # every row (A keeps one zero row when there are none)
         i1, i2 = 0, c1
         for k in range(m):
             if qp.norm[k] == 0.0:
