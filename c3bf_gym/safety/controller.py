@@ -160,7 +160,7 @@ class SafetyController:
     Attributes:
         config: the settings it was built with.
         report: the :class:`StepSafety` accumulated since :meth:`begin_step`.
-        last: the last call's :class:`~c3bf_gym.qp.QPResult`.
+        last: the last call's :class:`~c3bf_gym.safety.priority_qp.QPResult`.
         solve_times: when a list (set ``record_times=True``), every call's wall time [s] is
             appended, for latency percentiles.
     """
