@@ -6,6 +6,9 @@
 #   scripts/docs.sh -d /tmp/site  extra arguments go to mkdocs build
 set -euo pipefail
 cd "$(dirname "$0")/.."
+# the site is built from the sources (griffe reads them; nothing runs the filter), so the install
+# skips compiling the kernels into the package (setup.py)
+export C3BF_GYM_PRECOMPILE=0
 source scripts/_venv.sh docs
 # griffe reads the sources of this checkout (mkdocs.yml: paths [.]); the install brings the tools.
 export NO_MKDOCS_2_WARNING=1

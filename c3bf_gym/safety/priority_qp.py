@@ -80,8 +80,6 @@ class PriorityQP:
     row is followed by its guard's, else 1); every other row is priority 1.
     """
 
-    solver = "daqp"
-
     def __init__(self, n: int, tau_min: np.ndarray, tau_max: np.ndarray, level1_rows: int, level2_rows: int) -> None:
         self.n = int(n)
         self.tau_min = np.array(tau_min, dtype=np.float64)
