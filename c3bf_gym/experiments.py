@@ -74,12 +74,15 @@ QUICK: dict[str, Any] = {
 class ExperimentConfig:
     """Options of ``c3bf-gym experiments`` (see ``--help``); the defaults are the main job's.
 
-    ``seeds`` and ``sensing_seeds`` are seed ids (one episode per seed). ``table`` runs the
+    ``robot`` names the arm (:data:`~c3bf_gym.envs.reach.ROBOTS`: ``ur5e``, ``C3BFReach-v0``'s,
+    or ``panda``, ``C3BFReachPanda-v0``'s). ``seeds`` and ``sensing_seeds`` are seed ids (one
+    episode per seed). ``table`` runs the
     results table with its figures; ``sensing`` runs the perception-boundary sweep on the
     :data:`SENSING_SCENARIOS` among ``scenarios``, skipped when there is none.
     """
 
     out: Path = Path("results")
+    robot: str = "ur5e"
     scenarios: tuple[str, ...] = PAPER_SCENARIOS
     filters: tuple[str, ...] = ("none", "hocbf", "c3bf")
     seeds: tuple[int, ...] = (0, 1, 2)
@@ -103,8 +106,13 @@ class ExperimentConfig:
         return tuple(s for s in SENSING_SCENARIOS if s in self.scenarios)
 
     def validate(self) -> None:
+        from c3bf_gym.envs.reach import ROBOTS
         from c3bf_gym.scenarios import get_scenario
 
+        if self.robot not in ROBOTS:
+            raise ValueError(f"unknown robot {self.robot!r}; valid choices: {', '.join(map(repr, ROBOTS))}")
+        if "robot" in self.env_kwargs:
+            raise ValueError("env_kwargs must not hold 'robot': set ExperimentConfig.robot")
         for s in self.scenarios:
             get_scenario(s)
         for f in self.filters:
@@ -145,7 +153,8 @@ def run_episode(
     :func:`annotate_frame`'s overlay: the filter's name, the simulated time and a ring on the goal.
     """
     kwargs = {**config.env_kwargs, **(env_kwargs or {})}
-    base = C3BFReachEnv(scenario=scenario, render_mode="rgb_array" if render else None, width=400, height=300, **kwargs)
+    base = C3BFReachEnv(scenario=scenario, robot=config.robot, render_mode="rgb_array" if render else None,
+                        width=400, height=300, **kwargs)  # fmt: skip
     env = base
     if filter_name != "none":
         env = SafetyFilter(base, filter_name, points=config.points, gamma=config.gamma, margin=config.margin,
@@ -419,6 +428,7 @@ def _videos(config: ExperimentConfig, folder: Path) -> None:
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
     from c3bf_gym.cli import _nonnegative_float, _nonnegative_int, _positive_float, _positive_int
+    from c3bf_gym.envs.reach import ROBOTS
     from c3bf_gym.scenarios import SCENARIOS
 
     d = ExperimentConfig()  # the defaults live there
@@ -433,6 +443,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
     p.add_argument("--out", type=Path, default=d.out, help="output directory")
+    p.add_argument("--robot", choices=list(ROBOTS), default=d.robot,
+                   help="the arm: ur5e (C3BFReach-v0's) or panda (C3BFReachPanda-v0's)")  # fmt: skip
     seeds = p.add_mutually_exclusive_group()
     seeds.add_argument("--seeds", nargs="+", type=_nonnegative_int, default=list(d.seeds), metavar="SEED",
                        help="seed ids: one episode per seed, scenario and filter (the same episode for every filter)")  # fmt: skip
@@ -479,7 +491,7 @@ def config_from_args(args: argparse.Namespace) -> ExperimentConfig:
     else:
         seeds = tuple(args.seeds)
     values: dict[str, Any] = {
-        "out": args.out, "scenarios": tuple(args.scenarios), "filters": tuple(args.filters), "seeds": seeds,
+        "out": args.out, "robot": args.robot, "scenarios": tuple(args.scenarios), "filters": tuple(args.filters), "seeds": seeds,
         "points": args.points, "gamma": args.gamma, "margin": args.margin, "duration": args.duration,
         "move_time": args.move_time, "video": args.video, "table": not args.sensing_only, "sensing": not args.no_sensing,
         "sensing_radii": tuple(args.sensing_radii), "sensing_speeds": tuple(args.sensing_speeds),

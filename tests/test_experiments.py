@@ -5,10 +5,11 @@ from __future__ import annotations
 import csv
 import json
 
+import numpy as np
 import pytest
 
 from c3bf_gym.cli import main
-from c3bf_gym.experiments import MinimumJerk
+from c3bf_gym.experiments import ExperimentConfig, MinimumJerk, run_episode
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
@@ -98,6 +99,7 @@ def test_sensing_table(results):
         (["experiments", "--gamma", "-1"], "expected a finite number > 0"),
         (["experiments", "--margin", "nan"], "expected a finite number >= 0"),
         (["experiments", "--sensing-radius", "0"], "expected a finite number > 0"),
+        (["experiments", "--robot", "ur10"], "invalid choice: 'ur10' (choose from 'ur5e', 'panda')"),
         (["train", "--filter", "cbf"], "invalid choice: 'cbf'"),
         (["train", "--timesteps", "-5"], "expected a whole number >= 1"),
         (["evaluate", "/nonexistent/model.zip"], "no model at /nonexistent/model.zip"),
@@ -121,6 +123,27 @@ def test_the_guarded_filter_is_an_experiment_filter(tmp_path):
     alone, guarded = table[("head_on", "c3bf")], table[("head_on", "c3bf+hocbf")]
     assert int(guarded["collision_steps"]) == 0
     assert alone["mean_correction_Nm"] != guarded["mean_correction_Nm"]
+
+
+def test_experiments_run_on_the_panda(tmp_path):
+    """``--robot panda`` runs the same experiment on the 7-joint Panda: its torques have 7
+    components, the filter keeps it collision-free where the unfiltered arm is hit, and
+    config.json names the robot."""
+    code = main(["experiments", "--robot", "panda", "--out", str(tmp_path), "--seeds", "0", "--duration", "2",
+                 "--scenarios", "head_on", "--filters", "none", "c3bf+hocbf", "--no-sensing", "--no-progress"])  # fmt: skip
+    assert code == 0
+    table = _table(tmp_path)
+    assert int(table[("head_on", "c3bf+hocbf")]["collision_steps"]) == 0
+    assert json.loads((tmp_path / "config.json").read_text())["robot"] == "panda"
+    record, _ = run_episode("head_on", "c3bf+hocbf", 0, ExperimentConfig(robot="panda", duration=0.1))
+    assert np.asarray(record.tau).shape[1] == 7
+
+
+def test_experiment_config_rejects_an_unknown_robot():
+    with pytest.raises(ValueError, match="unknown robot 'ur10'; valid choices: 'ur5e', 'panda'"):
+        ExperimentConfig(robot="ur10").validate()
+    with pytest.raises(ValueError, match="ExperimentConfig.robot"):
+        ExperimentConfig(env_kwargs={"robot": "panda"}).validate()
 
 
 def test_no_command_prints_help(capsys):

@@ -66,6 +66,29 @@ def test_warm_start_does_not_change_the_answer():
         np.testing.assert_allclose(got, fresh, atol=1e-9)
 
 
+def test_runs_of_calls_with_no_safe_torque_give_a_fresh_workspaces_answers():
+    """Calls with no safe torque come in runs; after one, the prioritised solve goes first and the
+    warm starts of both solves carry on. Through runs of infeasible and feasible problems of two
+    levels, every status and answer equals a fresh workspace's."""
+    rng = np.random.default_rng(11)
+    n, m1, m2 = 6, 8, 8
+    warm = PriorityQP(n, -np.ones(n), np.ones(n), m1, m2)
+    statuses = []
+    for run in range(12):
+        infeasible = run % 2 == 0
+        for _ in range(int(rng.integers(1, 6))):
+            tau_nom, A, b = _problem(rng, n, m2 + m1)  # rows 0 … m2-1: level 2
+            if infeasible:
+                b[:3] = rng.uniform(1.5, 3.0, 3) * np.linalg.norm(A[:3], axis=1)  # beyond the box
+            got = warm.solve_scaled(tau_nom, A, b, np.ones(n), n_obstacle_rows=m2)
+            fresh = PriorityQP(n, -np.ones(n), np.ones(n), m1, m2).solve_scaled(tau_nom, A, b, np.ones(n), m2)
+            assert got.status == fresh.status
+            np.testing.assert_allclose(got.tau, fresh.tau, atol=1e-7)
+            assert got.slack == pytest.approx(fresh.slack, abs=1e-7)
+            statuses.append(got.status)
+    assert statuses.count("relaxed") > 10 and statuses.count("solved") > 10
+
+
 def test_conflicting_rows_give_way_by_priority():
     """Rows of priority 1 hold whenever the box allows it; only the barrier's rows give way."""
     lo, hi = -np.ones(2), np.ones(2)

@@ -279,6 +279,10 @@ BAD_NOMINAL, BAD_ROWS = -1, -2
 ROW_NORM_MIN = 1e-12
 #: [row-normalised] a row counts as held (and, at the bound, as active) within this
 ACTIVE_TOL = 1e-6
+#: [row-normalised] a prioritised answer that violates a row by more than this proves that no
+#: torque satisfies every row. DAQP's soft levels leave a feasible level's rows violated by
+#: ``rho_soft · λ`` (1e-6 times the row's multiplier), far below it.
+INFEASIBLE_TOL = 1e-3
 
 
 class QPBuffers(NamedTuple):
@@ -288,14 +292,17 @@ class QPBuffers(NamedTuple):
     Attributes:
         plain: the one-level workspace (every row hard), warm-started call to call.
         hier: the prioritised workspace: level 1 rows in ``A[:capacity[0]]``, level 2 rows (the
-            barrier's) in ``A[capacity[0]:]``, solved cold when ``plain`` is infeasible.
+            barrier's) in ``A[capacity[0]:]``, solved when ``plain`` is infeasible, warm-started
+            from its own previous solve's working set.
         capacity: int64 (2,) the row capacity of the two levels.
         lo, hi: (n,) the box of ``u``.
         u: (n,) the solution.
         norm: (rows,) each row's norm ``‖A_k s‖`` (0: left out).
         residual: (rows,) each row's normalised residual ``â_k u − b̂_k`` at the solution (> −tol:
             held); for a zero row, ``−b_k``.
-        cold: int64 (1,) 1: the next solve starts from an empty working set (then 0).
+        cold: int64 (2,) 1: the next solve of ``plain`` (``cold[0]``) or ``hier`` (``cold[1]``)
+            starts from an empty working set (then 0).
+        last: int64 (1,) the previous call's status (:data:`SOLVED`, :data:`RELAXED`, ...).
     """
 
     plain: DaqpBuffers
@@ -307,6 +314,7 @@ class QPBuffers(NamedTuple):
     norm: np.ndarray
     residual: np.ndarray
     cold: np.ndarray
+    last: np.ndarray
 
 
 @njit(cache=True, nogil=True, error_model="numpy", boundscheck=False)
@@ -327,21 +335,31 @@ def solve_rows(tau_nom, A, b, scale, n_obstacle_rows, stride, qp):
     1. Rows are scaled (``A_k s``) and normalised; a row shorter than :data:`ROW_NORM_MIN` cannot
        change with the torque: with ``b_k ≤ 0`` it holds, with ``b_k > 0`` it can never hold
        (``impossible``, its ``b_k``). Both are left out of the solves.
-    2. All rows hard, warm-started from the previous solve's working set (unless ``qp.cold[0]``:
-       from an empty one, so that a sequence of solves after a reset depends on nothing before
-       it). If DAQP finds the optimum and every row holds within
-       :data:`ACTIVE_TOL`, that is the answer (:data:`SOLVED`).
-    3. Otherwise, by priority (:data:`RELAXED`): level 1 holds the rows that are not the barrier's
-       (the guard's, the floor's, the joint limits'), level 2 the barrier's: rows
-       ``k < n_obstacle_rows`` with ``k % stride == 0``. If that fails too, ``u`` is the box
-       projection of ``u_nom`` (:data:`FAILED`).
+    2. All rows hard (``qp.plain``), warm-started from its previous solve's working set. If DAQP
+       finds the optimum and every row holds within :data:`ACTIVE_TOL`, that is the answer
+       (:data:`SOLVED`).
+    3. Otherwise, by priority (:data:`RELAXED`, ``qp.hier``): level 1 holds the rows that are not
+       the barrier's (the guard's, the floor's, the joint limits'), level 2 the barrier's: rows
+       ``k < n_obstacle_rows`` with ``k % stride == 0``. Warm-started from its own previous
+       solve's working set, and once more from an empty one if that fails. If it fails too, ``u``
+       is the box projection of ``u_nom`` (:data:`FAILED`).
+
+    Right after a call that was not solved, step 3 comes first: if its answer violates some row
+    by more than :data:`INFEASIBLE_TOL`, no torque satisfies every row (else both levels would
+    hold up to DAQP's soft tolerance), so that answer stands without step 2. Otherwise step 2
+    runs as usual. The answer is the same either way; a run of calls with no safe torque just
+    does not prove infeasibility again at every call.
+
+    After ``qp.cold[:] = 1`` (a reset), both solves start from an empty working set and the
+    first call takes step 2 first, so a sequence of calls after a reset depends on nothing
+    before it.
 
     Returns ``(status, iterations, active rows, slack)``: slack the largest normalised violation
     (or impossible ``b_k``), 0 when solved.
     """
     n = tau_nom.shape[0]
     m = b.shape[0]
-    plain, hier = qp.plain, qp.hier
+    plain = qp.plain
     for j in range(n):
         u_nom = tau_nom[j] / scale[j]
         if not math.isfinite(u_nom):
@@ -370,52 +388,43 @@ def solve_rows(tau_nom, A, b, scale, n_obstacle_rows, stride, qp):
         plain.lower[n + k] = b[k] / norm
     _clear(plain, m, plain.used[0])
     plain.used[0] = m
-    mask = UPDATE_M | UPDATE_V | UPDATE_D
-    if qp.cold[0]:
-        qp.cold[0] = 0
-        for i in range(plain.sense.shape[0]):
-            plain.sense[i] = 0
-        mask |= UPDATE_SENSE
-    flag, iterations = daqp_call(plain, mask)
     status = SOLVED
-    if flag >= 1:
-        for j in range(n):
-            qp.u[j] = min(max(plain.x[j], qp.lo[j]), qp.hi[j])
-        if _residuals(plain, qp, m) < -ACTIVE_TOL:
-            flag = -1  # DAQP's answer does not hold every row: solve by priority
-    if flag < 1:
-        status = RELAXED
-        c1 = qp.capacity[0]
-        _clear(hier, 0, hier.lower.shape[0] - n)  # every row (A keeps one zero row when there are none)
-        i1, i2 = 0, c1
-        for k in range(m):
-            if qp.norm[k] == 0.0:
-                continue
-            if k < n_obstacle_rows and k % stride == 0:
-                i = i2
-                i2 += 1
-            else:
-                i = i1
-                i1 += 1
-            for j in range(n):
-                hier.A[i, j] = plain.A[k, j]
-            hier.lower[n + i] = plain.lower[n + k]
-        for j in range(n):
-            hier.f[j] = plain.f[j]
-        for i in range(hier.sense.shape[0]):
-            hier.sense[i] = 0
-        flag, more = daqp_call(hier, UPDATE_M | UPDATE_V | UPDATE_D | UPDATE_SENSE)
+    iterations = 0
+    by_priority = -1  # the prioritised solve's exit flag (-1: not run)
+    if qp.last[0] != SOLVED and not qp.cold[0]:
+        by_priority, iterations = _solve_by_priority(qp, m, n_obstacle_rows, stride)
+        if by_priority >= 1 and _residuals(plain, qp, m) < -INFEASIBLE_TOL:
+            status = RELAXED
+    if status == SOLVED:
+        mask = UPDATE_M | UPDATE_V | UPDATE_D
+        if qp.cold[0]:
+            qp.cold[0] = 0
+            for i in range(plain.sense.shape[0]):
+                plain.sense[i] = 0
+            mask |= UPDATE_SENSE
+        flag, more = daqp_call(plain, mask)
         iterations += more
         if flag >= 1:
             for j in range(n):
-                qp.u[j] = min(max(hier.x[j], qp.lo[j]), qp.hi[j])
-        else:
-            status = FAILED
-            for j in range(n):
-                qp.u[j] = min(max(-plain.f[j], qp.lo[j]), qp.hi[j])
-        _residuals(plain, qp, m)
-    elif impossible > 0.0:
-        status = RELAXED
+                qp.u[j] = min(max(plain.x[j], qp.lo[j]), qp.hi[j])
+            if _residuals(plain, qp, m) < -ACTIVE_TOL:
+                flag = -1  # DAQP's answer does not hold every row: solve by priority
+        if flag < 1:
+            status = RELAXED
+            if by_priority < 0:
+                by_priority, more = _solve_by_priority(qp, m, n_obstacle_rows, stride)
+                iterations += more
+            if by_priority >= 1:
+                for j in range(n):
+                    qp.u[j] = min(max(qp.hier.x[j], qp.lo[j]), qp.hi[j])
+            else:
+                status = FAILED
+                for j in range(n):
+                    qp.u[j] = min(max(-plain.f[j], qp.lo[j]), qp.hi[j])
+            _residuals(plain, qp, m)
+        elif impossible > 0.0:
+            status = RELAXED
+    qp.last[0] = status
     n_active = 0
     slack = impossible
     for k in range(m):
@@ -427,6 +436,44 @@ def solve_rows(tau_nom, A, b, scale, n_obstacle_rows, stride, qp):
         if status != SOLVED:
             slack = max(slack, -qp.residual[k])
     return status, iterations, n_active, slack
+
+
+@njit(cache=True, nogil=True, error_model="numpy", boundscheck=False)
+def _solve_by_priority(qp, m, n_obstacle_rows, stride):
+    """Step 3 of :func:`solve_rows` on the rows ``qp.plain`` holds (scaled and normalised):
+    returns ``(exit flag, iterations)``; on success (flag ≥ 1) ``qp.u`` is the answer, clipped
+    to the box."""
+    plain, hier = qp.plain, qp.hier
+    n = plain.x.shape[0]
+    _clear(hier, 0, hier.lower.shape[0] - n)  # every row (A keeps one zero row when there are none)
+    i1, i2 = 0, qp.capacity[0]
+    for k in range(m):
+        if qp.norm[k] == 0.0:
+            continue
+        if k < n_obstacle_rows and k % stride == 0:
+            i = i2
+            i2 += 1
+        else:
+            i = i1
+            i1 += 1
+        for j in range(n):
+            hier.A[i, j] = plain.A[k, j]
+        hier.lower[n + i] = plain.lower[n + k]
+    for j in range(n):
+        hier.f[j] = plain.f[j]
+    flag, iterations = 0, 0
+    if not qp.cold[1]:
+        flag, iterations = daqp_call(hier, UPDATE_M | UPDATE_V | UPDATE_D)
+    if flag < 1:  # cold, or the warm start failed: again from an empty working set
+        qp.cold[1] = 0
+        for i in range(hier.sense.shape[0]):
+            hier.sense[i] = 0
+        flag, more = daqp_call(hier, UPDATE_M | UPDATE_V | UPDATE_D | UPDATE_SENSE)
+        iterations += more
+    if flag >= 1:
+        for j in range(n):
+            qp.u[j] = min(max(hier.x[j], qp.lo[j]), qp.hi[j])
+    return flag, iterations
 
 
 @njit(cache=True, nogil=True, error_model="numpy", boundscheck=False)

@@ -93,12 +93,13 @@ class PriorityQP:
         self.buffers = _daqp.QPBuffers(self._plain.buffers, self._hier.buffers,
                                        np.array([level1_rows, level2_rows], np.int64), self.tau_min, self.tau_max,
                                        np.zeros(n), np.zeros(max(rows, 1)), np.zeros(max(rows, 1)),
-                                       np.ones(1, np.int64))
+                                       np.ones(2, np.int64), np.zeros(1, np.int64))
 
     def reset(self) -> None:
         """Forget the warm start: the next solve starts from an empty working set, so a sequence
         of solves after a reset gives the same answers, bit for bit, whatever came before."""
-        self.buffers.cold[0] = 1
+        self.buffers.cold[:] = 1
+        self.buffers.last[0] = _daqp.SOLVED
 
     def __reduce__(self):
         """Pickled as its arguments: the copy sets up its own DAQP workspaces (cold)."""
