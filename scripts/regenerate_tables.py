@@ -9,6 +9,8 @@
   ``docs/experiments/sensing.json``, copies of what ``c3bf-gym experiments`` (the main job, default
   options; its ``config.json`` beside them) wrote, through
   :func:`c3bf_gym.experiments.markdown_table`: the run's own ``table.md`` and ``sensing.md``.
+  ``experiments_panda_table.md`` and ``sensing_panda_table.md`` likewise from
+  ``docs/experiments_panda/`` (the main job with ``--robot panda``).
 * ``training_table*.md``: what ``c3bf-gym plot-training docs/runs/GLOB --evaluation FILE --out
   docs/FIGURE --table docs/TABLE`` writes, for each row of :data:`TRAINING_TABLES`, with the
   table's curves (``training_curves*.png``).
@@ -29,6 +31,8 @@ DOCS = REPO / "docs"
 
 #: The files of a ``c3bf-gym experiments`` run that docs/experiments/ keeps.
 RESULT_FILES = ("table.json", "sensing.json", "config.json")
+#: Where each robot's experiments live under docs/, and the suffix of their tables' names.
+EXPERIMENT_FOLDERS = {"ur5e": ("experiments", ""), "panda": ("experiments_panda", "_panda")}
 
 #: Training tables: ``(table, run directories under docs/runs (glob), evaluation file, figure)``.
 TRAINING_TABLES = (
@@ -42,16 +46,17 @@ TRAINING_TABLES = (
 
 
 def experiment_tables(docs: Path) -> dict[str, str]:
-    """``{file name: text}`` of the experiments' tables, from ``docs/experiments``."""
+    """``{file name: text}`` of the experiments' tables, from each robot's folder
+    (:data:`EXPERIMENT_FOLDERS`) that exists."""
     from c3bf_gym.experiments import COLUMNS, SENSING_COLUMNS, markdown_table
 
     tables = {}
-    for name, source, columns in (
-        ("experiments_table.md", "table.json", COLUMNS),
-        ("sensing_table.md", "sensing.json", SENSING_COLUMNS),
-    ):
-        rows = json.loads((docs / "experiments" / source).read_text())
-        tables[name] = markdown_table(rows, columns) + "\n"
+    for folder, suffix in EXPERIMENT_FOLDERS.values():
+        if not (docs / folder).is_dir():
+            continue
+        for name, source, columns in (("experiments", "table.json", COLUMNS), ("sensing", "sensing.json", SENSING_COLUMNS)):
+            rows = json.loads((docs / folder / source).read_text())
+            tables[f"{name}{suffix}_table.md"] = markdown_table(rows, columns) + "\n"
     return tables
 
 
@@ -80,13 +85,16 @@ def regenerate(docs: Path = DOCS, out: Path | None = None) -> dict[str, str]:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     parser.add_argument("--from-run", type=Path, default=None,
-                        help=f"first copy {', '.join(RESULT_FILES)} of this c3bf-gym experiments output into docs/experiments/")  # fmt: skip
+                        help=f"first copy {', '.join(RESULT_FILES)} of this c3bf-gym experiments output into docs/experiments/ "
+                             "(docs/experiments_panda/ for a run with --robot panda)")  # fmt: skip
     parser.add_argument("--out", type=Path, default=DOCS, help="where the tables and the training curves go")
     args = parser.parse_args(argv)
     if args.from_run is not None:
-        (DOCS / "experiments").mkdir(exist_ok=True)
+        robot = json.loads((args.from_run / "config.json").read_text()).get("robot", "ur5e")
+        target = DOCS / EXPERIMENT_FOLDERS[robot][0]
+        target.mkdir(exist_ok=True)
         for name in RESULT_FILES:
-            shutil.copyfile(args.from_run / name, DOCS / "experiments" / name)
+            shutil.copyfile(args.from_run / name, target / name)
     for name in regenerate(DOCS, args.out):
         print(args.out / name)
     return 0
