@@ -564,11 +564,21 @@ def hook_post(A, b, u, scale, tau_nom, limit, tau):
 
 
 @njit(**_opts)
+def low_priority_span(m, n_fixed, guarded):
+    """The priority rule of the filter's QP: of ``m`` rows whose last ``n_fixed`` are the floor's
+    and the joint limits', how many leading (obstacle) rows hold the priority-2 rows (every other
+    one, the barrier's; :func:`c3bf_gym.safety._daqp.solve_rows`' ``n_obstacle_rows``). Beside a
+    guard (``guarded``) the barrier's rows give way first: all obstacle rows. Without one every
+    row has priority 1: 0."""
+    return m - n_fixed if guarded else 0
+
+
+@njit(**_opts)
 def hook_step(stage, tau_nom, tau, arm, obstacles, params, work, A, b, scale, limit, qp):
     """One whole-arm filter step in one call (:meth:`~c3bf_gym.safety.SafetyController.__call__`): the
     rows (:func:`hook_rows_whole_arm`, whose arguments ``stage`` … ``b`` are), the QP
-    (:func:`c3bf_gym.safety._daqp.solve_rows` on ``qp``; with a guard the barrier's rows at priority 2,
-    without one every row at priority 1) in the scaled torque
+    (:func:`c3bf_gym.safety._daqp.solve_rows` on ``qp``, priorities by :func:`low_priority_span`)
+    in the scaled torque
     ``τ / scale``, and :func:`hook_post`, which writes the torque into ``tau``.
 
     Returns ``(status, rows, min h, any inside, sensed count, iterations, active rows, slack, min
@@ -578,11 +588,8 @@ def hook_step(stage, tau_nom, tau, arm, obstacles, params, work, A, b, scale, li
     m, min_h, inside, n_sensed = hook_rows_whole_arm(stage, arm, obstacles, params, work, A, b)
     nv = arm.Minv.shape[0]
     n_fixed = params.floor_ends.shape[0] + (4 * nv if params.joint_rows else 0)
-    # the barrier's rows give way first only beside a guard (every other obstacle row); without
-    # one every row has priority 1 (SafetyController._low_priority_span)
-    guarded = params.guard_gamma2 > 0.0
-    status, iterations, n_active, slack = solve_rows(tau_nom, A[:m], b[:m], scale, m - n_fixed if guarded else 0, 2,
-                                                     qp)
+    span = low_priority_span(m, n_fixed, params.guard_gamma2 > 0.0)
+    status, iterations, n_active, slack = solve_rows(tau_nom, A[:m], b[:m], scale, span, 2, qp)
     if status < 0:
         return status, m, min_h, inside, n_sensed, 0, 0, 0.0, 0.0, 0.0
     residual, correction = hook_post(A[:m], b[:m], qp.u, scale, tau_nom, limit, tau)

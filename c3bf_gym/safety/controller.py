@@ -488,9 +488,8 @@ class SafetyController:
         return tau
 
     def _low_priority_span(self, m: int) -> int:
-        """How many of the first of :meth:`rows`' ``m`` rows hold the priority-2 rows (every
-        ``_stride``-th): the obstacle rows with a guard, none without one."""
-        return m - self._n_floor_rows - self._n_joint_rows if self.guard is not None else 0
+        """:func:`~c3bf_gym.safety._kernels.low_priority_span` of :meth:`rows`' ``m`` rows."""
+        return _kernels.low_priority_span(m, self._n_floor_rows + self._n_joint_rows, self.guard is not None)
 
     def row_kinds(self, m: int) -> list[str]:
         """The kind (:data:`ROW_KINDS`, "unmovable" aside) of each of :meth:`rows`' ``m`` rows."""
