@@ -14,7 +14,9 @@ Per configuration it prints: episodes, episodes with a collision, collision step
 clearance seen (m; negative = penetration), infeasible steps (the QP needed slack), the
 intervention rate (share of steps the filter changed the torque), and the largest per-step mean
 filter time. Per-episode rows go to ``episodes.csv`` and the table to ``summary.json`` in
-``--out``. Episodes run in ``--workers`` processes.
+``--out``. Episodes run in ``--workers`` processes, or as Ray tasks with ``--ray`` (the ``rllib``
+extra installs Ray): on a local Ray instance of ``--workers`` CPUs, or on the cluster at
+``--address``. Each episode depends only on its task, so the tables are the same either way.
 
 Usage::
 
@@ -22,6 +24,7 @@ Usage::
     python benchmarks/guarantee.py --episodes 200 --out results/guarantee
     python benchmarks/guarantee.py --episodes 200 --filters c3bf+hocbf/whole_arm --margin 0.03   # a wider margin
     python benchmarks/guarantee.py --episodes 200 --filters c3bf/whole_arm                       # the C3BF alone
+    python benchmarks/guarantee.py --episodes 600 --ray --address auto                           # on a Ray cluster
 """
 
 from __future__ import annotations
@@ -170,6 +173,32 @@ def summarise(episodes: list[Episode]) -> list[dict]:
     return rows
 
 
+def run_tasks(tasks: list[tuple], workers: int, use_ray: bool = False, address: str | None = None):
+    """Yield :func:`run_episode`'s results, in order of completion: from a pool of ``workers``
+    fresh processes, or (``use_ray``) as Ray tasks of one CPU each on a local Ray instance of
+    ``workers`` CPUs, or on the cluster at ``address``."""
+    if not use_ray:
+        ctx = mp.get_context("spawn")  # fresh interpreters: no MuJoCo state or GL context inherited
+        with ctx.Pool(workers) as pool:
+            yield from pool.imap_unordered(run_episode, tasks, chunksize=1)
+        return
+    import ray
+
+    started = not ray.is_initialized()
+    if started:
+        ray.init(address=address, include_dashboard=False, log_to_driver=False,
+                 **({"num_cpus": workers} if address is None else {}))  # fmt: skip
+    try:
+        remote = ray.remote(num_cpus=1)(run_episode)
+        pending = [remote.remote(task) for task in tasks]
+        while pending:
+            done, pending = ray.wait(pending, num_returns=1)
+            yield ray.get(done[0])
+    finally:
+        if started:
+            ray.shutdown()
+
+
 def print_table(rows: list[dict]) -> None:
     header = (f"{'scenario':<9} {'policy':<11} {'filter':<21} | {'episodes':>8} {'coll.ep':>7} {'coll.steps':>10} "
               f"{'min clear.':>10} {'infeas.steps':>12} {'interv.':>7} {'max ms':>8}")  # fmt: skip
@@ -186,7 +215,9 @@ def main(argv: list[str] | None = None) -> list[dict]:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--episodes", type=int, default=200, help="episodes per configuration (default 200)")
     parser.add_argument("--steps", type=int, default=250, help="steps per episode (default 250: a full episode)")
-    parser.add_argument("--workers", type=int, default=2, help="worker processes (default 2)")
+    parser.add_argument("--workers", type=int, default=2, help="worker processes, or a local Ray instance's CPUs (default 2)")
+    parser.add_argument("--ray", action="store_true", help="run the episodes as Ray tasks (the rllib extra installs Ray)")
+    parser.add_argument("--address", help="with --ray: the cluster to join (e.g. auto); default: a local Ray instance")
     parser.add_argument("--seed", type=int, default=0, help="seed of episode 0 (episode i uses seed + i)")
     parser.add_argument("--scenarios", nargs="+", default=list(SCENARIOS), choices=SCENARIOS)
     parser.add_argument("--policies", nargs="+", default=list(POLICIES), choices=POLICIES)
@@ -208,23 +239,29 @@ def main(argv: list[str] | None = None) -> list[dict]:
         parser.error(f"--margin must be a finite number >= 0 (m), got {args.margin}")
     if args.guard_gamma is not None and not (np.isfinite(args.guard_gamma) and args.guard_gamma > 0):
         parser.error(f"--guard-gamma must be a finite number > 0 (1/s), got {args.guard_gamma}")
+    if args.address is not None and not args.ray:
+        parser.error("--address is the Ray cluster of --ray; add --ray")
+    if args.ray:
+        try:
+            import ray  # noqa: F401
+        except ImportError:
+            parser.error('--ray needs Ray: pip install "c3bf-gym[rllib]"')
     if args.guard_gamma is not None and not any(f.startswith("c3bf+hocbf/") for f in args.filters):
         parser.error("--guard-gamma sets the gains of c3bf+hocbf's guard; --filters has no c3bf+hocbf")
 
     filters = [tuple(f.split("/")) if f != "none" else ("none", "-") for f in args.filters]
     tasks = [(s, p, b, pts, args.seed + i, args.steps, args.margin, args.guard_gamma, args.env)
              for s in args.scenarios for p in args.policies for b, pts in filters for i in range(args.episodes)]  # fmt: skip
-    print(f"{args.env}: {len(tasks)} episodes ({args.episodes} per configuration, {args.steps} steps) on {args.workers} workers"
+    where = (f"Ray at {args.address}" if args.address else f"a local Ray instance of {args.workers} CPUs") if args.ray else f"{args.workers} workers"
+    print(f"{args.env}: {len(tasks)} episodes ({args.episodes} per configuration, {args.steps} steps) on {where}"
           + ("" if args.margin is None else f", filter margin {args.margin} m")
           + ("" if args.guard_gamma is None else f", guard gains {args.guard_gamma:g}"))
     start = time.perf_counter()
-    ctx = mp.get_context("spawn")  # fresh interpreters: no MuJoCo state or GL context inherited
-    with ctx.Pool(args.workers) as pool:
-        episodes = []
-        for done, episode in enumerate(pool.imap_unordered(run_episode, tasks, chunksize=1), 1):
-            episodes.append(episode)
-            if done % max(1, len(tasks) // 10) == 0:
-                print(f"  {done}/{len(tasks)} episodes, {time.perf_counter() - start:.0f} s", flush=True)
+    episodes = []
+    for done, episode in enumerate(run_tasks(tasks, args.workers, args.ray, args.address), 1):
+        episodes.append(episode)
+        if done % max(1, len(tasks) // 10) == 0:
+            print(f"  {done}/{len(tasks)} episodes, {time.perf_counter() - start:.0f} s", flush=True)
     rows = summarise(episodes)
     print_table(rows)
     print(f"wall time {time.perf_counter() - start:.1f} s")
@@ -236,7 +273,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
         for e in sorted(episodes, key=lambda e: (e.scenario, e.policy, e.filter, e.points, e.seed)):
             writer.writerow(asdict(e))
     meta = {"episodes_per_configuration": args.episodes, "steps": args.steps, "seed": args.seed, "margin": args.margin,
-            "guard_gamma": args.guard_gamma, "env": args.env, "workers": args.workers, "quick": args.quick, "cpu_count": os.cpu_count()}  # fmt: skip
+            "guard_gamma": args.guard_gamma, "env": args.env, "workers": args.workers, "ray": args.address or args.ray, "quick": args.quick, "cpu_count": os.cpu_count()}  # fmt: skip
     with open(args.out / "summary.json", "w") as f:
         json.dump({"settings": meta, "configurations": rows}, f, indent=2)
     print(f"wrote {args.out / 'episodes.csv'} and {args.out / 'summary.json'}")

@@ -1,7 +1,7 @@
 """The ``c3bf-gym`` command line.
 
     c3bf-gym experiments [options]      the paper's four scenarios, C3BF vs HOCBF vs no filter
-    c3bf-gym train [options]            one Stable-Baselines3 run (PPO or SAC)
+    c3bf-gym train [options]            one training run: Stable-Baselines3 (SAC, PPO) or RLlib PPO
     c3bf-gym evaluate MODEL [options]   roll out a saved model
     c3bf-gym plot-training RUNS...      learning curves of several runs, grouped by filter
 
@@ -47,20 +47,28 @@ def _add_train(sub: argparse._SubParsersAction) -> None:
     from c3bf_gym.scenarios import SCENARIOS
     from c3bf_gym.envs.reach import ROBOTS
     from c3bf_gym.safety import GUARD_GAMMA
-    from c3bf_gym.training import ACTIONS, ALGORITHMS, OBSTACLE_ENCODERS, POLICY_RATES, TRAIN_FILTERS, TrainConfig
+    from c3bf_gym.training import (ACTIONS, ALGORITHMS, ENGINE_DEFAULTS, ENGINES, OBSTACLE_ENCODERS, POLICY_RATES,
+                                   TRAIN_FILTERS, TrainConfig)  # fmt: skip
 
     d = TrainConfig()  # the defaults live there
 
+    def by_engine(name: str) -> str:
+        return ", ".join(f"{e}: {ENGINE_DEFAULTS[e][name]}" for e in ENGINES)
+
     p = sub.add_parser(
         "train",
-        help="train one Stable-Baselines3 agent",
+        help="train one agent (Stable-Baselines3, or Ray RLlib with --engine rllib)",
         description="Train PPO or SAC on C3BFReach-v0, with no filter or a named safety filter "
         "(c3bf_gym.FILTERS). Writes a run directory (config, model, per-episode metrics with the cumulative "
         "training cost, evaluations, tensorboard logs). The defaults are the recipe of the README's RL "
-        "table (c3bf_gym.training.TrainConfig).",
+        "table (c3bf_gym.training.TrainConfig). --engine rllib trains RLlib PPO with --n-envs env runners "
+        "on a local Ray instance, or on the cluster at --address (the rllib extra).",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
-    p.add_argument("--algo", choices=ALGORITHMS, default=d.algo, help="Stable-Baselines3 algorithm")
+    p.add_argument("--engine", choices=ENGINES, default=d.engine, help="training engine")
+    p.add_argument("--address", default=None,
+                   help="with --engine rllib: the Ray cluster to join (e.g. auto); default: a local Ray instance")  # fmt: skip
+    p.add_argument("--algo", choices=ALGORITHMS, default=None, help=f"algorithm (default by engine: {by_engine('algo')})")
     p.add_argument("--robot", choices=list(ROBOTS), default=d.robot,
                    help="the arm: ur5e (C3BFReach-v0) or panda (C3BFReachPanda-v0's arm)")  # fmt: skip
     p.add_argument("--action", choices=ACTIONS, default=d.action,
@@ -74,7 +82,8 @@ def _add_train(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--scenario", choices=list(SCENARIOS), default=d.scenario, help="obstacle scenario")
     p.add_argument("--timesteps", type=_positive_int, default=d.timesteps, help="policy steps to train")
     p.add_argument("--seed", type=_nonnegative_int, default=d.seed, help="seed of the agent and the training envs")
-    p.add_argument("--n-envs", type=_positive_int, default=d.n_envs, help="parallel environments (SubprocVecEnv when > 1)")
+    p.add_argument("--n-envs", type=_positive_int, default=d.n_envs,
+                   help="parallel environments (SB3: SubprocVecEnv when > 1; RLlib: env runners)")  # fmt: skip
     p.add_argument("--eval-freq", type=_positive_int, default=d.eval_freq, help="evaluate every N timesteps")
     p.add_argument("--eval-episodes", type=_positive_int, default=d.eval_episodes, help="episodes per periodic evaluation")
     p.add_argument("--final-eval-episodes", type=_nonnegative_int, default=d.final_eval_episodes,
@@ -88,9 +97,10 @@ def _add_train(sub: argparse._SubParsersAction) -> None:
                    help="weight of the reward's dense -distance term (C3BFReachEnv's distance_weight; 0: off)")  # fmt: skip
     p.add_argument("--action-weight", type=_nonnegative_float, default=d.action_weight,
                    help="weight of a -mean(action^2) reward term (ActionPenalty; keeps a residual policy near its prior; 0: off)")  # fmt: skip
-    p.add_argument("--obstacle-encoder", choices=OBSTACLE_ENCODERS, default=d.obstacle_encoder,
+    p.add_argument("--obstacle-encoder", choices=OBSTACLE_ENCODERS, default=None,
                    help="how the policy reads the obstacle slots: flat (an MLP on the whole observation) or set "
-                        "(one shared encoder per slot, pooled: c3bf_gym.policies.ObstacleSetExtractor)")  # fmt: skip
+                        "(one shared encoder per slot, pooled: c3bf_gym.policies.ObstacleSetExtractor; SB3 only) "
+                        f"(default by engine: {by_engine('obstacle_encoder')})")  # fmt: skip
     p.add_argument("--normalize-obs", action="store_true",
                    help="normalise observations with running statistics (SB3 VecNormalize, saved with the model)")  # fmt: skip
     p.add_argument("--hyperparams", type=json.loads, default={},
@@ -99,15 +109,16 @@ def _add_train(sub: argparse._SubParsersAction) -> None:
 
 
 def _run_train(args: argparse.Namespace) -> int:
-    from c3bf_gym.training import TrainConfig, train
+    from c3bf_gym.training import ENGINE_DEFAULTS, TrainConfig, train
 
+    defaults = ENGINE_DEFAULTS[args.engine]
     config = TrainConfig(
-        algo=args.algo, robot=args.robot, action=args.action, filter=args.filter, guard_gamma=args.guard_gamma, scenario=args.scenario,
+        engine=args.engine, algo=args.algo or defaults["algo"], robot=args.robot, action=args.action, filter=args.filter, guard_gamma=args.guard_gamma, scenario=args.scenario,
         timesteps=args.timesteps, seed=args.seed, n_envs=args.n_envs, eval_freq=args.eval_freq,
         eval_episodes=args.eval_episodes, final_eval_episodes=args.final_eval_episodes, checkpoint_freq=args.checkpoint_freq, out=args.out,
-        progress_bar=not args.no_progress, normalize_obs=args.normalize_obs, policy_hz=args.policy_hz, distance_weight=args.distance_weight, action_weight=args.action_weight, obstacle_encoder=args.obstacle_encoder, hyperparams=args.hyperparams,
+        progress_bar=not args.no_progress, normalize_obs=args.normalize_obs, policy_hz=args.policy_hz, distance_weight=args.distance_weight, action_weight=args.action_weight, obstacle_encoder=args.obstacle_encoder or defaults["obstacle_encoder"], hyperparams=args.hyperparams,
     )  # fmt: skip
-    run_dir = train(config)
+    run_dir = train(config, address=args.address)
     print(f"run written to {run_dir}")
     print((run_dir / "summary.json").read_text())
     return 0
@@ -124,7 +135,7 @@ def _add_evaluate(sub: argparse._SubParsersAction) -> None:
         "(from the environment's geometric cost) and filter interventions. --filter evaluates a "
         "model under another filter than it was trained with (e.g. an unfiltered agent with the default filter on).",
     )
-    p.add_argument("model", help="path to model.zip inside a run directory")
+    p.add_argument("model", help="path to model.zip inside a run directory, or an RLlib run's checkpoint directory")
     p.add_argument("--episodes", type=_positive_int, default=50)
     p.add_argument("--filter", choices=TRAIN_FILTERS, default=None, help="default: the run's own")
     p.add_argument("--guard-gamma", type=_positive_float, default=None,

@@ -41,7 +41,10 @@ __all__ = [
     "FINAL_EVAL_SEED",
     "HYPERPARAMS",
     "OBSTACLE_ENCODERS",
+    "ENGINES",
+    "RLLIB_PPO_HYPERPARAMS",
     "TrainConfig",
+    "build_env",
     "by_scenario",
     "evaluate",
     "make_env",
@@ -72,6 +75,12 @@ POLICY_RATES = (10, 20, 25, 50, 100)
 DEFAULT_TRAIN_HZ = 10
 
 ALGORITHMS = ("sac", "ppo")
+#: Training engines: Stable-Baselines3 on one machine, or Ray RLlib (PPO on its new API stack,
+#: env runners on a local Ray instance or a cluster; :mod:`c3bf_gym.rllib`, the ``rllib`` extra).
+ENGINES = ("sb3", "rllib")
+#: What each engine trains unless told otherwise: RLlib runs PPO with its default MLP encoder
+#: (the set encoder is an SB3 feature extractor).
+ENGINE_DEFAULTS = {"sb3": {"algo": "sac", "obstacle_encoder": "set"}, "rllib": {"algo": "ppo", "obstacle_encoder": "flat"}}
 ACTIONS = ("impedance", "residual", "torque")
 #: A run's ``filter``: "none" or a name of :data:`~c3bf_gym.safety.FILTERS` (the default
 #: :data:`~c3bf_gym.safety.DEFAULT_FILTER`, the C3BF with its distance-HOCBF guard).
@@ -142,6 +151,15 @@ HYPERPARAMS: dict[tuple[str, str], dict[str, Any]] = {
     ),
 }  # fmt: skip
 
+#: RLlib PPO's defaults, as ``PPOConfig.training`` keywords (plus ``fcnet_hiddens``, the policy and
+#: value networks): SB3 PPO's settings above, spelt for RLlib. SB3 has no KL penalty and no value
+#: clipping, so neither has this; its batch of ``n_steps`` per env is
+#: ``train_batch_size_per_env · n_envs`` here.
+RLLIB_PPO_HYPERPARAMS: dict[str, Any] = dict(
+    lr=3e-4, train_batch_size_per_env=1024, minibatch_size=64, num_epochs=10, gamma=0.98, lambda_=0.95,
+    clip_param=0.2, entropy_coeff=0.0, use_kl_loss=False, vf_clip_param=float("inf"), fcnet_hiddens=[256, 256],
+)  # fmt: skip
+
 
 @dataclass
 class TrainConfig:
@@ -153,8 +171,12 @@ class TrainConfig:
     distance term (``distance_weight=10``) and action penalty (``action_weight=3``), the set
     encoder for the obstacle slots, 25k steps. Each was chosen by measured runs (the docs' RL
     results page, ``docs/results/rl.md``); the PPO defaults share them untested.
+
+    ``engine="rllib"`` trains with Ray RLlib instead (:func:`c3bf_gym.rllib.train_rllib`): PPO
+    only, the flat encoder only, no ``normalize_obs``; ``n_envs`` env runners, one env each.
     """
 
+    engine: Literal["sb3", "rllib"] = "sb3"
     algo: Literal["sac", "ppo"] = "sac"
     robot: str = "ur5e"
     action: Literal["impedance", "residual", "torque"] = "residual"
@@ -181,6 +203,7 @@ class TrainConfig:
         from c3bf_gym.scenarios import get_scenario
 
         for name, value, choices in (
+            ("engine", self.engine, ENGINES),
             ("algo", self.algo, ALGORITHMS),
             ("action", self.action, ACTIONS),
             ("filter", self.filter, TRAIN_FILTERS),
@@ -189,6 +212,11 @@ class TrainConfig:
         ):
             if value not in choices:
                 raise ValueError(f"unknown {name} {value!r}; valid choices: {', '.join(map(repr, choices))}")
+        if self.engine == "rllib":
+            for name, value, supported in (("algo", self.algo, "ppo"), ("obstacle_encoder", self.obstacle_encoder, "flat"),
+                                           ("normalize_obs", self.normalize_obs, False)):  # fmt: skip
+                if value != supported:
+                    raise ValueError(f"the rllib engine supports {name}={supported!r} only, got {value!r}")
         get_scenario(self.scenario)
         policy_rate_kwargs(self.policy_hz)
         filter_config(self.filter, self.guard_gamma)  # the filter's own checks, guard_gamma's included
@@ -213,8 +241,9 @@ class TrainConfig:
         penalty = f"_aw{self.action_weight:g}" if self.action_weight else ""
         encoder = "" if self.obstacle_encoder == "flat" else f"_{self.obstacle_encoder}"
         robot = "" if self.robot == "ur5e" else f"{self.robot}_"  # UR5e runs keep their earlier names
+        engine = "" if self.engine == "sb3" else f"{self.engine}_"
         return (
-            f"{robot}{self.algo}_{self.action}{norm}{rate}{dense}{penalty}{encoder}_{filter_label(self.filter, self.guard_gamma)}"
+            f"{engine}{robot}{self.algo}_{self.action}{norm}{rate}{dense}{penalty}{encoder}_{filter_label(self.filter, self.guard_gamma)}"
             f"_{self.scenario}_s{self.seed}"
         )
 
@@ -224,7 +253,9 @@ class TrainConfig:
         return env_kwargs(self.policy_hz, self.distance_weight, self.robot)
 
     def resolved_hyperparams(self) -> dict[str, Any]:
-        return {**HYPERPARAMS[(self.algo, self.action)], **self.hyperparams}
+        """The engine's defaults for this algorithm and action mode, with ``hyperparams`` over them."""
+        defaults = RLLIB_PPO_HYPERPARAMS if self.engine == "rllib" else HYPERPARAMS[(self.algo, self.action)]
+        return {**defaults, **self.hyperparams}
 
 
 def env_kwargs(policy_hz: int, distance_weight: float = 0.0, robot: str = "ur5e") -> dict[str, Any]:
@@ -249,6 +280,35 @@ def info_keywords(filter: str | FilterConfig | None) -> tuple[str, ...]:
     return keys + ("episode_interventions", "episode_infeasible") if filter_config(filter) else keys
 
 
+def build_env(
+    scenario: str = "random",
+    filter: str | FilterConfig | None = DEFAULT_FILTER,
+    action: str = "impedance",
+    action_weight: float = 0.0,
+    guard_gamma: float | None = None,
+    **env_kwargs: Any,
+) -> gym.Env:
+    """``ActionPenalty(SafetyFilter(CartesianImpedanceAction(C3BFReach-v0)))``, the parts the
+    options ask for (``ActionPenalty`` when ``action_weight > 0``): the environment every
+    training engine steps. ``filter``: "none"/None, a name of :data:`~c3bf_gym.safety.FILTERS`
+    or a :class:`~c3bf_gym.safety.FilterConfig`; ``guard_gamma``: the guard's gains where it has
+    one (None: the default); ``env_kwargs`` go to ``gym.make`` (:func:`env_kwargs`).
+
+    Raises:
+        ValueError: an unknown filter or action mode, or bad environment keywords.
+    """
+    config = filter_config(filter, guard_gamma)
+    validation.choice("action", action, ACTIONS)
+    env = gym.make("C3BFReach-v0", scenario=scenario, **env_kwargs)
+    if action in ("impedance", "residual"):
+        env = CartesianImpedanceAction(env, residual=action == "residual")
+    if config is not None:
+        env = SafetyFilter(env, config)
+    if action_weight:
+        env = ActionPenalty(env, action_weight)
+    return env
+
+
 def make_env(
     scenario: str = "random",
     filter: str | FilterConfig | None = DEFAULT_FILTER,
@@ -259,24 +319,15 @@ def make_env(
     guard_gamma: float | None = None,
     **env_kwargs: Any,
 ) -> Callable[[], gym.Env]:
-    """A thunk building ``Monitor(ActionPenalty(SafetyFilter(CartesianImpedanceAction(C3BFReach-v0))))``
-    (the parts the options ask for; ``ActionPenalty`` when ``action_weight > 0``), for SB3 vector
-    envs. ``filter``: "none"/None, a name of :data:`~c3bf_gym.safety.FILTERS` or a
-    :class:`~c3bf_gym.safety.FilterConfig`; ``guard_gamma``: the guard's gains where it has one
-    (None: the default). The env is seeded on its first reset."""
+    """A thunk building ``Monitor(build_env(...))`` (:func:`build_env`) for SB3 vector envs,
+    seeded on its first reset. The options are checked here, before any env is built."""
     from stable_baselines3.common.monitor import Monitor
 
     config = filter_config(filter, guard_gamma)
     validation.choice("action", action, ACTIONS)
 
     def thunk() -> gym.Env:
-        env = gym.make("C3BFReach-v0", scenario=scenario, **env_kwargs)
-        if action in ("impedance", "residual"):
-            env = CartesianImpedanceAction(env, residual=action == "residual")
-        if config is not None:
-            env = SafetyFilter(env, config)
-        if action_weight:
-            env = ActionPenalty(env, action_weight)
+        env = build_env(scenario, config, action, action_weight, **env_kwargs)
         env = Monitor(env, monitor_file, info_keywords=info_keywords(config))
         env.reset(seed=seed)
         env.action_space.seed(seed)
@@ -351,24 +402,23 @@ def _code_version() -> str:
     return f"{__version__}+{commit}" if commit else __version__
 
 
-def train(config: TrainConfig) -> Path:
-    """Run one training run; returns its directory."""
+def train(config: TrainConfig, address: str | None = None) -> Path:
+    """Run one training run; returns its directory. ``address``: with ``engine="rllib"``, the Ray
+    cluster to join (None: a local Ray instance; see :func:`c3bf_gym.rllib.train_rllib`)."""
+    config.validate()
+    if config.engine == "rllib":
+        from c3bf_gym.rllib import train_rllib
+
+        return train_rllib(config, address)
+    if address is not None:
+        raise ValueError("address is the Ray cluster of the rllib engine; this run's engine is 'sb3'")
     import torch
     from stable_baselines3 import PPO, SAC
     from stable_baselines3.common.callbacks import CallbackList, CheckpointCallback, EvalCallback
     from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecNormalize
 
-    config.validate()
     torch.set_num_threads(1)  # one core per run: the machine runs several runs side by side
-    run_dir = Path(config.out) / config.name
-    run_dir.mkdir(parents=True, exist_ok=True)
-    hyper = config.resolved_hyperparams()
-    (run_dir / "config.json").write_text(
-        json.dumps(
-            {**asdict(config), "resolved_hyperparams": hyper, "command": " ".join(sys.argv), "code": _code_version()},
-            indent=2,
-        )
-    )
+    run_dir, hyper = start_run(config)
     filter_ = filter_config(config.filter, config.guard_gamma)
     rate, penalty = config.env_kwargs(), config.action_weight
     thunks = [
@@ -417,10 +467,27 @@ def train(config: TrainConfig) -> Path:
     }
     venv.close()
     eval_env.close()
+    return finish_run(config, run_dir, run_dir / "model.zip", summary)
+
+
+def start_run(config: TrainConfig) -> tuple[Path, dict[str, Any]]:
+    """Create the run directory and write its ``config.json`` (the config, the resolved
+    hyperparameters, the command line and the code version); returns the directory and the
+    hyperparameters."""
+    run_dir = Path(config.out) / config.name
+    run_dir.mkdir(parents=True, exist_ok=True)
+    hyper = config.resolved_hyperparams()
+    record = {**asdict(config), "resolved_hyperparams": hyper, "command": " ".join(sys.argv), "code": _code_version()}
+    (run_dir / "config.json").write_text(json.dumps(record, indent=2))
+    return run_dir, hyper
+
+
+def finish_run(config: TrainConfig, run_dir: Path, model_path: Path, summary: dict[str, Any]) -> Path:
+    """The final model's evaluation (``final_eval_episodes`` episodes from
+    :data:`FINAL_EVAL_SEED`, the same episodes for every run; :data:`FINAL_EVAL_FILE`) and
+    ``summary.json``; returns ``run_dir``."""
     if config.final_eval_episodes:
-        # The headline success rate: the final model on FINAL_EVAL_SEED.. (the same episodes for
-        # every run), more episodes than the periodic evaluation affords.
-        final = evaluate(run_dir / "model.zip", episodes=config.final_eval_episodes, seed=FINAL_EVAL_SEED)
+        final = evaluate(model_path, episodes=config.final_eval_episodes, seed=FINAL_EVAL_SEED)
         (run_dir / FINAL_EVAL_FILE).write_text(json.dumps(final, indent=2))
         summary["final_eval"] = final
     (run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
@@ -448,6 +515,26 @@ def _load_normalizer(path: Path):
     return normalizer
 
 
+def _load_policy(model_path: Path, config: dict, run_dir: Path | None, deterministic: bool) -> Callable[[np.ndarray], np.ndarray]:
+    """The saved policy as ``observation -> action``: an RLlib checkpoint directory
+    (:func:`c3bf_gym.rllib.load_policy`) or an SB3 ``.zip`` (with the run's observation
+    statistics when it was trained with ``normalize_obs``)."""
+    if model_path.is_dir():
+        from c3bf_gym.rllib import load_policy
+
+        return load_policy(model_path, deterministic)
+    from stable_baselines3 import PPO, SAC
+
+    model = {"sac": SAC, "ppo": PPO}[config.get("algo", "sac")].load(model_path, device="cpu")
+    normalizer = _load_normalizer(run_dir / NORMALIZATION_FILE) if run_dir else None
+
+    def policy(obs: np.ndarray) -> np.ndarray:
+        action, _ = model.predict(obs if normalizer is None else normalizer.normalize_obs(obs), deterministic=deterministic)
+        return action
+
+    return policy
+
+
 def evaluate(
     model_path: str | os.PathLike,
     episodes: int = 50,
@@ -457,8 +544,10 @@ def evaluate(
     deterministic: bool = True,
     guard_gamma: float | None = None,
 ) -> dict[str, float]:
-    """Roll out a saved model for ``episodes`` seeded episodes.
+    """Roll out a saved model for ``episodes`` seeded episodes (``seed``, ``seed + 1``, ...).
 
+    ``model_path`` is an SB3 ``model.zip`` (or one in ``best/`` or ``checkpoints/``) or an RLlib
+    checkpoint directory (``checkpoint/`` of a run trained with ``engine="rllib"``).
     ``filter`` (one of :data:`TRAIN_FILTERS`), ``guard_gamma`` and ``scenario`` default to the
     run's own (from its ``config.json``); pass a filter to evaluate, e.g., an unfiltered agent
     with the default filter on (its guard then has the default gains). The action mode,
@@ -468,8 +557,6 @@ def evaluate(
     trained with ``normalize_obs`` has its final observation statistics in the run directory;
     they are applied (to a ``best/`` or checkpoint model too, an approximation).
     """
-    from stable_baselines3 import PPO, SAC
-
     model_path = Path(model_path)
     if not model_path.exists():
         raise FileNotFoundError(f"no model at {model_path}")
@@ -477,27 +564,24 @@ def evaluate(
         raise ValueError(f"episodes must be an integer >= 1, got {episodes!r}")
     run_dir = _run_dir(model_path)
     config = json.loads((run_dir / "config.json").read_text()) if run_dir else {}
-    algo = config.get("algo", "sac")
     action = config.get("action", "impedance")
     if filter is None:
         filter = config.get("filter", "none")
         guard_gamma = config.get("guard_gamma") if guard_gamma is None else guard_gamma
     filter_ = filter_config(filter, guard_gamma)  # checked before the model loads
     scenario = config.get("scenario", "random") if scenario is None else scenario
-    model = {"sac": SAC, "ppo": PPO}[algo].load(model_path, device="cpu")
-    normalizer = _load_normalizer(run_dir / NORMALIZATION_FILE) if run_dir else None
+    policy = _load_policy(model_path, config, run_dir, deterministic)
     returns, successes, costs, collided, interventions, infeasible, kinds = [], [], [], [], [], [], []
     run_env = env_kwargs(config.get("policy_hz", DEFAULT_POLICY_HZ), config.get("distance_weight", 0.0),
                          config.get("robot", "ur5e"))
-    env = make_env(scenario, filter_, action, seed=seed, action_weight=config.get("action_weight", 0.0), **run_env)()
+    env = build_env(scenario, filter_, action, action_weight=config.get("action_weight", 0.0), **run_env)
+    env.reset(seed=seed)  # as a training env starts (make_env); each episode below is reseeded
     for episode in range(episodes):
         obs, _ = env.reset(seed=seed + episode)
         kinds.append(env.unwrapped.episode_scenario.name)
         total, done, info = 0.0, False, {}
         while not done:
-            policy_obs = obs if normalizer is None else normalizer.normalize_obs(obs)
-            action_, _ = model.predict(policy_obs, deterministic=deterministic)
-            obs, reward, terminated, truncated, info = env.step(action_)
+            obs, reward, terminated, truncated, info = env.step(policy(obs))
             total += float(reward)
             done = terminated or truncated
         returns.append(total)

@@ -221,7 +221,7 @@ def test_defaults_are_the_readme_recipe_on_every_entry_point(monkeypatch, tmp_pa
     assert TrainConfig().timesteps == 25_000
     seen = []
     (tmp_path / "summary.json").write_text("{}")
-    monkeypatch.setattr(c3bf_gym.training, "train", lambda config: seen.append(config) or tmp_path)
+    monkeypatch.setattr(c3bf_gym.training, "train", lambda config, address=None: seen.append(config) or tmp_path)
     assert main(["train"]) == 0 and seen == [TrainConfig()]
     # run_baselines.py passes every option on, so its runs are the same recipe
     spec = importlib.util.spec_from_file_location("run_baselines", Path(__file__).parents[1] / "train" / "run_baselines.py")
@@ -233,6 +233,28 @@ def test_defaults_are_the_readme_recipe_on_every_entry_point(monkeypatch, tmp_pa
     assert module.main() == 0 and len(commands) == 1 and commands[0][1:4] == ["-m", "c3bf_gym.cli", "train"]
     assert main(commands[0][3:]) == 0
     assert seen[1] == TrainConfig(out=str(tmp_path), progress_bar=False)
+
+
+def test_the_rllib_engine_has_its_own_defaults_and_refuses_what_it_cannot_train(monkeypatch, tmp_path):
+    """`c3bf-gym train --engine rllib` trains RLlib PPO with the flat encoder unless told
+    otherwise, names its runs apart, passes --address on; what RLlib cannot train is an error."""
+    import c3bf_gym.training
+
+    seen = []
+    (tmp_path / "summary.json").write_text("{}")
+    monkeypatch.setattr(c3bf_gym.training, "train", lambda config, address=None: seen.append((config, address)) or tmp_path)
+    assert main(["train", "--engine", "rllib", "--n-envs", "2", "--address", "auto"]) == 0
+    config, address = seen[0]
+    assert config == TrainConfig(engine="rllib", algo="ppo", obstacle_encoder="flat", n_envs=2) and address == "auto"
+    assert config.name == "rllib_ppo_residual_10hz_dw10_aw3_c3bf+hocbf_random_s0"
+    assert config.resolved_hyperparams()["train_batch_size_per_env"] == 1024
+    assert main(["train", "--engine", "rllib", "--algo", "sac"]) == 0  # the CLI passes it on; validate() refuses
+    with pytest.raises(ValueError, match="the rllib engine supports algo='ppo' only, got 'sac'"):
+        seen[1][0].validate()
+    monkeypatch.undo()  # the real train: an SB3 run has no Ray cluster to join
+    with pytest.raises(ValueError, match="address is the Ray cluster of the rllib engine"):
+        train(TrainConfig(out=str(tmp_path / "runs")), address="auto")
+    assert not (tmp_path / "runs").exists()
 
 
 def test_by_scenario_splits_an_evaluation_by_its_concrete_scenarios():
@@ -276,11 +298,32 @@ def test_make_env_action_modes(action, shape):
         ({"distance_weight": float("nan")}, "distance_weight must be a finite number >= 0"),
         ({"action_weight": -0.1}, "action_weight must be a finite number >= 0"),
         ({"obstacle_encoder": "gnn"}, "unknown obstacle_encoder 'gnn'; valid choices: 'flat', 'set'"),
+        ({"engine": "jax"}, "unknown engine 'jax'; valid choices: 'sb3', 'rllib'"),
+        ({"engine": "rllib"}, "the rllib engine supports algo='ppo' only, got 'sac'"),
+        ({"engine": "rllib", "algo": "ppo"}, "the rllib engine supports obstacle_encoder='flat' only, got 'set'"),
+        ({"engine": "rllib", "algo": "ppo", "obstacle_encoder": "flat", "normalize_obs": True},
+         "the rllib engine supports normalize_obs=False only, got True"),
     ],
 )
 def test_bad_training_options(kwargs, message):
     with pytest.raises(ValueError, match=message):
         TrainConfig(**kwargs).validate()
+
+
+def _has_rllib() -> bool:
+    try:
+        import ray.rllib  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+@pytest.mark.skipif(_has_rllib(), reason="Ray RLlib is installed here")
+def test_the_rllib_engine_without_ray_names_the_extra(tmp_path):
+    config = TrainConfig(engine="rllib", algo="ppo", obstacle_encoder="flat", out=str(tmp_path))
+    with pytest.raises(ImportError, match=r'pip install "c3bf-gym\[rllib\]"'):
+        train(config)
+    assert not any(tmp_path.iterdir()), "nothing is written before Ray is found"
 
 
 def test_evaluate_missing_model(tmp_path):
