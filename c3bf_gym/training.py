@@ -69,9 +69,8 @@ PHYSICS_HZ, DEFAULT_POLICY_HZ, EPISODE_SECONDS = 500, 50, 5
 #: Policy rates a run may use: each a whole number of physics steps per action.
 POLICY_RATES = (10, 20, 25, 50, 100)
 #: The training default: 10 actions per second (the controller and the filter still run at
-#: 500 Hz). Without obstacles SAC reached 100% evaluation success after 5k steps at 10 Hz (about
-#: 3 min here), and 30-40% after 12-16k steps at 50 Hz: each decision moves the tool visibly, and
-#: an episode is 50 decisions instead of 250.
+#: 500 Hz): each decision moves the tool visibly, and an episode is 50 decisions instead of 250.
+#: Why (measured): the docs' design decisions, "Training defaults".
 DEFAULT_TRAIN_HZ = 10
 
 ALGORITHMS = ("sac", "ppo")
@@ -114,16 +113,11 @@ def filter_label(filter: str | FilterConfig | None, guard_gamma: float | None = 
 #: per obstacle slot, pooled, so what is learnt about one slot holds for every slot).
 OBSTACLE_ENCODERS = ("flat", "set")
 
-#: Default hyperparameters per (algorithm, action mode). How they were chosen: SB3 / RL-Zoo
-#: defaults for continuous control, then the cheapest changes that keep a run inside this 2-core
-#: machine's budget: one env per SAC run (the filter costs ~15 ms per 10-Hz step, so data is dear
-#: and SAC's replay is worth it), a 256x256 MLP with batch 128 (a gradient step costs ~10 ms on
-#: one core here, ~16 ms at batch 256), a discount of 0.98, SAC's entropy coefficient starting
-#: at 0.1 instead of 1 (per-step rewards are O(0.1-1): with 1, the entropy bonus dominated and the
-#: first runs stayed random for 10k+ steps), 1000 random steps (20 episodes at 10 Hz) before
-#: learning for the Cartesian modes, and PPO with RL-Zoo's MuJoCo settings. Policies see raw
-#: observations (metres, radians, O(1) by design; ``normalize_obs`` did not speed up learning).
-#: The policy rate matters most (``DEFAULT_TRAIN_HZ``).
+#: Default hyperparameters per (algorithm, action mode): SB3 / RL-Zoo defaults for continuous
+#: control, with one env per SAC run, a 256x256 MLP with batch 128, a discount of 0.98, SAC's
+#: entropy coefficient starting at 0.1, 1000 random steps before learning for the Cartesian
+#: modes, and PPO with RL-Zoo's MuJoCo settings; raw observations. Why each (measured): the docs'
+#: design decisions, "Training defaults".
 HYPERPARAMS: dict[tuple[str, str], dict[str, Any]] = {
     ("sac", "impedance"): dict(
         learning_rate=3e-4, buffer_size=300_000, batch_size=128, gamma=0.98, tau=0.005, ent_coef="auto_0.1",

@@ -1,7 +1,7 @@
 """Compiled (numba) kernels of the safety filter's hot path.
 
 The filter runs at every physics step (500 Hz), and its numpy version spent most of its time in
-the overhead of many small array calls (0.3–4 µs each), not in arithmetic: the arm has 6 joints
+the overhead of many small array calls (microseconds each), not in arithmetic: the arm has 6 joints
 and 7 capsules, so every array holds tens of numbers. These kernels do the same arithmetic in
 plain loops, compiled once by numba (``cache=True``: the machine code is cached on disk next to
 this file, or in numba's user-wide cache when that folder is read-only, so later processes load
