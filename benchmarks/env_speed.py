@@ -1,107 +1,192 @@
-"""Step throughput of ``C3BFReach-v0`` next to Gymnasium's ``Pusher-v5``.
+"""The environment's cost against the bare physics it runs on, and against Gymnasium's Pusher-v5.
 
-Both environments are made with ``gymnasium.make`` (so both carry the usual TimeLimit /
-OrderEnforcing / PassiveEnvChecker wrappers), step pre-sampled random actions and reset when an
-episode ends; the reset time is part of the measurement. The two are timed in alternating
-rounds so that machine noise (frequency scaling, other processes) hits both alike; the median
-over rounds is the headline.
+Per policy step, in interleaved rounds (every configuration once per round, the order rotating
+from round to round, so that machine noise hits all alike), the median over rounds of:
 
-Two rates per environment:
+* ``bare``: ``mujoco.mj_step(model, data, nstep=frame_skip)`` on the environment's own model
+  (its distance sensors included) with random controls: the physics a policy step cannot avoid
+  (the 1× of the ratios);
+* ``unfiltered``: ``C3BFReach-v0``'s ``step`` with random actions;
+* ``filtered``: the same under the default ``SafetyFilter``, with random actions and with the
+  adversary of ``benchmarks/guarantee.py`` (the arm point nearest an obstacle driven at it; the
+  adversary's own computation is not timed);
+* ``Pusher-v5``: Gymnasium's MuJoCo arm, for reference (5 physics steps of 10 ms per step,
+  against our 10 of 2 ms, so its steps are not the same amount of physics).
 
-* steps/s: policy steps per wall second (what an RL loop sees);
-* simulated s per wall s: steps/s x ``env.dt``. The environments step different amounts of time
-  (C3BF: 10 x 2 ms = 20 ms; Pusher: 5 x 10 ms = 50 ms), so this is the fairer physics comparison.
+Only ``step`` calls are timed; episodes are reset between them, untimed. Resets are timed apart,
+per scenario (``--reset-samples`` each): the median and p99, in ms. ``--profile`` prints
+cProfile's top functions for one round of unfiltered and filtered steps (the breakdown).
 
-Usage: ``python benchmarks/env_speed.py [--rounds 5] [--steps 2000] [--scenario random]``
+Usage::
+
+    python benchmarks/env_speed.py                              # 5 rounds x 1000 steps, scenario multi
+    python benchmarks/env_speed.py --rounds 9 --profile --json results/env_speed.json
 """
 
 from __future__ import annotations
 
 import argparse
+import cProfile
+import json
+import pstats
 import statistics
+import sys
 import time
+from pathlib import Path
 
 import gymnasium as gym
+import mujoco
 import numpy as np
 
 import c3bf_gym  # noqa: F401  (registers C3BFReach-v0)
+from c3bf_gym import SafetyFilter
+from c3bf_gym.scenarios import SCENARIOS
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from guarantee import adversarial_action  # noqa: E402  (the sweep's adversary)
+
+CONFIGS = ("bare", "unfiltered", "filtered random", "filtered adversarial", "Pusher-v5")
 
 
-def make_runner(env_id: str, steps: int, seed: int, **kwargs):
-    return runner_for(gym.make(env_id, **kwargs), steps, seed)
-
-
-def runner_for(env: gym.Env, steps: int, seed: int):
-    """``(env, run)``: ``run()`` steps ``env`` through ``steps`` pre-sampled random actions
-    (resetting at episode ends) and returns steps per wall second."""
-    env.reset(seed=seed)
-    env.action_space.seed(seed)
-    actions = np.stack([env.action_space.sample() for _ in range(steps)])
-    # one untimed warm-up episode chunk: first-call costs (allocation, caches) out of round 1
-    for action in actions[:50]:
-        _, _, terminated, truncated, _ = env.step(action)
-        if terminated or truncated:
-            env.reset()
+def _policy_runner(env: gym.Env, steps: int, seed: int, adversarial: bool):
+    """``run() -> seconds spent in env.step`` over ``steps`` steps: random actions drawn from a
+    seeded generator (or the adversary's), resets at episode ends untimed."""
+    rng = np.random.default_rng(seed)
+    shape, low, high = env.action_space.shape, env.action_space.low, env.action_space.high
     env.reset(seed=seed)
 
     def run() -> float:
-        """Step through all actions once; return steps per wall second."""
-        step, reset = env.step, env.reset
-        start = time.perf_counter()
-        for action in actions:
+        spent = 0.0
+        step, clock = env.step, time.perf_counter
+        for _ in range(steps):
+            action = adversarial_action(env.unwrapped) if adversarial else rng.uniform(low, high, shape).astype(np.float32)
+            start = clock()
             _, _, terminated, truncated, _ = step(action)
+            spent += clock() - start
             if terminated or truncated:
-                reset()
-        return len(actions) / (time.perf_counter() - start)
+                env.reset()
+        return spent
 
+    run()  # warm-up: first-call costs (allocation, compiled code loading) out of round 1
+    return run
+
+
+def _bare_runner(env_id: str, scenario: str, steps: int, seed: int):
+    """``run()`` for ``mj_step(nstep=frame_skip)`` on a fresh ``MjData`` of the env's model."""
+    env = gym.make(env_id, scenario=scenario)
+    env.reset(seed=seed)
+    model, frame_skip = env.unwrapped.model, env.unwrapped.frame_skip
+    data = mujoco.MjData(model)
+
+    def restart() -> None:
+        if model.nkey:
+            mujoco.mj_resetDataKeyframe(model, data, 0)
+        else:
+            mujoco.mj_resetData(model, data)
+
+    restart()
+    controls = np.random.default_rng(seed).uniform(-1, 1, (steps, model.nu)) * model.actuator_ctrlrange[:, 1] * 0.2
+
+    def run() -> float:
+        spent = 0.0
+        clock = time.perf_counter
+        for k in range(steps):
+            data.ctrl[:] = controls[k]
+            start = clock()
+            mujoco.mj_step(model, data, nstep=frame_skip)
+            spent += clock() - start
+            if k % 250 == 249:  # an episode's length: start again from the keyframe
+                restart()
+        return spent
+
+    run()
     return env, run
 
 
-def main(argv: list[str] | None = None) -> dict[str, list[float]]:
+def reset_times(env_id: str, samples: int, seed: int) -> dict[str, dict[str, float]]:
+    """Per scenario, median and p99 of ``reset`` in ms over ``samples`` seeded resets."""
+    out = {}
+    for scenario in SCENARIOS:
+        if scenario == "none":
+            continue
+        env = gym.make(env_id, scenario=scenario)
+        env.reset(seed=seed)
+        times = []
+        for i in range(samples):
+            start = time.perf_counter()
+            env.reset(seed=seed + i)
+            times.append(time.perf_counter() - start)
+        env.close()
+        out[scenario] = {"median_ms": 1e3 * statistics.median(times), "p99_ms": 1e3 * float(np.percentile(times, 99))}
+    return out
+
+
+def profile(run, label: str, top: int = 15) -> None:
+    profiler = cProfile.Profile()
+    profiler.enable()
+    run()
+    profiler.disable()
+    print(f"\ncProfile, one round of {label} steps (top {top} by own time):")
+    pstats.Stats(profiler).sort_stats("tottime").print_stats(top)
+
+
+def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--rounds", type=int, default=5, help="alternating timing rounds (default 5)")
-    parser.add_argument("--steps", type=int, default=2000, help="steps per environment per round (default 2000)")
-    parser.add_argument("--scenario", default="random", help="C3BFReach scenario (default: random, the env default)")
+    parser.add_argument("--rounds", type=int, default=5, help="interleaved rounds (default 5)")
+    parser.add_argument("--steps", type=int, default=1000, help="policy steps per configuration per round (default 1000)")
+    parser.add_argument("--scenario", default="multi", choices=[s for s in SCENARIOS if s != "none"],
+                        help="C3BFReach scenario of the step timing (default multi: 4 obstacles)")  # fmt: skip
+    parser.add_argument("--env", default="C3BFReach-v0", choices=["C3BFReach-v0", "C3BFReachPanda-v0"])
+    parser.add_argument("--reset-samples", type=int, default=200, help="timed resets per scenario (default 200; 0: none)")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--profile", action="store_true", help="print the cProfile breakdown of unfiltered and filtered steps")
+    parser.add_argument("--json", type=Path, help="also write the results as JSON here")
     args = parser.parse_args(argv)
-    if args.rounds < 1 or args.steps < 1:
-        parser.error("--rounds and --steps must be >= 1")
+    if args.rounds < 1 or args.steps < 1 or args.reset_samples < 0:
+        parser.error("--rounds and --steps must be >= 1, --reset-samples >= 0")
 
-    c3bf, run_c3bf = make_runner("C3BFReach-v0", args.steps, args.seed, scenario=args.scenario)
-    pusher, run_pusher = make_runner("Pusher-v5", args.steps, args.seed)
-    dt_c, dt_p = c3bf.unwrapped.dt, pusher.unwrapped.dt
-
-    print(f"C3BFReach-v0 (scenario={args.scenario}, dt={dt_c * 1e3:.0f} ms) vs Pusher-v5 (dt={dt_p * 1e3:.0f} ms); "
-          f"{args.rounds} rounds x {args.steps} steps each, alternating")
-    header = f"{'round':>6} | {'C3BF st/s':>10} {'Pusher st/s':>11} {'ratio':>6} | {'C3BF sim/s':>10} {'Pusher sim/s':>12} {'ratio':>6}"
+    bare_env, run_bare = _bare_runner(args.env, args.scenario, args.steps, args.seed)
+    envs = {
+        "unfiltered": gym.make(args.env, scenario=args.scenario),
+        "filtered random": SafetyFilter(gym.make(args.env, scenario=args.scenario)),
+        "filtered adversarial": SafetyFilter(gym.make(args.env, scenario=args.scenario)),
+        "Pusher-v5": gym.make("Pusher-v5"),
+    }
+    runs = {"bare": run_bare}
+    for name, env in envs.items():
+        runs[name] = _policy_runner(env, args.steps, args.seed, adversarial=name == "filtered adversarial")
+    frame_skip, dt = bare_env.unwrapped.frame_skip, bare_env.unwrapped.dt
+    print(f"{args.env}, scenario {args.scenario}: {frame_skip} physics steps ({dt * 1e3:.0f} ms) per policy step; "
+          f"{args.rounds} rounds x {args.steps} steps per configuration, interleaved")  # fmt: skip
+    per_step: dict[str, list[float]] = {name: [] for name in CONFIGS}
+    for r in range(args.rounds):
+        order = CONFIGS[r % len(CONFIGS):] + CONFIGS[: r % len(CONFIGS)]
+        for name in order:
+            per_step[name].append(1e6 * runs[name]() / args.steps)
+    ratios = {name: [t / b for t, b in zip(per_step[name], per_step["bare"])] for name in CONFIGS}
+    header = f"{'configuration':<22} | {'µs/step median':>14} {'min':>8} {'max':>8} | {'× bare (median of rounds)':>26}"
     print(header)
     print("-" * len(header))
-    results: dict[str, list[float]] = {"c3bf": [], "pusher": []}
-    for r in range(args.rounds):
-        # alternate which goes first, so neither always follows the other
-        if r % 2 == 0:
-            c, p = run_c3bf(), run_pusher()
-        else:
-            p, c = run_pusher(), run_c3bf()
-        results["c3bf"].append(c)
-        results["pusher"].append(p)
-        print(_row(str(r + 1), c, p, dt_c, dt_p))
-    print("-" * len(header))
-    c_med, p_med = statistics.median(results["c3bf"]), statistics.median(results["pusher"])
-    print(_row("median", c_med, p_med, dt_c, dt_p))
-    ratios = [c / p for c, p in zip(results["c3bf"], results["pusher"])]
-    print(f"median of per-round ratios: steps/s {statistics.median(ratios):.3f}, "
-          f"simulated s/s {statistics.median(ratios) * dt_c / dt_p:.3f}")
-    c3bf.close()
-    pusher.close()
-    return results
-
-
-def _row(label: str, c: float, p: float, dt_c: float, dt_p: float) -> str:
-    return (
-        f"{label:>6} | {c:>10.0f} {p:>11.0f} {c / p:>6.3f} | "
-        f"{c * dt_c:>10.1f} {p * dt_p:>12.1f} {c * dt_c / (p * dt_p):>6.3f}"
-    )
+    for name in CONFIGS:
+        t = per_step[name]
+        print(f"{name:<22} | {statistics.median(t):>14.0f} {min(t):>8.0f} {max(t):>8.0f} | {statistics.median(ratios[name]):>26.2f}")
+    resets = reset_times(args.env, args.reset_samples, args.seed) if args.reset_samples else {}
+    if resets:
+        print(f"\nreset, {args.reset_samples} seeded resets per scenario [ms]: "
+              + ", ".join(f"{s} {v['median_ms']:.2f} (p99 {v['p99_ms']:.2f})" for s, v in resets.items()))  # fmt: skip
+    if args.profile:
+        profile(runs["unfiltered"], "unfiltered")
+        profile(runs["filtered random"], "filtered (random actions)")
+    result = {
+        "env": args.env, "scenario": args.scenario, "rounds": args.rounds, "steps": args.steps, "frame_skip": frame_skip,
+        "us_per_step": per_step, "ratio_to_bare": {k: statistics.median(v) for k, v in ratios.items()}, "reset_ms": resets,
+    }  # fmt: skip
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(result, indent=2))
+    for env in (*envs.values(), bare_env):
+        env.close()
+    return result
 
 
 if __name__ == "__main__":

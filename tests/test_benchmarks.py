@@ -1,0 +1,25 @@
+"""The speed benchmarks the README names run, and print what their docs say they print."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
+
+
+def test_env_speed_prints_every_configuration_against_the_bare_physics(tmp_path):
+    out = tmp_path / "env_speed.json"
+    done = subprocess.run([sys.executable, str(BENCHMARKS / "env_speed.py"), "--rounds", "2", "--steps", "5",
+                           "--reset-samples", "2", "--json", str(out)], capture_output=True, text=True, timeout=600)  # fmt: skip
+    assert done.returncode == 0, done.stderr[-2000:]
+    for name in ("bare", "unfiltered", "filtered random", "filtered adversarial", "Pusher-v5", "reset"):
+        assert name in done.stdout
+    result = json.loads(out.read_text())
+    assert result["ratio_to_bare"]["bare"] == 1.0 and all(len(v) == 2 for v in result["us_per_step"].values())
+    assert set(result["reset_ms"]) == {"static", "head_on", "crossing", "multi", "random"}
+    refused = subprocess.run([sys.executable, str(BENCHMARKS / "env_speed.py"), "--rounds", "0"],
+                             capture_output=True, text=True, timeout=300)  # fmt: skip
+    assert refused.returncode == 2 and "--rounds and --steps must be >= 1" in refused.stderr
