@@ -95,12 +95,16 @@ def _ppo_config(config: TrainConfig, hyper: dict[str, Any]):
         scenario=config.scenario, filter=filter_config(config.filter, config.guard_gamma), action=config.action,
         action_weight=config.action_weight, **config.env_kwargs(),
     )  # fmt: skip
+    ppo = PPOConfig()
+    try:
+        ppo = ppo.training(train_batch_size_per_learner=per_env * config.n_envs, **hyper)
+    except TypeError as error:  # an unknown keyword
+        raise ValueError(f"bad RLlib PPO hyperparameters {sorted(hyper)}: {error} (valid: PPOConfig.training's "
+                         "keywords, plus fcnet_hiddens and train_batch_size_per_env)") from None  # fmt: skip
     return (
-        PPOConfig()
-        .environment(ENV_NAME, env_config=env_config, clip_actions=True, normalize_actions=False)
+        ppo.environment(ENV_NAME, env_config=env_config, clip_actions=True, normalize_actions=False)
         .env_runners(num_env_runners=config.n_envs, num_envs_per_env_runner=1, num_cpus_per_env_runner=1)
         .learners(num_learners=0)
-        .training(train_batch_size_per_learner=per_env * config.n_envs, **hyper)
         .rl_module(model_config=DefaultModelConfig(fcnet_hiddens=hidden, fcnet_activation="tanh",
                                                    vf_share_layers=False, free_log_std=True))  # fmt: skip
         .callbacks(safety_metrics())
@@ -118,7 +122,8 @@ def train_rllib(config: TrainConfig, address: str | None = None) -> Path:
     join a cluster. A Ray instance this call started is shut down at the end.
 
     Raises:
-        ValueError: the config is invalid or is not an RLlib run.
+        ValueError: the config is invalid, is not an RLlib run, or has a hyperparameter that
+            ``PPOConfig.training`` does not take.
         ImportError: Ray RLlib is not installed (the ``rllib`` extra).
     """
     config.validate()
@@ -130,14 +135,15 @@ def train_rllib(config: TrainConfig, address: str | None = None) -> Path:
     except ImportError as error:
         raise ImportError('the rllib engine needs Ray RLlib: pip install "c3bf-gym[rllib]"') from error
 
-    run_dir, hyper = start_run(config)
+    ppo = _ppo_config(config, config.resolved_hyperparams())  # bad hyperparameters fail here, before any file
+    run_dir, _ = start_run(config)
     started = not ray.is_initialized()
     if started:
         local = {"num_cpus": config.n_envs + 1} if address is None else {}
         ray.init(address=address, include_dashboard=False, log_to_driver=False, **local)
     try:
         register_env(ENV_NAME, _make_env)
-        algo = _ppo_config(config, hyper).build_algo()
+        algo = ppo.build_algo()
         summary = _train_loop(algo, config, run_dir)
         algo.save_to_path(str((run_dir / "checkpoint").resolve()))
         algo.stop()

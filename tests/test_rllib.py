@@ -56,6 +56,13 @@ def test_rllib_ppo_trains_under_the_filter_on_two_env_runners_and_evaluates(tmp_
         load_policy(tmp_path)
 
 
+def test_an_unknown_hyperparameter_is_refused_before_anything_is_written(tmp_path):
+    config = TrainConfig(engine="rllib", algo="ppo", obstacle_encoder="flat", out=str(tmp_path), hyperparams={"learning_rate": 1e-3})
+    with pytest.raises(ValueError, match="bad RLlib PPO hyperparameters .*learning_rate"):
+        train(config)
+    assert not any(tmp_path.iterdir())
+
+
 def saved_obs_size(run: Path) -> int:
     """The observation size of a run's env (from a fresh env of its config)."""
     from c3bf_gym.training import build_env, env_kwargs
