@@ -42,6 +42,10 @@ TRAINING_TABLES = (
     ("training_table_aw1.md", "sac_residual_10hz_dw10_aw1_[!s]*", "final_eval.json", "training_curves_aw1.png"),
     # the default filter's recipe re-run on the DAQP core (code 0293869)
     ("training_table_daqp.md", "daqp_core/sac_residual_10hz_dw10_aw3_set_*", "eval_200.json", "training_curves_daqp.png"),
+    # the same on the final core (code be667d7)
+    ("training_table_final.md", "final_core/sac_residual_10hz_dw10_aw3_set_*", "eval_200.json", "training_curves_final.png"),
+    # the Panda: no filter and the default filter, the same recipe (code be667d7)
+    ("training_table_panda.md", "panda/panda_sac_residual_10hz_dw10_aw3_set_*", "eval_200.json", "training_curves_panda.png"),
 )
 
 
