@@ -12,7 +12,8 @@ source scripts/_venv.sh test
 # `pytest` (not `python -m pytest`) keeps the checkout off sys.path: the installed package is tested.
 "$VENV/bin/pytest" -m "slow or not slow" -p no:cacheprovider "$@"
 if [ "${C3BF_SKIP_RLLIB:-0}" != 1 ]; then
-    VENV="$repo/.venv-rllib" source scripts/_venv.sh test,rllib
+    VENV="$repo/.venv-rllib"  # set apart from `source`: an assignment prefixed to it would not outlast it
+    source scripts/_venv.sh test,rllib
     "$VENV/bin/python" -c "import gymnasium, ray; print('RLlib environment: gymnasium', gymnasium.__version__, 'ray', ray.__version__)"
     "$VENV/bin/pytest" -m "not slow" -p no:cacheprovider "$@"
 fi
