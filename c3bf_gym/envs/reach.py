@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from importlib import resources
+from pathlib import Path
 from typing import Any, Callable, Literal
 
 import mujoco
@@ -128,7 +129,17 @@ _STEP_STATE = mujoco.mjtState.mjSTATE_INTEGRATION
 
 
 def _asset(name: str) -> str:
-    return str(resources.files("c3bf_gym.assets").joinpath(name))
+    """The path of an MJCF file of the package's ``c3bf_gym.assets``: installed package data, or,
+    when ``c3bf_gym`` is imported from a source checkout (the checkout on ``sys.path``, as in Ray
+    workers started in it), the checkout's top-level ``assets/`` folder that the install maps
+    there."""
+    try:
+        return str(resources.files("c3bf_gym.assets").joinpath(name))
+    except ModuleNotFoundError:
+        checkout = Path(__file__).resolve().parents[2] / "assets"
+        if not (checkout / name).is_file():
+            raise
+        return str(checkout / name)
 
 
 class C3BFReachEnv(MujocoEnv, utils.EzPickle):
