@@ -97,7 +97,8 @@ def test_normalized_run_saves_and_applies_its_statistics(tmp_path, monkeypatch):
     import c3bf_gym.training as training
 
     built = []
-    monkeypatch.setattr(training, "make_env", lambda *a, **kw: (built.append(kw), make_env(*a, **kw))[1])
+    build_env = training.build_env
+    monkeypatch.setattr(training, "build_env", lambda *a, **kw: (built.append(kw), build_env(*a, **kw))[1])
     seen = []
     original = SAC.predict
     monkeypatch.setattr(SAC, "predict", lambda self, o, **kw: (seen.append(o.copy()), original(self, o, **kw))[1])
