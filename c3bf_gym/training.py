@@ -1,4 +1,5 @@
-"""Stable-Baselines3 baselines on ``C3BFReach-v0``, with and without the safety filter.
+"""Training on ``C3BFReach-v0``, with and without the safety filter: Stable-Baselines3 runs here,
+Ray RLlib runs in :mod:`c3bf_gym.rllib` (``TrainConfig.engine``), with the same run directory.
 
 One run = one (algorithm, action mode, filter, scenario, seed). Its directory holds:
 
