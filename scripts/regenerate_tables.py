@@ -46,6 +46,8 @@ TRAINING_TABLES = (
     ("training_table_final.md", "final_core/sac_residual_10hz_dw10_aw3_set_*", "eval_200.json", "training_curves_final.png"),
     # the Panda: no filter and the default filter, the same recipe (code be667d7)
     ("training_table_panda.md", "panda/panda_sac_residual_10hz_dw10_aw3_set_*", "eval_200.json", "training_curves_panda.png"),
+    # RLlib PPO, the default filter, 2 env runners (code 9f6e3ed)
+    ("training_table_rllib_ppo.md", "rllib_ppo/rllib_ppo_residual_10hz_dw10_aw3_*", "eval_200.json", "training_curves_rllib_ppo.png"),
 )
 
 
