@@ -48,9 +48,8 @@ EPISODE_FIELDS = ("return", "length", "success", "cost", "interventions", "infea
 
 
 def _make_env(env_config: dict[str, Any]):
-    """RLlib's env creator: :func:`~c3bf_gym.training.build_env` on the run's keywords."""
-    import c3bf_gym  # noqa: F401  (registers the environments in a fresh env-runner process)
-
+    """RLlib's env creator: :func:`~c3bf_gym.training.build_env` on the run's keywords (importing
+    this module registered the environments, in an env-runner process too)."""
     return build_env(**env_config)
 
 
