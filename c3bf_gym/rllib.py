@@ -30,6 +30,7 @@ the learner in the driver); ``address`` joins an existing cluster instead (``"au
 from __future__ import annotations
 
 import csv
+import functools
 import math
 import time
 from pathlib import Path
@@ -53,10 +54,11 @@ def _make_env(env_config: dict[str, Any]):
     return build_env(**env_config)
 
 
+@functools.cache
 def safety_metrics() -> type:
     """The RLlib callback class that logs each finished episode's safety record (below); pass it
-    to ``AlgorithmConfig.callbacks`` to use it in your own RLlib setup. Built on call, so that
-    importing this module does not import Ray."""
+    to ``AlgorithmConfig.callbacks`` to use it in your own RLlib setup. Built on the first call
+    (then the same class), so that importing this module does not import Ray."""
     from ray.rllib.callbacks.callbacks import RLlibCallback
 
     class SafetyMetrics(RLlibCallback):
@@ -184,8 +186,9 @@ def _train_loop(algo, config: TrainConfig, run_dir: Path) -> dict[str, Any]:
             if steps >= next_checkpoint and steps < config.timesteps:
                 algo.save_to_path(str((run_dir / "checkpoints" / str(steps)).resolve()))
                 next_checkpoint += config.checkpoint_freq
-    return {"timesteps": steps, "wall_time_s": time.perf_counter() - start, "training_cost": cumulative_cost,
-            "training_episodes": episodes, "env_steps_per_s": steps / (time.perf_counter() - start)}  # fmt: skip
+    wall = time.perf_counter() - start
+    return {"timesteps": steps, "wall_time_s": wall, "training_cost": cumulative_cost, "training_episodes": episodes,
+            "env_steps_per_s": steps / wall}  # fmt: skip
 
 
 def load_policy(checkpoint: str | Path, deterministic: bool = True) -> Callable[[np.ndarray], np.ndarray]:
