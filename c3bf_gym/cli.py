@@ -212,7 +212,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     try:
         return int(args.func(args) or 0)
-    except (ValueError, FileNotFoundError) as error:
+    except (ValueError, FileNotFoundError, ImportError) as error:  # ImportError: an extra not installed
         parser.exit(2, f"c3bf-gym {args.command}: error: {error}\n")
 
 

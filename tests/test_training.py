@@ -325,6 +325,9 @@ def test_the_rllib_engine_without_ray_names_the_extra(tmp_path):
     with pytest.raises(ImportError, match=r'pip install "c3bf-gym\[rllib\]"'):
         train(config)
     assert not any(tmp_path.iterdir()), "nothing is written before Ray is found"
+    with pytest.raises(SystemExit) as stop:  # the command line says the same, without a traceback
+        main(["train", "--engine", "rllib", "--out", str(tmp_path)])
+    assert stop.value.code == 2
 
 
 def test_evaluate_missing_model(tmp_path):
