@@ -1,7 +1,8 @@
 """Run the baseline set: one algorithm and action mode, three filters, several seeds.
 
 Runs go two at a time (one core each; set --jobs) as `c3bf-gym train` subprocesses, so every
-run's exact command is in its config.json and its log in OUT/logs/. Finished runs are skipped,
+run's exact command is in its config.json and its log in OUT/logs/. `--n-envs N` gives each run N
+environments in SB3's SubprocVecEnv (e.g. PPO: `--algo ppo --n-envs 2 --jobs 1`). Finished runs are skipped,
 so the script can be re-run after an interruption. The defaults are `TrainConfig`'s (the
 README's RL recipe); for example, the main set of the README's table:
 
@@ -43,6 +44,8 @@ def main() -> int:
     parser.add_argument("--obstacle-encoder", choices=OBSTACLE_ENCODERS, default=d.obstacle_encoder,
                         help="flat MLP or a shared per-obstacle encoder (set)")
     parser.add_argument("--hyperparams", default=None, help="JSON overriding the defaults (passed to every run)")
+    parser.add_argument("--n-envs", type=int, default=d.n_envs,
+                        help="environments per run (more than 1: SB3's SubprocVecEnv; default %(default)s)")
     parser.add_argument("--jobs", type=int, default=2)
     parser.add_argument("--out", default="runs")
     args = parser.parse_args()
@@ -69,7 +72,7 @@ def main() -> int:
             "--scenario", args.scenario, "--seed", str(seed),
             "--timesteps", str(args.timesteps), "--out", str(out), "--no-progress", "--policy-hz", str(args.policy_hz),
             "--distance-weight", str(args.distance_weight), "--action-weight", str(args.action_weight),
-            "--obstacle-encoder", args.obstacle_encoder,
+            "--obstacle-encoder", args.obstacle_encoder, "--n-envs", str(args.n_envs),
         ] + (["--normalize-obs"] if args.normalize_obs else []) + (["--hyperparams", args.hyperparams] if args.hyperparams else [])  # fmt: skip
         jobs.append((name, command))
 
