@@ -1,6 +1,6 @@
-"""Cost of the safety filter: per physics step (the hook) and per env step (throughput).
+"""Cost of the safety filter per physics step (the hook).
 
-(a) **Hook latency.** The whole-arm C3BF filter hook, timed call by call while it filters a real
+**Hook latency.** The whole-arm C3BF filter hook, timed call by call while it filters a real
 rollout at 500 Hz (after 5 untimed warm-up steps): the environment (scenario ``none``) gets 1, 4
 or 8 obstacles placed by hand around the arm (0.07-0.3 m from it, drifting slowly, all within the
 sensing radius so every one adds a row per link; re-placed every 50 steps), and an adversarial
@@ -19,15 +19,10 @@ obstacle count runs ``--latency-rounds`` rounds (default 2) of ``--calls / round
 variant, the order rotating per round and round r using seed ``--seed + r`` for both, so machine
 noise and the arrangements hit the variants alike; then the ratios of the first over the second.
 
-(b) **Throughput.** Env steps/s of unfiltered ``C3BFReach-v0``, filtered
-(``SafetyFilter(barrier="c3bf")``) and Gymnasium's ``Pusher-v5``, all from ``gymnasium.make``,
-random actions, reset at episode end, timed in interleaved rounds in this process (rotating the
-order) so machine noise hits all three alike; the ratios filtered/unfiltered and
-filtered/Pusher are per round, the headline is their median.
+Env steps with and without the filter, against the bare physics: ``benchmarks/env_speed.py``.
 
 Usage: ``python benchmarks/filter_speed.py [--calls 3000] [--obstacles 1 4 8] [--policy adversarial]
-[--guard G [G ...]] [--latency-rounds R] [--rounds 5] [--steps 1000] [--split] [--profile] [--no-throughput]
-[--json PATH]``. The script also times
+[--guard G [G ...]] [--latency-rounds R] [--split] [--profile] [--json PATH]``. The script also times
 other versions of the package (``PYTHONPATH=/path/to/other/checkout``): it prints which
 ``c3bf_gym`` it imported, so two trees can be timed alternately with the same script.
 """
@@ -40,7 +35,6 @@ import io
 import json
 import math
 import pstats
-import statistics
 import time
 
 import gymnasium as gym
@@ -51,9 +45,7 @@ import c3bf_gym  # noqa: F401  (registers C3BFReach-v0)
 from c3bf_gym import SafetyFilter
 from c3bf_gym.envs.reach import DISTANCE_CUTOFF
 from c3bf_gym.scenarios import ObstacleSample, ObstacleSpec
-from env_speed import runner_for  # this folder's shared timing loop
 
-# ----------------------------------------------------------------------------- (a) hook latency
 
 
 def place_obstacles(u, count: int, rng: np.random.Generator) -> None:
@@ -244,25 +236,10 @@ def summary(timed: list[TimedHook]) -> dict:
     }  # fmt: skip
 
 
-# ----------------------------------------------------------------------------- (b) throughput
-
-
-def make_runner(name: str, steps: int, seed: int):
-    if name == "filtered":
-        env = SafetyFilter(gym.make("C3BFReach-v0"), barrier="c3bf")
-    elif name == "unfiltered":
-        env = gym.make("C3BFReach-v0")
-    else:
-        env = gym.make("Pusher-v5")
-    return runner_for(env, steps, seed)
-
-
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--calls", type=int, default=3000, help="timed hook calls per obstacle count (default 3000)")
     parser.add_argument("--obstacles", type=int, nargs="+", default=[1, 4, 8], help="obstacle counts (default 1 4 8)")
-    parser.add_argument("--rounds", type=int, default=5, help="interleaved throughput rounds (default 5)")
-    parser.add_argument("--steps", type=int, default=1000, help="env steps per environment per round (default 1000)")
     parser.add_argument("--policy", choices=("adversarial", "random"), default="adversarial",
                         help="policy during the latency runs (default adversarial: the rows bind)")
     parser.add_argument("--guard", nargs="+", choices=("auto", "none"),
@@ -274,19 +251,19 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--split", action="store_true",
                         help="also time the rows and the QP apart (only a hook that calls them: not the fused whole-arm kernel)")
     parser.add_argument("--profile", action="store_true", help="print a cProfile top-15 of the filtered steps (4 obstacles)")
-    parser.add_argument("--no-throughput", action="store_true", help="skip (b), the env throughput rounds")
+    parser.add_argument("--no-throughput", action="store_true", help=argparse.SUPPRESS)  # accepted: throughput moved to env_speed.py
     parser.add_argument("--json", metavar="PATH", help="also write the results as JSON to PATH")
     args = parser.parse_args(argv)
-    if args.calls < 1 or args.rounds < 1 or args.steps < 1 or any(not 1 <= k <= 8 for k in args.obstacles):
-        parser.error("--calls, --rounds, --steps must be >= 1 and obstacle counts in 1..8")
+    if args.calls < 1 or any(not 1 <= k <= 8 for k in args.obstacles):
+        parser.error("--calls must be >= 1 and obstacle counts in 1..8")
     variants = list(dict.fromkeys(args.guard or ["auto"]))  # the guards compared
     rounds = args.latency_rounds or (2 if len(variants) > 1 else 1)
     if rounds < 1 or args.calls < rounds:
         parser.error("--latency-rounds must be >= 1 and <= --calls")
 
-    out: dict = {"hook": {}, "throughput": {}, "package": c3bf_gym.__file__}
+    out: dict = {"hook": {}, "package": c3bf_gym.__file__}
     print(f"c3bf_gym from {c3bf_gym.__file__}")
-    print(f"(a) filter hook per physics step, whole-arm C3BF, {args.policy} policy, {args.calls} calls each [µs]"
+    print(f"filter hook per physics step, whole-arm C3BF, {args.policy} policy, {args.calls} calls each [µs]"
           + (f", {' vs '.join(map(variant_name, variants))} in {rounds} interleaved rounds" if len(variants) > 1 else ""))
     label = len(variants) > 1 or rounds > 1  # one line per variant, headed by its name
     header = (f"{'obst':>4} {'variant':>10} " if label else f"{'obst':>4} ") + (
@@ -325,29 +302,6 @@ def main(argv: list[str] | None = None) -> dict:
     if args.profile:
         hook_latency(4, min(args.calls, 2000), args.seed, args.policy, profile=True)
 
-    if args.no_throughput:
-        return _write(out, args.json)
-    print(f"\n(b) env steps/s, {args.rounds} interleaved rounds x {args.steps} steps, random actions")
-    names = ("unfiltered", "filtered", "pusher")
-    runners = {name: make_runner(name, args.steps, args.seed) for name in names}
-    rates: dict[str, list[float]] = {name: [] for name in names}
-    header = f"{'round':>5} | {'unfiltered':>10} {'filtered':>9} {'Pusher-v5':>9} | {'filt/unfilt':>11} {'filt/Pusher':>11}"
-    print(header)
-    print("-" * len(header))
-    for r in range(args.rounds):
-        order = names[r % 3:] + names[: r % 3]  # rotate who goes first
-        for name in order:
-            rates[name].append(runners[name][1]())
-        u, f, p = (rates[n][-1] for n in names)
-        print(f"{r + 1:>5} | {u:>10.0f} {f:>9.0f} {p:>9.0f} | {f / u:>11.3f} {f / p:>11.3f}")
-    ratio_fu = [f / u for f, u in zip(rates["filtered"], rates["unfiltered"])]
-    ratio_fp = [f / p for f, p in zip(rates["filtered"], rates["pusher"])]
-    med = {n: statistics.median(v) for n, v in rates.items()}
-    print(f"{'median':>5} | {med['unfiltered']:>10.0f} {med['filtered']:>9.0f} {med['pusher']:>9.0f} | "
-          f"{statistics.median(ratio_fu):>11.3f} {statistics.median(ratio_fp):>11.3f}")  # fmt: skip
-    for env, _ in runners.values():
-        env.close()
-    out["throughput"] = {"steps_per_s": rates, "filtered_over_unfiltered": ratio_fu, "filtered_over_pusher": ratio_fp}
     return _write(out, args.json)
 
 

@@ -23,3 +23,15 @@ def test_env_speed_prints_every_configuration_against_the_bare_physics(tmp_path)
     refused = subprocess.run([sys.executable, str(BENCHMARKS / "env_speed.py"), "--rounds", "0"],
                              capture_output=True, text=True, timeout=300)  # fmt: skip
     assert refused.returncode == 2 and "--rounds and --steps must be >= 1" in refused.stderr
+
+
+def test_filter_speed_prints_the_hook_latency_table(tmp_path):
+    out = tmp_path / "filter_speed.json"
+    done = subprocess.run([sys.executable, str(BENCHMARKS / "filter_speed.py"), "--calls", "40", "--obstacles", "1", "4",
+                           "--json", str(out)], capture_output=True, text=True, timeout=600)  # fmt: skip
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert "filter hook per physics step" in done.stdout and "QP status" in done.stdout
+    result = json.loads(out.read_text())
+    for count in ("1", "4"):
+        row = result["hook"][count]
+        assert row["total_median_us"] > 0 and row["total_mean_us"] > 0 and sum(row["status"].values()) >= 40
