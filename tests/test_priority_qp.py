@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from c3bf_gym import SafetyFilter
+from c3bf_gym.safety.controller import ROW_KINDS
 from c3bf_gym.safety.priority_qp import PriorityQP
 
 proxqp = pytest.importorskip("proxsuite").proxqp
@@ -197,3 +198,33 @@ def test_only_a_guarded_filters_barrier_rows_give_way_first():
     for name in ("c3bf", "hocbf"):
         alone = SafetyFilter(gym.make("C3BFReach-v0"), name).hook
         assert alone.qp._levels == (capacity + alone._n_floor_rows + 24, 0) and alone._low_priority_span(50) == 0
+
+
+@pytest.mark.parametrize("name", ["c3bf+hocbf", "c3bf"])
+def test_violations_are_folded_by_the_kind_row_kinds_names(name):
+    """The compiled fold of a step's residuals into the report (``violation_<kind>``) gives, for
+    each kind of row, the largest violation above the QP's tolerance over the rows
+    :meth:`~c3bf_gym.safety.SafetyController.row_kinds` calls that kind, rows no torque can change
+    counting as "unmovable"; and it keeps a larger value the report already holds."""
+    hook = SafetyFilter(gym.make("C3BFReach-v0"), name).hook
+    rng = np.random.default_rng(3)
+    m = 3 * hook._per_obstacle + hook._n_floor_rows + hook._n_joint_rows
+    residual = rng.normal(scale=0.1, size=m)
+    residual[rng.choice(m, 5, replace=False)] = -5e-7  # violated by less than the tolerance: held
+    norm = rng.uniform(0.5, 2.0, m)
+    unmovable = rng.choice(m, 4, replace=False)
+    norm[unmovable] = 0.0
+    residual[unmovable] = (-0.3, -0.2, 0.0, 0.0)  # −b_k: two of them headed into an obstacle
+    hook.qp.buffers.residual[:m], hook.qp.buffers.norm[:m] = residual, norm
+    want = dict.fromkeys(ROW_KINDS, 0.0)
+    for kind, r, k_norm in zip(hook.row_kinds(m), residual, norm):
+        key = kind if k_norm > 0.0 else "unmovable"
+        if -r > max(want[key], 1e-6):
+            want[key] = -r
+    assert {k for k, v in want.items() if v > 0} == {*hook.row_kinds(m), "unmovable"}  # every kind gave way
+    got = dict.fromkeys(ROW_KINDS, 0.0)
+    hook._record_violation(got, m)
+    assert got == want
+    got["floor"] = held = want["floor"] + 1.0  # an earlier physics step of the same policy step gave way more
+    hook._record_violation(got, m)
+    assert got == {**want, "floor": held}

@@ -574,6 +574,32 @@ def low_priority_span(m, n_fixed, guarded):
 
 
 @njit(**_opts)
+def violations_by_kind(residual, norm, n_obstacle, stride, n_floor, tol, out):
+    """Fold one call's row residuals into ``out`` (5,): for each kind of row, in the order of
+    :data:`~c3bf_gym.safety.controller.ROW_KINDS` (barrier, guard, floor, joint limits,
+    unmovable), the largest violation ``−residual[k]`` above ``tol`` and above what ``out``
+    holds.
+
+    The rows are laid out as the filter builds them: the first ``n_obstacle`` are the obstacles'
+    (the barrier's at ``k % stride == 0``, else the guard's), then ``n_floor`` floor rows, then the
+    joint limits'. A row with ``norm[k] == 0`` (no torque can change it) is "unmovable", whatever
+    its place; its residual is then ``−b_k`` (:func:`c3bf_gym.safety._daqp.solve_rows`).
+    """
+    for k in range(residual.shape[0]):
+        if norm[k] == 0.0:
+            kind = 4
+        elif k < n_obstacle:
+            kind = 0 if k % stride == 0 else 1
+        elif k < n_obstacle + n_floor:
+            kind = 2
+        else:
+            kind = 3
+        violation = -residual[k]
+        if violation > out[kind] and violation > tol:
+            out[kind] = violation
+
+
+@njit(**_opts)
 def hook_step(stage, tau_nom, tau, arm, obstacles, params, work, A, b, scale, limit, qp):
     """One whole-arm filter step in one call (:meth:`~c3bf_gym.safety.SafetyController.__call__`): the
     rows (:func:`hook_rows_whole_arm`, whose arguments ``stage`` … ``b`` are), the QP

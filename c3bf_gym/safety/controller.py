@@ -257,6 +257,7 @@ class SafetyController:
         self._obstacle_arrays = _kernels.ObstacleArrays(obstacles.active, self._distances, obstacles.position,
                                                         obstacles.velocity, obstacles.acceleration, obstacles.radius)
         self._work = np.zeros((3, 6 + n))
+        self._violation_scratch = np.zeros(len(ROW_KINDS))  # _record_violation's, by kind
         self._bound: tuple = ()  # hook_step's arguments after the first three (_bind)
         self._hook_step = _kernels.hook_step  # its compiled entry point once bound (_bind)
         self.last: QPResult | None = None
@@ -478,7 +479,7 @@ class SafetyController:
             report.feasible = False
             report.infeasible_steps += 1
             report.slack = max(report.slack, slack)
-            self._record_violation(report.violation, qp.residual[:m], m)
+            self._record_violation(report.violation, m)
             if self.on_infeasible == "raise":
                 raise SafetyInfeasibleError(
                     f"no torque within the limits satisfies the safety rows (status {STATUS[status]!r}, "
@@ -497,14 +498,18 @@ class SafetyController:
         kinds = ["barrier" if k % self._stride == 0 else "guard" for k in range(n_obstacle)]
         return kinds + ["floor"] * self._n_floor_rows + ["joint_limits"] * self._n_joint_rows
 
-    def _record_violation(self, violation: dict[str, float], residual: np.ndarray, m: int) -> None:
+    def _record_violation(self, violation: dict[str, float], m: int) -> None:
         """Fold one infeasible physics step's row residuals (the QP's, row-normalised; rows no
-        torque can change hold ``−b_k``) into ``violation`` by kind."""
-        norm = self.qp.buffers.norm[:m]
-        for kind, r, k_norm in zip(self.row_kinds(m), residual, norm):
-            key = kind if k_norm > 0.0 else "unmovable"
-            if -r > violation[key] and -r > _daqp.ACTIVE_TOL:
-                violation[key] = float(-r)
+        torque can change hold ``−b_k``) into ``violation`` by kind (in compiled code: a loop over
+        the rows here cost more than the QP)."""
+        qp = self.qp.buffers
+        largest = self._violation_scratch
+        largest[:] = 0.0
+        _kernels.violations_by_kind(qp.residual[:m], qp.norm[:m], m - self._n_floor_rows - self._n_joint_rows,
+                                    self._stride, self._n_floor_rows, _daqp.ACTIVE_TOL, largest)
+        for kind, value in zip(ROW_KINDS, largest):
+            if value > violation[kind]:
+                violation[kind] = float(value)
 
     @staticmethod
     def _violation_text(violation: dict[str, float]) -> str:
