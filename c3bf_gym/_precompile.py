@@ -1,10 +1,11 @@
-"""Compile the filter's kernels into numba's on-disk cache: ``python -m c3bf_gym._precompile``.
+"""Compile the package's kernels (the filter's and the obstacle sampler's) into numba's on-disk
+cache: ``python -m c3bf_gym._precompile``.
 
 Building the package (``pip install .``) runs this on the built copy of the package (``setup.py``),
 so the installed package carries machine code for the fused filter step of the environment's arms
-(the UR5e and the Panda) in its ``__pycache__``, and a fresh process's first filtered step loads it
+(the UR5e and the Panda) in its ``_numba_cache`` folders, and a fresh process's first filtered step loads it
 instead of compiling for about half a minute. numba checks every cached entry against the numba
-version, the CPU and the kernels' sources (:mod:`c3bf_gym.safety._compile_cache`); any mismatch, or a
+version, the CPU and the kernels' sources (:mod:`c3bf_gym._compile_cache`); any mismatch, or a
 read-only install, only means the kernels compile on first use as without this step.
 """
 

@@ -13,7 +13,9 @@ promise, checked at every spawn and respawn:
 * the path stays above ``min_height`` (no obstacle is sent through the floor).
 
 Sampling is rejection-based with a bounded number of attempts, driven only by the generator it is
-given, so a seed fixes the episode. Every field is checked when its object is built (numbers are
+given, so a seed fixes the episode. The attempts run in compiled code (numba, which draws from the
+same ``numpy.random.Generator`` with numpy's own algorithms), so a reset costs microseconds per
+attempt rather than a Python loop's tens. Every field is checked when its object is built (numbers are
 Python or numpy numbers, ranges exactly two of them; see :mod:`c3bf_gym.validation`), and
 :func:`max_spawn_distance` bounds where a spec can spawn, so that a spec the envelope can never
 place is refused before any sampling.
@@ -21,16 +23,20 @@ place is refused before any sampling.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
-from typing import Callable, Literal
+from typing import Literal, NamedTuple
 
 import numpy as np
+from numba import njit
 
+from c3bf_gym import _compile_cache  # noqa: F401  (before any @njit(cache=True): the cache keys)
 from c3bf_gym.validation import choice, number, number_range, sequence
 
 __all__ = [
     "MAX_OBSTACLES",
     "SCENARIOS",
+    "ArmCapsules",
     "Envelope",
     "ObstacleSpec",
     "Scenario",
@@ -230,58 +236,208 @@ def max_spawn_distance(spec: ObstacleSpec, envelope: Envelope, path_length: floa
     return reach
 
 
+class ArmCapsules(NamedTuple):
+    """The arm as the sampler keeps obstacles clear of it: capsules about the segments ``a[g]`` to
+    ``b[g]`` (``G`` of them; a sphere is a segment of length 0) with radii ``radius[g]``.
+
+    Attributes:
+        a, b: (G, 3) the segments' end points [m].
+        radius: (G,) [m].
+    """
+
+    a: np.ndarray
+    b: np.ndarray
+    radius: np.ndarray
+
+    @classmethod
+    def none(cls) -> ArmCapsules:
+        """No arm: every candidate is clear of it."""
+        return cls(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0))
+
+    def clearance(self, centre: np.ndarray, radius: float) -> float:
+        """The smallest surface distance [m] from the sphere (``centre`` (3,) [m], ``radius`` [m])
+        to the capsules, negative when it overlaps one; ``inf`` without capsules."""
+        return float(_clearance(self.a, self.b, self.radius, np.asarray(centre, dtype=np.float64), float(radius)))
+
+
+#: the kinds' codes in the compiled sampler
+_KIND_CODES = {kind: code for code, kind in enumerate(_KINDS)}
+
+
+class _SpecArrays(NamedTuple):
+    """An :class:`ObstacleSpec` as the compiled sampler reads it."""
+
+    kind: int
+    path_fraction: tuple[float, float]
+    meet_time: tuple[float, float]
+    crossing_angle: tuple[float, float]
+    lateral_jitter: float
+
+
+class _EnvelopeArrays(NamedTuple):
+    """An :class:`Envelope` as the compiled sampler reads it."""
+
+    speed_range: tuple[float, float]
+    radius_range: tuple[float, float]
+    spawn_clearance: float
+    keep_out_radius: float
+    keep_out_height: float
+    min_height: float
+    horizon: float
+    low: np.ndarray
+    high: np.ndarray
+
+
 @dataclass
 class ObstacleSampler:
-    """Draws obstacle trajectories inside an :class:`Envelope`.
+    """Draws obstacle trajectories inside an :class:`Envelope`, clear of an arm.
 
-    ``clearance`` is a callable returning, for a candidate centre and radius, the smallest surface
-    distance to the arm's geoms in its current configuration (the environment supplies it).
+    ``max_attempts`` bounds the draws per call of :meth:`sample`.
     """
 
     envelope: Envelope
-    clearance: Callable[[np.ndarray, float], float]
     max_attempts: int = 200
 
-    def sample(
-        self, spec: ObstacleSpec, start: np.ndarray, goal: np.ndarray, rng: np.random.Generator
-    ) -> ObstacleSample | None:
-        """One trajectory for ``spec`` around the path ``start`` -> ``goal``; None if none fits."""
+    def __post_init__(self) -> None:
         env = self.envelope
-        path = goal - start
-        length = float(np.linalg.norm(path))
-        direction = path / length if length > 0 else np.array([1.0, 0.0, 0.0])
-        for _ in range(self.max_attempts):
-            radius = float(rng.uniform(*env.radius_range))
-            target = start + rng.uniform(*spec.path_fraction) * path
-            target = target + rng.normal(size=3) * spec.lateral_jitter
-            if spec.kind == "static":
-                velocity = np.zeros(3)
-                position = target
-            else:
-                speed = float(rng.uniform(*env.speed_range))
-                if spec.kind == "head_on":
-                    heading = -direction
-                else:
-                    heading = self._crossing_heading(direction, spec, rng)
-                velocity = speed * heading
-                position = target - velocity * rng.uniform(*spec.meet_time)
-            if (
-                env.contains(position)
-                and env.path_ok(position, velocity, radius)
-                and self.clearance(position, radius) >= env.spawn_clearance
-            ):
-                return ObstacleSample(position, velocity, radius)
-        return None
+        self._envelope = _EnvelopeArrays(env.speed_range, env.radius_range, env.spawn_clearance, env.keep_out_radius,
+                                         env.keep_out_height, env.min_height, env.horizon,
+                                         *(np.array(corner, dtype=np.float64) for corner in env.workspace))
+        self._specs: dict[ObstacleSpec, _SpecArrays] = {}
+        self._out = np.zeros(7)
 
-    @staticmethod
-    def _crossing_heading(direction: np.ndarray, spec: ObstacleSpec, rng: np.random.Generator) -> np.ndarray:
-        # A unit vector at the drawn angle from the path direction, rotated about the path by a
-        # random roll, so crossings come from any side.
-        helper = np.array([0.0, 0.0, 1.0]) if abs(direction[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
-        normal = np.cross(direction, helper)
-        normal /= np.linalg.norm(normal)
-        binormal = np.cross(direction, normal)
-        roll = rng.uniform(0.0, 2.0 * np.pi)
-        side = np.cos(roll) * normal + np.sin(roll) * binormal
-        angle = np.deg2rad(rng.uniform(*spec.crossing_angle))
-        return np.cos(angle) * direction + np.sin(angle) * side
+    def sample(
+        self, spec: ObstacleSpec, start: np.ndarray, goal: np.ndarray, rng: np.random.Generator, arm: ArmCapsules
+    ) -> ObstacleSample | None:
+        """One trajectory for ``spec`` around the path ``start`` -> ``goal`` (3,) [m]; None if none
+        of ``max_attempts`` draws fits.
+
+        Each attempt draws, from ``rng`` and in this order: the radius (uniform in the envelope's
+        range), the path point's fraction of the way from start to goal (uniform), a lateral
+        offset (normal, ``lateral_jitter`` per axis), and for a moving obstacle its speed
+        (uniform), for a crossing one the roll of its heading about the path and its angle to it
+        (uniform), and the time until it meets the path point (uniform); the spawn point is the
+        path point moved back along the heading by speed times that time. It is accepted when
+        the spawn point lies in the envelope's workspace, its straight path over ``horizon``
+        respects the keep-out cylinder and the floor (:meth:`Envelope.path_ok`), and its surface
+        is at least ``spawn_clearance`` from every capsule of ``arm``.
+        """
+        params = self._specs.get(spec)
+        if params is None:
+            params = self._specs[spec] = _SpecArrays(_KIND_CODES[spec.kind], spec.path_fraction, spec.meet_time,
+                                                     spec.crossing_angle, spec.lateral_jitter)
+        out = self._out
+        start = np.asarray(start, dtype=np.float64)
+        goal = np.asarray(goal, dtype=np.float64)
+        if not _sample(params, self._envelope, start, goal, rng, arm.a, arm.b, arm.radius, self.max_attempts, out):
+            return None
+        return ObstacleSample(out[:3].copy(), out[3:6].copy(), float(out[6]))
+
+
+_opts = {"cache": True, "nogil": True, "error_model": "numpy", "boundscheck": False}
+
+
+@njit(**_opts)
+def _path_ok(envelope, start, velocity, radius):
+    """:meth:`Envelope.path_ok`, compiled."""
+    end0 = start[0] + velocity[0] * envelope.horizon
+    end1 = start[1] + velocity[1] * envelope.horizon
+    end2 = start[2] + velocity[2] * envelope.horizon
+    low_z = min(start[2], end2) - radius
+    if low_z < envelope.min_height:
+        return False
+    if low_z > envelope.keep_out_height:
+        return True
+    ab0, ab1 = end0 - start[0], end1 - start[1]
+    denom = ab0 * ab0 + ab1 * ab1
+    t = 0.0 if denom == 0.0 else min(max(-(start[0] * ab0 + start[1] * ab1) / denom, 0.0), 1.0)
+    x, y = start[0] + t * ab0, start[1] + t * ab1
+    return math.sqrt(x * x + y * y) >= envelope.keep_out_radius + radius
+
+
+@njit(**_opts)
+def _clearance(a, b, capsule_radius, centre, radius):
+    """The smallest surface distance [m] from the sphere (``centre``, ``radius``) to the capsules
+    ``a``-``b`` (``inf`` without one)."""
+    gap = np.inf
+    for g in range(a.shape[0]):
+        ab0, ab1, ab2 = b[g, 0] - a[g, 0], b[g, 1] - a[g, 1], b[g, 2] - a[g, 2]
+        length2 = ab0 * ab0 + ab1 * ab1 + ab2 * ab2
+        t = 0.0
+        if length2 > 0.0:
+            t = ((centre[0] - a[g, 0]) * ab0 + (centre[1] - a[g, 1]) * ab1 + (centre[2] - a[g, 2]) * ab2) / length2
+            t = min(max(t, 0.0), 1.0)
+        d0 = centre[0] - (a[g, 0] + t * ab0)
+        d1 = centre[1] - (a[g, 1] + t * ab1)
+        d2 = centre[2] - (a[g, 2] + t * ab2)
+        gap = min(gap, math.sqrt(d0 * d0 + d1 * d1 + d2 * d2) - capsule_radius[g] - radius)
+    return gap
+
+
+@njit(**_opts)
+def _sample(spec, envelope, start, goal, rng, arm_a, arm_b, arm_radius, max_attempts, out):
+    """:meth:`ObstacleSampler.sample`'s attempts: on success ``out`` (7,) holds position (3,),
+    velocity (3,) and radius, and the result is True. The arithmetic is element by element in the
+    order of the numpy expressions it replaced, so the draws and samples are theirs bit for bit."""
+    path = np.empty(3)
+    direction = np.empty(3)
+    target = np.empty(3)
+    velocity = np.empty(3)
+    position = np.empty(3)
+    for i in range(3):
+        path[i] = goal[i] - start[i]
+    length = math.sqrt(path[0] * path[0] + path[1] * path[1] + path[2] * path[2])
+    for i in range(3):
+        direction[i] = path[i] / length if length > 0 else (1.0 if i == 0 else 0.0)
+    # the crossing headings' frame: a normal and a binormal of the path
+    normal = np.empty(3)
+    binormal = np.empty(3)
+    if spec.kind == 2:
+        h0, h1, h2 = (0.0, 0.0, 1.0) if abs(direction[2]) < 0.9 else (1.0, 0.0, 0.0)
+        normal[0] = direction[1] * h2 - direction[2] * h1
+        normal[1] = direction[2] * h0 - direction[0] * h2
+        normal[2] = direction[0] * h1 - direction[1] * h0
+        size = math.sqrt(normal[0] * normal[0] + normal[1] * normal[1] + normal[2] * normal[2])
+        for i in range(3):
+            normal[i] /= size
+        binormal[0] = direction[1] * normal[2] - direction[2] * normal[1]
+        binormal[1] = direction[2] * normal[0] - direction[0] * normal[2]
+        binormal[2] = direction[0] * normal[1] - direction[1] * normal[0]
+    low, high = envelope.low, envelope.high
+    for _ in range(max_attempts):
+        radius = rng.uniform(envelope.radius_range[0], envelope.radius_range[1])
+        fraction = rng.uniform(spec.path_fraction[0], spec.path_fraction[1])
+        jitter = rng.normal(size=3)
+        for i in range(3):
+            target[i] = start[i] + fraction * path[i]
+            target[i] = target[i] + jitter[i] * spec.lateral_jitter
+        if spec.kind == 0:
+            for i in range(3):
+                velocity[i] = 0.0
+                position[i] = target[i]
+        else:
+            speed = rng.uniform(envelope.speed_range[0], envelope.speed_range[1])
+            if spec.kind == 1:
+                for i in range(3):
+                    velocity[i] = speed * -direction[i]
+            else:
+                roll = rng.uniform(0.0, 2.0 * np.pi)
+                angle = rng.uniform(spec.crossing_angle[0], spec.crossing_angle[1]) * (np.pi / 180.0)
+                cos_roll, sin_roll, cos_angle, sin_angle = math.cos(roll), math.sin(roll), math.cos(angle), math.sin(angle)
+                for i in range(3):
+                    side = cos_roll * normal[i] + sin_roll * binormal[i]
+                    velocity[i] = speed * (cos_angle * direction[i] + sin_angle * side)
+            meet = rng.uniform(spec.meet_time[0], spec.meet_time[1])
+            for i in range(3):
+                position[i] = target[i] - velocity[i] * meet
+        inside = True
+        for i in range(3):
+            inside = inside and low[i] <= position[i] <= high[i]
+        if (inside and _path_ok(envelope, position, velocity, radius)
+                and _clearance(arm_a, arm_b, arm_radius, position, radius) >= envelope.spawn_clearance):
+            for i in range(3):
+                out[i] = position[i]
+                out[3 + i] = velocity[i]
+            out[6] = radius
+            return True
+    return False

@@ -66,3 +66,45 @@ def partials(barrier, p, v, r) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     :meth:`~c3bf_gym.safety.barriers.Barrier.terms`."""
     t = barrier.terms(p, v, r)
     return t.h, t.grad_p, t.grad_v
+
+
+def sample_obstacle(envelope, spec, start, goal, rng, arm_a, arm_b, arm_radius, max_attempts=200):
+    """The obstacle sampler's attempts (:meth:`c3bf_gym.scenarios.ObstacleSampler.sample`) as the
+    numpy loop it was before it was compiled: ``(position, velocity, radius)`` or None. The compiled
+    sampler must give the same draws and samples, bit for bit."""
+    from c3bf_gym.safety.dynamics import segment_closest_points
+
+    path = goal - start
+    length = float(np.linalg.norm(path))
+    direction = path / length if length > 0 else np.array([1.0, 0.0, 0.0])
+    for _ in range(max_attempts):
+        radius = float(rng.uniform(*envelope.radius_range))
+        target = start + rng.uniform(*spec.path_fraction) * path
+        target = target + rng.normal(size=3) * spec.lateral_jitter
+        if spec.kind == "static":
+            velocity = np.zeros(3)
+            position = target
+        else:
+            speed = float(rng.uniform(*envelope.speed_range))
+            if spec.kind == "head_on":
+                heading = -direction
+            else:
+                helper = np.array([0.0, 0.0, 1.0]) if abs(direction[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
+                normal = np.cross(direction, helper)
+                normal /= np.linalg.norm(normal)
+                binormal = np.cross(direction, normal)
+                roll = rng.uniform(0.0, 2.0 * np.pi)
+                side = np.cos(roll) * normal + np.sin(roll) * binormal
+                angle = np.deg2rad(rng.uniform(*spec.crossing_angle))
+                heading = np.cos(angle) * direction + np.sin(angle) * side
+            velocity = speed * heading
+            position = target - velocity * rng.uniform(*spec.meet_time)
+        if len(arm_radius):
+            closest = segment_closest_points(arm_a, arm_b, position[None])[0]
+            clearance = float((np.linalg.norm(position - closest, axis=1) - arm_radius - radius).min())
+        else:
+            clearance = np.inf
+        if envelope.contains(position) and envelope.path_ok(position, velocity, radius) and (
+                clearance >= envelope.spawn_clearance):
+            return position, velocity, radius
+    return None

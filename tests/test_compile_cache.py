@@ -1,4 +1,4 @@
-"""The compiled kernels' on-disk cache follows their sources (c3bf_gym/safety/_compile_cache.py).
+"""The compiled kernels' on-disk cache follows their sources (c3bf_gym/_compile_cache.py).
 
 numba keys a cached function on the file that defines it; the filter's kernels are compiled into
 each other across files, so a stale cache could keep an edited solver's old machine code. These

@@ -17,7 +17,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from c3bf_gym import SCENARIOS, Envelope, ObstacleSpec, Scenario
-from c3bf_gym.scenarios import ObstacleSampler, get_scenario
+from c3bf_gym.scenarios import ArmCapsules, ObstacleSampler, get_scenario
+
+import reference
 
 SEEDS = range(60)
 EXPECTED_COUNT = {"static": 1, "head_on": 1, "crossing": 1, "multi": 4, "none": 0}
@@ -368,18 +370,20 @@ def test_mixture_resolves_to_its_components_uniformly():
 
 
 def test_sampler_gives_up_when_nothing_fits():
-    sampler = ObstacleSampler(Envelope(), clearance=lambda centre, radius: -1.0, max_attempts=20)
+    everywhere = ArmCapsules(np.zeros((1, 3)), np.zeros((1, 3)), np.array([50.0]))  # a ball around every candidate
+    sampler = ObstacleSampler(Envelope(), max_attempts=20)
     rng = np.random.default_rng(0)
-    assert sampler.sample(ObstacleSpec("static"), np.array([0.4, 0, 0.4]), np.array([0.5, 0.2, 0.3]), rng) is None
+    assert sampler.sample(ObstacleSpec("static"), np.array([0.4, 0, 0.4]), np.array([0.5, 0.2, 0.3]), rng,
+                          everywhere) is None
 
 
 def test_sampler_is_driven_only_by_its_generator():
-    sampler = ObstacleSampler(Envelope(), clearance=lambda centre, radius: 1.0)
+    sampler = ObstacleSampler(Envelope())
     start, goal = np.array([0.45, 0.1, 0.45]), np.array([0.5, -0.3, 0.25])
     spec = ObstacleSpec("crossing")
-    a = sampler.sample(spec, start, goal, np.random.default_rng(42))
-    b = sampler.sample(spec, start, goal, np.random.default_rng(42))
-    c = sampler.sample(spec, start, goal, np.random.default_rng(43))
+    a = sampler.sample(spec, start, goal, np.random.default_rng(42), ArmCapsules.none())
+    b = sampler.sample(spec, start, goal, np.random.default_rng(42), ArmCapsules.none())
+    c = sampler.sample(spec, start, goal, np.random.default_rng(43), ArmCapsules.none())
     assert np.array_equal(a.position, b.position) and np.array_equal(a.velocity, b.velocity) and a.radius == b.radius
     assert not np.array_equal(a.position, c.position)
 
@@ -409,3 +413,31 @@ def test_env_names_the_mixture_component_of_each_episode(make_env):
         seen.add(name)
         assert u.obstacle_active.sum() == counts[name]  # the obstacles placed are that component's
     assert seen == set(SCENARIOS["random"].mixture)
+
+
+def test_compiled_sampler_gives_the_numpy_loops_samples_bit_for_bit():
+    """Every kind, random paths (some too short for a static obstacle to clear the arm), an arm of
+    capsules near the path's start: the compiled attempts draw and accept exactly what the numpy
+    loop they replaced did (``reference.sample_obstacle``), and leave the generator in the same
+    state; so seeded episodes stay what they were."""
+    envelope = Envelope()
+    sampler = ObstacleSampler(envelope)
+    cases = np.random.default_rng(5)
+    accepted = rejected = 0
+    for case in range(300):
+        spec = ObstacleSpec(("static", "head_on", "crossing")[case % 3], lateral_jitter=0.02 * (case % 2))
+        start = np.array([0.45, 0.0, 0.45]) + cases.uniform(-0.1, 0.1, 3)
+        goal = start + cases.uniform(-0.5, 0.5, 3) * (case % 5 != 0)  # every fifth: a path of length 0
+        a = start + cases.uniform(-0.1, 0.1, (4, 3))
+        arm = ArmCapsules(a, a + cases.uniform(-0.3, 0.3, (4, 3)), cases.uniform(0.03, 0.06, 4))
+        ours, theirs = np.random.default_rng(case), np.random.default_rng(case)
+        got = sampler.sample(spec, start, goal, ours, arm)
+        want = reference.sample_obstacle(envelope, spec, start, goal, theirs, *arm)
+        assert (got is None) == (want is None)
+        if got is not None:
+            assert np.array_equal(got.position, want[0]) and np.array_equal(got.velocity, want[1])
+            assert got.radius == want[2]
+        assert ours.bit_generator.state == theirs.bit_generator.state
+        accepted += got is not None
+        rejected += got is None
+    assert accepted > 100 and rejected > 10

@@ -12,11 +12,12 @@ import numpy as np
 from gymnasium import error, spaces, utils
 from gymnasium.envs.mujoco.mujoco_env import MujocoEnv
 
-from c3bf_gym.safety.dynamics import ArmModel, segment_closest_points
+from c3bf_gym.safety.dynamics import ArmModel
 from c3bf_gym.safety.obstacles import Obstacles
 from c3bf_gym.safety.robot import RobotDescription
 from c3bf_gym.scenarios import (
     MAX_OBSTACLES,
+    ArmCapsules,
     Envelope,
     ObstacleSampler,
     ObstacleSpec,
@@ -330,7 +331,7 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
         self.state_version = 0
         self._arm = None
         self._hook_chain: tuple[TorqueHook, ...] = ()
-        self._sampler = ObstacleSampler(self.envelope, self._arm_clearance)
+        self._sampler = ObstacleSampler(self.envelope)
         self._workspace = tuple(np.asarray(c, dtype=float) for c in self.envelope.workspace)
         self._goal_distance = 0.0
         self._episode_cost = 0.0
@@ -455,7 +456,7 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
         mujoco.mj_forward(m, home)
         tool = home.site_xpos[self.ee_site_id].copy()
         rigid = self.arm_geom_ids[m.geom_bodyid[self.arm_geom_ids] == m.site_bodyid[self.ee_site_id]]
-        self._tool_depth = -self._surface_gaps(home, rigid, tool, 0.0).min()
+        self._tool_depth = -self._arm_capsules(home, rigid).clearance(tool, 0.0)
         levers = np.linalg.norm(home.xanchor[: m.njnt] - tool, axis=1).sum()
         home_noise = self.task_robot.home_noise
         noise = home_noise * levers / (1.0 - m.njnt * home_noise)
@@ -706,9 +707,10 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
                     f"fit: {reason}"
                 )
         failures = np.zeros(len(scenario.obstacles), dtype=int)
+        arm = self._arm_capsules(d, self.arm_geom_ids)
         for _ in range(100):
             goal = self._sample_goal(start, rng)
-            samples = [self._sampler.sample(spec, start, goal, rng) for spec in scenario.obstacles]
+            samples = [self._sampler.sample(spec, start, goal, rng, arm) for spec in scenario.obstacles]
             if all(s is not None for s in samples):
                 break
             failures += [s is None for s in samples]
@@ -763,7 +765,8 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
         for slot in np.flatnonzero(outside):
             tool = self.data.site_xpos[self.ee_site_id].copy()
             goal = self.data.mocap_pos[self._goal_mocap].copy()
-            sample = self._sampler.sample(self._obstacle_specs[slot], tool, goal, self.np_random)
+            sample = self._sampler.sample(self._obstacle_specs[slot], tool, goal, self.np_random,
+                                          self._arm_capsules(self.data, self.arm_geom_ids))
             if sample is None:  # nothing fits right now: retire the obstacle for this episode
                 self.obstacle_active[slot] = False
                 self.obstacle_vel[slot] = 0.0
@@ -773,14 +776,9 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
             mujoco.mj_forward(self.model, self.data)  # sensors and contacts see the new position
         self.state_version += 1
 
-    def _arm_clearance(self, centre: np.ndarray, radius: float) -> float:
-        """Smallest surface distance from a sphere to the arm's geoms (capsule/cylinder axes)."""
-        return float(self._surface_gaps(self.data, self.arm_geom_ids, centre, radius).min())
-
-    def _surface_gaps(self, d: mujoco.MjData, ids: np.ndarray, centre: np.ndarray, radius: float) -> np.ndarray:
-        """Surface distances (m) from a sphere to geoms ``ids`` in state ``d``, each taken as a
-        capsule about its axis (exact for capsules)."""
+    def _arm_capsules(self, d: mujoco.MjData, ids: np.ndarray) -> ArmCapsules:
+        """Geoms ``ids`` in state ``d``, each taken as a capsule about its axis (exact for
+        capsules and spheres): what obstacles spawn clear of."""
         m = self.model
         axis = d.geom_xmat[ids][:, 2::3] * m.geom_size[ids, 1][:, None]  # z column, half length
-        closest = segment_closest_points(d.geom_xpos[ids] - axis, d.geom_xpos[ids] + axis, centre[None])[0]
-        return np.linalg.norm(centre - closest, axis=1) - m.geom_size[ids, 0] - radius
+        return ArmCapsules(d.geom_xpos[ids] - axis, d.geom_xpos[ids] + axis, m.geom_size[ids, 0].copy())

@@ -33,7 +33,7 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit
 
-from c3bf_gym.safety import _compile_cache  # noqa: F401  (before any @njit(cache=True): the cache keys)
+from c3bf_gym import _compile_cache  # noqa: F401  (before any @njit(cache=True): the cache keys)
 
 # hook_step compiles _daqp.solve_rows into itself: _compile_cache keys the on-disk cache of both
 # files' functions on both files.

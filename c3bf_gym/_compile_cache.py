@@ -3,8 +3,9 @@
 numba keys a cached function on a hash of the one file that defines it. The filter's kernels call
 each other across files (``_kernels.hook_step`` compiles ``_daqp.solve_rows`` into itself), so an
 edit to ``_daqp.py`` alone would leave the old solver inside the cached ``hook_step``. Here
-the cache stamp of every function defined in :data:`KERNEL_SOURCES` is the hash of all those
-files together: changing any of them recompiles every kernel on its next use.
+the cache stamp of every function defined in :data:`KERNEL_SOURCES` (the filter's kernels and the
+scenarios' obstacle sampler) is the hash of all those files together: changing any of them
+recompiles every kernel on its next use.
 
 Importing this module installs cache locators in front of numba's own, for the places numba
 would use (``NUMBA_CACHE_DIR`` when set, else beside the sources (in :data:`CACHE_FOLDER`), else
@@ -28,8 +29,9 @@ __all__ = ["CACHE_FOLDER", "KERNEL_SOURCES", "sources_digest"]
 CACHE_FOLDER = "_numba_cache"
 
 _PACKAGE = Path(__file__).resolve().parent
-#: The modules whose ``@njit(cache=True)`` functions are compiled into each other.
-KERNEL_SOURCES = ("_kernels.py", "_daqp.py")
+#: The modules (paths in the package) whose ``@njit(cache=True)`` functions this cache serves: the
+#: filter's, compiled into each other, and the obstacle sampler's.
+KERNEL_SOURCES = ("safety/_kernels.py", "safety/_daqp.py", "scenarios.py")
 _PATHS = tuple(str(_PACKAGE / name) for name in KERNEL_SOURCES)
 
 
