@@ -3,8 +3,8 @@
 numba keys a cached function on a hash of the one file that defines it. The filter's kernels call
 each other across files (``_kernels.hook_step`` compiles ``_daqp.solve_rows`` into itself), so an
 edit to ``_daqp.py`` alone would leave the old solver inside the cached ``hook_step``. Here
-the cache stamp of every function defined in :data:`KERNEL_SOURCES` (the filter's kernels and the
-scenarios' obstacle sampler) is the hash of all those files together: changing any of them
+the cache stamp of every function defined in :data:`KERNEL_SOURCES` (the filter's kernels, the
+scenarios' obstacle sampler and the environment's physics steps) is the hash of all those files together: changing any of them
 recompiles every kernel on its next use.
 
 Importing this module installs cache locators in front of numba's own, for the places numba
@@ -30,8 +30,8 @@ CACHE_FOLDER = "_numba_cache"
 
 _PACKAGE = Path(__file__).resolve().parent
 #: The modules (paths in the package) whose ``@njit(cache=True)`` functions this cache serves: the
-#: filter's, compiled into each other, and the obstacle sampler's.
-KERNEL_SOURCES = ("safety/_kernels.py", "safety/_daqp.py", "scenarios.py")
+#: filter's, compiled into each other, the obstacle sampler's and the environment's physics steps.
+KERNEL_SOURCES = ("safety/_kernels.py", "safety/_daqp.py", "scenarios.py", "envs/_physics.py")
 _PATHS = tuple(str(_PACKAGE / name) for name in KERNEL_SOURCES)
 
 

@@ -12,6 +12,7 @@ import numpy as np
 from gymnasium import error, spaces, utils
 from gymnasium.envs.mujoco.mujoco_env import MujocoEnv
 
+from c3bf_gym.envs._physics import Physics, physics_steps
 from c3bf_gym.safety.dynamics import ArmModel
 from c3bf_gym.safety.obstacles import Obstacles
 from c3bf_gym.safety.robot import RobotDescription
@@ -394,6 +395,9 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
             self._obs[parts["obstacle_sensed"]],
         )
         self._tool_vel = np.zeros(6)
+        #: the compiled physics steps' views of the model, data and obstacles (_simulate)
+        self._physics = Physics.of(m, self.data, self.obstacle_pos, self._step_displacement, self.distances,
+                                   DISTANCE_CUTOFF)
         #: The obstacles as the safety filter reads them: views of the arrays above and of the
         #: distance sensors, so they are current at every physics step.
         self.obstacles = Obstacles(
@@ -626,34 +630,32 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
         """Advance ``frame_skip`` physics steps; return (min signed distance, mean effort).
 
         Invariant: between calls ``data`` holds ``mj_step1`` results for the current state, so a
-        hook reads current kinematics, mass matrix and bias forces.
+        hook reads current kinematics, mass matrix and bias forces. Without hooks the steps run in
+        one compiled call (:func:`~c3bf_gym.envs._physics.physics_steps`); with hooks, the hooks run
+        between compiled single steps.
         """
         m, d = self.model, self.data
-        dt = m.opt.timestep
-        np.multiply(self.obstacle_vel, dt, out=self._step_displacement)
+        np.multiply(self.obstacle_vel, m.opt.timestep, out=self._step_displacement)
         hooks = self._hook_chain
-        distances = self.distances
-        min_distance = DISTANCE_CUTOFF
-        effort = 0.0
         if not hooks:
             d.ctrl[:] = torque
             u = torque * self._inv_limit
-            effort = float(u @ u) / len(u)
+            min_distance = physics_steps(self._physics, self.frame_skip)
+            self.state_version += self.frame_skip
+            return float(min_distance), float(u @ u) / len(u)
+        min_distance = DISTANCE_CUTOFF
+        effort = 0.0
         for _ in range(self.frame_skip):
-            if hooks:
-                gravity = d.qfrc_gravcomp
-                tau = torque + gravity
-                for hook in hooks:
-                    tau = hook(tau)
-                ctrl = tau - gravity
-                d.ctrl[:] = ctrl
-                u = ctrl * self._inv_limit
-                effort += float(u @ u) / (len(u) * self.frame_skip)
-            mujoco.mj_step2(m, d)
-            self.obstacle_pos += self._step_displacement
-            mujoco.mj_step1(m, d)
+            gravity = d.qfrc_gravcomp
+            tau = torque + gravity
+            for hook in hooks:
+                tau = hook(tau)
+            ctrl = tau - gravity
+            d.ctrl[:] = ctrl
+            u = ctrl * self._inv_limit
+            effort += float(u @ u) / (len(u) * self.frame_skip)
+            distance = physics_steps(self._physics, 1)
             self.state_version += 1
-            distance = distances.min()
             if distance < min_distance:
                 min_distance = distance
         return float(min_distance), effort

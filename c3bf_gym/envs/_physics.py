@@ -1,0 +1,115 @@
+"""The reaching environment's physics steps in compiled code: MuJoCo's own ``mj_step2`` and
+``mj_step1`` called from numba, with the obstacles' motion and the distance sensors' minimum
+between them.
+
+A policy step is ``frame_skip`` physics steps; in Python each cost two calls into the bindings
+and two numpy operations on top of the physics, about as much again as the physics itself.
+:func:`physics_steps` runs any number of them in one call. It calls the C functions of the
+``libmujoco`` that the ``mujoco`` package loaded (the same library, so the same model and data
+structures), by address: ctypes reads the addresses here, and the compiled code receives them as
+data (:class:`Physics`), so numba caches it on disk like the package's other kernels.
+
+MuJoCo's fatal errors (``mju_error``) are C++ exceptions in the Python bindings and cannot cross
+compiled frames; the steps here are those of the environment's own scene, which allocates
+nothing per step beyond its fixed arena.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import glob
+import os
+from typing import NamedTuple
+
+import mujoco
+import numpy as np
+from llvmlite import ir
+from numba import njit, types
+from numba.extending import intrinsic
+
+from c3bf_gym import _compile_cache  # noqa: F401  (before any @njit(cache=True): the cache keys)
+
+__all__ = ["Physics", "physics_steps"]
+
+
+def _libmujoco() -> ctypes.CDLL:
+    """The ``libmujoco`` shipped in (and loaded by) the ``mujoco`` package."""
+    folder = os.path.dirname(mujoco.__file__)
+    found = sorted(glob.glob(os.path.join(folder, "libmujoco.so*")) + glob.glob(os.path.join(folder, "libmujoco*.dylib"))
+                   + glob.glob(os.path.join(folder, "mujoco.dll")))  # fmt: skip
+    if not found:
+        raise ImportError(f"found no libmujoco shared library in {folder}: the mujoco package's layout is not the one "
+                          f"c3bf_gym knows (mujoco {mujoco.__version__})")  # fmt: skip
+    return ctypes.CDLL(found[0])
+
+
+_lib = _libmujoco()
+#: the entries of :attr:`Physics.functions`
+STEP1, STEP2 = range(2)
+_FUNCTIONS = np.array([ctypes.cast(_lib.mj_step1, ctypes.c_void_p).value,
+                       ctypes.cast(_lib.mj_step2, ctypes.c_void_p).value], dtype=np.uint64)  # fmt: skip
+
+
+@intrinsic
+def _call(typingctx, fn, model, data):
+    """``void fn(const mjModel*, mjData*)`` at address ``fn``."""
+    sig = types.none(types.uint64, types.uint64, types.uint64)
+
+    def codegen(context, builder, signature, args):
+        fn_addr, model_v, data_v = args
+        ptr = ir.IntType(8).as_pointer()
+        callee = builder.inttoptr(fn_addr, ir.FunctionType(ir.VoidType(), [ptr, ptr]).as_pointer())
+        builder.call(callee, [builder.inttoptr(model_v, ptr), builder.inttoptr(data_v, ptr)])
+        return context.get_dummy_value()
+
+    return sig, codegen
+
+
+class Physics(NamedTuple):
+    """What :func:`physics_steps` works on (views of the environment's ``MjData``, updated in place).
+
+    Attributes:
+        functions: uint64 (2,) the addresses of ``mj_step1`` and ``mj_step2``.
+        pointers: uint64 (2,) the addresses of the ``MjModel`` and the ``MjData``.
+        obstacle_pos: (K, 3) the obstacles' mocap positions [m].
+        displacement: (K, 3) each obstacle's motion per physics step [m].
+        distances: (K, G) the distance sensors' readings [m].
+        cutoff: the sensors' cutoff [m]: the largest distance they read.
+    """
+
+    functions: np.ndarray
+    pointers: np.ndarray
+    obstacle_pos: np.ndarray
+    displacement: np.ndarray
+    distances: np.ndarray
+    cutoff: float
+
+    @classmethod
+    def of(cls, model: mujoco.MjModel, data: mujoco.MjData, obstacle_pos: np.ndarray, displacement: np.ndarray,
+           distances: np.ndarray, cutoff: float) -> Physics:
+        """The structure for ``model`` and ``data``, which must outlive it."""
+        return cls(_FUNCTIONS, np.array([model._address, data._address], dtype=np.uint64), obstacle_pos, displacement,
+                   distances, float(cutoff))
+
+
+@njit(cache=True, nogil=True, error_model="numpy", boundscheck=False)
+def physics_steps(physics, n):
+    """``n`` physics steps from a state whose ``mj_step1`` has run: each ``mj_step2`` (integrate
+    the controls in ``data.ctrl``), then every obstacle moves by its displacement, then
+    ``mj_step1`` (kinematics, dynamics and sensors of the new state). Returns the smallest distance
+    sensor reading over the ``n`` new states (``cutoff`` at most)."""
+    model, data = physics.pointers[0], physics.pointers[1]
+    step1, step2 = physics.functions[STEP1], physics.functions[STEP2]
+    pos, displacement, distances = physics.obstacle_pos, physics.displacement, physics.distances
+    lowest = physics.cutoff
+    for _ in range(n):
+        _call(step2, model, data)
+        for k in range(pos.shape[0]):
+            for i in range(3):
+                pos[k, i] += displacement[k, i]
+        _call(step1, model, data)
+        for k in range(distances.shape[0]):
+            for g in range(distances.shape[1]):
+                if distances[k, g] < lowest:
+                    lowest = distances[k, g]
+    return lowest
