@@ -4,8 +4,8 @@ numba keys a cached function on a hash of the one file that defines it. The filt
 each other across files (``_kernels.hook_step`` compiles ``_daqp.solve_rows`` into itself), so an
 edit to ``_daqp.py`` alone would leave the old solver inside the cached ``hook_step``. Here
 the cache stamp of every function defined in :data:`KERNEL_SOURCES` (the filter's kernels, the
-scenarios' obstacle sampler and the environment's physics steps) is the hash of all those files together: changing any of them
-recompiles every kernel on its next use.
+scenarios' obstacle sampler and the environment's own) is the hash of all those files together:
+changing any of them recompiles every kernel on its next use.
 
 Importing this module installs cache locators in front of numba's own, for the places numba
 would use (``NUMBA_CACHE_DIR`` when set, else beside the sources (in :data:`CACHE_FOLDER`), else
@@ -30,8 +30,8 @@ CACHE_FOLDER = "_numba_cache"
 
 _PACKAGE = Path(__file__).resolve().parent
 #: The modules (paths in the package) whose ``@njit(cache=True)`` functions this cache serves: the
-#: filter's, compiled into each other, the obstacle sampler's and the environment's physics steps.
-KERNEL_SOURCES = ("safety/_kernels.py", "safety/_daqp.py", "scenarios.py", "envs/_physics.py")
+#: filter's, compiled into each other, the obstacle sampler's and the environment's.
+KERNEL_SOURCES = ("safety/_kernels.py", "safety/_daqp.py", "scenarios.py", "envs/_kernels.py")
 _PATHS = tuple(str(_PACKAGE / name) for name in KERNEL_SOURCES)
 
 

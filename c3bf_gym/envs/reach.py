@@ -12,7 +12,7 @@ import numpy as np
 from gymnasium import error, spaces, utils
 from gymnasium.envs.mujoco.mujoco_env import MujocoEnv
 
-from c3bf_gym.envs._physics import Physics, physics_steps
+from c3bf_gym.envs._kernels import Observed, Physics, departed, entry, observe, physics_steps
 from c3bf_gym.safety.dynamics import ArmModel
 from c3bf_gym.safety.obstacles import Obstacles
 from c3bf_gym.safety.robot import RobotDescription
@@ -334,6 +334,7 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
         self._hook_chain: tuple[TorqueHook, ...] = ()
         self._sampler = ObstacleSampler(self.envelope)
         self._workspace = tuple(np.asarray(c, dtype=float) for c in self.envelope.workspace)
+        self._departed = entry(departed, self.obstacle_pos, self.obstacle_active, *self._workspace)
         self._goal_distance = 0.0
         self._episode_cost = 0.0
         self._needs_reset = True
@@ -388,16 +389,17 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
             raise RuntimeError(f"{self.task_robot.scene} has {m.nv} dofs, robot {self.task_robot.name!r} {self.task_robot.n_joints}")
         parts = self.observation_slices
         self._obs = np.zeros(max(part.stop for part in parts.values()))
-        self._obs_obstacles = (  # views into self._obs
-            self._obs[parts["obstacle_rel_pos"]].reshape(MAX_OBSTACLES, 3),
-            self._obs[parts["obstacle_vel"]].reshape(MAX_OBSTACLES, 3),
-            self._obs[parts["obstacle_radius"]],
-            self._obs[parts["obstacle_sensed"]],
-        )
         self._tool_vel = np.zeros(6)
         #: the compiled physics steps' views of the model, data and obstacles (_simulate)
         self._physics = Physics.of(m, self.data, self.obstacle_pos, self._step_displacement, self.distances,
                                    DISTANCE_CUTOFF)
+        self._physics_steps = entry(physics_steps, self._physics, 0)
+        self._seen = Observed(self.data.qpos, self.data.qvel, self.data.site_xpos[self.ee_site_id], self._tool_vel,
+                              self.data.mocap_pos[self._goal_mocap], self.obstacle_pos, self.obstacle_vel,
+                              self.obstacle_radius, self.obstacle_active, self.distances)
+        self._observe = entry(observe, self._seen, 1.0, self._obs)
+        # the MjData arrays the hooks' loop reads and writes, as views made once
+        self._gravcomp, self._ctrl = self.data.qfrc_gravcomp, self.data.ctrl
         #: The obstacles as the safety filter reads them: views of the arrays above and of the
         #: distance sensors, so they are current at every physics step.
         self.obstacles = Obstacles(
@@ -634,27 +636,26 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
         one compiled call (:func:`~c3bf_gym.envs._physics.physics_steps`); with hooks, the hooks run
         between compiled single steps.
         """
-        m, d = self.model, self.data
-        np.multiply(self.obstacle_vel, m.opt.timestep, out=self._step_displacement)
-        hooks = self._hook_chain
+        np.multiply(self.obstacle_vel, self.model.opt.timestep, out=self._step_displacement)
+        hooks, physics, steps = self._hook_chain, self._physics, self._physics_steps
         if not hooks:
-            d.ctrl[:] = torque
+            self._ctrl[:] = torque
             u = torque * self._inv_limit
-            min_distance = physics_steps(self._physics, self.frame_skip)
+            min_distance = steps(physics, self.frame_skip)
             self.state_version += self.frame_skip
             return float(min_distance), float(u @ u) / len(u)
+        gravity, control, inv_limit = self._gravcomp, self._ctrl, self._inv_limit
         min_distance = DISTANCE_CUTOFF
         effort = 0.0
         for _ in range(self.frame_skip):
-            gravity = d.qfrc_gravcomp
             tau = torque + gravity
             for hook in hooks:
                 tau = hook(tau)
             ctrl = tau - gravity
-            d.ctrl[:] = ctrl
-            u = ctrl * self._inv_limit
+            control[:] = ctrl
+            u = ctrl * inv_limit
             effort += float(u @ u) / (len(u) * self.frame_skip)
-            distance = physics_steps(self._physics, 1)
+            distance = steps(physics, 1)
             self.state_version += 1
             if distance < min_distance:
                 min_distance = distance
@@ -666,24 +667,8 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
         return self.distances.min(axis=1)
 
     def _get_obs(self) -> np.ndarray:
-        d = self.data
-        obs = self._obs
-        tool = d.site_xpos[self.ee_site_id]
-        mujoco.mj_objectVelocity(self.model, d, mujoco.mjtObj.mjOBJ_SITE, self.ee_site_id, self._tool_vel, 0)
-        parts = self.observation_slices
-        obs[parts["joint_pos"]] = d.qpos
-        obs[parts["joint_vel"]] = d.qvel
-        obs[parts["tool_pos"]] = tool
-        obs[parts["tool_vel"]] = self._tool_vel[3:]
-        obs[parts["goal_rel"]] = d.mocap_pos[self._goal_mocap] - tool
-        sensed = self.sensed_mask()
-        rel, vel, radius, flag = self._obs_obstacles
-        np.subtract(self.obstacle_pos, tool, out=rel)
-        np.multiply(rel, sensed[:, None], out=rel)
-        np.multiply(self.obstacle_vel, sensed[:, None], out=vel)
-        np.multiply(self.obstacle_radius, sensed, out=radius)
-        flag[:] = sensed
-        return obs.astype(np.float32)
+        mujoco.mj_objectVelocity(self.model, self.data, mujoco.mjtObj.mjOBJ_SITE, self.ee_site_id, self._tool_vel, 0)
+        return self._observe(self._seen, self.sensing_radius, self._obs)
 
     def sensed_mask(self) -> np.ndarray:
         """Which obstacle slots are active and within ``sensing_radius`` of the arm, now."""
@@ -760,6 +745,8 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
 
     def _respawn_departed(self) -> None:
         low, high = self._workspace
+        if not self._departed(self.obstacle_pos, self.obstacle_active, low, high):
+            return
         outside = ((self.obstacle_pos < low) | (self.obstacle_pos > high)).any(axis=1) & self.obstacle_active
         if not outside.any():
             return

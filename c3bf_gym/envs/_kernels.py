@@ -1,10 +1,12 @@
-"""The reaching environment's physics steps in compiled code: MuJoCo's own ``mj_step2`` and
-``mj_step1`` called from numba, with the obstacles' motion and the distance sensors' minimum
-between them.
+"""The reaching environment's per-step work in compiled code (numba): its physics steps
+(:func:`physics_steps`: MuJoCo's own ``mj_step2`` and ``mj_step1``, with the obstacles' motion
+and the distance sensors' minimum between them), its observation (:func:`observe`) and the
+check for obstacles that left the workspace (:func:`departed`).
 
 A policy step is ``frame_skip`` physics steps; in Python each cost two calls into the bindings
-and two numpy operations on top of the physics, about as much again as the physics itself.
-:func:`physics_steps` runs any number of them in one call. It calls the C functions of the
+and two numpy operations on top of the physics, about as much again as the physics itself, and
+the observation a dozen numpy operations. :func:`physics_steps` runs any number of steps in one
+call. It calls the C functions of the
 ``libmujoco`` that the ``mujoco`` package loaded (the same library, so the same model and data
 structures), by address: ctypes reads the addresses here, and the compiled code receives them as
 data (:class:`Physics`), so numba caches it on disk like the package's other kernels.
@@ -29,7 +31,7 @@ from numba.extending import intrinsic
 
 from c3bf_gym import _compile_cache  # noqa: F401  (before any @njit(cache=True): the cache keys)
 
-__all__ = ["Physics", "physics_steps"]
+__all__ = ["Observed", "Physics", "departed", "entry", "observe", "physics_steps"]
 
 
 def _libmujoco() -> ctypes.CDLL:
@@ -113,3 +115,80 @@ def physics_steps(physics, n):
                 if distances[k, g] < lowest:
                     lowest = distances[k, g]
     return lowest
+
+
+
+class Observed(NamedTuple):
+    """What :func:`observe` reads: views of the environment's arrays, made once.
+
+    Attributes:
+        qpos, qvel: (n,) the joints [rad, rad/s].
+        tool: (3,) the tool site's position [m]; tool_velocity (6,) its (angular, linear)
+            velocity [rad/s, m/s], written by ``mj_objectVelocity`` before the call.
+        goal: (3,) the goal [m].
+        position, velocity, radius, active: the obstacle slots (K, 3), (K, 3), (K,), (K,) bool.
+        distances: (K, G) their distance sensors [m].
+    """
+
+    qpos: np.ndarray
+    qvel: np.ndarray
+    tool: np.ndarray
+    tool_velocity: np.ndarray
+    goal: np.ndarray
+    position: np.ndarray
+    velocity: np.ndarray
+    radius: np.ndarray
+    active: np.ndarray
+    distances: np.ndarray
+
+
+@njit(cache=True, nogil=True, error_model="numpy", boundscheck=False)
+def observe(seen, sensing_radius, obs):
+    """The observation (:func:`~c3bf_gym.envs.reach.observation_layout`) into ``obs`` (float64),
+    returned as a new float32 array: joints, tool position and velocity, goal minus tool, then
+    per obstacle slot its centre minus the tool, velocity, radius and sensed flag, all zero for a
+    slot not sensed (inactive, or farther than ``sensing_radius`` [m] from every arm geom by its
+    distance sensors)."""
+    n = seen.qpos.shape[0]
+    slots = seen.position.shape[0]
+    for j in range(n):
+        obs[j] = seen.qpos[j]
+        obs[n + j] = seen.qvel[j]
+    at = 2 * n
+    for i in range(3):
+        obs[at + i] = seen.tool[i]
+        obs[at + 3 + i] = seen.tool_velocity[3 + i]
+        obs[at + 6 + i] = seen.goal[i] - seen.tool[i]
+    rel, vel, rad, flag = at + 9, at + 9 + 3 * slots, at + 9 + 6 * slots, at + 9 + 7 * slots
+    for k in range(slots):
+        nearest = np.inf
+        for g in range(seen.distances.shape[1]):
+            nearest = min(nearest, seen.distances[k, g])
+        sensed = 1.0 if seen.active[k] and nearest <= sensing_radius else 0.0
+        for i in range(3):
+            obs[rel + 3 * k + i] = (seen.position[k, i] - seen.tool[i]) * sensed
+            obs[vel + 3 * k + i] = seen.velocity[k, i] * sensed
+        obs[rad + k] = seen.radius[k] * sensed
+        obs[flag + k] = sensed
+    return obs.astype(np.float32)
+
+
+@njit(cache=True, nogil=True, error_model="numpy", boundscheck=False)
+def departed(position, active, low, high):
+    """Whether an active obstacle (``position`` (K, 3), ``active`` (K,)) lies outside the box
+    ``low``-``high`` (3,) [m]."""
+    for k in range(position.shape[0]):
+        if active[k]:
+            for i in range(3):
+                if position[k, i] < low[i] or position[k, i] > high[i]:
+                    return True
+    return False
+
+
+def entry(kernel, *arguments):
+    """``kernel``'s compiled entry point for arguments of the types of ``arguments``: called
+    directly, it skips the dispatcher's type resolution (several microseconds per call on
+    structures of arrays, as much as a physics step). The caller keeps to those types."""
+    import numba
+
+    return kernel.compile(tuple(numba.typeof(a) for a in arguments))
