@@ -4,8 +4,11 @@ Per policy step, in interleaved rounds (every configuration once per round, the 
 from round to round, so that machine noise hits all alike), the median over rounds of:
 
 * ``bare``: ``mujoco.mj_step(model, data, nstep=frame_skip)`` on the environment's own model
-  (its distance sensors included) with random controls: the physics a policy step cannot avoid
-  (the 1× of the ratios);
+  (its distance sensors included) with random controls, from the states of seeded episodes of the
+  same scenario (the arm and the obstacles where a reset put them; a new one every 250 steps):
+  the physics a policy step cannot avoid (the 1× of the ratios);
+* ``bare, parked``: the same from the ``home`` keyframe, where every obstacle is parked far below
+  the floor, so its 64 distance sensors cost next to nothing (the baseline before; for reference);
 * ``unfiltered``: ``C3BFReach-v0``'s ``step`` with random actions;
 * ``filtered``: the same under the default ``SafetyFilter``, with random actions and with the
   adversary of ``benchmarks/guarantee.py`` (the arm point nearest an obstacle driven at it; the
@@ -45,7 +48,7 @@ from c3bf_gym.scenarios import SCENARIOS
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from guarantee import adversarial_action  # noqa: E402  (the sweep's adversary)
 
-CONFIGS = ("bare", "unfiltered", "filtered random", "filtered adversarial", "Pusher-v5")
+CONFIGS = ("bare", "bare, parked", "unfiltered", "filtered random", "filtered adversarial", "Pusher-v5")
 
 
 def _policy_runner(env: gym.Env, steps: int, seed: int, adversarial: bool):
@@ -71,18 +74,22 @@ def _policy_runner(env: gym.Env, steps: int, seed: int, adversarial: bool):
     return run
 
 
-def _bare_runner(env_id: str, scenario: str, steps: int, seed: int):
-    """``run()`` for ``mj_step(nstep=frame_skip)`` on a fresh ``MjData`` of the env's model."""
+def _bare_runner(env_id: str, scenario: str, steps: int, seed: int, parked: bool = False):
+    """``run()`` for ``mj_step(nstep=frame_skip)`` on a fresh ``MjData`` of the env's model, from
+    the state of a seeded reset of ``scenario`` (``parked``: from the ``home`` keyframe), starting
+    again from a new one every 250 steps (an episode's length)."""
     env = gym.make(env_id, scenario=scenario)
     env.reset(seed=seed)
     model, frame_skip = env.unwrapped.model, env.unwrapped.frame_skip
     data = mujoco.MjData(model)
+    episodes = iter(range(seed, seed + 1_000_000))
 
     def restart() -> None:
-        if model.nkey:
+        if parked:
             mujoco.mj_resetDataKeyframe(model, data, 0)
         else:
-            mujoco.mj_resetData(model, data)
+            env.reset(seed=next(episodes))
+            mujoco.mj_copyData(data, model, env.unwrapped.data)
 
     restart()
     controls = np.random.default_rng(seed).uniform(-1, 1, (steps, model.nu)) * model.actuator_ctrlrange[:, 1] * 0.2
@@ -95,7 +102,7 @@ def _bare_runner(env_id: str, scenario: str, steps: int, seed: int):
             start = clock()
             mujoco.mj_step(model, data, nstep=frame_skip)
             spent += clock() - start
-            if k % 250 == 249:  # an episode's length: start again from the keyframe
+            if k % 250 == 249:
                 restart()
         return spent
 
@@ -146,13 +153,14 @@ def main(argv: list[str] | None = None) -> dict:
         parser.error("--rounds and --steps must be >= 1, --reset-samples >= 0")
 
     bare_env, run_bare = _bare_runner(args.env, args.scenario, args.steps, args.seed)
+    parked_env, run_parked = _bare_runner(args.env, args.scenario, args.steps, args.seed, parked=True)
     envs = {
         "unfiltered": gym.make(args.env, scenario=args.scenario),
         "filtered random": SafetyFilter(gym.make(args.env, scenario=args.scenario)),
         "filtered adversarial": SafetyFilter(gym.make(args.env, scenario=args.scenario)),
         "Pusher-v5": gym.make("Pusher-v5"),
     }
-    runs = {"bare": run_bare}
+    runs = {"bare": run_bare, "bare, parked": run_parked}
     for name, env in envs.items():
         runs[name] = _policy_runner(env, args.steps, args.seed, adversarial=name == "filtered adversarial")
     frame_skip, dt = bare_env.unwrapped.frame_skip, bare_env.unwrapped.dt
@@ -184,7 +192,7 @@ def main(argv: list[str] | None = None) -> dict:
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(result, indent=2))
-    for env in (*envs.values(), bare_env):
+    for env in (*envs.values(), bare_env, parked_env):
         env.close()
     return result
 

@@ -36,6 +36,10 @@ for _ in range(3):
 assert info['safety']['sensed'] >= 0, info
 from c3bf_gym.safety import _kernels  # the fused step came from the machine code the build compiled
 print('KERNEL_CACHE_HITS', sum(_kernels.hook_step.stats.cache_hits.values()))
+from c3bf_gym import scenarios  # and the environment's own: its obstacle sampler, physics steps and observation
+from c3bf_gym.envs import _kernels as env_kernels
+print('ENV_CACHE_HITS', *(sum(f.stats.cache_hits.values()) for f in (scenarios._sample, env_kernels.physics_steps,
+                                                                       env_kernels.observe)))
 scene = resources.files('c3bf_gym.assets').joinpath('scene.xml')
 import mujoco  # the Panda scene compiles from the installed files too (its <include> resolves there)
 panda = mujoco.MjModel.from_xml_path(str(resources.files('c3bf_gym.assets').joinpath('panda_scene.xml')))
@@ -94,6 +98,7 @@ def test_pip_install_dot_into_fresh_venv_ships_assets(tmp_path):
     assert Path(lines["PACKAGE"]).resolve().as_posix().startswith(site), lines["PACKAGE"]  # not the checkout
     assert Path(lines["SCENE"]).resolve().as_posix().startswith(site), lines["SCENE"]
     assert int(lines["KERNEL_CACHE_HITS"]) >= 1, (built, check.stdout[-2000:])  # the build's compiled kernels
+    assert all(int(hits) >= 1 for hits in lines["ENV_CACHE_HITS"].split()), (built, check.stdout[-2000:])
     assert lines["SHIPPED"].split() == [
         "c3bf_gym/assets/panda.xml", "c3bf_gym/assets/panda_scene.xml", "c3bf_gym/assets/scene.xml",
         "c3bf_gym/assets/ur5e.xml",
