@@ -633,7 +633,7 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
 
         Invariant: between calls ``data`` holds ``mj_step1`` results for the current state, so a
         hook reads current kinematics, mass matrix and bias forces. Without hooks the steps run in
-        one compiled call (:func:`~c3bf_gym.envs._physics.physics_steps`); with hooks, the hooks run
+        one compiled call (:func:`~c3bf_gym.envs._kernels.physics_steps`); with hooks, the hooks run
         between compiled single steps.
         """
         np.multiply(self.obstacle_vel, self.model.opt.timestep, out=self._step_displacement)
