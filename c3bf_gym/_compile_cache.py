@@ -30,8 +30,9 @@ CACHE_FOLDER = "_numba_cache"
 
 _PACKAGE = Path(__file__).resolve().parent
 #: The modules (paths in the package) whose ``@njit(cache=True)`` functions this cache serves: the
-#: filter's, compiled into each other, the obstacle sampler's and the environment's.
-KERNEL_SOURCES = ("safety/_kernels.py", "safety/_daqp.py", "scenarios.py", "envs/_kernels.py")
+#: filter's, compiled into each other, the obstacle sampler's and the environment's, and the C calls
+#: compiled into them.
+KERNEL_SOURCES = ("safety/_kernels.py", "safety/_daqp.py", "scenarios.py", "envs/_kernels.py", "_capi.py")
 _PATHS = tuple(str(_PACKAGE / name) for name in KERNEL_SOURCES)
 
 

@@ -6,10 +6,9 @@ check for obstacles that left the workspace (:func:`departed`).
 A policy step is ``frame_skip`` physics steps; in Python each cost two calls into the bindings
 and two numpy operations on top of the physics, about as much again as the physics itself, and
 the observation a dozen numpy operations. :func:`physics_steps` runs any number of steps in one
-call. It calls the C functions of the
-``libmujoco`` that the ``mujoco`` package loaded (the same library, so the same model and data
-structures), by address: ctypes reads the addresses here, and the compiled code receives them as
-data (:class:`Physics`), so numba caches it on disk like the package's other kernels.
+call. It calls the C functions of the ``libmujoco`` that the ``mujoco`` package loaded (the same
+library, so the same model and data structures) by address (:func:`c3bf_gym._capi.call_void`):
+ctypes reads the addresses here, and the compiled code receives them as data (:class:`Physics`).
 
 MuJoCo's fatal errors (``mju_error``) are C++ exceptions in the Python bindings and cannot cross
 compiled frames; the steps here are those of the environment's own scene, which allocates
@@ -25,11 +24,10 @@ from typing import NamedTuple
 
 import mujoco
 import numpy as np
-from llvmlite import ir
-from numba import njit, types
-from numba.extending import intrinsic
+from numba import njit
 
 from c3bf_gym import _compile_cache  # noqa: F401  (before any @njit(cache=True): the cache keys)
+from c3bf_gym._capi import call_void
 
 __all__ = ["Observed", "Physics", "departed", "entry", "observe", "physics_steps"]
 
@@ -50,21 +48,6 @@ _lib = _libmujoco()
 STEP1, STEP2 = range(2)
 _FUNCTIONS = np.array([ctypes.cast(_lib.mj_step1, ctypes.c_void_p).value,
                        ctypes.cast(_lib.mj_step2, ctypes.c_void_p).value], dtype=np.uint64)  # fmt: skip
-
-
-@intrinsic
-def _call(typingctx, fn, model, data):
-    """``void fn(const mjModel*, mjData*)`` at address ``fn``."""
-    sig = types.none(types.uint64, types.uint64, types.uint64)
-
-    def codegen(context, builder, signature, args):
-        fn_addr, model_v, data_v = args
-        ptr = ir.IntType(8).as_pointer()
-        callee = builder.inttoptr(fn_addr, ir.FunctionType(ir.VoidType(), [ptr, ptr]).as_pointer())
-        builder.call(callee, [builder.inttoptr(model_v, ptr), builder.inttoptr(data_v, ptr)])
-        return context.get_dummy_value()
-
-    return sig, codegen
 
 
 class Physics(NamedTuple):
@@ -105,11 +88,11 @@ def physics_steps(physics, n):
     pos, displacement, distances = physics.obstacle_pos, physics.displacement, physics.distances
     lowest = physics.cutoff
     for _ in range(n):
-        _call(step2, model, data)
+        call_void(step2, model, data)
         for k in range(pos.shape[0]):
             for i in range(3):
                 pos[k, i] += displacement[k, i]
-        _call(step1, model, data)
+        call_void(step1, model, data)
         for k in range(distances.shape[0]):
             for g in range(distances.shape[1]):
                 if distances[k, g] < lowest:

@@ -16,8 +16,8 @@ How the C API is reached. The ``daqp`` wheel ships no separate library: its exte
 exports the C API's symbols (``setup_daqp``, ``daqp_update_ldp``, ``daqp_solve``, ...). ctypes
 opens it to set workspaces up (:class:`DaqpWorkspace`, once per filter) and to read the addresses of
 ``daqp_update_ldp`` and ``daqp_solve``. The compiled code receives those addresses as data, in the
-workspace's ``addr`` array, and calls them through :func:`_call_update_ldp` / :func:`_call_solve`
-(numba intrinsics that emit an indirect call). No address is compiled in, so numba caches the
+workspace's ``addr`` array, and calls them through :func:`_call_update_ldp` and
+:func:`c3bf_gym._capi.call_void` (numba intrinsics that emit an indirect call). No address is compiled in, so numba caches the
 calling code on disk like every other kernel.
 
 The structs are declared after ``csrc/include/types.h`` and ``api.h`` of the daqp **0.11.0**
@@ -41,6 +41,7 @@ from numba import njit, types
 from numba.extending import intrinsic
 
 from c3bf_gym import _compile_cache  # noqa: F401  (before any @njit(cache=True): the cache keys)
+from c3bf_gym._capi import call_void
 
 __all__ = ["DAQP_VERSION", "DaqpBuffers", "DaqpWorkspace", "EXIT_FLAGS"]
 
@@ -131,22 +132,6 @@ def _call_update_ldp(typingctx, fn, mask, work, problem):
         fnty = ir.FunctionType(ir.IntType(32), [ir.IntType(32), ptr, ptr])
         callee = builder.inttoptr(fn_addr, fnty.as_pointer())
         return builder.call(callee, [mask_v, builder.inttoptr(work_v, ptr), builder.inttoptr(problem_v, ptr)])
-
-    return sig, codegen
-
-
-@intrinsic
-def _call_solve(typingctx, fn, result, work):
-    """``void daqp_solve(DAQPResult*, DAQPWorkspace*)`` at address ``fn``."""
-    sig = types.none(types.uint64, types.uint64, types.uint64)
-
-    def codegen(context, builder, signature, args):
-        fn_addr, result_v, work_v = args
-        ptr = ir.IntType(8).as_pointer()
-        fnty = ir.FunctionType(ir.VoidType(), [ptr, ptr])
-        callee = builder.inttoptr(fn_addr, fnty.as_pointer())
-        builder.call(callee, [builder.inttoptr(result_v, ptr), builder.inttoptr(work_v, ptr)])
-        return context.get_dummy_value()
 
     return sig, codegen
 
@@ -265,7 +250,7 @@ def daqp_call(buffers, mask):
     flag = _call_update_ldp(addr[ADDR_UPDATE_LDP], np.int32(mask), addr[ADDR_WORK], addr[ADDR_PROBLEM])
     if flag < 0:
         return flag, 0
-    _call_solve(addr[ADDR_SOLVE], addr[ADDR_RESULT], addr[ADDR_WORK])
+    call_void(addr[ADDR_SOLVE], addr[ADDR_RESULT], addr[ADDR_WORK])  # daqp_solve(result, work)
     return buffers.result[RESULT_EXITFLAG], buffers.result[RESULT_ITER]
 
 
