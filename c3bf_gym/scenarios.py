@@ -236,18 +236,33 @@ def max_spawn_distance(spec: ObstacleSpec, envelope: Envelope, path_length: floa
     return reach
 
 
-class ArmCapsules(NamedTuple):
+@dataclass(frozen=True)
+class ArmCapsules:
     """The arm as the sampler keeps obstacles clear of it: capsules about the segments ``a[g]`` to
     ``b[g]`` (``G`` of them; a sphere is a segment of length 0) with radii ``radius[g]``.
 
     Attributes:
         a, b: (G, 3) the segments' end points [m].
-        radius: (G,) [m].
+        radius: (G,) [m], >= 0.
+
+    Stored as float64 arrays; ``ValueError`` names the field for other shapes, NaN or inf, or a
+    negative radius.
     """
 
     a: np.ndarray
     b: np.ndarray
     radius: np.ndarray
+
+    def __post_init__(self) -> None:
+        count = np.shape(self.radius)[0] if np.ndim(self.radius) == 1 else -1
+        for name, shape in (("a", (count, 3)), ("b", (count, 3)), ("radius", (count,))):
+            value = np.ascontiguousarray(getattr(self, name), dtype=np.float64)
+            if count < 0 or value.shape != shape or not np.isfinite(value).all():
+                raise ValueError(f"ArmCapsules needs a and b of shape (G, 3) and radius of shape (G,), all finite; "
+                                 f"got shapes {np.shape(self.a)}, {np.shape(self.b)}, {np.shape(self.radius)}")
+            object.__setattr__(self, name, value)
+        if (self.radius < 0.0).any():
+            raise ValueError(f"ArmCapsules radius must be >= 0 [m], got {self.radius.tolist()}")
 
     @classmethod
     def none(cls) -> ArmCapsules:
@@ -322,13 +337,17 @@ class ObstacleSampler:
         respects the keep-out cylinder and the floor (:meth:`Envelope.path_ok`), and its surface
         is at least ``spawn_clearance`` from every capsule of ``arm``.
         """
+        if not isinstance(spec, ObstacleSpec) or not isinstance(arm, ArmCapsules):
+            raise TypeError(f"sample needs an ObstacleSpec and ArmCapsules, got {type(spec).__name__} and "
+                            f"{type(arm).__name__}")
         params = self._specs.get(spec)
         if params is None:
             params = self._specs[spec] = _SpecArrays(_KIND_CODES[spec.kind], spec.path_fraction, spec.meet_time,
                                                      spec.crossing_angle, spec.lateral_jitter)
         out = self._out
-        start = np.asarray(start, dtype=np.float64)
-        goal = np.asarray(goal, dtype=np.float64)
+        start, goal = (np.ascontiguousarray(x, dtype=np.float64) for x in (start, goal))
+        if start.shape != (3,) or goal.shape != (3,) or not (np.isfinite(start).all() and np.isfinite(goal).all()):
+            raise ValueError(f"start and goal must be finite points of shape (3,) [m], got {start!r} and {goal!r}")
         if not _sample(params, self._envelope, start, goal, rng, arm.a, arm.b, arm.radius, self.max_attempts, out):
             return None
         return ObstacleSample(out[:3].copy(), out[3:6].copy(), float(out[6]))

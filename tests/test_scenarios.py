@@ -432,7 +432,7 @@ def test_compiled_sampler_gives_the_numpy_loops_samples_bit_for_bit():
         arm = ArmCapsules(a, a + cases.uniform(-0.3, 0.3, (4, 3)), cases.uniform(0.03, 0.06, 4))
         ours, theirs = np.random.default_rng(case), np.random.default_rng(case)
         got = sampler.sample(spec, start, goal, ours, arm)
-        want = reference.sample_obstacle(envelope, spec, start, goal, theirs, *arm)
+        want = reference.sample_obstacle(envelope, spec, start, goal, theirs, arm.a, arm.b, arm.radius)
         assert (got is None) == (want is None)
         if got is not None:
             assert np.array_equal(got.position, want[0]) and np.array_equal(got.velocity, want[1])
@@ -441,3 +441,19 @@ def test_compiled_sampler_gives_the_numpy_loops_samples_bit_for_bit():
         accepted += got is not None
         rejected += got is None
     assert accepted > 100 and rejected > 10
+
+
+def test_sampler_and_arm_capsules_refuse_bad_input():
+    sampler = ObstacleSampler(Envelope())
+    start, goal, rng = np.zeros(3) + 0.4, np.array([0.5, 0.2, 0.3]), np.random.default_rng(0)
+    with pytest.raises(ValueError, match=r"a and b of shape \(G, 3\) and radius of shape \(G,\)"):
+        ArmCapsules(np.zeros((2, 3)), np.zeros((2, 2)), np.ones(2))
+    with pytest.raises(ValueError, match="all finite"):
+        ArmCapsules(np.full((1, 3), np.nan), np.zeros((1, 3)), np.ones(1))
+    with pytest.raises(ValueError, match="radius must be >= 0"):
+        ArmCapsules(np.zeros((1, 3)), np.zeros((1, 3)), -np.ones(1))
+    with pytest.raises(TypeError, match="needs an ObstacleSpec and ArmCapsules"):
+        sampler.sample(ObstacleSpec("static"), start, goal, rng, (np.zeros((0, 3)),) * 2 + (np.zeros(0),))
+    with pytest.raises(ValueError, match=r"start and goal must be finite points of shape \(3,\)"):
+        sampler.sample(ObstacleSpec("static"), start[:2], goal, rng, ArmCapsules.none())
+    assert ArmCapsules([[0.0, 0.0, 0.0]], [[0.0, 0.0, 1.0]], [0.1]).clearance([1.0, 0.0, 0.5], 0.2) == pytest.approx(0.7)
