@@ -23,6 +23,7 @@ place is refused before any sampling.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 from typing import Literal, NamedTuple
@@ -92,23 +93,26 @@ class Envelope:
         set_field(self, "workspace", (low, high))
 
     def path_ok(self, start: np.ndarray, velocity: np.ndarray, radius: float) -> bool:
-        """Whether the straight path from ``start`` over ``horizon`` s respects keep-out and floor."""
-        end = start + velocity * self.horizon
-        if min(start[2], end[2]) - radius < self.min_height:
-            return False
-        # Closest approach of the horizontal projection of the segment to the base axis, checked
-        # only where the segment is below the keep-out height (conservatively: if either end is).
-        if min(start[2], end[2]) - radius > self.keep_out_height:
-            return True
-        a, b = start[:2], end[:2]
-        ab = b - a
-        denom = float(ab @ ab)
-        t = 0.0 if denom == 0.0 else float(np.clip(-(a @ ab) / denom, 0.0, 1.0))
-        return float(np.linalg.norm(a + t * ab)) >= self.keep_out_radius + radius
+        """Whether the straight path from ``start`` over ``horizon`` s respects keep-out and floor.
+
+        The floor: both ends stay ``radius`` above ``min_height``. The keep-out cylinder: when
+        either end is below ``keep_out_height`` (plus ``radius``), the horizontal projection of
+        the path stays ``keep_out_radius + radius`` from the base's vertical axis (conservative:
+        the whole segment is checked). The sampler's own check (compiled).
+        """
+        return bool(_path_ok(self._compiled, np.asarray(start, dtype=np.float64),
+                             np.asarray(velocity, dtype=np.float64), float(radius)))
 
     def contains(self, position: np.ndarray) -> bool:
         low, high = self.workspace
         return bool(np.all(position >= low) and np.all(position <= high))
+
+    @functools.cached_property
+    def _compiled(self) -> _EnvelopeArrays:
+        """The envelope as the compiled sampler reads it."""
+        return _EnvelopeArrays(self.speed_range, self.radius_range, self.spawn_clearance, self.keep_out_radius,
+                               self.keep_out_height, self.min_height, self.horizon,
+                               *(np.array(corner, dtype=np.float64) for corner in self.workspace))
 
 
 @dataclass(frozen=True)
@@ -314,10 +318,6 @@ class ObstacleSampler:
     max_attempts: int = 200
 
     def __post_init__(self) -> None:
-        env = self.envelope
-        self._envelope = _EnvelopeArrays(env.speed_range, env.radius_range, env.spawn_clearance, env.keep_out_radius,
-                                         env.keep_out_height, env.min_height, env.horizon,
-                                         *(np.array(corner, dtype=np.float64) for corner in env.workspace))
         self._specs: dict[ObstacleSpec, _SpecArrays] = {}
         self._out = np.zeros(7)
 
@@ -348,7 +348,7 @@ class ObstacleSampler:
         start, goal = (np.ascontiguousarray(x, dtype=np.float64) for x in (start, goal))
         if start.shape != (3,) or goal.shape != (3,) or not (np.isfinite(start).all() and np.isfinite(goal).all()):
             raise ValueError(f"start and goal must be finite points of shape (3,) [m], got {start!r} and {goal!r}")
-        if not _sample(params, self._envelope, start, goal, rng, arm.a, arm.b, arm.radius, self.max_attempts, out):
+        if not _sample(params, self.envelope._compiled, start, goal, rng, arm.a, arm.b, arm.radius, self.max_attempts, out):
             return None
         return ObstacleSample(out[:3].copy(), out[3:6].copy(), float(out[6]))
 
@@ -358,7 +358,7 @@ _opts = {"cache": True, "nogil": True, "error_model": "numpy", "boundscheck": Fa
 
 @njit(**_opts)
 def _path_ok(envelope, start, velocity, radius):
-    """:meth:`Envelope.path_ok`, compiled."""
+    """:meth:`Envelope.path_ok` on the envelope's :class:`_EnvelopeArrays`."""
     end0 = start[0] + velocity[0] * envelope.horizon
     end1 = start[1] + velocity[1] * envelope.horizon
     end2 = start[2] + velocity[2] * envelope.horizon
