@@ -48,6 +48,10 @@ TRAINING_TABLES = (
     ("training_table_panda.md", "panda/panda_sac_residual_10hz_dw10_aw3_set_*", "eval_200.json", "training_curves_panda.png"),
     # RLlib PPO, the default filter, 2 env runners (code 9f6e3ed)
     ("training_table_rllib_ppo.md", "rllib_ppo/rllib_ppo_residual_10hz_dw10_aw3_*", "eval_200.json", "training_curves_rllib_ppo.png"),
+    # SB3 PPO, 2 SubprocVecEnv envs: no filter, HOCBF and the default filter (code 1e683fb)
+    ("training_table_ppo.md", "ppo/ppo_residual_10hz_dw10_aw3_set_*", "eval_200.json", "training_curves_ppo.png"),
+    # the default filter's SAC recipe trained twice as long, 50k steps (code b762c7e)
+    ("training_table_sac_50k.md", "sac_50k/sac_residual_10hz_dw10_aw3_set_*", "eval_200.json", "training_curves_sac_50k.png"),
 )
 
 
