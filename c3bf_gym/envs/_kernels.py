@@ -100,7 +100,6 @@ def physics_steps(physics, n):
     return lowest
 
 
-
 class Observed(NamedTuple):
     """What :func:`observe` reads: views of the environment's arrays, made once.
 
