@@ -642,6 +642,45 @@ def test_fused_step_replays_the_unfused_path(make_env, scenario, name):
     assert "solved" in statuses and (scenario == "crossing" or "relaxed" in statuses)
 
 
+@pytest.mark.parametrize(("scenario", "settings"), [("multi", {}), ("crossing", {"barrier": "c3bf", "guard": None}),
+                                                   ("head_on", {"on_infeasible": "raise"})])
+def test_the_compiled_policy_step_replays_the_hooks_loop(make_env, scenario, settings):
+    """The filter's calls inside the env's compiled policy step (``filtered_steps``) give what the
+    same calls through the hooks' Python loop give (``record_times`` sends every call through
+    ``__call__``), bit for bit: observations, rewards, every ``info`` entry (the safety report's
+    included), the joints, and a step with no safe torque raising (rolled back) at the same call."""
+    envs = [SafetyFilter(make_env(scenario=scenario), **settings) for _ in range(2)]
+    envs[1].hook.record_times()
+    rng = np.random.default_rng(11)
+    raised = [0, 0]
+    steps = 0
+    for episode in range(3):
+        for env in envs:
+            env.reset(seed=20 + episode)
+        for _ in range(80):
+            action = (rng.choice([-1.0, 1.0], 6) if episode % 2 else rng.uniform(-1, 1, 6)).astype(np.float32)
+            outcomes = []
+            for i, env in enumerate(envs):
+                try:
+                    outcomes.append(env.step(action))
+                except SafetyInfeasibleError as error:
+                    raised[i] += 1
+                    outcomes.append(str(error))
+            if isinstance(outcomes[0], str) or isinstance(outcomes[1], str):
+                assert outcomes[0] == outcomes[1]  # both raised, with the same message
+                continue
+            (obs_a, r_a, *_, info_a), (obs_b, r_b, *_, info_b) = outcomes
+            steps += 1
+            assert obs_a.tobytes() == obs_b.tobytes() and r_a == r_b and info_a == info_b
+            assert np.array_equal(envs[0].unwrapped.data.qpos, envs[1].unwrapped.data.qpos)
+            assert np.array_equal(envs[0].unwrapped.data.qvel, envs[1].unwrapped.data.qvel)
+    assert steps > 100 and raised[0] == raised[1] and (raised[0] > 0) == ("on_infeasible" in settings)
+    assert envs[0].hook.last.status == envs[1].hook.last.status
+    # the compiled calls are not timed (NaN), the recorded ones are
+    assert np.isnan(envs[0].hook.report.solve_time) and envs[1].hook.report.solve_time > 0.0
+    assert envs[0].unwrapped._filtered_steps is not None and envs[1].unwrapped._filtered_steps is None
+
+
 def test_a_bound_hook_pickles_and_binds_again(make_env):
     """What a hook gathers when it binds (views of this process's arrays, a compiled entry point)
     is left out of its pickle: the copy binds again on its first call."""

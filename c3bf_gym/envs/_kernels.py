@@ -28,8 +28,9 @@ from numba import njit
 
 from c3bf_gym import _compile_cache  # noqa: F401  (before any @njit(cache=True): the cache keys)
 from c3bf_gym._capi import call_void
+from c3bf_gym.safety._kernels import hook_substep
 
-__all__ = ["Observed", "Physics", "departed", "entry", "observe", "physics_steps"]
+__all__ = ["Observed", "Physics", "departed", "entry", "filtered_steps", "observe", "physics_steps"]
 
 
 def _libmujoco() -> ctypes.CDLL:
@@ -78,26 +79,60 @@ class Physics(NamedTuple):
 
 
 @njit(cache=True, nogil=True, error_model="numpy", boundscheck=False)
-def physics_steps(physics, n):
-    """``n`` physics steps from a state whose ``mj_step1`` has run: each ``mj_step2`` (integrate
-    the controls in ``data.ctrl``), then every obstacle moves by its displacement, then
-    ``mj_step1`` (kinematics, dynamics and sensors of the new state). Returns the smallest distance
-    sensor reading over the ``n`` new states (``cutoff`` at most)."""
+def _advance(physics, lowest):
+    """One physics step: ``mj_step2`` (integrate the controls in ``data.ctrl``), every obstacle
+    moves by its displacement, ``mj_step1`` (kinematics, dynamics and sensors of the new state).
+    Returns the smaller of ``lowest`` and the smallest distance sensor reading."""
     model, data = physics.pointers[0], physics.pointers[1]
-    step1, step2 = physics.functions[STEP1], physics.functions[STEP2]
     pos, displacement, distances = physics.obstacle_pos, physics.displacement, physics.distances
+    call_void(physics.functions[STEP2], model, data)
+    for k in range(pos.shape[0]):
+        for i in range(3):
+            pos[k, i] += displacement[k, i]
+    call_void(physics.functions[STEP1], model, data)
+    for k in range(distances.shape[0]):
+        for g in range(distances.shape[1]):
+            if distances[k, g] < lowest:
+                lowest = distances[k, g]
+    return lowest
+
+
+@njit(cache=True, nogil=True, error_model="numpy", boundscheck=False)
+def physics_steps(physics, n):
+    """``n`` physics steps (:func:`_advance`) from a state whose ``mj_step1`` has run. Returns the
+    smallest distance sensor reading over the ``n`` new states (``cutoff`` at most)."""
     lowest = physics.cutoff
     for _ in range(n):
-        call_void(step2, model, data)
-        for k in range(pos.shape[0]):
-            for i in range(3):
-                pos[k, i] += displacement[k, i]
-        call_void(step1, model, data)
-        for k in range(distances.shape[0]):
-            for g in range(distances.shape[1]):
-                if distances[k, g] < lowest:
-                    lowest = distances[k, g]
+        lowest = _advance(physics, lowest)
     return lowest
+
+
+@njit(cache=True, nogil=True, error_model="numpy", boundscheck=False)
+def filtered_steps(physics, n, torque, gravity, ctrl, inv_limit, tau_nom, tau, effort_rows, stage, hook, halt):
+    """``n`` physics steps as :func:`physics_steps`, each under the safety filter: the nominal
+    total torque ``torque + gravity`` (the gravity compensation ``data.qfrc_gravcomp``, current
+    for the state about to be integrated) goes through
+    :func:`c3bf_gym.safety._kernels.hook_substep` with the filter's arguments ``hook`` (the first
+    call at ``stage``, every later one on a new state at 2), ``ctrl`` becomes the filtered torque
+    minus gravity, and row ``s`` of ``effort_rows`` that control over the limits (``ctrl *
+    inv_limit``). ``tau_nom`` and ``tau`` (n,) are scratch.
+
+    Stops before integrating a call whose status is invalid input (< 0) or, with ``halt``,
+    infeasible (> 0). Returns ``(physics steps done, smallest distance reading, last status)``.
+    """
+    lowest = physics.cutoff
+    status = 0
+    for s in range(n):
+        for j in range(torque.shape[0]):
+            tau_nom[j] = torque[j] + gravity[j]
+        status = hook_substep(stage if s == 0 else 2, tau_nom, tau, *hook)
+        if status < 0 or (halt and status > 0):
+            return s, lowest, status
+        for j in range(torque.shape[0]):
+            ctrl[j] = tau[j] - gravity[j]
+            effort_rows[s, j] = ctrl[j] * inv_limit[j]
+        lowest = _advance(physics, lowest)
+    return n, lowest, status
 
 
 class Observed(NamedTuple):

@@ -12,7 +12,7 @@ import numpy as np
 from gymnasium import error, spaces, utils
 from gymnasium.envs.mujoco.mujoco_env import MujocoEnv
 
-from c3bf_gym.envs._kernels import Observed, Physics, departed, entry, observe, physics_steps
+from c3bf_gym.envs._kernels import Observed, Physics, departed, entry, filtered_steps, observe, physics_steps
 from c3bf_gym.safety.dynamics import ArmModel
 from c3bf_gym.safety.obstacles import Obstacles
 from c3bf_gym.safety.robot import RobotDescription
@@ -332,6 +332,10 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
         self.state_version = 0
         self._arm = None
         self._hook_chain: tuple[TorqueHook, ...] = ()
+        self._compiled_filter = None
+        self._filtered_steps: tuple | None = None  # (the filter's arguments, filtered_steps' entry point)
+        n = self.model.nv
+        self._filter_scratch = (np.zeros(n), np.zeros(n), np.zeros((self.frame_skip, n)))  # tau_nom, tau, effort rows
         self._sampler = ObstacleSampler(self.envelope)
         self._workspace = tuple(np.asarray(c, dtype=float) for c in self.envelope.workspace)
         self._departed = entry(departed, self.obstacle_pos, self.obstacle_active, *self._workspace)
@@ -511,11 +515,17 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
         if stage in self._hooks:
             raise ValueError(f"a {stage!r} torque hook is already installed on this environment")
         self._hooks[stage] = hook
-        self._hook_chain = tuple(self._hooks[s] for s in HOOK_STAGES if s in self._hooks)
+        self._chain_changed()
 
     def remove_torque_hook(self, stage: Literal["nominal", "filter"]) -> None:
         self._hooks.pop(stage, None)
+        self._chain_changed()
+
+    def _chain_changed(self) -> None:
         self._hook_chain = tuple(self._hooks[s] for s in HOOK_STAGES if s in self._hooks)
+        # a filter alone that can run inside the compiled policy step (SafetyController.compiled_substeps)
+        only = self._hook_chain[0] if len(self._hook_chain) == 1 and "filter" in self._hooks else None
+        self._compiled_filter = only if hasattr(only, "compiled_substeps") else None
 
     def has_torque_hook(self, stage: str) -> bool:
         return stage in self._hooks
@@ -633,8 +643,11 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
 
         Invariant: between calls ``data`` holds ``mj_step1`` results for the current state, so a
         hook reads current kinematics, mass matrix and bias forces. Without hooks the steps run in
-        one compiled call (:func:`~c3bf_gym.envs._kernels.physics_steps`); with hooks, the hooks run
-        between compiled single steps.
+        one compiled call (:func:`~c3bf_gym.envs._kernels.physics_steps`); with the safety filter
+        alone, so do the filter's calls between them
+        (:func:`~c3bf_gym.envs._kernels.filtered_steps`, when the filter offers
+        ``compiled_substeps``); otherwise the hooks run in Python between compiled single steps.
+        The three give the same steps, bit for bit.
         """
         np.multiply(self.obstacle_vel, self.model.opt.timestep, out=self._step_displacement)
         hooks, physics, steps = self._hook_chain, self._physics, self._physics_steps
@@ -644,6 +657,9 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
             min_distance = steps(physics, self.frame_skip)
             self.state_version += self.frame_skip
             return float(min_distance), float(u @ u) / len(u)
+        plan = None if self._compiled_filter is None else self._compiled_filter.compiled_substeps(self.state_version)
+        if plan is not None:
+            return self._simulate_filtered(torque, *plan)
         gravity, control, inv_limit = self._gravcomp, self._ctrl, self._inv_limit
         min_distance = DISTANCE_CUTOFF
         effort = 0.0
@@ -659,6 +675,24 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
             self.state_version += 1
             if distance < min_distance:
                 min_distance = distance
+        return float(min_distance), effort
+
+    def _simulate_filtered(self, torque: np.ndarray, stage: int, hook: tuple, halt: bool) -> tuple[float, float]:
+        """:meth:`_simulate` with the filter's calls compiled in (``SafetyController.compiled_substeps``
+        gave ``stage``, ``hook`` and ``halt``); the effort is summed here, as in the hooks' loop."""
+        run = self._filtered_steps
+        if run is None or run[0] is not hook:  # compiled for this filter's argument types, once
+            args = (self._physics, 0, torque, self._gravcomp, self._ctrl, self._inv_limit, *self._filter_scratch,
+                    stage, hook, halt)
+            run = self._filtered_steps = (hook, entry(filtered_steps, *args))
+        done, min_distance, status = run[1](self._physics, self.frame_skip, torque, self._gravcomp, self._ctrl,
+                                            self._inv_limit, *self._filter_scratch, stage, hook, halt)
+        last = self.state_version + min(done, self.frame_skip - 1)  # the state of the last call
+        self.state_version += done
+        self._compiled_filter.compiled_substeps_done(status, last)  # raises as the hook would have
+        effort = 0.0
+        for u in self._filter_scratch[2]:
+            effort += float(u @ u) / (len(u) * self.frame_skip)
         return float(min_distance), effort
 
     def obstacle_distances(self) -> np.ndarray:

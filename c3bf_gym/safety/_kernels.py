@@ -37,7 +37,7 @@ from c3bf_gym import _compile_cache  # noqa: F401  (before any @njit(cache=True)
 
 # hook_step compiles _daqp.solve_rows into itself: _compile_cache keys the on-disk cache of both
 # files' functions on both files.
-from c3bf_gym.safety._daqp import solve_rows
+from c3bf_gym.safety._daqp import ACTIVE_TOL, SOLVED, solve_rows
 
 #: barrier kinds of the fused kernel
 C3BF_KIND = 0
@@ -620,3 +620,91 @@ def hook_step(stage, tau_nom, tau, arm, obstacles, params, work, A, b, scale, li
         return status, m, min_h, inside, n_sensed, 0, 0, 0.0, 0.0, 0.0
     residual, correction = hook_post(A[:m], b[:m], qp.u, scale, tau_nom, limit, tau)
     return status, m, min_h, inside, n_sensed, iterations, n_active, slack, residual, correction
+
+
+# ----------------------------------------------------------------------------- the policy step's report
+
+#: Entries of :attr:`Tally.values`, the running values of a :class:`~c3bf_gym.safety.StepSafety`
+#: over a policy step's calls, then the last call's own; :data:`T_VIOLATION` starts the largest
+#: violation of each of the five row kinds.
+(T_SUBSTEPS, T_MIN_CONSTRAINT, T_MIN_H, T_INSIDE, T_SENSED, T_ACTIVE_ROWS, T_CORRECTION, T_INTERVENED,
+ T_INFEASIBLE_STEPS, T_SLACK, T_LAST_STATUS, T_LAST_ITERATIONS, T_LAST_ACTIVE, T_LAST_SLACK, T_VIOLATION) = range(15)
+TALLY_SIZE = T_VIOLATION + 5
+
+
+class Tally(NamedTuple):
+    """What the filter's calls accumulate over a policy step, in compiled code (:func:`record`).
+
+    Attributes:
+        values: (TALLY_SIZE,) float64, laid out by the ``T_*`` indices (counts and flags as
+            exact floats).
+        tau_nominal, tau: (n,) the last call's nominal and filtered torques [N m].
+    """
+
+    values: np.ndarray
+    tau_nominal: np.ndarray
+    tau: np.ndarray
+
+
+@njit(**_opts)
+def tally_reset(tally):
+    """Start a policy step: no calls, the running minima at inf, everything else 0."""
+    values = tally.values
+    for i in range(values.shape[0]):
+        values[i] = 0.0
+    values[T_MIN_CONSTRAINT] = np.inf
+    values[T_MIN_H] = np.inf
+
+
+@njit(**_opts)
+def record(tally, status, m, min_h, inside, n_sensed, iterations, n_active, slack, residual, correction, tau_nom,
+           tau, qp, n_obstacle, stride, n_floor, intervention_tol):
+    """Fold one solved call (``status`` ≥ 0, :func:`c3bf_gym.safety._daqp.solve_rows`' codes; its
+    ``m`` rows, the first ``n_obstacle`` the obstacles', ``n_floor`` floor rows after them) into
+    ``tally``: the running extremes and counts of :class:`~c3bf_gym.safety.StepSafety`, the last
+    call's torques and outcome, and, when rows gave way, the largest violation of each kind
+    (:func:`violations_by_kind` on the QP's residuals)."""
+    values = tally.values
+    values[T_SUBSTEPS] += 1.0
+    if residual < values[T_MIN_CONSTRAINT]:
+        values[T_MIN_CONSTRAINT] = residual
+    for j in range(tau.shape[0]):
+        tally.tau_nominal[j] = tau_nom[j]
+        tally.tau[j] = tau[j]
+    if min_h < values[T_MIN_H]:
+        values[T_MIN_H] = min_h
+    if inside:
+        values[T_INSIDE] = 1.0
+    if n_sensed > values[T_SENSED]:
+        values[T_SENSED] = n_sensed
+    if n_active > values[T_ACTIVE_ROWS]:
+        values[T_ACTIVE_ROWS] = n_active
+    if correction > values[T_CORRECTION]:
+        values[T_CORRECTION] = correction
+    if correction > intervention_tol:
+        values[T_INTERVENED] = 1.0
+    values[T_LAST_STATUS] = status
+    values[T_LAST_ITERATIONS] = iterations
+    values[T_LAST_ACTIVE] = n_active
+    values[T_LAST_SLACK] = slack
+    if status != SOLVED:
+        values[T_INFEASIBLE_STEPS] += 1.0
+        values[T_SLACK] = max(values[T_SLACK], slack)
+        violations_by_kind(qp.residual[:m], qp.norm[:m], n_obstacle, stride, n_floor, ACTIVE_TOL,
+                           values[T_VIOLATION:])
+
+
+@njit(**_opts)
+def hook_substep(stage, tau_nom, tau, arm, obstacles, params, work, A, b, scale, limit, qp, tally, intervention_tol):
+    """:func:`hook_step`, then :func:`record` of its outcome into ``tally``; returns the status
+    (invalid input, < 0, is not recorded)."""
+    status, m, min_h, inside, n_sensed, iterations, n_active, slack, residual, correction = hook_step(
+        stage, tau_nom, tau, arm, obstacles, params, work, A, b, scale, limit, qp)
+    if status < 0:
+        return status
+    n_floor = params.floor_ends.shape[0]
+    n_fixed = n_floor + (4 * arm.Minv.shape[0] if params.joint_rows else 0)
+    stride = 2 if params.guard_gamma2 > 0.0 else 1
+    record(tally, status, m, min_h, inside, n_sensed, iterations, n_active, slack, residual, correction, tau_nom,
+           tau, qp, m - n_fixed, stride, n_floor, intervention_tol)
+    return status

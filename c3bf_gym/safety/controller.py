@@ -79,7 +79,11 @@ class StepSafety:
         active_rows: the largest number of binding rows.
         sensed: the largest number of sensed obstacles.
         solve_time: total wall time of the filter over the step's physics steps [s] (rows and
-            QP). Not in :meth:`as_info`: wall-clock time would make ``info`` nondeterministic.
+            QP), when its calls came through :meth:`SafetyController.__call__`; NaN when they ran
+            inside a compiled policy step (``C3BFReachEnv`` with the filter as its only hook),
+            which does not time them: :meth:`SafetyController.record_times` sends every call
+            through ``__call__``, with the same torques. Not in :meth:`as_info`: wall-clock time
+            would make ``info`` nondeterministic.
         intervened: some physics step changed the torque by more than ``intervention_tol``.
         inside: some protected point was already inside an obstacle's (margin-inflated) radius.
         infeasible_steps: number of physics steps whose QP needed slack.
@@ -257,18 +261,20 @@ class SafetyController:
         self._obstacle_arrays = _kernels.ObstacleArrays(obstacles.active, self._distances, obstacles.position,
                                                         obstacles.velocity, obstacles.acceleration, obstacles.radius)
         self._work = np.zeros((3, 6 + n))
-        self._violation_scratch = np.zeros(len(ROW_KINDS))  # _record_violation's, by kind
-        self._bound: tuple = ()  # hook_step's arguments after the first three (_bind)
-        self._hook_step = _kernels.hook_step  # its compiled entry point once bound (_bind)
+        # the report's running values, in compiled code (_kernels.record); solve_time beside them
+        self._tally = _kernels.Tally(np.zeros(_kernels.TALLY_SIZE), np.zeros(n), np.zeros(n))
+        self._solve_time = 0.0
+        self.begin_step()
+        self._bound: tuple = ()  # hook_substep's arguments after the first three (_bind)
+        self._hook_substep = _kernels.hook_substep  # its compiled entry point once bound (_bind)
         self.last: QPResult | None = None
-        self.report = StepSafety()
         self.solve_times: list[float] | None = None
 
     def __getstate__(self) -> dict:
         """Pickled without what :meth:`_bind` gathered (views of this process's arrays and a compiled
         entry point): the unpickled hook binds again on its first call, to its own env's arrays."""
         state = self.__dict__.copy()
-        state.update(_bound=(), _hook_step=_kernels.hook_step)
+        state.update(_bound=(), _hook_substep=_kernels.hook_substep)
         return state
 
     def _version(self) -> int | None:
@@ -305,7 +311,9 @@ class SafetyController:
         return self(tau_nom), self.report
 
     def record_times(self, enabled: bool = True) -> None:
-        """Start (or stop) keeping every physics step's filter time in ``solve_times``."""
+        """Start (or stop) keeping every physics step's filter time in ``solve_times``. While on,
+        every call comes through :meth:`__call__` and is timed (not inside an environment's
+        compiled policy step, :meth:`compiled_substeps`): the same torques, more Python per call."""
         self.solve_times = [] if enabled else None
 
     def reset(self) -> None:
@@ -315,7 +323,8 @@ class SafetyController:
 
     def begin_step(self) -> None:
         """Start a new policy step's report."""
-        self.report = StepSafety()
+        _kernels.tally_reset(self._tally)
+        self._solve_time = 0.0
 
     def rows(self) -> tuple[np.ndarray, np.ndarray, float, bool, int]:
         """Assemble the rows for the current state: (A, b, min h, any inside, sensed count)."""
@@ -409,84 +418,116 @@ class SafetyController:
         return k
 
     def _bind(self) -> tuple:
-        """The buffers :func:`c3bf_gym.safety._kernels.hook_step` works in (env, arm, hook and QP; all
-        allocated once by their constructors and updated in place), gathered once: fetching them
-        attribute by attribute on every call cost more than the kernel's dispatch."""
+        """The buffers :func:`c3bf_gym.safety._kernels.hook_substep` works in (env, arm, hook, QP and
+        tally; all allocated once by their constructors and updated in place) and the intervention
+        tolerance, gathered once: fetching them attribute by attribute on every call cost more than
+        the kernel's dispatch."""
         self._bound = (self.arm.kernel_arrays(self.data), self._obstacle_arrays, self._params, self._work, self._A,
-                       self._b, self._scale, self._limit, self.qp.buffers)
-        # hook_step's compiled entry point for exactly these argument types, called directly: the
+                       self._b, self._scale, self._limit, self.qp.buffers, self._tally, float(self.intervention_tol))
+        # hook_substep's compiled entry point for exactly these argument types, called directly: the
         # dispatcher's type resolution of its arguments cost ~1.5 µs per call. The types are
         # fixed: the buffers above, fresh C-contiguous float64 (n,) arrays tau_nom and tau
         # (__call__ checks the shape: the entry point takes any array as the type it was compiled
         # for), and a Python int stage.
         vec = np.zeros(len(self._limit))
-        self._hook_step = _kernels.hook_step.compile(tuple(numba.typeof(a) for a in (0, vec, vec, *self._bound)))
+        self._hook_substep = _kernels.hook_substep.compile(tuple(numba.typeof(a) for a in (0, vec, vec, *self._bound)))
         return self._bound
+
+    def compiled_substeps(self, version: int) -> tuple[int, tuple, bool] | None:
+        """For a caller that runs a whole policy step in compiled code (``C3BFReachEnv``): the
+        arguments of :func:`c3bf_gym.safety._kernels.hook_substep` after its first three, the
+        ``stage`` of the first call (the arm's dynamics for state ``version``; every later call
+        is on a new state, stage 2), and whether an infeasible call must stop the step
+        (``on_infeasible="raise"``). None when every call must come through :meth:`__call__`:
+        the per-class rows, obstacles that refresh themselves, or timings being recorded
+        (:meth:`record_times`). After the compiled calls, :meth:`compiled_substeps_done`."""
+        if not self._fused or self._refresh or self.solve_times is not None:
+            return None
+        bound = self._bound or self._bind()
+        return self.arm.claim(self.data, version), bound, self.on_infeasible == "raise"
+
+    def compiled_substeps_done(self, status: int, version: int) -> None:
+        """After compiled calls of :func:`c3bf_gym.safety._kernels.hook_substep` (see
+        :meth:`compiled_substeps`), the last on state ``version`` with ``status``: the arm's
+        dynamics are marked current for that state, :attr:`last` describes that call (its
+        ``solve_time`` NaN: the calls were not timed, nor is :attr:`report`'s ``solve_time``),
+        and an invalid input or, with ``on_infeasible="raise"``, an infeasible call raises as
+        :meth:`__call__` does."""
+        self.arm.claim(self.data, version)  # the kernel computed this state's dynamics
+        self._solve_time = np.nan
+        self._settle(status, np.nan)
 
     def __call__(self, tau_nom: np.ndarray) -> np.ndarray:
         """The safe torque (n,) [N m] for ``tau_nom`` (n,) [N m], the report accumulating into
         :attr:`report` (the torque-hook protocol; :meth:`filter` for one call's own report).
         Raises as :meth:`filter` does."""
         start = _perf_counter()
-        # a copy of the caller's torque (float64; 1-D copies are contiguous): the kernels read it and the
-        # report keeps it. Its shape is checked here: the compiled entry point (_bind) cannot.
+        # a copy of the caller's torque (float64; 1-D copies are contiguous), which the kernels read.
+        # Its shape is checked here: the compiled entry point (_bind) cannot.
         tau_nom = np.array(tau_nom, np.float64)
         shape = self._limit.shape
         if tau_nom.shape != shape:
             raise ValueError(f"tau_nom must have shape {shape}, got {tau_nom.shape}")
         tau = np.empty(shape)
-        qp = self.qp.buffers
         if self._fused:
             bound = self._bound or self._bind()
             if self._refresh:
                 self.obstacles.refresh(self.data)
-            status, m, min_h, inside, n_sensed, iterations, active, slack, residual, correction = self._hook_step(
-                self.arm.claim(self.data, self._version()), tau_nom, tau, *bound)
-            raise_bad_input(status)
+            status = self._hook_substep(self.arm.claim(self.data, self._version()), tau_nom, tau, *bound)
         else:
             A, b, min_h, inside, n_sensed = self.rows()
             m = len(b)
+            qp = self.qp.buffers
             status, iterations, active, slack = _daqp.solve_rows(
                 tau_nom, A, b, self._scale, self._low_priority_span(m), self._stride, qp)
-            raise_bad_input(status)
-            # τ = u s, the smallest row residual A u − b and ‖τ − clip(τ_nom)‖ (the filter's change)
-            residual, correction = _kernels.hook_post(A, b, qp.u, self._scale, tau_nom, self._limit, tau)
+            if status >= 0:
+                # τ = u s, the smallest row residual A u − b and ‖τ − clip(τ_nom)‖ (the filter's change)
+                residual, correction = _kernels.hook_post(A, b, qp.u, self._scale, tau_nom, self._limit, tau)
+                _kernels.record(self._tally, status, m, min_h, inside, n_sensed, iterations, active, slack, residual,
+                                correction, tau_nom, tau, qp, m - self._n_floor_rows - self._n_joint_rows,
+                                self._stride, self._n_floor_rows, self.intervention_tol)
         elapsed = _perf_counter() - start
-        if self.solve_times is not None:
-            self.solve_times.append(elapsed)
-        feasible = status == _daqp.SOLVED
-        self.last = QPResult(qp.u, slack, feasible, STATUS[status], iterations, active, elapsed)
-        # the running extremes as plain comparisons (what min / max do, without their call cost)
-        report = self.report
-        report.substeps += 1
-        report.solve_time += elapsed
-        if residual < report.min_constraint:
-            report.min_constraint = residual
-        report.tau_nominal, report.tau = tau_nom, tau
-        if min_h < report.min_h:
-            report.min_h = min_h
-        if inside:
-            report.inside = True
-        if n_sensed > report.sensed:
-            report.sensed = n_sensed
-        if active > report.active_rows:
-            report.active_rows = active
-        if correction > report.correction:
-            report.correction = correction
-        if correction > self.intervention_tol:
-            report.intervened = True
-        if not feasible:
-            report.feasible = False
-            report.infeasible_steps += 1
-            report.slack = max(report.slack, slack)
-            self._record_violation(report.violation, m)
-            if self.on_infeasible == "raise":
-                raise SafetyInfeasibleError(
-                    f"no torque within the limits satisfies the safety rows (status {STATUS[status]!r}, "
-                    f"largest violation by kind {self._violation_text(report.violation)}, min h {min_h:.3g}); pass "
-                    "on_infeasible='relax' to let the rows give way by priority instead"
-                )
+        if status >= 0:
+            self._solve_time += elapsed
+            if self.solve_times is not None:
+                self.solve_times.append(elapsed)
+        self._settle(status, elapsed)
         return tau
+
+    def _settle(self, status: int, elapsed: float) -> None:
+        """After a call (or compiled calls) with ``status``: raise on invalid input; set
+        :attr:`last`; with ``on_infeasible="raise"``, raise on a call with no safe torque (its
+        report recorded first)."""
+        raise_bad_input(status)
+        values = self._tally.values
+        feasible = status == _daqp.SOLVED
+        self.last = QPResult(self.qp.buffers.u, float(values[_kernels.T_LAST_SLACK]), feasible, STATUS[status],
+                             int(values[_kernels.T_LAST_ITERATIONS]), int(values[_kernels.T_LAST_ACTIVE]), elapsed)
+        if not feasible and self.on_infeasible == "raise":
+            violation = dict(zip(ROW_KINDS, values[_kernels.T_VIOLATION:].tolist()))
+            raise SafetyInfeasibleError(
+                f"no torque within the limits satisfies the safety rows (status {STATUS[status]!r}, largest "
+                f"violation by kind {self._violation_text(violation)}, min h {values[_kernels.T_MIN_H]:.3g}); pass "
+                "on_infeasible='relax' to let the rows give way by priority instead"
+            )
+
+    @property
+    def report(self) -> StepSafety:
+        """The :class:`StepSafety` of the calls since :meth:`begin_step` (a new object at every
+        read: keep it, it does not follow later calls)."""
+        values = self._tally.values
+        substeps = int(values[_kernels.T_SUBSTEPS])
+        infeasible = int(values[_kernels.T_INFEASIBLE_STEPS])
+        return StepSafety(
+            feasible=infeasible == 0, slack=float(values[_kernels.T_SLACK]), min_h=float(values[_kernels.T_MIN_H]),
+            correction=float(values[_kernels.T_CORRECTION]), active_rows=int(values[_kernels.T_ACTIVE_ROWS]),
+            sensed=int(values[_kernels.T_SENSED]), solve_time=self._solve_time,
+            intervened=bool(values[_kernels.T_INTERVENED]), inside=bool(values[_kernels.T_INSIDE]),
+            infeasible_steps=infeasible, min_constraint=float(values[_kernels.T_MIN_CONSTRAINT]), substeps=substeps,
+            tau_nominal=self._tally.tau_nominal.copy() if substeps else None,
+            tau=self._tally.tau.copy() if substeps else None,
+            violation=dict(zip(ROW_KINDS, values[_kernels.T_VIOLATION:].tolist())),
+        )
 
     def _low_priority_span(self, m: int) -> int:
         """:func:`~c3bf_gym.safety._kernels.low_priority_span` of :meth:`rows`' ``m`` rows."""
@@ -497,19 +538,6 @@ class SafetyController:
         n_obstacle = m - self._n_floor_rows - self._n_joint_rows
         kinds = ["barrier" if k % self._stride == 0 else "guard" for k in range(n_obstacle)]
         return kinds + ["floor"] * self._n_floor_rows + ["joint_limits"] * self._n_joint_rows
-
-    def _record_violation(self, violation: dict[str, float], m: int) -> None:
-        """Fold one infeasible physics step's row residuals (the QP's, row-normalised; rows no
-        torque can change hold ``−b_k``) into ``violation`` by kind (in compiled code: a loop over
-        the rows here cost more than the QP)."""
-        qp = self.qp.buffers
-        largest = self._violation_scratch
-        largest[:] = 0.0
-        _kernels.violations_by_kind(qp.residual[:m], qp.norm[:m], m - self._n_floor_rows - self._n_joint_rows,
-                                    self._stride, self._n_floor_rows, _daqp.ACTIVE_TOL, largest)
-        for kind, value in zip(ROW_KINDS, largest):
-            if value > violation[kind]:
-                violation[kind] = float(value)
 
     @staticmethod
     def _violation_text(violation: dict[str, float]) -> str:
