@@ -103,8 +103,8 @@ def adversarial_action(u) -> np.ndarray:
 # ----------------------------------------------------------------------------- one episode
 
 
-def run_episode(task: tuple[str, str, str, str, int, int, float | None, float | None, str]) -> Episode:
-    scenario, policy, name, points, seed, steps, margin, guard_gamma, env_id = task
+def run_episode(task: tuple[str, str, str, str, int, int, float | None, float | None, str, bool]) -> Episode:
+    scenario, policy, name, points, seed, steps, margin, guard_gamma, env_id, timed = task
     import gymnasium as gym
 
     import c3bf_gym  # noqa: F401  (registers C3BFReach-v0)
@@ -118,6 +118,8 @@ def run_episode(task: tuple[str, str, str, str, int, int, float | None, float | 
         if guard_gamma is not None and name == "c3bf+hocbf":  # the filter here with a named guard
             settings["guard_gamma"] = guard_gamma
         env = SafetyFilter(env, name, **settings)
+        if timed:  # every call timed (max_filter_ms), so through the hook's __call__: the same torques as the
+            env.hook.record_times()  # env's compiled policy step, bit for bit (tests/test_filter.py)
     u = env.unwrapped
     out = Episode(scenario, policy, name, points, seed)
     env.reset(seed=seed)
@@ -133,7 +135,11 @@ def run_episode(task: tuple[str, str, str, str, int, int, float | None, float | 
             out.infeasible_steps += int(info["safety_infeasible"])
             out.interventions += int(info["safety_intervened"])
             report = env.hook.report  # wall-clock time is kept off info (deterministic)
-            out.max_filter_ms = max(out.max_filter_ms, 1e3 * report.solve_time / max(report.substeps, 1))
+            if timed:
+                out.max_filter_ms = max(out.max_filter_ms, 1e3 * report.solve_time / max(report.substeps, 1))
+                env.hook.solve_times.clear()  # only the report's sum is kept
+            else:
+                out.max_filter_ms = np.nan
         if terminated or truncated:
             break
     env.close()
@@ -229,6 +235,9 @@ def main(argv: list[str] | None = None) -> list[dict]:
                         help=f"the gains [1/s] of c3bf+hocbf's guard (default {GUARD_GAMMA:g})")
     parser.add_argument("--env", choices=ENVS, default=ENVS[0], help="the environment (robot)")
     parser.add_argument("--out", type=Path, default=Path("benchmarks/results/guarantee"), help="output directory")
+    parser.add_argument("--untimed", action="store_true",
+                        help="run the filter inside the environment's compiled policy step, as training does (the "
+                             "same torques, faster); the filter is then not timed: max_filter_ms is nan")
     parser.add_argument("--quick", action="store_true", help="smoke run: 2 episodes of 100 steps per configuration")
     args = parser.parse_args(argv)
     if args.quick:
@@ -250,7 +259,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
         parser.error("--guard-gamma sets the gains of c3bf+hocbf's guard; --filters has no c3bf+hocbf")
 
     filters = [tuple(f.split("/")) if f != "none" else ("none", "-") for f in args.filters]
-    tasks = [(s, p, b, pts, args.seed + i, args.steps, args.margin, args.guard_gamma, args.env)
+    tasks = [(s, p, b, pts, args.seed + i, args.steps, args.margin, args.guard_gamma, args.env, not args.untimed)
              for s in args.scenarios for p in args.policies for b, pts in filters for i in range(args.episodes)]  # fmt: skip
     where = (f"Ray at {args.address}" if args.address else f"a local Ray instance of {args.workers} CPUs") if args.ray else f"{args.workers} workers"
     print(f"{args.env}: {len(tasks)} episodes ({args.episodes} per configuration, {args.steps} steps) on {where}"

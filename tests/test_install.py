@@ -35,11 +35,11 @@ for _ in range(3):
     obs, reward, terminated, truncated, info = filtered.step(filtered.action_space.sample())
 assert info['safety']['sensed'] >= 0, info
 from c3bf_gym.safety import _kernels  # the fused step came from the machine code the build compiled
-print('KERNEL_CACHE_HITS', sum(_kernels.hook_step.stats.cache_hits.values()))
-from c3bf_gym import scenarios  # and the environment's own: its obstacle sampler, physics steps and observation
-from c3bf_gym.envs import _kernels as env_kernels
+print('KERNEL_CACHE_HITS', sum(_kernels.hook_substep.stats.cache_hits.values()))
+from c3bf_gym import scenarios  # and the environment's own: its obstacle sampler, physics steps (with and without
+from c3bf_gym.envs import _kernels as env_kernels  # the filter's calls) and observation
 print('ENV_CACHE_HITS', *(sum(f.stats.cache_hits.values()) for f in (scenarios._sample, env_kernels.physics_steps,
-                                                                       env_kernels.observe)))
+                                                                       env_kernels.filtered_steps, env_kernels.observe)))
 scene = resources.files('c3bf_gym.assets').joinpath('scene.xml')
 import mujoco  # the Panda scene compiles from the installed files too (its <include> resolves there)
 panda = mujoco.MjModel.from_xml_path(str(resources.files('c3bf_gym.assets').joinpath('panda_scene.xml')))

@@ -19,7 +19,8 @@ the public classes call it through small vectorised kernels, and the filter's fu
 * :func:`c3bf_terms`, :func:`hocbf_terms`, :func:`rows_from_terms`, :func:`joint_limit_rows`: the
   barriers of :mod:`c3bf_gym.safety.barriers`.
 * :func:`hook_rows_whole_arm`: every row of the whole-arm filter in one call, and
-  :func:`hook_step`: those rows, the QP (:func:`c3bf_gym.safety._daqp.solve_rows`) and :func:`hook_post`.
+  :func:`hook_step`: those rows, the QP (:func:`c3bf_gym.safety._daqp.solve_rows`) and :func:`hook_post`;
+  :func:`hook_substep`: that, and the report's running values (:func:`record` into a :class:`Tally`).
 
 The floating-point operations follow the numpy code they replace (same formulas, same order where
 it matters), so results agree with it to rounding (~1e-15 relative).

@@ -30,8 +30,11 @@ Steps 1–4 for ``whole_arm`` with the built-in barriers (:class:`~c3bf_gym.safe
 :func:`c3bf_gym.safety._kernels.hook_rows_whole_arm`, built from the same per-point functions the
 barrier classes and :class:`~c3bf_gym.safety.dynamics.ArmModel` call; other barriers (or ``points="ee"``)
 go through ``Barrier.terms`` and ``rows_from_terms`` and give the same rows. On the fused path the
-rows, the QP and the bookkeeping are one compiled call (:func:`c3bf_gym.safety._kernels.hook_step`). Why each of these choices was made, with the measurements and the commands that
-repeat them: ``docs/design-decisions.md``.
+rows, the QP and the report's bookkeeping are one compiled call
+(:func:`c3bf_gym.safety._kernels.hook_substep`), which an environment may also call from its own
+compiled policy step (:meth:`SafetyController.compiled_substeps`; ``C3BFReachEnv`` does). Why each
+of these choices was made, with the measurements and the commands that repeat them:
+``docs/design-decisions.md``.
 """
 
 from __future__ import annotations
