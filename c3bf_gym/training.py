@@ -408,19 +408,14 @@ def train(config: TrainConfig, address: str | None = None) -> Path:
     if address is not None:
         raise ValueError("address is the Ray cluster of the rllib engine; this run's engine is 'sb3'")
     import torch
-    from stable_baselines3 import PPO, SAC
     from stable_baselines3.common.callbacks import CallbackList, CheckpointCallback, EvalCallback
-    from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecNormalize
+    from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
     torch.set_num_threads(1)  # one core per run: the machine runs several runs side by side
     run_dir, hyper = start_run(config)
     filter_ = filter_config(config.filter, config.guard_gamma)
     rate, penalty = config.env_kwargs(), config.action_weight
-    thunks = [
-        make_env(config.scenario, filter_, config.action, seed=config.seed * 1000 + i, action_weight=penalty, **rate)
-        for i in range(config.n_envs)
-    ]
-    venv = SubprocVecEnv(thunks) if config.n_envs > 1 else DummyVecEnv(thunks)
+    venv = training_envs(config)
     eval_env = DummyVecEnv(
         [make_env(config.scenario, filter_, config.action, seed=10_000 + config.seed, action_weight=penalty, **rate)]
     )
@@ -429,12 +424,7 @@ def train(config: TrainConfig, address: str | None = None) -> Path:
         # statistics into the evaluation env, and they are saved beside the model.
         venv = VecNormalize(venv, norm_obs=True, norm_reward=False, clip_obs=OBS_CLIP, gamma=hyper.get("gamma", 0.99))
         eval_env = VecNormalize(eval_env, training=False, norm_obs=True, norm_reward=False, clip_obs=OBS_CLIP)
-    algo = {"sac": SAC, "ppo": PPO}[config.algo]
-    if config.obstacle_encoder == "set":
-        from c3bf_gym.policies import ObstacleSetExtractor
-
-        hyper = {**hyper, "policy_kwargs": {**hyper.get("policy_kwargs", {}), "features_extractor_class": ObstacleSetExtractor}}
-    model = algo("MlpPolicy", venv, seed=config.seed, verbose=0, tensorboard_log=str(run_dir / "tb"), **hyper)
+    model = sb3_model(config, venv, hyper, tensorboard_log=str(run_dir / "tb"))
     callbacks = CallbackList(
         [
             _episode_logger()(run_dir / "episodes.csv"),
@@ -463,6 +453,31 @@ def train(config: TrainConfig, address: str | None = None) -> Path:
     venv.close()
     eval_env.close()
     return finish_run(config, run_dir, run_dir / "model.zip", summary)
+
+
+def training_envs(config: TrainConfig):
+    """The SB3 vector env a run of ``config`` trains on: ``config.n_envs`` environments
+    (:func:`make_env`, seeds ``1000 * seed + i``), in subprocesses when more than one."""
+    from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
+
+    filter_ = filter_config(config.filter, config.guard_gamma)
+    thunks = [make_env(config.scenario, filter_, config.action, seed=config.seed * 1000 + i,
+                       action_weight=config.action_weight, **config.env_kwargs())
+              for i in range(config.n_envs)]  # fmt: skip
+    return SubprocVecEnv(thunks) if config.n_envs > 1 else DummyVecEnv(thunks)
+
+
+def sb3_model(config: TrainConfig, venv, hyper: dict[str, Any], **kwargs: Any):
+    """The SB3 model of ``config`` (its algorithm and obstacle encoder, hyperparameters ``hyper``)
+    on ``venv``; ``kwargs`` go to the algorithm's constructor."""
+    from stable_baselines3 import PPO, SAC
+
+    algo = {"sac": SAC, "ppo": PPO}[config.algo]
+    if config.obstacle_encoder == "set":
+        from c3bf_gym.policies import ObstacleSetExtractor
+
+        hyper = {**hyper, "policy_kwargs": {**hyper.get("policy_kwargs", {}), "features_extractor_class": ObstacleSetExtractor}}
+    return algo("MlpPolicy", venv, seed=config.seed, verbose=0, **hyper, **kwargs)
 
 
 def start_run(config: TrainConfig) -> tuple[Path, dict[str, Any]]:

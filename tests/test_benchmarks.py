@@ -35,3 +35,18 @@ def test_filter_speed_prints_the_hook_latency_table(tmp_path):
     for count in ("1", "4"):
         row = result["hook"][count]
         assert row["total_median_us"] > 0 and row["total_mean_us"] > 0 and sum(row["status"].values()) >= 40
+
+
+def test_train_speed_prints_filtered_and_unfiltered_throughput_side_by_side(tmp_path):
+    out = tmp_path / "train_speed.json"
+    done = subprocess.run([sys.executable, str(BENCHMARKS / "train_speed.py"), "--actions", "torque", "--rounds", "2",
+                           "--steps", "64", "--json", str(out)], capture_output=True, text=True, timeout=900)  # fmt: skip
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert "unfiltered ÷ filtered" in done.stdout
+    result = json.loads(out.read_text())
+    rows = {(r["action"], r["filter"]): r for r in result["results"]}
+    assert set(rows) == {("torque", "none"), ("torque", "c3bf+hocbf")}
+    assert all(len(r["steps_per_s"]) == 2 and r["median"] > 0 for r in rows.values())
+    refused = subprocess.run([sys.executable, str(BENCHMARKS / "train_speed.py"), "--rounds", "0"],
+                             capture_output=True, text=True, timeout=300)  # fmt: skip
+    assert refused.returncode == 2 and "--rounds must be >= 1" in refused.stderr
