@@ -507,7 +507,12 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
 
     # ------------------------------------------------------------------ hooks
     def add_torque_hook(self, hook: TorqueHook, stage: Literal["nominal", "filter"]) -> None:
-        """Install ``hook`` to run at every physics step at ``stage`` (one hook per stage)."""
+        """Install ``hook`` to run at every physics step at ``stage`` (one hook per stage).
+
+        A ``filter`` hook that offers ``compiled_substeps`` and ``compiled_substeps_done`` (the
+        safety filter's :class:`~c3bf_gym.filter.SafetyHook` does; see
+        :meth:`~c3bf_gym.safety.SafetyController.compiled_substeps`) is called from the compiled
+        policy step while it is the only hook, with the same results as through ``__call__``."""
         if stage not in HOOK_STAGES:
             raise ValueError(f"unknown hook stage {stage!r}; valid choices: {', '.join(map(repr, HOOK_STAGES))}")
         if not callable(hook):
@@ -690,9 +695,11 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
         last = self.state_version + min(done, self.frame_skip - 1)  # the state of the last call
         self.state_version += done
         self._compiled_filter.compiled_substeps_done(status, last)  # raises as the hook would have
+        rows = self._filter_scratch[2]
         effort = 0.0
-        for u in self._filter_scratch[2]:
-            effort += float(u @ u) / (len(u) * self.frame_skip)
+        # np.vecdot takes each row's u @ u with numpy's own dot (the same bits), without a view per row
+        for square in np.vecdot(rows, rows).tolist():
+            effort += square / (rows.shape[1] * self.frame_skip)
         return float(min_distance), effort
 
     def obstacle_distances(self) -> np.ndarray:
