@@ -22,10 +22,13 @@ def main() -> None:
     import c3bf_gym
 
     for env_id in ("C3BFReach-v0", "C3BFReachPanda-v0"):
-        env = c3bf_gym.SafetyFilter(gym.make(env_id, scenario="multi"))
-        env.reset(seed=0)
-        env.step(np.zeros(env.action_space.shape, np.float32))
-        env.close()
+        # the filter alone (called from the environment's compiled policy step), then behind the
+        # impedance controller (called from Python, between the controller's calls)
+        for env in (c3bf_gym.SafetyFilter(gym.make(env_id, scenario="multi")),
+                    c3bf_gym.SafetyFilter(c3bf_gym.CartesianImpedanceAction(gym.make(env_id, scenario="multi")))):
+            env.reset(seed=0)
+            env.step(np.zeros(env.action_space.shape, np.float32))
+            env.close()
     print(f"c3bf_gym: compiled the filter's kernels in {time.perf_counter() - start:.0f} s")
 
 

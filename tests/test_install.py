@@ -34,6 +34,9 @@ filtered.reset(seed=0)
 for _ in range(3):
     obs, reward, terminated, truncated, info = filtered.step(filtered.action_space.sample())
 assert info['safety']['sensed'] >= 0, info
+behind = SafetyFilter(c3bf_gym.CartesianImpedanceAction(gym.make('C3BFReach-v0', scenario='multi')))
+behind.reset(seed=0)  # the filter behind the impedance controller: called from Python
+behind.step(behind.action_space.sample())
 from c3bf_gym.safety import _kernels  # the fused step came from the machine code the build compiled
 print('KERNEL_CACHE_HITS', sum(_kernels.hook_substep.stats.cache_hits.values()))
 from c3bf_gym import scenarios  # and the environment's own: its obstacle sampler, physics steps (with and without

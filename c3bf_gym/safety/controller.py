@@ -269,7 +269,7 @@ class SafetyController:
         self._solve_time = 0.0
         self.begin_step()
         self._bound: tuple = ()  # hook_substep's arguments after the first three (_bind)
-        self._hook_substep = _kernels.hook_substep  # its compiled entry point once bound (_bind)
+        self._hook_substep = None  # its compiled entry point for __call__ (_substep_entry)
         self.last: QPResult | None = None
         self.solve_times: list[float] | None = None
 
@@ -277,7 +277,7 @@ class SafetyController:
         """Pickled without what :meth:`_bind` gathered (views of this process's arrays and a compiled
         entry point): the unpickled hook binds again on its first call, to its own env's arrays."""
         state = self.__dict__.copy()
-        state.update(_bound=(), _hook_substep=_kernels.hook_substep)
+        state.update(_bound=(), _hook_substep=None)
         return state
 
     def _version(self) -> int | None:
@@ -427,14 +427,20 @@ class SafetyController:
         the kernel's dispatch."""
         self._bound = (self.arm.kernel_arrays(self.data), self._obstacle_arrays, self._params, self._work, self._A,
                        self._b, self._scale, self._limit, self.qp.buffers, self._tally, float(self.intervention_tol))
-        # hook_substep's compiled entry point for exactly these argument types, called directly: the
-        # dispatcher's type resolution of its arguments cost ~1.5 µs per call. The types are
-        # fixed: the buffers above, fresh C-contiguous float64 (n,) arrays tau_nom and tau
-        # (__call__ checks the shape: the entry point takes any array as the type it was compiled
-        # for), and a Python int stage.
-        vec = np.zeros(len(self._limit))
-        self._hook_substep = _kernels.hook_substep.compile(tuple(numba.typeof(a) for a in (0, vec, vec, *self._bound)))
         return self._bound
+
+    def _substep_entry(self):
+        """hook_substep's compiled entry point for exactly :meth:`_bind`'s argument types, called
+        directly by :meth:`__call__`: the dispatcher's type resolution of its arguments cost ~1.5 µs
+        per call. The types are fixed: the bound buffers, fresh C-contiguous float64 (n,) arrays
+        tau_nom and tau (:meth:`__call__` checks the shape: the entry point takes any array as the
+        type it was compiled for), and a Python int stage. Compiled on the first call from Python,
+        not when binding: an environment that calls the kernel from its own compiled step never
+        needs it (and compiling it costs seconds on an empty cache)."""
+        vec = np.zeros(len(self._limit))
+        bound = self._bound or self._bind()
+        self._hook_substep = _kernels.hook_substep.compile(tuple(numba.typeof(a) for a in (0, vec, vec, *bound)))
+        return self._hook_substep
 
     def compiled_substeps(self, version: int) -> tuple[int, tuple, bool] | None:
         """For a caller that runs a whole policy step in compiled code (``C3BFReachEnv``): the
@@ -476,7 +482,8 @@ class SafetyController:
             bound = self._bound or self._bind()
             if self._refresh:
                 self.obstacles.refresh(self.data)
-            status = self._hook_substep(self.arm.claim(self.data, self._version()), tau_nom, tau, *bound)
+            substep = self._hook_substep or self._substep_entry()
+            status = substep(self.arm.claim(self.data, self._version()), tau_nom, tau, *bound)
         else:
             A, b, min_h, inside, n_sensed = self.rows()
             m = len(b)
