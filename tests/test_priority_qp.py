@@ -10,6 +10,8 @@ import numpy as np
 import pytest
 
 from c3bf_gym import SafetyFilter
+from c3bf_gym.safety import _kernels
+from c3bf_gym.safety._daqp import RELAXED
 from c3bf_gym.safety.controller import ROW_KINDS
 from c3bf_gym.safety.priority_qp import PriorityQP
 
@@ -222,9 +224,13 @@ def test_violations_are_folded_by_the_kind_row_kinds_names(name):
         if -r > max(want[key], 1e-6):
             want[key] = -r
     assert {k for k, v in want.items() if v > 0} == {*hook.row_kinds(m), "unmovable"}  # every kind gave way
-    got = dict.fromkeys(ROW_KINDS, 0.0)
-    hook._record_violation(got, m)
-    assert got == want
-    got["floor"] = held = want["floor"] + 1.0  # an earlier physics step of the same policy step gave way more
-    hook._record_violation(got, m)
-    assert got == {**want, "floor": held}
+    hook.begin_step()
+
+    def fold():  # one call whose rows gave way, with these residuals
+        hook._record(RELAXED, m, 0.0, False, 0, 0, 0, 0.0, 0.0, 0.0, np.zeros(6), np.zeros(6))
+        return hook.report.violation
+
+    assert fold() == want
+    floor = _kernels.T_VIOLATION + ROW_KINDS.index("floor")
+    hook._tally.values[floor] = held = want["floor"] + 1.0  # an earlier physics step of the step gave way more
+    assert fold() == {**want, "floor": held}

@@ -493,9 +493,8 @@ class SafetyController:
             if status >= 0:
                 # τ = u s, the smallest row residual A u − b and ‖τ − clip(τ_nom)‖ (the filter's change)
                 residual, correction = _kernels.hook_post(A, b, qp.u, self._scale, tau_nom, self._limit, tau)
-                _kernels.record(self._tally, status, m, min_h, inside, n_sensed, iterations, active, slack, residual,
-                                correction, tau_nom, tau, qp, m - self._n_floor_rows - self._n_joint_rows,
-                                self._stride, self._n_floor_rows, self.intervention_tol)
+                self._record(status, m, min_h, inside, n_sensed, iterations, active, slack, residual, correction,
+                             tau_nom, tau)
         elapsed = _perf_counter() - start
         if status >= 0:
             self._solve_time += elapsed
@@ -503,6 +502,15 @@ class SafetyController:
                 self.solve_times.append(elapsed)
         self._settle(status, elapsed)
         return tau
+
+    def _record(self, status: int, m: int, min_h: float, inside: bool, n_sensed: int, iterations: int, active: int,
+                slack: float, residual: float, correction: float, tau_nom: np.ndarray, tau: np.ndarray) -> None:
+        """Fold one solved call of :meth:`rows`' ``m`` rows into the report
+        (:func:`c3bf_gym.safety._kernels.record`, with this filter's row layout; the fused kernel
+        does the same in compiled code)."""
+        _kernels.record(self._tally, status, m, min_h, inside, n_sensed, iterations, active, slack, residual,
+                        correction, tau_nom, tau, self.qp.buffers, m - self._n_floor_rows - self._n_joint_rows,
+                        self._stride, self._n_floor_rows, self.intervention_tol)
 
     def _settle(self, status: int, elapsed: float) -> None:
         """After a call (or compiled calls) with ``status``: raise on invalid input; set
