@@ -472,7 +472,7 @@ class SafetyController:
         Raises as :meth:`filter` does."""
         start = _perf_counter()
         # a copy of the caller's torque (float64; 1-D copies are contiguous), which the kernels read.
-        # Its shape is checked here: the compiled entry point (_bind) cannot.
+        # Its shape is checked here: the compiled entry point (_substep_entry) cannot.
         tau_nom = np.array(tau_nom, np.float64)
         shape = self._limit.shape
         if tau_nom.shape != shape:
