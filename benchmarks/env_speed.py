@@ -17,8 +17,11 @@ from round to round, so that machine noise hits all alike), the median over roun
   against our 10 of 2 ms, so its steps are not the same amount of physics).
 
 Only ``step`` calls are timed; episodes are reset between them, untimed. Resets are timed apart,
-per scenario (``--reset-samples`` each): the median and p99, in ms. ``--profile`` prints
-cProfile's top functions for one round of unfiltered and filtered steps (the breakdown).
+per scenario (``--reset-samples`` each): the median and p99, in ms. A breakdown line estimates
+where the time goes from the rounds' differences: the bare physics per physics step, the
+environment's own work per policy step (unfiltered − bare), and what the filter adds per physics
+step ((filtered − unfiltered) / frame_skip). ``--profile`` prints cProfile's top functions for one
+round of unfiltered and filtered steps (the filter's calls are inside one compiled call there).
 
 Usage::
 
@@ -137,6 +140,21 @@ def profile(run, label: str, top: int = 15) -> None:
     pstats.Stats(profiler).sort_stats("tottime").print_stats(top)
 
 
+def _breakdown(per_step: dict[str, list[float]], frame_skip: int) -> dict[str, float]:
+    """Where a policy step's time goes, from the rounds' own pairs (µs): the bare physics per
+    physics step, the environment's own work per policy step (unfiltered − bare) and what the
+    filter adds per physics step ((filtered − unfiltered) / frame_skip: its rows and QP, and the
+    hook's bookkeeping). The filtered and unfiltered episodes differ (the filter changes the
+    torques), so these are estimates of each part, not an exact split."""
+    def median_of(a: str, b: str | None = None, scale: float = 1.0) -> float:
+        pairs = zip(per_step[a], per_step[b]) if b else ((t, 0.0) for t in per_step[a])
+        return statistics.median((x - y) / scale for x, y in pairs)
+
+    return {"physics_us": median_of("bare", scale=frame_skip), "env_us": median_of("unfiltered", "bare"),
+            "filter_random_us": median_of("filtered random", "unfiltered", frame_skip),
+            "filter_adversarial_us": median_of("filtered adversarial", "unfiltered", frame_skip)}  # fmt: skip
+
+
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--rounds", type=int, default=5, help="interleaved rounds (default 5)")
@@ -178,6 +196,11 @@ def main(argv: list[str] | None = None) -> dict:
     for name in CONFIGS:
         t = per_step[name]
         print(f"{name:<22} | {statistics.median(t):>14.0f} {min(t):>8.0f} {max(t):>8.0f} | {statistics.median(ratios[name]):>26.2f}")
+    breakdown = _breakdown(per_step, frame_skip)
+    print(f"\nbreakdown (medians of the rounds' differences): the bare physics {breakdown['physics_us']:.1f} µs per "
+          f"physics step; the environment's own work {breakdown['env_us']:.0f} µs per policy step (unfiltered − bare); "
+          f"the filter {breakdown['filter_random_us']:.1f} µs per physics step with random torques and "
+          f"{breakdown['filter_adversarial_us']:.1f} with the adversary ((filtered − unfiltered) / {frame_skip})")
     resets = reset_times(args.env, args.reset_samples, args.seed) if args.reset_samples else {}
     if resets:
         print(f"\nreset, {args.reset_samples} seeded resets per scenario [ms]: "
@@ -188,6 +211,7 @@ def main(argv: list[str] | None = None) -> dict:
     result = {
         "env": args.env, "scenario": args.scenario, "rounds": args.rounds, "steps": args.steps, "frame_skip": frame_skip,
         "us_per_step": per_step, "ratio_to_bare": {k: statistics.median(v) for k, v in ratios.items()}, "reset_ms": resets,
+        "breakdown": breakdown,
     }  # fmt: skip
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)

@@ -15,9 +15,11 @@ def test_env_speed_prints_every_configuration_against_the_bare_physics(tmp_path)
     done = subprocess.run([sys.executable, str(BENCHMARKS / "env_speed.py"), "--rounds", "2", "--steps", "5",
                            "--reset-samples", "2", "--json", str(out)], capture_output=True, text=True, timeout=600)  # fmt: skip
     assert done.returncode == 0, done.stderr[-2000:]
-    for name in ("bare", "unfiltered", "filtered random", "filtered adversarial", "Pusher-v5", "reset"):
+    for name in ("bare", "unfiltered", "filtered random", "filtered adversarial", "Pusher-v5", "reset", "breakdown"):
         assert name in done.stdout
     result = json.loads(out.read_text())
+    assert set(result["breakdown"]) == {"physics_us", "env_us", "filter_random_us", "filter_adversarial_us"}
+    assert result["breakdown"]["physics_us"] > 0
     assert result["ratio_to_bare"]["bare"] == 1.0 and all(len(v) == 2 for v in result["us_per_step"].values())
     assert set(result["reset_ms"]) == {"static", "head_on", "crossing", "multi", "random"}
     refused = subprocess.run([sys.executable, str(BENCHMARKS / "env_speed.py"), "--rounds", "0"],
