@@ -1,8 +1,8 @@
 """numba's on-disk cache for the package's compiled kernels, keyed on every kernel source file.
 
 numba keys a cached function on a hash of the one file that defines it. The filter's kernels call
-each other across files (``_kernels.hook_step`` compiles ``_daqp.solve_rows`` into itself), so an
-edit to ``_daqp.py`` alone would leave the old solver inside the cached ``hook_step``. Here
+each other across files (``_kernels.hook_substep`` compiles ``_daqp.solve_rows`` into itself), so an
+edit to ``_daqp.py`` alone would leave the old solver inside the cached ``hook_substep``. Here
 the cache stamp of every function defined in :data:`KERNEL_SOURCES` (the filter's kernels, the
 scenarios' obstacle sampler and the environment's own) is the hash of all those files together:
 changing any of them recompiles every kernel on its next use.

@@ -594,7 +594,7 @@ def test_relaxed_solve_keeps_rows_outside_the_conflict(make_env):
 
 def _unfused_call(hook, tau_nom):
     """The hook's step as separate calls (rows, the QP, ``hook_post``): the path
-    :func:`c3bf_gym.safety._kernels.hook_step` fuses."""
+    :func:`c3bf_gym.safety._kernels.hook_substep` fuses."""
     from c3bf_gym.safety import _kernels
 
     A, b, *_ = hook.rows()

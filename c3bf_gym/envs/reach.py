@@ -685,13 +685,12 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
     def _simulate_filtered(self, torque: np.ndarray, stage: int, hook: tuple, halt: bool) -> tuple[float, float]:
         """:meth:`_simulate` with the filter's calls compiled in (``SafetyController.compiled_substeps``
         gave ``stage``, ``hook`` and ``halt``); the effort is summed here, as in the hooks' loop."""
+        args = (self._physics, self.frame_skip, torque, self._gravcomp, self._ctrl, self._inv_limit,
+                *self._filter_scratch, stage, hook, halt)
         run = self._filtered_steps
         if run is None or run[0] is not hook:  # compiled for this filter's argument types, once
-            args = (self._physics, 0, torque, self._gravcomp, self._ctrl, self._inv_limit, *self._filter_scratch,
-                    stage, hook, halt)
             run = self._filtered_steps = (hook, entry(filtered_steps, *args))
-        done, min_distance, status = run[1](self._physics, self.frame_skip, torque, self._gravcomp, self._ctrl,
-                                            self._inv_limit, *self._filter_scratch, stage, hook, halt)
+        done, min_distance, status = run[1](*args)
         last = self.state_version + min(done, self.frame_skip - 1)  # the state of the last call
         self.state_version += done
         self._compiled_filter.compiled_substeps_done(status, last)  # raises as the hook would have

@@ -19,8 +19,8 @@ the public classes call it through small vectorised kernels, and the filter's fu
 * :func:`c3bf_terms`, :func:`hocbf_terms`, :func:`rows_from_terms`, :func:`joint_limit_rows`: the
   barriers of :mod:`c3bf_gym.safety.barriers`.
 * :func:`hook_rows_whole_arm`: every row of the whole-arm filter in one call, and
-  :func:`hook_step`: those rows, the QP (:func:`c3bf_gym.safety._daqp.solve_rows`) and :func:`hook_post`;
-  :func:`hook_substep`: that, and the report's running values (:func:`record` into a :class:`Tally`).
+  :func:`hook_substep`: those rows, the QP (:func:`c3bf_gym.safety._daqp.solve_rows`),
+  :func:`hook_post` and the report's running values (:func:`record` into a :class:`Tally`).
 
 The floating-point operations follow the numpy code they replace (same formulas, same order where
 it matters), so results agree with it to rounding (~1e-15 relative).
@@ -36,7 +36,7 @@ from numba import njit
 
 from c3bf_gym import _compile_cache  # noqa: F401  (before any @njit(cache=True): the cache keys)
 
-# hook_step compiles _daqp.solve_rows into itself: _compile_cache keys the on-disk cache of both
+# hook_substep compiles _daqp.solve_rows into itself: _compile_cache keys the on-disk cache of both
 # files' functions on both files.
 from c3bf_gym.safety._daqp import ACTIVE_TOL, SOLVED, solve_rows
 
@@ -600,36 +600,13 @@ def violations_by_kind(residual, norm, n_obstacle, stride, n_floor, tol, out):
             out[kind] = violation
 
 
-@njit(**_opts)
-def hook_step(stage, tau_nom, tau, arm, obstacles, params, work, A, b, scale, limit, qp):
-    """One whole-arm filter step in one call (:meth:`~c3bf_gym.safety.SafetyController.__call__`): the
-    rows (:func:`hook_rows_whole_arm`, whose arguments ``stage`` … ``b`` are), the QP
-    (:func:`c3bf_gym.safety._daqp.solve_rows` on ``qp``, priorities by :func:`low_priority_span`)
-    in the scaled torque
-    ``τ / scale``, and :func:`hook_post`, which writes the torque into ``tau``.
-
-    Returns ``(status, rows, min h, any inside, sensed count, iterations, active rows, slack, min
-    row residual, correction)``, status one of :func:`~c3bf_gym.safety._daqp.solve_rows`' codes; the last
-    five are 0 for invalid input.
-    """
-    m, min_h, inside, n_sensed = hook_rows_whole_arm(stage, arm, obstacles, params, work, A, b)
-    nv = arm.Minv.shape[0]
-    n_fixed = params.floor_ends.shape[0] + (4 * nv if params.joint_rows else 0)
-    span = low_priority_span(m, n_fixed, params.guard_gamma2 > 0.0)
-    status, iterations, n_active, slack = solve_rows(tau_nom, A[:m], b[:m], scale, span, 2, qp)
-    if status < 0:
-        return status, m, min_h, inside, n_sensed, 0, 0, 0.0, 0.0, 0.0
-    residual, correction = hook_post(A[:m], b[:m], qp.u, scale, tau_nom, limit, tau)
-    return status, m, min_h, inside, n_sensed, iterations, n_active, slack, residual, correction
-
-
 # ----------------------------------------------------------------------------- the policy step's report
 
 #: Entries of :attr:`Tally.values`, the running values of a :class:`~c3bf_gym.safety.StepSafety`
 #: over a policy step's calls, then the last call's own; :data:`T_VIOLATION` starts the largest
 #: violation of each of the five row kinds.
 (T_SUBSTEPS, T_MIN_CONSTRAINT, T_MIN_H, T_INSIDE, T_SENSED, T_ACTIVE_ROWS, T_CORRECTION, T_INTERVENED,
- T_INFEASIBLE_STEPS, T_SLACK, T_LAST_STATUS, T_LAST_ITERATIONS, T_LAST_ACTIVE, T_LAST_SLACK, T_VIOLATION) = range(15)
+ T_INFEASIBLE_STEPS, T_SLACK, T_LAST_ITERATIONS, T_LAST_ACTIVE, T_LAST_SLACK, T_VIOLATION) = range(14)
 TALLY_SIZE = T_VIOLATION + 5
 
 
@@ -663,8 +640,8 @@ def record(tally, status, m, min_h, inside, n_sensed, iterations, n_active, slac
     """Fold one solved call (``status`` ≥ 0, :func:`c3bf_gym.safety._daqp.solve_rows`' codes; its
     ``m`` rows, the first ``n_obstacle`` the obstacles', ``n_floor`` floor rows after them) into
     ``tally``: the running extremes and counts of :class:`~c3bf_gym.safety.StepSafety`, the last
-    call's torques and outcome, and, when rows gave way, the largest violation of each kind
-    (:func:`violations_by_kind` on the QP's residuals)."""
+    call's torques, iterations, active rows and slack, and, when rows gave way, the largest
+    violation of each kind (:func:`violations_by_kind` on the QP's residuals)."""
     values = tally.values
     values[T_SUBSTEPS] += 1.0
     if residual < values[T_MIN_CONSTRAINT]:
@@ -684,7 +661,6 @@ def record(tally, status, m, min_h, inside, n_sensed, iterations, n_active, slac
         values[T_CORRECTION] = correction
     if correction > intervention_tol:
         values[T_INTERVENED] = 1.0
-    values[T_LAST_STATUS] = status
     values[T_LAST_ITERATIONS] = iterations
     values[T_LAST_ACTIVE] = n_active
     values[T_LAST_SLACK] = slack
@@ -697,15 +673,25 @@ def record(tally, status, m, min_h, inside, n_sensed, iterations, n_active, slac
 
 @njit(**_opts)
 def hook_substep(stage, tau_nom, tau, arm, obstacles, params, work, A, b, scale, limit, qp, tally, intervention_tol):
-    """:func:`hook_step`, then :func:`record` of its outcome into ``tally``; returns the status
-    (invalid input, < 0, is not recorded)."""
-    status, m, min_h, inside, n_sensed, iterations, n_active, slack, residual, correction = hook_step(
-        stage, tau_nom, tau, arm, obstacles, params, work, A, b, scale, limit, qp)
-    if status < 0:
-        return status
+    """One whole-arm filter step in one call (:meth:`~c3bf_gym.safety.SafetyController.__call__`,
+    and an environment's compiled policy step): the rows (:func:`hook_rows_whole_arm`, whose
+    arguments ``stage`` … ``b`` are), the QP (:func:`c3bf_gym.safety._daqp.solve_rows` on ``qp``,
+    priorities by :func:`low_priority_span`) in the scaled torque ``τ / scale``, :func:`hook_post`,
+    which writes the torque into ``tau``, and :func:`record` of the outcome into ``tally``.
+
+    Returns the status, one of :func:`~c3bf_gym.safety._daqp.solve_rows`' codes (invalid input, < 0,
+    is not recorded).
+    """
+    m, min_h, inside, n_sensed = hook_rows_whole_arm(stage, arm, obstacles, params, work, A, b)
     n_floor = params.floor_ends.shape[0]
     n_fixed = n_floor + (4 * arm.Minv.shape[0] if params.joint_rows else 0)
-    stride = 2 if params.guard_gamma2 > 0.0 else 1
+    guarded = params.guard_gamma2 > 0.0
+    stride = 2 if guarded else 1  # obstacle rows: barrier, guard, barrier, guard, ... beside a guard
+    status, iterations, n_active, slack = solve_rows(tau_nom, A[:m], b[:m], scale,
+                                                     low_priority_span(m, n_fixed, guarded), stride, qp)
+    if status < 0:
+        return status
+    residual, correction = hook_post(A[:m], b[:m], qp.u, scale, tau_nom, limit, tau)
     record(tally, status, m, min_h, inside, n_sensed, iterations, n_active, slack, residual, correction, tau_nom,
            tau, qp, m - n_fixed, stride, n_floor, intervention_tol)
     return status
