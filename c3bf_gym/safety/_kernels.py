@@ -210,31 +210,35 @@ def _surface_gap(ends_a, ends_ab, a_dot_ab, length2, capsule_radius, o, radius):
 
 
 @njit(**_opts)
-def _closest_pair(ends_a, ends_ab, a_dot_ab, length2, s, o, vo, ao, p, v, c, G, slide):
-    """Closest point of capsule ``s``'s axis to the centre ``o`` (moving with ``vo``, ``ao``):
-    ``p = x* − o``, ``v = ẋ − vo``, ``c = (material c) − ao + ṫ (ḃ − ȧ)``, ``G`` (3, nv) and
-    ``slide = ṫ (b − a)`` (:meth:`ArmModel.closest_relative`). Returns the unclamped axis
-    parameter ``t``."""
+def _closest_pair(ends_a, ends_ab, a_dot_ab, length2, s, o, vo, ao, G):
+    """Closest point of capsule ``s``'s axis to the centre ``o`` (3,) (moving with ``vo``, ``ao``):
+    writes ``G`` (3, nv) and returns ``(t, p, v, c, slide)``, the unclamped axis parameter ``t``
+    and the 3-tuples ``p = x* − o``, ``v = ẋ − vo``, ``c = (material c) − ao + ṫ (ḃ − ȧ)``,
+    ``slide = ṫ (b − a)`` (:meth:`ArmModel.closest_relative`).
+
+    The vectors are tuples, not arrays: the fused kernel calls this once per obstacle–capsule pair,
+    and array views for them cost three times the arithmetic."""
     nv = G.shape[1]
     t = _axis_parameter(ends_ab, a_dot_ab, length2, s, o)
     tc = min(max(t, 0.0), 1.0)
+    ab0, ab1, ab2 = ends_ab[s, 0, 0], ends_ab[s, 1, 0], ends_ab[s, 2, 0]
+    ab_dot0, ab_dot1, ab_dot2 = ends_ab[s, 0, 1], ends_ab[s, 1, 1], ends_ab[s, 2, 1]
+    p = ((tc * ab0 + ends_a[s, 0, 0]) - o[0], (tc * ab1 + ends_a[s, 1, 0]) - o[1], (tc * ab2 + ends_a[s, 2, 0]) - o[2])
+    v = ((tc * ab_dot0 + ends_a[s, 0, 1]) - vo[0], (tc * ab_dot1 + ends_a[s, 1, 1]) - vo[1],
+         (tc * ab_dot2 + ends_a[s, 2, 1]) - vo[2])
+    c0 = (tc * ends_ab[s, 0, 2] + ends_a[s, 0, 2]) - ao[0]
+    c1 = (tc * ends_ab[s, 1, 2] + ends_a[s, 1, 2]) - ao[1]
+    c2 = (tc * ends_ab[s, 2, 2] + ends_a[s, 2, 2]) - ao[2]
     for i in range(3):
-        p[i] = (tc * ends_ab[s, i, 0] + ends_a[s, i, 0]) - o[i]
-        v[i] = (tc * ends_ab[s, i, 1] + ends_a[s, i, 1]) - vo[i]
-        c[i] = (tc * ends_ab[s, i, 2] + ends_a[s, i, 2]) - ao[i]
         for j in range(nv):
             G[i, j] = tc * ends_ab[s, i, 3 + j] + ends_a[s, i, 3 + j]
-    rate = (v[0] * ends_ab[s, 0, 0] + v[1] * ends_ab[s, 1, 0] + v[2] * ends_ab[s, 2, 0]) + (
-        p[0] * ends_ab[s, 0, 1] + p[1] * ends_ab[s, 1, 1] + p[2] * ends_ab[s, 2, 1]
-    )
+    rate = (v[0] * ab0 + v[1] * ab1 + v[2] * ab2) + (p[0] * ab_dot0 + p[1] * ab_dot1 + p[2] * ab_dot2)
     if length2[s] > 0.0:
         rate /= -length2[s]
     if not (t > 0.0 and t < 1.0):
         rate *= 0.0  # clamped to an end: the point does not slide
-    for i in range(3):
-        c[i] += rate * ends_ab[s, i, 1]
-        slide[i] = rate * ends_ab[s, i, 0]
-    return t
+    c = (c0 + rate * ab_dot0, c1 + rate * ab_dot1, c2 + rate * ab_dot2)
+    return t, p, v, c, (rate * ab0, rate * ab1, rate * ab2)
 
 
 @njit(**_opts)
@@ -246,25 +250,24 @@ def closest_relative(ends_a, ends_ab, a_dot_ab, length2, centres, velocities, ac
     for k in range(centres.shape[0]):
         for s in range(s_count):
             row = k * s_count + s
-            t[k, s] = _closest_pair(ends_a, ends_ab, a_dot_ab, length2, s, centres[k], velocities[k],
-                                    accelerations[k], p[row], v[row], c[row], G[row], slide[row])
+            t[k, s], p[row], v[row], c[row], slide[row] = _closest_pair(
+                ends_a, ends_ab, a_dot_ab, length2, s, centres[k], velocities[k], accelerations[k], G[row])
 
 
 # ----------------------------------------------------------------------------- barriers
 
 
 @njit(**_opts)
-def _c3bf_point(p, v, r, gamma, eps, delta, grad_v, grad_p):
-    """C3BF at one point (:class:`~c3bf_gym.safety.barriers.C3BF`): fills ``grad_v``, ``grad_p`` (3,)
-    and returns ``(h, drift, inside)``."""
+def _c3bf_point(p, v, r, gamma, eps, delta):
+    """C3BF at one point (:class:`~c3bf_gym.safety.barriers.C3BF`), ``p``, ``v`` 3-tuples: returns
+    ``(h, drift, inside, grad_v, grad_p)``, the gradients 3-tuples."""
     h0 = (p[0] * p[0] + p[1] * p[1] + p[2] * p[2]) - r * r
     inside = h0 <= 0.0
     pv = p[0] * v[0] + p[1] * v[1] + p[2] * v[2]
     if inside:
         h = pv + 0.5 * gamma * h0
-        for i in range(3):
-            grad_v[i] = p[i]
-            grad_p[i] = v[i] + gamma * p[i]
+        grad_v = p
+        grad_p = (v[0] + gamma * p[0], v[1] + gamma * p[1], v[2] + gamma * p[2])
     else:
         s = math.sqrt(max(h0, delta * delta))
         vv = v[0] * v[0] + v[1] * v[1] + v[2] * v[2]
@@ -272,45 +275,51 @@ def _c3bf_point(p, v, r, gamma, eps, delta, grad_v, grad_p):
         h = vn * s + pv
         sv = s / vn
         vs = vn / s
-        for i in range(3):
-            grad_v[i] = v[i] * sv + p[i]
-            grad_p[i] = p[i] * vs + v[i]
+        grad_v = (v[0] * sv + p[0], v[1] * sv + p[1], v[2] * sv + p[2])
+        grad_p = (p[0] * vs + v[0], p[1] * vs + v[1], p[2] * vs + v[2])
     drift = grad_p[0] * v[0] + grad_p[1] * v[1] + grad_p[2] * v[2]
-    return h, drift, inside
+    return h, drift, inside, grad_v, grad_p
 
 
 @njit(**_opts)
-def _hocbf_point(p, v, r, gamma1, grad_v, grad_p):
-    """Distance HOCBF at one point (:class:`~c3bf_gym.safety.barriers.DistanceHOCBF`): fills ``grad_v``,
-    ``grad_p`` (3,) and returns ``(ψ₁, drift, inside)``."""
+def _hocbf_point(p, v, r, gamma1):
+    """Distance HOCBF at one point (:class:`~c3bf_gym.safety.barriers.DistanceHOCBF`), ``p``, ``v``
+    3-tuples: returns ``(ψ₁, drift, inside, grad_v, grad_p)``, the gradients 3-tuples."""
     h0 = (p[0] * p[0] + p[1] * p[1] + p[2] * p[2]) - r * r
     pv2 = (p[0] * v[0] + p[1] * v[1] + p[2] * v[2]) * 2.0
     h = h0 * gamma1 + pv2
     drift = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]) * 2.0 + pv2 * gamma1
     g2 = 2.0 * gamma1
-    for i in range(3):
-        grad_v[i] = 2.0 * p[i]
-        grad_p[i] = p[i] * g2 + 2.0 * v[i]
-    return h, drift, h0 <= 0.0
+    grad_v = (2.0 * p[0], 2.0 * p[1], 2.0 * p[2])
+    grad_p = (p[0] * g2 + 2.0 * v[0], p[1] * g2 + 2.0 * v[1], p[2] * g2 + 2.0 * v[2])
+    return h, drift, h0 <= 0.0, grad_v, grad_p
+
+
+@njit(**_opts)
+def _vec3(x):
+    """The 3-tuple of a (3,) array's entries."""
+    return x[0], x[1], x[2]
 
 
 @njit(**_opts)
 def c3bf_terms(p, v, r, gamma, eps, delta, h, grad_v, drift, inside, grad_p):
     """:func:`_c3bf_point` for P points: ``p, v`` (P, 3), ``r`` (P,) into the outputs."""
     for k in range(p.shape[0]):
-        h[k], drift[k], inside[k] = _c3bf_point(p[k], v[k], r[k], gamma, eps, delta, grad_v[k], grad_p[k])
+        h[k], drift[k], inside[k], grad_v[k], grad_p[k] = _c3bf_point(_vec3(p[k]), _vec3(v[k]), r[k], gamma, eps,
+                                                                       delta)
 
 
 @njit(**_opts)
 def hocbf_terms(p, v, r, gamma1, h, grad_v, drift, inside, grad_p):
     """:func:`_hocbf_point` for P points: ``p, v`` (P, 3), ``r`` (P,) into the outputs."""
     for k in range(p.shape[0]):
-        h[k], drift[k], inside[k] = _hocbf_point(p[k], v[k], r[k], gamma1, grad_v[k], grad_p[k])
+        h[k], drift[k], inside[k], grad_v[k], grad_p[k] = _hocbf_point(_vec3(p[k]), _vec3(v[k]), r[k], gamma1)
 
 
 @njit(**_opts)
 def _row(grad_v, G, c, drift, h, gamma, A_row):
-    """One torque row: ``A_row = grad_vᵀ G`` and returns ``b = −(⟨grad_v, c⟩ + drift + γ h)``."""
+    """One torque row: ``A_row = grad_vᵀ G`` and returns ``b = −(⟨grad_v, c⟩ + drift + γ h)``
+    (``grad_v``, ``c`` 3-tuples)."""
     for j in range(G.shape[1]):
         A_row[j] = grad_v[0] * G[0, j] + grad_v[1] * G[1, j] + grad_v[2] * G[2, j]
     return -(((grad_v[0] * c[0] + grad_v[1] * c[1] + grad_v[2] * c[2]) + drift) + gamma * h)
@@ -319,7 +328,7 @@ def _row(grad_v, G, c, drift, h, gamma, A_row):
 @njit(**_opts)
 def _sliding_row(grad_v, grad_p, slide, G, c, drift, h, gamma, A_row):
     """:func:`_row` for a closest point sliding by ``slide`` along its link: its ``b`` less the
-    sliding term ``⟨grad_p, slide⟩``."""
+    sliding term ``⟨grad_p, slide⟩`` (3-tuples)."""
     bk = _row(grad_v, G, c, drift, h, gamma, A_row)
     return bk - (grad_p[0] * slide[0] + grad_p[1] * slide[1] + grad_p[2] * slide[2])
 
@@ -328,7 +337,7 @@ def _sliding_row(grad_v, grad_p, slide, G, c, drift, h, gamma, A_row):
 def rows_from_terms(grad_v, drift, h, gamma, G, c, A, b):
     """:func:`_row` for P points: ``G`` (P, 3, n), ``c`` (P, 3) into ``A`` (P, n), ``b`` (P,)."""
     for k in range(h.shape[0]):
-        b[k] = _row(grad_v[k], G[k], c[k], drift[k], h[k], gamma, A[k])
+        b[k] = _row(_vec3(grad_v[k]), G[k], _vec3(c[k]), drift[k], h[k], gamma, A[k])
 
 
 @njit(**_opts)
@@ -475,8 +484,8 @@ def hook_rows_whole_arm(stage, arm, obstacles, params, work, A, b):
     3. The floor rows of the capsule ends ``params.floor_ends`` (:func:`floor_rows`).
     4. With ``params.joint_rows``, the ``4 nv`` joint-limit rows (:func:`joint_limit_rows`).
 
-    ``work`` is a (3, 6 + nv) scratch; the rows go to ``A``, ``b``. Returns ``(rows, min h of the
-    barrier's rows (not the guard's), any inside, sensed count)``.
+    ``work`` is a (3, nv) scratch (each closest point's ``G``); the rows go to ``A``, ``b``.
+    Returns ``(rows, min h of the barrier's rows (not the guard's), any inside, sensed count)``.
     """
     s_count = arm.ends_ab.shape[0]
     nv = arm.Minv.shape[0]
@@ -492,13 +501,6 @@ def hook_rows_whole_arm(stage, arm, obstacles, params, work, A, b):
     gamma = params.gamma
     guard = params.guard_gamma2 > 0.0
     distances = obstacles.distances
-    p = work[0, :3]
-    v = work[1, :3]
-    c = work[2, :3]
-    grad_v = work[0, 3:6]
-    grad_p = work[1, 3:6]
-    slide = work[2, 3:6]
-    G = work[:, 6:6 + nv]
     m = 0
     n_sensed = 0
     min_h = np.inf
@@ -515,21 +517,21 @@ def hook_rows_whole_arm(stage, arm, obstacles, params, work, A, b):
         if not dmin <= params.sensing_radius:
             continue
         n_sensed += 1
+        o, vo, ao = obstacles.position[k], obstacles.velocity[k], obstacles.acceleration[k]
         for s in range(s_count):
-            _closest_pair(ends_a, ends_ab, a_dot_ab, length2, s, obstacles.position[k], obstacles.velocity[k],
-                          obstacles.acceleration[k], p, v, c, G, slide)
+            _, p, v, c, slide = _closest_pair(ends_a, ends_ab, a_dot_ab, length2, s, o, vo, ao, work)
             r = (obstacles.radius[k] + capsule_radius[s]) + params.margin
             if params.kind == C3BF_KIND:
-                h, drift, inside = _c3bf_point(p, v, r, gamma, params.p1, params.p2, grad_v, grad_p)
+                h, drift, inside, grad_v, grad_p = _c3bf_point(p, v, r, gamma, params.p1, params.p2)
             else:
-                h, drift, inside = _hocbf_point(p, v, r, params.p1, grad_v, grad_p)
-            b[m] = _sliding_row(grad_v, grad_p, slide, G, c, drift, h, gamma, A[m])
+                h, drift, inside, grad_v, grad_p = _hocbf_point(p, v, r, params.p1)
+            b[m] = _sliding_row(grad_v, grad_p, slide, work, c, drift, h, gamma, A[m])
             min_h = min(min_h, h)
             inside_any = inside_any or inside
             m += 1
             if guard:
-                h, drift, inside = _hocbf_point(p, v, r, params.guard_gamma1, grad_v, grad_p)
-                b[m] = _sliding_row(grad_v, grad_p, slide, G, c, drift, h, params.guard_gamma2, A[m])
+                h, drift, _, grad_v, grad_p = _hocbf_point(p, v, r, params.guard_gamma1)
+                b[m] = _sliding_row(grad_v, grad_p, slide, work, c, drift, h, params.guard_gamma2, A[m])
                 m += 1
     n_floor = params.floor_ends.shape[0]
     floor_rows(arm.ends, params.floor_ends, params.floor_min, params.floor_gamma, A[m:m + n_floor], b[m:m + n_floor])

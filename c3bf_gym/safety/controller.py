@@ -263,7 +263,7 @@ class SafetyController:
         )
         self._obstacle_arrays = _kernels.ObstacleArrays(obstacles.active, self._distances, obstacles.position,
                                                         obstacles.velocity, obstacles.acceleration, obstacles.radius)
-        self._work = np.zeros((3, 6 + n))
+        self._work = np.zeros((3, n))
         # the report's running values, in compiled code (_kernels.record); solve_time beside them
         self._tally = _kernels.Tally(np.zeros(_kernels.TALLY_SIZE), np.zeros(n), np.zeros(n))
         self._solve_time = 0.0
