@@ -117,6 +117,8 @@ _SOLVE = ct.cast(_function("daqp_solve", [_p, _p], None), ct.c_void_p).value
 #: int32 index of the exit flag and of the iteration count in a result buffer
 RESULT_EXITFLAG = _Result.exitflag.offset // 4
 RESULT_ITER = _Result.iter.offset // 4
+#: int32 index of the constraint count ``m`` in a problem buffer
+PROBLEM_M = _Problem.m.offset // 4
 #: the entries of ``DaqpBuffers.addr``
 ADDR_WORK, ADDR_PROBLEM, ADDR_RESULT, ADDR_UPDATE_LDP, ADDR_SOLVE = range(5)
 
@@ -147,8 +149,9 @@ class DaqpBuffers(NamedTuple):
         sense: (n + rows,) int32 constraint flags (0: an ordinary inequality).
         x: (n,) the solution.
         result: int32 view of the ``DAQPResult`` (exit flag at :data:`RESULT_EXITFLAG`).
+        problem: int32 view of the ``DAQPProblem`` (its constraint count ``n + rows`` at
+            :data:`PROBLEM_M`).
         addr: uint64 addresses: workspace, problem, result, ``daqp_update_ldp``, ``daqp_solve``.
-        used: int64 (1,) the number of rows the previous call wrote (zeroed by the next one).
     """
 
     f: np.ndarray
@@ -157,8 +160,8 @@ class DaqpBuffers(NamedTuple):
     sense: np.ndarray
     x: np.ndarray
     result: np.ndarray
+    problem: np.ndarray
     addr: np.ndarray
-    used: np.ndarray
 
 
 def _buffer(struct_type) -> tuple[np.ndarray, ct.Structure]:
@@ -235,7 +238,8 @@ class DaqpWorkspace:
         addr = np.zeros(5, np.uint64)
         addr[ADDR_WORK], addr[ADDR_PROBLEM] = self._work_buf.ctypes.data, self._prob_buf.ctypes.data
         addr[ADDR_RESULT], addr[ADDR_UPDATE_LDP], addr[ADDR_SOLVE] = self._res_buf.ctypes.data, _UPDATE_LDP, _SOLVE
-        self.buffers = DaqpBuffers(f, A, lower, sense, x, self._res_buf.view(np.int32), addr, np.zeros(1, np.int64))
+        self.buffers = DaqpBuffers(f, A, lower, sense, x, self._res_buf.view(np.int32), self._prob_buf.view(np.int32),
+                                   addr)
 
     def __getstate__(self):
         raise TypeError("a DaqpWorkspace holds C memory and cannot be pickled; build a new one")
@@ -320,9 +324,9 @@ def solve_rows(tau_nom, A, b, scale, n_obstacle_rows, stride, qp):
     1. Rows are scaled (``A_k s``) and normalised; a row shorter than :data:`ROW_NORM_MIN` cannot
        change with the torque: with ``b_k ≤ 0`` it holds, with ``b_k > 0`` it can never hold
        (``impossible``, its ``b_k``). Both are left out of the solves.
-    2. All rows hard (``qp.plain``), warm-started from its previous solve's working set. If DAQP
-       finds the optimum and every row holds within :data:`ACTIVE_TOL`, that is the answer
-       (:data:`SOLVED`).
+    2. All rows hard (``qp.plain``, its problem sized to the ``m`` rows: DAQP reads none past
+       them), warm-started from its previous solve's working set. If DAQP finds the optimum and
+       every row holds within :data:`ACTIVE_TOL`, that is the answer (:data:`SOLVED`).
     3. Otherwise, by priority (:data:`RELAXED`, ``qp.hier``): level 1 holds the rows that are not
        the barrier's (the guard's, the floor's, the joint limits'), level 2 the barrier's: rows
        ``k < n_obstacle_rows`` with ``k % stride == 0``. Warm-started from its own previous
@@ -371,8 +375,7 @@ def solve_rows(tau_nom, A, b, scale, n_obstacle_rows, stride, qp):
         for j in range(n):
             plain.A[k, j] /= norm
         plain.lower[n + k] = b[k] / norm
-    _clear(plain, m, plain.used[0])
-    plain.used[0] = m
+    plain.problem[PROBLEM_M] = n + m
     status = SOLVED
     iterations = 0
     by_priority = -1  # the prioritised solve's exit flag (-1: not run)
