@@ -23,7 +23,18 @@ from pathlib import Path
 
 from numba.core import caching
 
-__all__ = ["CACHE_FOLDER", "KERNEL_SOURCES", "sources_digest"]
+__all__ = ["CACHE_FOLDER", "KERNEL_OPTIONS", "KERNEL_SOURCES", "STEP_KERNEL_OPTIONS", "sources_digest"]
+
+#: numba options of the package's kernels: cached on disk (by this module's locators), without the
+#: GIL, numpy's floating-point error model (inf and NaN, no exceptions) and no bounds checks.
+KERNEL_OPTIONS = {"cache": True, "nogil": True, "error_model": "numpy", "boundscheck": False}
+#: :data:`KERNEL_OPTIONS` for the kernels that run at every physics step (the filter, its QP and the
+#: environment's physics steps), which allocate nothing and only borrow their callers' arrays:
+#: compiled without numba's reference counting (NRT, ``_nrt=False``). With it, every array argument
+#: and every view taken in a loop costs an atomic increment and decrement, hundreds per physics step.
+#: A kernel that allocates fails to compile with these options (numba: "NRT required but not
+#: enabled"), so none can slip in unnoticed.
+STEP_KERNEL_OPTIONS = {**KERNEL_OPTIONS, "_nrt": False}
 
 #: The folder beside the kernel sources that holds their cache (unless ``NUMBA_CACHE_DIR`` is set).
 CACHE_FOLDER = "_numba_cache"

@@ -26,7 +26,7 @@ import mujoco
 import numpy as np
 from numba import njit
 
-from c3bf_gym import _compile_cache  # noqa: F401  (before any @njit(cache=True): the cache keys)
+from c3bf_gym._compile_cache import KERNEL_OPTIONS, STEP_KERNEL_OPTIONS  # (before any @njit: the cache keys)
 from c3bf_gym._capi import call_void
 from c3bf_gym.safety._kernels import hook_substep
 
@@ -78,7 +78,7 @@ class Physics(NamedTuple):
                    distances, float(cutoff))
 
 
-@njit(cache=True, nogil=True, error_model="numpy", boundscheck=False)
+@njit(**STEP_KERNEL_OPTIONS)
 def _advance(physics, lowest):
     """One physics step: ``mj_step2`` (integrate the controls in ``data.ctrl``), every obstacle
     moves by its displacement, ``mj_step1`` (kinematics, dynamics and sensors of the new state).
@@ -97,7 +97,7 @@ def _advance(physics, lowest):
     return lowest
 
 
-@njit(cache=True, nogil=True, error_model="numpy", boundscheck=False)
+@njit(**STEP_KERNEL_OPTIONS)
 def physics_steps(physics, n):
     """``n`` physics steps (:func:`_advance`) from a state whose ``mj_step1`` has run. Returns the
     smallest distance sensor reading over the ``n`` new states (``cutoff`` at most)."""
@@ -107,7 +107,7 @@ def physics_steps(physics, n):
     return lowest
 
 
-@njit(cache=True, nogil=True, error_model="numpy", boundscheck=False)
+@njit(**STEP_KERNEL_OPTIONS)
 def filtered_steps(physics, n, torque, gravity, ctrl, inv_limit, tau_nom, tau, effort_rows, stage, hook, halt):
     """``n`` physics steps as :func:`physics_steps`, each under the safety filter: the nominal
     total torque ``torque + gravity`` (the gravity compensation ``data.qfrc_gravcomp``, current
@@ -159,7 +159,7 @@ class Observed(NamedTuple):
     distances: np.ndarray
 
 
-@njit(cache=True, nogil=True, error_model="numpy", boundscheck=False)
+@njit(**KERNEL_OPTIONS)
 def observe(seen, sensing_radius, obs):
     """The observation (:func:`~c3bf_gym.envs.reach.observation_layout`) into ``obs`` (float64),
     returned as a new float32 array: joints, tool position and velocity, goal minus tool, then
@@ -190,7 +190,7 @@ def observe(seen, sensing_radius, obs):
     return obs.astype(np.float32)
 
 
-@njit(cache=True, nogil=True, error_model="numpy", boundscheck=False)
+@njit(**STEP_KERNEL_OPTIONS)
 def departed(position, active, low, high):
     """Whether an active obstacle (``position`` (K, 3), ``active`` (K,)) lies outside the box
     ``low``-``high`` (3,) [m]."""

@@ -40,7 +40,7 @@ from llvmlite import ir
 from numba import njit, types
 from numba.extending import intrinsic
 
-from c3bf_gym import _compile_cache  # noqa: F401  (before any @njit(cache=True): the cache keys)
+from c3bf_gym._compile_cache import STEP_KERNEL_OPTIONS  # (before any @njit(cache=True): the cache keys)
 from c3bf_gym._capi import call_void
 
 __all__ = ["DAQP_VERSION", "DaqpBuffers", "DaqpWorkspace", "EXIT_FLAGS"]
@@ -246,7 +246,7 @@ class DaqpWorkspace:
 
 
 
-@njit(cache=True, nogil=True, error_model="numpy", boundscheck=False)
+@njit(**STEP_KERNEL_OPTIONS)
 def daqp_call(buffers, mask):
     """``daqp_update_ldp(mask)`` then ``daqp_solve`` on the workspace of ``buffers``
     (:class:`DaqpBuffers`): returns ``(exit flag, iterations)``; a failed update's flag with 0."""
@@ -306,7 +306,7 @@ class QPBuffers(NamedTuple):
     last: np.ndarray
 
 
-@njit(cache=True, nogil=True, error_model="numpy", boundscheck=False)
+@njit(**STEP_KERNEL_OPTIONS)
 def _clear(buffers, start, stop):
     """Rows ``start`` … ``stop`` of a workspace become unused (zero, no bound)."""
     n = buffers.x.shape[0]
@@ -316,7 +316,7 @@ def _clear(buffers, start, stop):
         buffers.lower[n + k] = -INF
 
 
-@njit(cache=True, nogil=True, error_model="numpy", boundscheck=False)
+@njit(**STEP_KERNEL_OPTIONS)
 def solve_rows(tau_nom, A, b, scale, n_obstacle_rows, stride, qp):
     """The filter's QP (module docstring) for the rows ``A τ ≥ b`` (m, n) and nominal torque
     ``tau_nom`` (n,), in ``u = τ / scale``; the solution goes to ``qp.u`` (:class:`QPBuffers`).
@@ -426,7 +426,7 @@ def solve_rows(tau_nom, A, b, scale, n_obstacle_rows, stride, qp):
     return status, iterations, n_active, slack
 
 
-@njit(cache=True, nogil=True, error_model="numpy", boundscheck=False)
+@njit(**STEP_KERNEL_OPTIONS)
 def _solve_by_priority(qp, m, n_obstacle_rows, stride):
     """Step 3 of :func:`solve_rows` on the rows ``qp.plain`` holds (scaled and normalised):
     returns ``(exit flag, iterations)``; on success (flag ≥ 1) ``qp.u`` is the answer, clipped
@@ -464,7 +464,7 @@ def _solve_by_priority(qp, m, n_obstacle_rows, stride):
     return flag, iterations
 
 
-@njit(cache=True, nogil=True, error_model="numpy", boundscheck=False)
+@njit(**STEP_KERNEL_OPTIONS)
 def _residuals(plain, qp, m):
     """``qp.residual[k] = â_k u − b̂_k`` for the first ``m`` (normalised) rows; returns their minimum
     over the rows that are not left out (inf without one)."""

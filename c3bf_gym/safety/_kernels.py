@@ -5,7 +5,8 @@ the overhead of many small array calls (microseconds each), not in arithmetic: t
 and 7 capsules, so every array holds tens of numbers. These kernels do the same arithmetic in
 plain loops, compiled once by numba (``cache=True``: the machine code is cached on disk next to
 this file, or in numba's user-wide cache when that folder is read-only, so later processes load
-it instead of compiling).
+it instead of compiling). They allocate nothing and are compiled without numba's reference
+counting (:data:`~c3bf_gym._compile_cache.STEP_KERNEL_OPTIONS`).
 
 Each piece of math lives once, in an inner ``@njit`` function that works on one point or one row;
 the public classes call it through small vectorised kernels, and the filter's fused kernel
@@ -34,7 +35,7 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit
 
-from c3bf_gym import _compile_cache  # noqa: F401  (before any @njit(cache=True): the cache keys)
+from c3bf_gym._compile_cache import STEP_KERNEL_OPTIONS  # (before any @njit(cache=True): the cache keys)
 
 # hook_substep compiles _daqp.solve_rows into itself: _compile_cache keys the on-disk cache of both
 # files' functions on both files.
@@ -44,7 +45,7 @@ from c3bf_gym.safety._daqp import ACTIVE_TOL, SOLVED, solve_rows
 C3BF_KIND = 0
 HOCBF_KIND = 1
 
-_opts = {"cache": True, "nogil": True, "error_model": "numpy", "boundscheck": False}
+_opts = STEP_KERNEL_OPTIONS
 
 
 # ----------------------------------------------------------------------------- dynamics
@@ -104,7 +105,7 @@ def step_inverse(M, rowadr, rownnz, colind, damping, qfrc_passive, qfrc_bias, wo
 
 @njit(**_opts)
 def _one_point(p, x, chain, cdof, cdof_dot, com, qvel, Minv, qacc_free, packed, jac):
-    """Fill ``packed[p, :, 1:]`` (velocity, ``c``, ``G``) and ``jac[p]`` of the point ``x`` (3,)
+    """Fill ``packed[p, :, 1:]`` (velocity, ``c``, ``G``) and ``jac[p]`` of the point ``x`` (a 3-tuple)
     moving with the dofs where ``chain`` (nv,) is nonzero (:mod:`c3bf_gym.safety.dynamics`'s formulas:
     ``J_j = chain_j (v_j + ω_j × r)``, ``J̇q̇ = Σ q̇_j v̇_j + (Σ q̇_j ω̇_j) × r + ω × ẋ``)."""
     nv = qvel.shape[0]
@@ -152,9 +153,8 @@ def _one_point(p, x, chain, cdof, cdof_dot, com, qvel, Minv, qacc_free, packed, 
 def point_dynamics(chain, cdof, cdof_dot, com, qvel, Minv, qacc_free, packed, jac):
     """Velocity, ``c``, ``G`` (``packed[:, :, 1:]``, (P, 3, 3 + nv)) and Jacobians ``jac``
     (P, 3, nv) of the points ``packed[:, :, 0]`` with dof masks ``chain`` (P, nv)."""
-    x = np.empty(3)
     for p in range(packed.shape[0]):
-        x[0], x[1], x[2] = packed[p, 0, 0], packed[p, 1, 0], packed[p, 2, 0]
+        x = (packed[p, 0, 0], packed[p, 1, 0], packed[p, 2, 0])
         _one_point(p, x, chain[p], cdof, cdof_dot, com, qvel, Minv, qacc_free, packed, jac)
 
 
@@ -166,7 +166,6 @@ def capsule_ends(geom_xpos, geom_xmat, ids, half, chain, cdof, cdof_dot, com, qv
     ``ends_ab = b − a`` (S, 3, 3 + nv) and ``a_dot_ab = ⟨a, b − a⟩`` (S,)."""
     s_count = ids.shape[0]
     ncol = ends.shape[2]
-    x = np.empty(3)
     for s in range(s_count):
         g = ids[s]
         for i in range(3):
@@ -174,7 +173,7 @@ def capsule_ends(geom_xpos, geom_xmat, ids, half, chain, cdof, cdof_dot, com, qv
             ends[s, i, 0] = geom_xpos[g, i] - axis
             ends[s_count + s, i, 0] = geom_xpos[g, i] + axis
     for p in range(2 * s_count):
-        x[0], x[1], x[2] = ends[p, 0, 0], ends[p, 1, 0], ends[p, 2, 0]
+        x = (ends[p, 0, 0], ends[p, 1, 0], ends[p, 2, 0])
         _one_point(p, x, chain[p % s_count], cdof, cdof_dot, com, qvel, Minv, qacc_free, ends, jac)
     for s in range(s_count):
         dot = 0.0
