@@ -695,10 +695,10 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
         self.state_version += done
         self._compiled_filter.compiled_substeps_done(status, last)  # raises as the hook would have
         rows = self._filter_scratch[2]
-        effort = 0.0
+        effort, count = 0.0, rows.shape[1] * self.frame_skip
         # np.vecdot takes each row's u @ u with numpy's own dot (the same bits), without a view per row
         for square in np.vecdot(rows, rows).tolist():
-            effort += square / (rows.shape[1] * self.frame_skip)
+            effort += square / count
         return float(min_distance), effort
 
     def obstacle_distances(self) -> np.ndarray:

@@ -116,6 +116,8 @@ class StepSafety:
     violation: dict[str, float] = field(default_factory=lambda: dict.fromkeys(ROW_KINDS, 0.0))
 
     def as_info(self) -> dict[str, float | bool | int]:
+        """The report as ``info["safety"]``: every attribute but the torques and ``solve_time``, the
+        violations as ``violation_<kind>`` floats."""
         return {
             "feasible": self.feasible,
             "slack": self.slack,
@@ -326,7 +328,7 @@ class SafetyController:
 
     def begin_step(self) -> None:
         """Start a new policy step's report."""
-        _kernels.tally_reset(self._tally)
+        np.copyto(self._tally.values, _kernels.TALLY_START)
         self._solve_time = 0.0
 
     def rows(self) -> tuple[np.ndarray, np.ndarray, float, bool, int]:
@@ -519,8 +521,8 @@ class SafetyController:
         raise_bad_input(status)
         values = self._tally.values
         feasible = status == _daqp.SOLVED
-        self.last = QPResult(self.qp.buffers.u, float(values[_kernels.T_LAST_SLACK]), feasible, STATUS[status],
-                             int(values[_kernels.T_LAST_ITERATIONS]), int(values[_kernels.T_LAST_ACTIVE]), elapsed)
+        iterations, active, slack = values[_kernels.T_LAST_ITERATIONS:_kernels.T_LAST_SLACK + 1].tolist()
+        self.last = QPResult(self.qp.buffers.u, slack, feasible, STATUS[status], int(iterations), int(active), elapsed)
         if not feasible and self.on_infeasible == "raise":
             violation = dict(zip(ROW_KINDS, values[_kernels.T_VIOLATION:].tolist()))
             raise SafetyInfeasibleError(
@@ -533,18 +535,18 @@ class SafetyController:
     def report(self) -> StepSafety:
         """The :class:`StepSafety` of the calls since :meth:`begin_step` (a new object at every
         read: keep it, it does not follow later calls)."""
-        values = self._tally.values
+        values = self._tally.values.tolist()  # Python floats: one conversion, not one per entry
         substeps = int(values[_kernels.T_SUBSTEPS])
         infeasible = int(values[_kernels.T_INFEASIBLE_STEPS])
         return StepSafety(
-            feasible=infeasible == 0, slack=float(values[_kernels.T_SLACK]), min_h=float(values[_kernels.T_MIN_H]),
-            correction=float(values[_kernels.T_CORRECTION]), active_rows=int(values[_kernels.T_ACTIVE_ROWS]),
+            feasible=infeasible == 0, slack=values[_kernels.T_SLACK], min_h=values[_kernels.T_MIN_H],
+            correction=values[_kernels.T_CORRECTION], active_rows=int(values[_kernels.T_ACTIVE_ROWS]),
             sensed=int(values[_kernels.T_SENSED]), solve_time=self._solve_time,
             intervened=bool(values[_kernels.T_INTERVENED]), inside=bool(values[_kernels.T_INSIDE]),
-            infeasible_steps=infeasible, min_constraint=float(values[_kernels.T_MIN_CONSTRAINT]), substeps=substeps,
+            infeasible_steps=infeasible, min_constraint=values[_kernels.T_MIN_CONSTRAINT], substeps=substeps,
             tau_nominal=self._tally.tau_nominal.copy() if substeps else None,
             tau=self._tally.tau.copy() if substeps else None,
-            violation=dict(zip(ROW_KINDS, values[_kernels.T_VIOLATION:].tolist())),
+            violation=dict(zip(ROW_KINDS, values[_kernels.T_VIOLATION:])),
         )
 
     def _low_priority_span(self, m: int) -> int:
