@@ -4,9 +4,15 @@ Per policy step, in interleaved rounds (every configuration once per round, the 
 from round to round, so that machine noise hits all alike), the median over rounds of:
 
 * ``bare``: ``mujoco.mj_step(model, data, nstep=frame_skip)`` on the environment's own model
-  (its distance sensors included) with random controls, from the states of seeded episodes of the
-  same scenario (the arm and the obstacles where a reset put them; a new one every 250 steps):
-  the physics a policy step cannot avoid (the 1× of the ratios);
+  (its distance sensors included), replaying the unfiltered configuration's own policy steps: a
+  seeded run of ``unfiltered`` with random actions is recorded first (the physics state before
+  each step, obstacles included, and the torque it applied), and each step runs again from that
+  state with that torque, the obstacles standing still within it. The physics a policy step
+  cannot avoid (the 1× of the ratios);
+* ``bare, reset states``: the same with random controls (±0.4 of the torque limits) from the
+  states of seeded resets (a new one every 250 steps), the obstacles standing where the reset put
+  them: nearly still arms with far-away obstacles, cheaper physics than an episode's (the 1×
+  before the replay; for reference);
 * ``bare, parked``: the same from the ``home`` keyframe, where every obstacle is parked far below
   the floor, so its 64 distance sensors cost next to nothing (the baseline before; for reference);
 * ``unfiltered``: ``C3BFReach-v0``'s ``step`` with random actions;
@@ -51,7 +57,8 @@ from c3bf_gym.scenarios import SCENARIOS
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from guarantee import adversarial_action  # noqa: E402  (the sweep's adversary)
 
-CONFIGS = ("bare", "bare, parked", "unfiltered", "filtered random", "filtered adversarial", "Pusher-v5")
+CONFIGS = ("bare", "bare, reset states", "bare, parked", "unfiltered", "filtered random", "filtered adversarial",
+           "Pusher-v5")
 
 
 def _policy_runner(env: gym.Env, steps: int, seed: int, adversarial: bool):
@@ -75,6 +82,42 @@ def _policy_runner(env: gym.Env, steps: int, seed: int, adversarial: bool):
 
     run()  # warm-up: first-call costs (allocation, compiled code loading) out of round 1
     return run
+
+
+def _replay_runner(env_id: str, scenario: str, steps: int, seed: int):
+    """``run()`` for ``mj_step(nstep=frame_skip)`` on a fresh ``MjData`` of the env's model from
+    the recorded states of ``steps`` unfiltered steps with random actions (seeded as
+    :func:`_policy_runner`'s), each with the torque that step applied."""
+    env = gym.make(env_id, scenario=scenario)
+    base = env.unwrapped
+    model, frame_skip = base.model, base.frame_skip
+    spec = mujoco.mjtState.mjSTATE_INTEGRATION  # positions, velocities, mocap (obstacles), warm start
+    states = np.empty((steps, mujoco.mj_stateSize(model, spec)))
+    torques = np.empty((steps, model.nu))
+    rng = np.random.default_rng(seed)
+    shape, low, high = env.action_space.shape, env.action_space.low, env.action_space.high
+    env.reset(seed=seed)
+    for k in range(steps):
+        mujoco.mj_getState(model, base.data, states[k], spec)
+        _, _, terminated, truncated, _ = env.step(rng.uniform(low, high, shape).astype(np.float32))
+        torques[k] = base.data.ctrl
+        if terminated or truncated:
+            env.reset()
+    data = mujoco.MjData(model)
+
+    def run() -> float:
+        spent = 0.0
+        clock = time.perf_counter
+        for k in range(steps):
+            mujoco.mj_setState(model, data, states[k], spec)
+            data.ctrl[:] = torques[k]
+            start = clock()
+            mujoco.mj_step(model, data, nstep=frame_skip)
+            spent += clock() - start
+        return spent
+
+    run()
+    return env, run
 
 
 def _bare_runner(env_id: str, scenario: str, steps: int, seed: int, parked: bool = False):
@@ -170,7 +213,8 @@ def main(argv: list[str] | None = None) -> dict:
     if args.rounds < 1 or args.steps < 1 or args.reset_samples < 0:
         parser.error("--rounds and --steps must be >= 1, --reset-samples >= 0")
 
-    bare_env, run_bare = _bare_runner(args.env, args.scenario, args.steps, args.seed)
+    bare_env, run_bare = _replay_runner(args.env, args.scenario, args.steps, args.seed)
+    reset_env, run_reset = _bare_runner(args.env, args.scenario, args.steps, args.seed)
     parked_env, run_parked = _bare_runner(args.env, args.scenario, args.steps, args.seed, parked=True)
     envs = {
         "unfiltered": gym.make(args.env, scenario=args.scenario),
@@ -178,7 +222,7 @@ def main(argv: list[str] | None = None) -> dict:
         "filtered adversarial": SafetyFilter(gym.make(args.env, scenario=args.scenario)),
         "Pusher-v5": gym.make("Pusher-v5"),
     }
-    runs = {"bare": run_bare, "bare, parked": run_parked}
+    runs = {"bare": run_bare, "bare, reset states": run_reset, "bare, parked": run_parked}
     for name, env in envs.items():
         runs[name] = _policy_runner(env, args.steps, args.seed, adversarial=name == "filtered adversarial")
     frame_skip, dt = bare_env.unwrapped.frame_skip, bare_env.unwrapped.dt
@@ -216,7 +260,7 @@ def main(argv: list[str] | None = None) -> dict:
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(result, indent=2))
-    for env in (*envs.values(), bare_env, parked_env):
+    for env in (*envs.values(), bare_env, reset_env, parked_env):
         env.close()
     return result
 
