@@ -105,6 +105,19 @@ def adversarial_action(u) -> np.ndarray:
     return np.clip(action / max(np.abs(action).max(), 1e-12), -1, 1).astype(np.float32)
 
 
+def _rows_of_last_call(qp) -> int:
+    """The row count of the QP's last solve: its DAQP problem's constraints less the box (older
+    versions of the filter kept it as ``buffers.plain.used[0]``, or ``_m_prev``)."""
+    if not hasattr(qp, "buffers"):
+        return qp._m_prev
+    plain = qp.buffers.plain
+    if hasattr(plain, "problem"):
+        from c3bf_gym.safety._daqp import PROBLEM_M
+
+        return int(plain.problem[PROBLEM_M]) - len(plain.x)
+    return int(plain.used[0])
+
+
 class TimedHook:
     """Installed in place of the filter hook: times each call and, with ``split``, its rows / QP
     parts (timers wrapped around ``SafetyHook.rows`` and the QP's solve; they see only a hook that
@@ -154,8 +167,8 @@ class TimedHook:
         self.status[result.status] = self.status.get(result.status, 0) + 1
         self.relaxed.append(result.status == "relaxed")
         self.sensed.append(hook.report.sensed)
-        qp = hook.qp  # the rows of this call (older versions kept the count as _m_prev)
-        self.n_rows.append(int(qp.buffers.plain.used[0]) if hasattr(qp, "buffers") else qp._m_prev)
+        self.n_rows.append(_rows_of_last_call(hook.qp))
+
 
     def __call__(self, tau: np.ndarray) -> np.ndarray:
         if self.profiler is not None:
