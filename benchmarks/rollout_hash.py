@@ -1,11 +1,11 @@
-"""A fingerprint of seeded filtered rollouts, to check that a change leaves the filter's torques bit
-for bit as they were.
+"""A fingerprint of seeded rollouts, filtered and not, to check that a change leaves the filter's
+torques and the environment's steps bit for bit as they were.
 
 For each named filter of the table below (spelled with ``barrier``/``guard`` settings, which every
-version of ``SafetyFilter`` since the guard takes) and each of the paper's four scenarios, it runs
-``EPISODES`` seeded episodes of ``STEPS`` policy steps, alternating uniformly random and chattering
-±1 torques, and hashes the observations, joint positions and velocities, rewards and the safety
-report's numbers. Run it on two trees and compare the printed hashes::
+version of ``SafetyFilter`` since the guard takes) and for no filter, and each of the paper's four
+scenarios, it runs ``EPISODES`` seeded episodes of ``STEPS`` policy steps, alternating uniformly
+random and chattering ±1 torques, and hashes the observations, joint positions and velocities,
+rewards, goal and obstacle distances, effort and the safety report's numbers. Run it on two trees and compare the printed hashes::
 
     PYTHONPATH=/path/to/other/checkout python benchmarks/rollout_hash.py 2 60
     python benchmarks/rollout_hash.py 2 60
@@ -25,15 +25,17 @@ import numpy as np  # noqa: E402
 import c3bf_gym  # noqa: E402
 from c3bf_gym import SafetyFilter  # noqa: E402
 
-#: (label, SafetyFilter settings): the default filter, the C3BF alone and the distance HOCBF.
+#: (label, SafetyFilter settings): the default filter, the C3BF alone, the distance HOCBF, and no
+#: filter (None: the environment's own step).
 FILTERS = (("c3bf+hocbf", dict(barrier="c3bf")), ("c3bf", dict(barrier="c3bf", guard=None)),
-           ("hocbf", dict(barrier="hocbf")))  # fmt: skip
+           ("hocbf", dict(barrier="hocbf")), ("none", None))  # fmt: skip
 
 
-def fingerprint(settings: dict, episodes: int, steps: int) -> str:
+def fingerprint(settings: dict | None, episodes: int, steps: int) -> str:
     digest = hashlib.sha256()
     for scenario in ("static", "head_on", "crossing", "multi"):
-        env = SafetyFilter(gym.make("C3BFReach-v0", scenario=scenario), **settings)
+        env = gym.make("C3BFReach-v0", scenario=scenario)
+        env = env if settings is None else SafetyFilter(env, **settings)
         for episode in range(episodes):
             env.reset(seed=100 + episode)
             rng = np.random.default_rng(episode)
@@ -44,9 +46,12 @@ def fingerprint(settings: dict, episodes: int, steps: int) -> str:
                     action = rng.uniform(-1, 1, 6).astype(np.float32)
                 obs, reward, _, _, info = env.step(action)
                 data = env.unwrapped.data
-                safety = info["safety"]
-                for array in (obs, data.qpos, data.qvel, np.array([safety["slack"], safety["min_h"], safety["correction"],
-                              safety["min_constraint"], safety["infeasible_steps"], reward])):  # fmt: skip
+                numbers = [reward, info["distance"], info["min_distance"], info["reward_effort"]]
+                if settings is not None:
+                    safety = info["safety"]
+                    numbers += [safety["slack"], safety["min_h"], safety["correction"], safety["min_constraint"],
+                                safety["infeasible_steps"]]
+                for array in (obs, data.qpos, data.qvel, np.array(numbers)):
                     digest.update(array.tobytes())
         env.close()
     return digest.hexdigest()[:16]

@@ -568,28 +568,22 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
         self._respawn_departed()
 
         to_goal = self._seen.goal - self._seen.tool  # the goal's mocap and the tool site, views made once
-        distance = math.sqrt(to_goal @ to_goal)
+        distance = math.sqrt(to_goal.dot(to_goal))  # ndarray.dot: numpy's dot, as @, with less dispatch
         w_progress, w_success, w_effort, w_distance = self._weights
         progress = w_progress * (self._goal_distance - distance)
         self._goal_distance = distance
         success = distance < self.success_tolerance
-        terms = {
+        info = {  # the reward's terms first, then the step's measurements
             "reward_progress": progress,
             "reward_success": w_success if success else 0.0,
             "reward_distance": -w_distance * distance,
             "reward_effort": -w_effort * effort,
         }
-        reward = sum(terms.values())
+        reward = sum(info.values())
         cost = 1.0 if min_distance <= 0.0 else 0.0
         self._episode_cost += cost
-        info = {
-            **terms,
-            "distance": distance,
-            "is_success": success,
-            "cost": cost,
-            "episode_cost": self._episode_cost,
-            "min_distance": min_distance,
-        }
+        info.update(distance=distance, is_success=success, cost=cost, episode_cost=self._episode_cost,
+                    min_distance=min_distance)
         if self.render_mode == "human":
             self.render()
         terminated = self.terminate_on_collision and cost > 0.0
@@ -664,7 +658,7 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
             u = torque * self._inv_limit
             min_distance = steps(physics, self.frame_skip)
             self.state_version += self.frame_skip
-            return float(min_distance), float(u @ u) / len(u)
+            return float(min_distance), float(u.dot(u)) / len(u)  # ndarray.dot: numpy's dot, as @
         plan = None if self._compiled_filter is None else self._compiled_filter.compiled_substeps(self.state_version)
         if plan is not None:
             return self._simulate_filtered(torque, *plan)
