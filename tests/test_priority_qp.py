@@ -92,6 +92,32 @@ def test_runs_of_calls_with_no_safe_torque_give_a_fresh_workspaces_answers():
     assert statuses.count("relaxed") > 10 and statuses.count("solved") > 10
 
 
+def test_prioritised_solves_through_level_sizes_that_change_give_a_fresh_workspaces_answers():
+    """The prioritised problem is sized to the rows in use at every solve, level by level: through
+    warm-started runs whose level sizes grow, shrink and empty out (a level's placeholder zero row),
+    every status, answer and slack equals a fresh workspace's, and the rows of priority 1 hold."""
+    rng = np.random.default_rng(5)
+    n, cap1, cap2 = 6, 12, 10
+    warm = PriorityQP(n, -np.ones(n), np.ones(n), cap1, cap2)
+    sizes = set()
+    for _ in range(60):
+        m1, m2 = int(rng.integers(0, cap1 + 1)), int(rng.integers(0, cap2 + 1))
+        _, A1, b1 = _problem(rng, n, m1)
+        A2 = rng.normal(size=(m2, n))
+        b2 = rng.uniform(0.5, 3.0, m2) * np.linalg.norm(A2, axis=1)  # beyond the box: level 2 gives way
+        tau_nom = rng.uniform(-2.0, 2.0, n)
+        A, b = np.vstack([A2, A1]), np.concatenate([b2, b1])
+        got = warm.solve_scaled(tau_nom, A, b, np.ones(n), n_obstacle_rows=m2)
+        fresh = PriorityQP(n, -np.ones(n), np.ones(n), cap1, cap2).solve_scaled(tau_nom, A, b, np.ones(n), m2)
+        assert got.status == fresh.status
+        np.testing.assert_allclose(got.tau, fresh.tau, atol=1e-7)
+        assert got.slack == pytest.approx(fresh.slack, abs=1e-7)
+        if m1:
+            assert ((A1 @ got.tau - b1) / np.linalg.norm(A1, axis=1)).min() >= -1e-6
+        sizes.add((m1 > 0, m2 > 0, got.status))
+    assert {(True, True, "relaxed"), (False, True, "relaxed"), (True, False, "solved")} <= sizes
+
+
 def test_conflicting_rows_give_way_by_priority():
     """Rows of priority 1 hold whenever the box allows it; only the barrier's rows give way."""
     lo, hi = -np.ones(2), np.ones(2)

@@ -151,6 +151,8 @@ class DaqpBuffers(NamedTuple):
         result: int32 view of the ``DAQPResult`` (exit flag at :data:`RESULT_EXITFLAG`).
         problem: int32 view of the ``DAQPProblem`` (its constraint count ``n + rows`` at
             :data:`PROBLEM_M`).
+        levels: int32 DAQP's ``break_points`` (the workspace's ``break_points`` argument, which DAQP
+            reads at every solve; (0,) for one level).
         addr: uint64 addresses: workspace, problem, result, ``daqp_update_ldp``, ``daqp_solve``.
     """
 
@@ -161,6 +163,7 @@ class DaqpBuffers(NamedTuple):
     x: np.ndarray
     result: np.ndarray
     problem: np.ndarray
+    levels: np.ndarray
     addr: np.ndarray
 
 
@@ -238,8 +241,9 @@ class DaqpWorkspace:
         addr = np.zeros(5, np.uint64)
         addr[ADDR_WORK], addr[ADDR_PROBLEM] = self._work_buf.ctypes.data, self._prob_buf.ctypes.data
         addr[ADDR_RESULT], addr[ADDR_UPDATE_LDP], addr[ADDR_SOLVE] = self._res_buf.ctypes.data, _UPDATE_LDP, _SOLVE
+        levels = self._break if self._break is not None and len(self._break) > 1 else np.zeros(0, np.int32)
         self.buffers = DaqpBuffers(f, A, lower, sense, x, self._res_buf.view(np.int32), self._prob_buf.view(np.int32),
-                                   addr)
+                                   levels, addr)
 
     def __getstate__(self):
         raise TypeError("a DaqpWorkspace holds C memory and cannot be pickled; build a new one")
@@ -280,10 +284,11 @@ class QPBuffers(NamedTuple):
 
     Attributes:
         plain: the one-level workspace (every row hard), warm-started call to call.
-        hier: the prioritised workspace: level 1 rows in ``A[:capacity[0]]``, level 2 rows (the
-            barrier's) in ``A[capacity[0]:]``, solved when ``plain`` is infeasible, warm-started
-            from its own previous solve's working set.
-        capacity: int64 (2,) the row capacity of the two levels.
+        hier: the prioritised workspace, solved when ``plain`` is infeasible, warm-started from
+            its own previous solve's working set: level 1's rows first, then level 2's (the
+            barrier's), its problem and break points sized to the rows in use at every solve.
+        capacity: int64 (2,) the row capacity of the two levels (0: the workspace has no such
+            level).
         lo, hi: (n,) the box of ``u``.
         u: (n,) the solution.
         norm: (rows,) each row's norm ``‖A_k s‖`` (0: left out).
@@ -329,8 +334,9 @@ def solve_rows(tau_nom, A, b, scale, n_obstacle_rows, stride, qp):
        every row holds within :data:`ACTIVE_TOL`, that is the answer (:data:`SOLVED`).
     3. Otherwise, by priority (:data:`RELAXED`, ``qp.hier``): level 1 holds the rows that are not
        the barrier's (the guard's, the floor's, the joint limits'), level 2 the barrier's: rows
-       ``k < n_obstacle_rows`` with ``k % stride == 0``. Warm-started from its own previous
-       solve's working set, and once more from an empty one if that fails. If it fails too, ``u``
+       ``k < n_obstacle_rows`` with ``k % stride == 0``; its problem too is sized to the rows in
+       use. Warm-started from its own previous solve's working set, and once more from an empty
+       one if that fails. If it fails too, ``u``
        is the box projection of ``u_nom`` (:data:`FAILED`).
 
     Right after a call that was not solved, step 3 comes first: if its answer violates some row
@@ -433,8 +439,28 @@ def _solve_by_priority(qp, m, n_obstacle_rows, stride):
     to the box."""
     plain, hier = qp.plain, qp.hier
     n = plain.x.shape[0]
-    _clear(hier, 0, hier.lower.shape[0] - n)  # every row (A keeps one zero row when there are none)
-    i1, i2 = 0, qp.capacity[0]
+    # The problem is sized to the rows in use, level by level (DAQP reads its break_points, hier.levels,
+    # at every solve): level 1's rows first, then level 2's. A level the workspace has keeps at least
+    # one row, a zero one (which DAQP ignores) when it has none this call.
+    count1 = count2 = 0
+    for k in range(m):
+        if qp.norm[k] != 0.0:
+            if k < n_obstacle_rows and k % stride == 0:
+                count2 += 1
+            else:
+                count1 += 1
+    size1 = max(count1, 1) if qp.capacity[0] > 0 else 0
+    size2 = max(count2, 1) if qp.capacity[1] > 0 else 0
+    _clear(hier, count1, size1)
+    _clear(hier, size1 + count2, size1 + size2)
+    level, end = 1, n
+    for size in (size1, size2):
+        if size > 0:
+            end += size
+            hier.levels[level] = end
+            level += 1
+    hier.problem[PROBLEM_M] = end
+    i1, i2 = 0, size1
     for k in range(m):
         if qp.norm[k] == 0.0:
             continue
