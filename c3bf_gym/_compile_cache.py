@@ -21,7 +21,7 @@ import hashlib
 import os
 from pathlib import Path
 
-from numba.core import caching
+from numba.core import caching, options
 
 __all__ = ["CACHE_FOLDER", "KERNEL_OPTIONS", "KERNEL_SOURCES", "STEP_KERNEL_OPTIONS", "sources_digest"]
 
@@ -33,8 +33,9 @@ KERNEL_OPTIONS = {"cache": True, "nogil": True, "error_model": "numpy", "boundsc
 #: compiled without numba's reference counting (NRT, ``_nrt=False``). With it, every array argument
 #: and every view taken in a loop costs an atomic increment and decrement, hundreds per physics step.
 #: A kernel that allocates fails to compile with these options (numba: "NRT required but not
-#: enabled"), so none can slip in unnoticed.
-STEP_KERNEL_OPTIONS = {**KERNEL_OPTIONS, "_nrt": False}
+#: enabled"), so none can slip in unnoticed. ``_nrt`` is an option numba keeps for its own use; a
+#: numba without it compiles the same kernels with the counting.
+STEP_KERNEL_OPTIONS = {**KERNEL_OPTIONS, "_nrt": False} if hasattr(options.DefaultOptions, "_nrt") else KERNEL_OPTIONS
 
 #: The folder beside the kernel sources that holds their cache (unless ``NUMBA_CACHE_DIR`` is set).
 CACHE_FOLDER = "_numba_cache"
@@ -42,8 +43,10 @@ CACHE_FOLDER = "_numba_cache"
 _PACKAGE = Path(__file__).resolve().parent
 #: The modules (paths in the package) whose ``@njit(cache=True)`` functions this cache serves: the
 #: filter's, compiled into each other, the obstacle sampler's and the environment's, and the C calls
-#: compiled into them.
-KERNEL_SOURCES = ("safety/_kernels.py", "safety/_daqp.py", "scenarios.py", "envs/_kernels.py", "_capi.py")
+#: compiled into them; and this one, whose options they are compiled with (numba's cache does not
+#: key on options).
+KERNEL_SOURCES = ("safety/_kernels.py", "safety/_daqp.py", "scenarios.py", "envs/_kernels.py", "_capi.py",
+                  "_compile_cache.py")
 _PATHS = tuple(str(_PACKAGE / name) for name in KERNEL_SOURCES)
 
 
