@@ -326,8 +326,7 @@ def solve_rows(tau_nom, A, b, scale, n_obstacle_rows, stride, qp):
     """The filter's QP (module docstring) for the rows ``A τ ≥ b`` (m, n) and nominal torque
     ``tau_nom`` (n,), in ``u = τ / scale``; the solution goes to ``qp.u`` (:class:`QPBuffers`).
 
-    1. Rows are scaled (``A_k s``) and their norms taken (DAQP normalises the rows it is given
-       itself, so they go to it as they are); a row shorter than :data:`ROW_NORM_MIN` cannot
+    1. Rows are scaled (``A_k s``) and normalised; a row shorter than :data:`ROW_NORM_MIN` cannot
        change with the torque: with ``b_k ≤ 0`` it holds, with ``b_k > 0`` it can never hold
        (``impossible``, its ``b_k``). Both are left out of the solves.
     2. All rows hard (``qp.plain``, its problem sized to the ``m`` rows: DAQP reads none past
@@ -378,8 +377,10 @@ def solve_rows(tau_nom, A, b, scale, n_obstacle_rows, stride, qp):
             plain.lower[n + k] = -INF
             impossible = max(impossible, b[k])
             continue
-        qp.norm[k] = norm  # the rows stay unnormalised in the problem: DAQP normalises them itself
-        plain.lower[n + k] = b[k]
+        qp.norm[k] = norm
+        for j in range(n):
+            plain.A[k, j] /= norm
+        plain.lower[n + k] = b[k] / norm
     plain.problem[PROBLEM_M] = n + m
     status = SOLVED
     iterations = 0
@@ -433,7 +434,7 @@ def solve_rows(tau_nom, A, b, scale, n_obstacle_rows, stride, qp):
 
 @njit(**STEP_KERNEL_OPTIONS)
 def _solve_by_priority(qp, m, n_obstacle_rows, stride):
-    """Step 3 of :func:`solve_rows` on the rows ``qp.plain`` holds (scaled):
+    """Step 3 of :func:`solve_rows` on the rows ``qp.plain`` holds (scaled and normalised):
     returns ``(exit flag, iterations)``; on success (flag ≥ 1) ``qp.u`` is the answer, clipped
     to the box."""
     plain, hier = qp.plain, qp.hier
@@ -491,9 +492,8 @@ def _solve_by_priority(qp, m, n_obstacle_rows, stride):
 
 @njit(**STEP_KERNEL_OPTIONS)
 def _residuals(plain, qp, m):
-    """``qp.residual[k] = â_k u − b̂_k``, the normalised residuals of the first ``m`` (scaled) rows
-    ``qp.plain`` holds; returns their minimum over the rows that are not left out (inf without
-    one)."""
+    """``qp.residual[k] = â_k u − b̂_k`` for the first ``m`` (normalised) rows; returns their minimum
+    over the rows that are not left out (inf without one)."""
     n = qp.u.shape[0]
     low = np.inf
     for k in range(m):
@@ -502,6 +502,6 @@ def _residuals(plain, qp, m):
         acc = 0.0
         for j in range(n):
             acc += plain.A[k, j] * qp.u[j]
-        qp.residual[k] = (acc - plain.lower[n + k]) / qp.norm[k]
+        qp.residual[k] = acc - plain.lower[n + k]
         low = min(low, qp.residual[k])
     return low
