@@ -181,6 +181,23 @@ def test_rows_no_torque_can_change():
     assert held.feasible and held.slack == 0.0
 
 
+@pytest.mark.parametrize("length", [1e-8, 1e-5, 1e-3, 1.0])
+def test_short_rows_that_torque_can_still_change_are_solved_as_any_other(length):
+    """A row far shorter than the others (a point the joints barely move) but above the length
+    below which no torque can change it: held where it can be, like its unit-length twin. DAQP
+    takes a row whose squared length is below its zero tolerance (1e-11) for a zero row, and a zero
+    row that cannot hold for an infeasible problem: handed such a row as it is, the whole QP failed
+    and fell back to the nominal torque."""
+    qp = PriorityQP(2, -np.ones(2), np.ones(2), 3, 1)
+    A = np.array([[length, 0.0], [1.0, 0.0], [0.0, 1.0]])  # u0 >= 0.1 (scaled by its length), u0 >= 0.5
+    b = np.array([0.1 * length, 0.5, -2.0])
+    result = qp.solve_scaled(np.zeros(2), A, b, np.ones(2), n_obstacle_rows=1)
+    assert result.status == "solved" and result.tau[0] == pytest.approx(0.5, abs=1e-9)
+    # out of reach by its own length: it gives way, the others hold
+    far = qp.solve_scaled(np.zeros(2), A, np.array([2.0 * length, 0.5, -2.0]), np.ones(2), n_obstacle_rows=1)
+    assert far.status == "relaxed" and far.tau[0] == pytest.approx(1.0, abs=1e-6)
+
+
 def test_bad_input_is_refused():
     qp = PriorityQP(2, -np.ones(2), np.ones(2), 2, 0)
     A = np.eye(2)
