@@ -336,8 +336,8 @@ def solve_rows(tau_nom, A, b, scale, n_obstacle_rows, stride, qp):
        the barrier's (the guard's, the floor's, the joint limits'), level 2 the barrier's: rows
        ``k < n_obstacle_rows`` with ``k % stride == 0``; its problem too is sized to the rows in
        use. Warm-started from its own previous solve's working set, and once more from an empty
-       one if that fails. If it fails too, ``u``
-       is the box projection of ``u_nom`` (:data:`FAILED`).
+       one if that fails. If it fails too, ``u`` is the box projection of ``u_nom``
+       (:data:`FAILED`).
 
     Right after a call that was not solved, step 3 comes first: if its answer violates some row
     by more than :data:`INFEASIBLE_TOL`, no torque satisfies every row (else both levels would
