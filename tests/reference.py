@@ -68,6 +68,14 @@ def partials(barrier, p, v, r) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return t.h, t.grad_p, t.grad_v
 
 
+def _norm(x: np.ndarray) -> float:
+    """The length of a 3-vector, its squares summed in order. The numpy loop used
+    ``np.linalg.norm``, whose dot product goes through BLAS: its kernel, and with it the rounding,
+    depends on the CPU (with AVX-512 about a fifth of such sums differ from the in-order one).
+    numpy's sum of fewer than 8 numbers runs in order on every CPU, as the compiled sampler does."""
+    return float(np.sqrt(np.sum(x * x)))
+
+
 def sample_obstacle(envelope, spec, start, goal, rng, arm_a, arm_b, arm_radius, max_attempts=200):
     """The obstacle sampler's attempts (:meth:`c3bf_gym.scenarios.ObstacleSampler.sample`) as the
     numpy loop it was before it was compiled: ``(position, velocity, radius)`` or None. The compiled
@@ -75,7 +83,7 @@ def sample_obstacle(envelope, spec, start, goal, rng, arm_a, arm_b, arm_radius, 
     from c3bf_gym.safety.dynamics import segment_closest_points
 
     path = goal - start
-    length = float(np.linalg.norm(path))
+    length = _norm(path)
     direction = path / length if length > 0 else np.array([1.0, 0.0, 0.0])
     for _ in range(max_attempts):
         radius = float(rng.uniform(*envelope.radius_range))
@@ -91,7 +99,7 @@ def sample_obstacle(envelope, spec, start, goal, rng, arm_a, arm_b, arm_radius, 
             else:
                 helper = np.array([0.0, 0.0, 1.0]) if abs(direction[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
                 normal = np.cross(direction, helper)
-                normal /= np.linalg.norm(normal)
+                normal /= _norm(normal)
                 binormal = np.cross(direction, normal)
                 roll = rng.uniform(0.0, 2.0 * np.pi)
                 side = np.cos(roll) * normal + np.sin(roll) * binormal
