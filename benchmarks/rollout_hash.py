@@ -5,7 +5,8 @@ For each named filter of the table below (spelled with ``barrier``/``guard`` set
 version of ``SafetyFilter`` since the guard takes) and for no filter, and each of the paper's four
 scenarios, it runs ``EPISODES`` seeded episodes of ``STEPS`` policy steps, alternating uniformly
 random and chattering ±1 torques, and hashes the observations, joint positions and velocities,
-rewards, goal and obstacle distances, effort and the safety report's numbers. Run it on two trees and compare the printed hashes::
+rewards, goal and obstacle distances, effort and the safety report's numbers. Run it on two trees
+and compare the printed hashes::
 
     PYTHONPATH=/path/to/other/checkout python benchmarks/rollout_hash.py 2 60
     python benchmarks/rollout_hash.py 2 60

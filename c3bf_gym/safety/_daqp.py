@@ -433,6 +433,12 @@ def solve_rows(tau_nom, A, b, scale, n_obstacle_rows, stride, qp):
 
 
 @njit(**STEP_KERNEL_OPTIONS)
+def _barrier_row(k, n_obstacle_rows, stride):
+    """Whether row ``k`` is the barrier's, of priority 2 (:func:`solve_rows`, step 3)."""
+    return k < n_obstacle_rows and k % stride == 0
+
+
+@njit(**STEP_KERNEL_OPTIONS)
 def _solve_by_priority(qp, m, n_obstacle_rows, stride):
     """Step 3 of :func:`solve_rows` on the rows ``qp.plain`` holds (scaled and normalised):
     returns ``(exit flag, iterations)``; on success (flag ≥ 1) ``qp.u`` is the answer, clipped
@@ -445,7 +451,7 @@ def _solve_by_priority(qp, m, n_obstacle_rows, stride):
     count1 = count2 = 0
     for k in range(m):
         if qp.norm[k] != 0.0:
-            if k < n_obstacle_rows and k % stride == 0:
+            if _barrier_row(k, n_obstacle_rows, stride):
                 count2 += 1
             else:
                 count1 += 1
@@ -464,7 +470,7 @@ def _solve_by_priority(qp, m, n_obstacle_rows, stride):
     for k in range(m):
         if qp.norm[k] == 0.0:
             continue
-        if k < n_obstacle_rows and k % stride == 0:
+        if _barrier_row(k, n_obstacle_rows, stride):
             i = i2
             i2 += 1
         else:
