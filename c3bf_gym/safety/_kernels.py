@@ -36,6 +36,7 @@ import numpy as np
 from numba import njit
 
 from c3bf_gym._compile_cache import STEP_KERNEL_OPTIONS  # (before any @njit(cache=True): the cache keys)
+from c3bf_gym._capi import unpack
 
 # hook_substep compiles _daqp.solve_rows into itself: _compile_cache keys the on-disk cache of both
 # files' functions on both files.
@@ -693,3 +694,11 @@ def hook_substep(stage, tau_nom, tau, arm, obstacles, params, work, A, b, scale,
     record(tally, status, m, min_h, inside, n_sensed, iterations, n_active, slack, residual, correction, tau_nom,
            tau, qp, m - n_fixed, stride, n_floor, intervention_tol)
     return status
+
+
+@njit(**_opts)
+def hook_substep_at(stage, tau_nom, tau, handle, bound):
+    """:func:`hook_substep` with its arguments after the first three by address: ``handle`` is
+    :func:`c3bf_gym._capi.pack` of them and ``bound`` their numba type. From Python, one array
+    crosses into compiled code instead of the ~80 buffers (their conversion cost ~3 µs a call)."""
+    return hook_substep(stage, tau_nom, tau, *unpack(handle, bound))

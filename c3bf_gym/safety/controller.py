@@ -46,6 +46,7 @@ import mujoco
 import numba
 import numpy as np
 
+from c3bf_gym._capi import pack
 from c3bf_gym.safety import _daqp, _kernels
 from c3bf_gym.safety.barriers import JointLimits, Rows
 from c3bf_gym.safety.dynamics import ArmModel, segment_closest_points
@@ -271,7 +272,7 @@ class SafetyController:
         self._solve_time = 0.0
         self.begin_step()
         self._bound: tuple = ()  # hook_substep's arguments after the first three (_bind)
-        self._hook_substep = None  # its compiled entry point for __call__ (_substep_entry)
+        self._hook_substep: tuple | None = None  # what __call__ calls (_substep_entry)
         self.last: QPResult | None = None
         self.solve_times: list[float] | None = None
 
@@ -431,17 +432,22 @@ class SafetyController:
                        self._b, self._scale, self._limit, self.qp.buffers, self._tally, float(self.intervention_tol))
         return self._bound
 
-    def _substep_entry(self):
-        """hook_substep's compiled entry point for exactly :meth:`_bind`'s argument types, called
-        directly by :meth:`__call__`: the dispatcher's type resolution of its arguments cost ~1.5 µs
-        per call. The types are fixed: the bound buffers, fresh C-contiguous float64 (n,) arrays
-        tau_nom and tau (:meth:`__call__` checks the shape: the entry point takes any array as the
-        type it was compiled for), and a Python int stage. Compiled on the first call from Python,
-        not when binding: an environment that calls the kernel from its own compiled step never
-        needs it (and compiling it costs seconds on an empty cache)."""
+    def _substep_entry(self) -> tuple:
+        """What :meth:`__call__` calls: the compiled entry point of
+        :func:`~c3bf_gym.safety._kernels.hook_substep_at` for exactly :meth:`_bind`'s buffers, and its
+        last two arguments, the buffers' handle (:func:`c3bf_gym._capi.pack`; the buffers stay alive
+        in ``_bound``) and numba type. Called directly, the entry point skips the dispatcher's type
+        resolution, and the handle numba's conversion of every buffer: together ~4 µs a call. The
+        types are fixed: fresh C-contiguous float64 (n,) arrays tau_nom and tau (:meth:`__call__`
+        checks the shape: the entry point takes any array as the type it was compiled for) and a
+        Python int stage. Compiled on the first call from Python, not when binding: an environment
+        that calls the kernel from its own compiled step never needs it (and compiling it costs
+        seconds on an empty cache)."""
         vec = np.zeros(len(self._limit))
         bound = self._bound or self._bind()
-        self._hook_substep = _kernels.hook_substep.compile(tuple(numba.typeof(a) for a in (0, vec, vec, *bound)))
+        handle, bound_type = pack(bound), numba.typeof(bound)
+        entry = _kernels.hook_substep_at.compile(tuple(numba.typeof(a) for a in (0, vec, vec, handle, bound_type)))
+        self._hook_substep = (entry, handle, bound_type)
         return self._hook_substep
 
     def compiled_substeps(self, version: int) -> tuple[int, tuple, bool] | None:
@@ -481,11 +487,10 @@ class SafetyController:
             raise ValueError(f"tau_nom must have shape {shape}, got {tau_nom.shape}")
         tau = np.empty(shape)
         if self._fused:
-            bound = self._bound or self._bind()
             if self._refresh:
                 self.obstacles.refresh(self.data)
-            substep = self._hook_substep or self._substep_entry()
-            status = substep(self.arm.claim(self.data, self._version()), tau_nom, tau, *bound)
+            substep, handle, bound_type = self._hook_substep or self._substep_entry()
+            status = substep(self.arm.claim(self.data, self._version()), tau_nom, tau, handle, bound_type)
         else:
             A, b, min_h, inside, n_sensed = self.rows()
             m = len(b)
