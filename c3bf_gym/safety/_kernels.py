@@ -16,7 +16,7 @@ the public classes call it through small vectorised kernels, and the filter's fu
 * :func:`point_dynamics` / :func:`capsule_ends`: position, velocity, ``c``, ``G`` and Jacobian of
   points on the arm, from ``cdof`` and ``cdof_dot`` (the formulas of :mod:`c3bf_gym.safety.dynamics`).
 * :func:`closest_relative`: closest points on the capsule axes, relative to moving obstacles,
-  with their sliding terms.
+  with their sliding terms (:func:`_closest_terms`, one pair).
 * :func:`c3bf_terms`, :func:`hocbf_terms`, :func:`rows_from_terms`, :func:`joint_limit_rows`: the
   barriers of :mod:`c3bf_gym.safety.barriers`.
 * :func:`hook_rows_whole_arm`: every row of the whole-arm filter in one call, and
@@ -210,15 +210,15 @@ def _surface_gap(ends_a, ends_ab, a_dot_ab, length2, capsule_radius, o, radius):
 
 
 @njit(**_opts)
-def _closest_pair(ends_a, ends_ab, a_dot_ab, length2, s, o, vo, ao, G):
+def _closest_terms(ends_a, ends_ab, a_dot_ab, length2, s, o, vo, ao):
     """Closest point of capsule ``s``'s axis to the centre ``o`` (3,) (moving with ``vo``, ``ao``):
-    writes ``G`` (3, nv) and returns ``(t, p, v, c, slide)``, the unclamped axis parameter ``t``
-    and the 3-tuples ``p = x* − o``, ``v = ẋ − vo``, ``c = (material c) − ao + ṫ (ḃ − ȧ)``,
+    returns ``(t, tc, p, v, c, slide)``, the unclamped axis parameter ``t`` and the clamped one
+    ``tc`` (the point is ``a + tc (b − a)``; its ``G`` is ``G_a + tc (G_b − G_a)``), and the
+    3-tuples ``p = x* − o``, ``v = ẋ − vo``, ``c = (material c) − ao + ṫ (ḃ − ȧ)``,
     ``slide = ṫ (b − a)`` (:meth:`ArmModel.closest_relative`).
 
     The vectors are tuples, not arrays: the fused kernel calls this once per obstacle–capsule pair,
     and array views for them cost three times the arithmetic."""
-    nv = G.shape[1]
     t = _axis_parameter(ends_ab, a_dot_ab, length2, s, o)
     tc = min(max(t, 0.0), 1.0)
     ab0, ab1, ab2 = ends_ab[s, 0, 0], ends_ab[s, 1, 0], ends_ab[s, 2, 0]
@@ -229,16 +229,24 @@ def _closest_pair(ends_a, ends_ab, a_dot_ab, length2, s, o, vo, ao, G):
     c0 = (tc * ends_ab[s, 0, 2] + ends_a[s, 0, 2]) - ao[0]
     c1 = (tc * ends_ab[s, 1, 2] + ends_a[s, 1, 2]) - ao[1]
     c2 = (tc * ends_ab[s, 2, 2] + ends_a[s, 2, 2]) - ao[2]
-    for i in range(3):
-        for j in range(nv):
-            G[i, j] = tc * ends_ab[s, i, 3 + j] + ends_a[s, i, 3 + j]
     rate = (v[0] * ab0 + v[1] * ab1 + v[2] * ab2) + (p[0] * ab_dot0 + p[1] * ab_dot1 + p[2] * ab_dot2)
     if length2[s] > 0.0:
         rate /= -length2[s]
     if not (t > 0.0 and t < 1.0):
         rate *= 0.0  # clamped to an end: the point does not slide
     c = (c0 + rate * ab_dot0, c1 + rate * ab_dot1, c2 + rate * ab_dot2)
-    return t, p, v, c, (rate * ab0, rate * ab1, rate * ab2)
+    return t, tc, p, v, c, (rate * ab0, rate * ab1, rate * ab2)
+
+
+@njit(**_opts)
+def _closest_pair(ends_a, ends_ab, a_dot_ab, length2, s, o, vo, ao, G):
+    """:func:`_closest_terms`, with the point's ``G`` (3, nv) written out: returns
+    ``(t, p, v, c, slide)``."""
+    t, tc, p, v, c, slide = _closest_terms(ends_a, ends_ab, a_dot_ab, length2, s, o, vo, ao)
+    for i in range(3):
+        for j in range(G.shape[1]):
+            G[i, j] = tc * ends_ab[s, i, 3 + j] + ends_a[s, i, 3 + j]
+    return t, p, v, c, slide
 
 
 @njit(**_opts)
@@ -317,20 +325,40 @@ def hocbf_terms(p, v, r, gamma1, h, grad_v, drift, inside, grad_p):
 
 
 @njit(**_opts)
-def _row(grad_v, G, c, drift, h, gamma, A_row):
-    """One torque row: ``A_row = grad_vᵀ G`` and returns ``b = −(⟨grad_v, c⟩ + drift + γ h)``
-    (``grad_v``, ``c`` 3-tuples)."""
-    for j in range(G.shape[1]):
-        A_row[j] = grad_v[0] * G[0, j] + grad_v[1] * G[1, j] + grad_v[2] * G[2, j]
+def _row_rhs(grad_v, c, drift, h, gamma):
+    """A torque row's ``b = −(⟨grad_v, c⟩ + drift + γ h)`` (``grad_v``, ``c`` 3-tuples)."""
     return -(((grad_v[0] * c[0] + grad_v[1] * c[1] + grad_v[2] * c[2]) + drift) + gamma * h)
 
 
 @njit(**_opts)
-def _sliding_row(grad_v, grad_p, slide, G, c, drift, h, gamma, A_row):
-    """:func:`_row` for a closest point sliding by ``slide`` along its link: its ``b`` less the
-    sliding term ``⟨grad_p, slide⟩`` (3-tuples)."""
-    bk = _row(grad_v, G, c, drift, h, gamma, A_row)
+def _row(grad_v, G, c, drift, h, gamma, A_row):
+    """One torque row: ``A_row = grad_vᵀ G`` and returns its ``b`` (:func:`_row_rhs`)."""
+    for j in range(G.shape[1]):
+        A_row[j] = grad_v[0] * G[0, j] + grad_v[1] * G[1, j] + grad_v[2] * G[2, j]
+    return _row_rhs(grad_v, c, drift, h, gamma)
+
+
+@njit(**_opts)
+def _sliding_rhs(grad_v, grad_p, slide, c, drift, h, gamma):
+    """:func:`_row_rhs` for a closest point sliding by ``slide`` along its link: less the sliding
+    term ``⟨grad_p, slide⟩`` (3-tuples)."""
+    bk = _row_rhs(grad_v, c, drift, h, gamma)
     return bk - (grad_p[0] * slide[0] + grad_p[1] * slide[1] + grad_p[2] * slide[2])
+
+
+@njit(**_opts)
+def _pair_rows(ends_a, ends_ab, s, tc, grad_v, grad_w, A, m, both):
+    """The coefficients ``A[m] = grad_vᵀ G`` (and, with ``both``, ``A[m + 1] = grad_wᵀ G``) of the
+    rows at the point ``tc`` of capsule ``s``'s axis, ``G = G_a + tc (G_b − G_a)`` taken column by
+    column as the rows need it (the same arithmetic as :func:`_closest_pair`'s ``G`` and
+    :func:`_row`, without writing ``G`` out and reading it back)."""
+    for j in range(A.shape[1]):
+        g0 = tc * ends_ab[s, 0, 3 + j] + ends_a[s, 0, 3 + j]
+        g1 = tc * ends_ab[s, 1, 3 + j] + ends_a[s, 1, 3 + j]
+        g2 = tc * ends_ab[s, 2, 3 + j] + ends_a[s, 2, 3 + j]
+        A[m, j] = grad_v[0] * g0 + grad_v[1] * g1 + grad_v[2] * g2
+        if both:
+            A[m + 1, j] = grad_w[0] * g0 + grad_w[1] * g1 + grad_w[2] * g2
 
 
 @njit(**_opts)
@@ -470,22 +498,21 @@ class RowParams(NamedTuple):
 
 
 @njit(**_opts)
-def hook_rows_whole_arm(stage, arm, obstacles, params, work, A, b):
+def hook_rows_whole_arm(stage, arm, obstacles, params, A, b):
     """All rows of the whole-arm filter (:meth:`~c3bf_gym.safety.SafetyController.rows`) in one call.
 
     1. ``stage`` 2: ``Minv``, ``qacc_free`` (:func:`step_inverse`), then (``stage`` ≥ 1) the
        capsule ends (:func:`capsule_ends`), into ``arm`` (:class:`ArmArrays`).
     2. For every sensed obstacle (:class:`ObstacleArrays`: active and ``distances[k].min() <=
        sensing_radius``, or with ``distances`` of shape (K, 0) its surface distance to the
-       capsules), one row per capsule: closest point (:func:`_closest_pair`), barrier
-       ``params.kind`` (:func:`_c3bf_point` or :func:`_hocbf_point`), row (:func:`_sliding_row`:
-       the sliding term ``−⟨grad_p, ṫ (b − a)⟩``); with a guard (``params.guard_gamma2 > 0``), the
-       guard's row for the same point right after it.
+       capsules), one row per capsule: closest point (:func:`_closest_terms`), barrier
+       ``params.kind`` (:func:`_c3bf_point` or :func:`_hocbf_point`), row (:func:`_sliding_rhs`,
+       with the sliding term ``−⟨grad_p, ṫ (b − a)⟩``, and :func:`_pair_rows`); with a guard
+       (``params.guard_gamma2 > 0``), the guard's row for the same point right after it.
     3. The floor rows of the capsule ends ``params.floor_ends`` (:func:`floor_rows`).
     4. With ``params.joint_rows``, the ``4 nv`` joint-limit rows (:func:`joint_limit_rows`).
 
-    ``work`` is a (3, nv) scratch (each closest point's ``G``); the rows go to ``A``, ``b``.
-    Returns ``(rows, min h of the barrier's rows (not the guard's), any inside, sensed count)``.
+    The rows go to ``A``, ``b``. Returns ``(rows, min h of the barrier's rows (not the guard's), any inside, sensed count)``.
     """
     s_count = arm.ends_ab.shape[0]
     nv = arm.Minv.shape[0]
@@ -519,20 +546,21 @@ def hook_rows_whole_arm(stage, arm, obstacles, params, work, A, b):
         n_sensed += 1
         o, vo, ao = obstacles.position[k], obstacles.velocity[k], obstacles.acceleration[k]
         for s in range(s_count):
-            _, p, v, c, slide = _closest_pair(ends_a, ends_ab, a_dot_ab, length2, s, o, vo, ao, work)
+            _, tc, p, v, c, slide = _closest_terms(ends_a, ends_ab, a_dot_ab, length2, s, o, vo, ao)
             r = (obstacles.radius[k] + capsule_radius[s]) + params.margin
             if params.kind == C3BF_KIND:
                 h, drift, inside, grad_v, grad_p = _c3bf_point(p, v, r, gamma, params.p1, params.p2)
             else:
                 h, drift, inside, grad_v, grad_p = _hocbf_point(p, v, r, params.p1)
-            b[m] = _sliding_row(grad_v, grad_p, slide, work, c, drift, h, gamma, A[m])
+            b[m] = _sliding_rhs(grad_v, grad_p, slide, c, drift, h, gamma)
             min_h = min(min_h, h)
             inside_any = inside_any or inside
-            m += 1
+            grad_w = grad_v
             if guard:
-                h, drift, _, grad_v, grad_p = _hocbf_point(p, v, r, params.guard_gamma1)
-                b[m] = _sliding_row(grad_v, grad_p, slide, work, c, drift, h, params.guard_gamma2, A[m])
-                m += 1
+                h, drift, _, grad_w, grad_q = _hocbf_point(p, v, r, params.guard_gamma1)
+                b[m + 1] = _sliding_rhs(grad_w, grad_q, slide, c, drift, h, params.guard_gamma2)
+            _pair_rows(ends_a, ends_ab, s, tc, grad_v, grad_w, A, m, guard)
+            m += 2 if guard else 1
     n_floor = params.floor_ends.shape[0]
     floor_rows(arm.ends, params.floor_ends, params.floor_min, params.floor_gamma, A[m:m + n_floor], b[m:m + n_floor])
     m += n_floor
@@ -671,7 +699,7 @@ def record(tally, status, m, min_h, inside, n_sensed, iterations, n_active, slac
 
 
 @njit(**_opts)
-def hook_substep(stage, tau_nom, tau, arm, obstacles, params, work, A, b, scale, limit, qp, tally, intervention_tol):
+def hook_substep(stage, tau_nom, tau, arm, obstacles, params, A, b, scale, limit, qp, tally, intervention_tol):
     """One whole-arm filter step in one call (:meth:`~c3bf_gym.safety.SafetyController.__call__`,
     and an environment's compiled policy step): the rows (:func:`hook_rows_whole_arm`, whose
     arguments ``stage`` … ``b`` are), the QP (:func:`c3bf_gym.safety._daqp.solve_rows` on ``qp``,
@@ -681,7 +709,7 @@ def hook_substep(stage, tau_nom, tau, arm, obstacles, params, work, A, b, scale,
     Returns the status, one of :func:`~c3bf_gym.safety._daqp.solve_rows`' codes (invalid input, < 0,
     is not recorded).
     """
-    m, min_h, inside, n_sensed = hook_rows_whole_arm(stage, arm, obstacles, params, work, A, b)
+    m, min_h, inside, n_sensed = hook_rows_whole_arm(stage, arm, obstacles, params, A, b)
     n_floor = params.floor_ends.shape[0]
     n_fixed = n_floor + (4 * arm.Minv.shape[0] if params.joint_rows else 0)
     guarded = params.guard_gamma2 > 0.0

@@ -266,7 +266,6 @@ class SafetyController:
         )
         self._obstacle_arrays = _kernels.ObstacleArrays(obstacles.active, self._distances, obstacles.position,
                                                         obstacles.velocity, obstacles.acceleration, obstacles.radius)
-        self._work = np.zeros((3, n))
         # the report's running values, in compiled code (_kernels.record); solve_time beside them
         self._tally = _kernels.Tally(np.zeros(_kernels.TALLY_SIZE), np.zeros(n), np.zeros(n))
         self._solve_time = 0.0
@@ -340,7 +339,7 @@ class SafetyController:
         if self._fused:
             m, min_h, inside, n_sensed = _kernels.hook_rows_whole_arm(
                 arm.claim(data, self._version()), arm.kernel_arrays(data), self._obstacle_arrays, self._params,
-                self._work, self._A, self._b)
+                self._A, self._b)
             return self._A[:m], self._b[:m], min_h, inside, n_sensed
         arm.update(data, self._version())
         sensed = np.flatnonzero(obstacles.active & (self._clearance() <= self.sensing_radius))
@@ -428,8 +427,8 @@ class SafetyController:
         tally; all allocated once by their constructors and updated in place) and the intervention
         tolerance, gathered once: fetching them attribute by attribute on every call cost more than
         the kernel's dispatch."""
-        self._bound = (self.arm.kernel_arrays(self.data), self._obstacle_arrays, self._params, self._work, self._A,
-                       self._b, self._scale, self._limit, self.qp.buffers, self._tally, float(self.intervention_tol))
+        self._bound = (self.arm.kernel_arrays(self.data), self._obstacle_arrays, self._params, self._A, self._b,
+                       self._scale, self._limit, self.qp.buffers, self._tally, float(self.intervention_tol))
         return self._bound
 
     def _substep_entry(self) -> tuple:
