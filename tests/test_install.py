@@ -38,7 +38,7 @@ behind = SafetyFilter(c3bf_gym.CartesianImpedanceAction(gym.make('C3BFReach-v0',
 behind.reset(seed=0)  # the filter behind the impedance controller: called from Python
 behind.step(behind.action_space.sample())
 from c3bf_gym.safety import _kernels  # the fused step came from the machine code the build compiled
-print('KERNEL_CACHE_HITS', sum(_kernels.hook_substep.stats.cache_hits.values()))
+print('KERNEL_CACHE_HITS', sum(_kernels.hook_substep_at.stats.cache_hits.values()))
 from c3bf_gym import scenarios  # and the environment's own: its obstacle sampler, physics steps (with and without
 from c3bf_gym.envs import _kernels as env_kernels  # the filter's calls) and observation
 print('ENV_CACHE_HITS', *(sum(f.stats.cache_hits.values()) for f in (scenarios._sample, env_kernels.physics_steps,
