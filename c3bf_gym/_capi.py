@@ -7,14 +7,14 @@ its buffers as one array of addresses.
 receives it as data and calls through it (:func:`call_void`), so no address is compiled in and
 numba caches the calling code on disk like every other kernel.
 
-**Buffers by address.** numba converts every array argument of a call from Python on its own:
-about 40 ns each, 3 µs for the filter's ~80 buffers, a fifth of a filter call. :func:`pack`
-writes a structure of arrays (nested tuples and named tuples of C-contiguous arrays and
-numbers; read-only arrays stay read-only) into one uint64 array, and :func:`unpack`, in compiled code, rebuilds the same
-structure from it, typed as the structure's numba type: one array crosses from Python instead
-of eighty. The rebuilt arrays borrow the memory of the packed ones, so whoever calls with a
-handle keeps the packed structure alive, and the kernels that take them must not keep them
-(the filter's, compiled without reference counting, cannot).
+**Buffers by address.** numba converts every array argument of a call from Python on its own,
+which for the filter's ~80 buffers is a sizeable part of a call (the speed page has the figures).
+:func:`pack` writes a structure of arrays (nested tuples and named tuples of C-contiguous arrays
+and numbers; read-only arrays stay read-only) into one uint64 array, and :func:`unpack`, in
+compiled code, rebuilds the same structure from it, typed as the structure's numba type: one
+array crosses from Python instead of eighty. The rebuilt arrays borrow the memory of the packed
+ones, so whoever calls with a handle keeps the packed structure alive, and the kernels that take
+them must not keep them (the filter's, compiled without reference counting, cannot).
 """
 
 from __future__ import annotations
@@ -123,8 +123,9 @@ def unpack(typingctx, handle, like):
     type ``like`` (a type reference: pass ``numba.typeof(structure)`` from Python). The arrays are
     views of the packed arrays' memory, without reference counts; nothing is checked at run time,
     so the handle must come from :func:`pack` of a structure of exactly that type, still alive."""
-    if not (isinstance(handle, types.Array) and handle.dtype == types.uint64 and handle.ndim == 1 and handle.layout == "C"
-            and isinstance(like, types.TypeRef) and _packable(like.instance_type)):
+    handle_ok = (isinstance(handle, types.Array) and handle.dtype == types.uint64 and handle.ndim == 1
+                 and handle.layout == "C")
+    if not (handle_ok and isinstance(like, types.TypeRef) and _packable(like.instance_type)):
         raise TypingError(
             f"unpack() takes a uint64 handle and the type of a structure pack() takes, got {handle}, {like}")
     typ = like.instance_type

@@ -512,7 +512,8 @@ def hook_rows_whole_arm(stage, arm, obstacles, params, A, b):
     3. The floor rows of the capsule ends ``params.floor_ends`` (:func:`floor_rows`).
     4. With ``params.joint_rows``, the ``4 nv`` joint-limit rows (:func:`joint_limit_rows`).
 
-    The rows go to ``A``, ``b``. Returns ``(rows, min h of the barrier's rows (not the guard's), any inside, sensed count)``.
+    The rows go to ``A``, ``b``. Returns ``(rows, min h of the barrier's rows (not the guard's), any
+    inside, sensed count)``.
     """
     s_count = arm.ends_ab.shape[0]
     nv = arm.Minv.shape[0]
@@ -728,5 +729,5 @@ def hook_substep(stage, tau_nom, tau, arm, obstacles, params, A, b, scale, limit
 def hook_substep_at(stage, tau_nom, tau, handle, bound):
     """:func:`hook_substep` with its arguments after the first three by address: ``handle`` is
     :func:`c3bf_gym._capi.pack` of them and ``bound`` their numba type. From Python, one array
-    crosses into compiled code instead of the ~80 buffers (their conversion cost ~3 µs a call)."""
+    crosses into compiled code instead of the ~80 buffers, which numba would convert one by one."""
     return hook_substep(stage, tau_nom, tau, *unpack(handle, bound))

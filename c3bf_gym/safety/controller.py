@@ -436,7 +436,7 @@ class SafetyController:
         :func:`~c3bf_gym.safety._kernels.hook_substep_at` for exactly :meth:`_bind`'s buffers, and its
         last two arguments, the buffers' handle (:func:`c3bf_gym._capi.pack`; the buffers stay alive
         in ``_bound``) and numba type. Called directly, the entry point skips the dispatcher's type
-        resolution, and the handle numba's conversion of every buffer: together ~4 µs a call. The
+        resolution, and the handle numba's conversion of every buffer (the speed page). The
         types are fixed: fresh C-contiguous float64 (n,) arrays tau_nom and tau (:meth:`__call__`
         checks the shape: the entry point takes any array as the type it was compiled for) and a
         Python int stage. Compiled on the first call from Python, not when binding: an environment
