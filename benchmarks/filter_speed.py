@@ -9,9 +9,10 @@ has work to do (``--policy random``: uniformly random torques instead). Every ``
 is timed as a whole; with ``--split`` also (same call, no second evaluation) its rows
 (``SafetyHook.rows``: arm dynamics, barrier, joint limits) and QP solve (the QP object's
 ``solve_scaled``), for a hook that calls them: the whole-arm hook runs both in one kernel
-(``_kernels.hook_substep``), so its split columns stay empty ("nan"). Median, p99, max and mean in µs
-of all calls, the median of the solved ones, and median and p99 of the relaxed ones (no torque
-satisfied every row: the rows gave way), and the QP's status counts.
+(``_kernels.hook_substep``, which a call from Python enters through ``hook_substep_at``), so its
+split columns stay empty ("nan"). Median, p99, max and mean in µs of all calls, the median of the
+solved ones, and median and p99 of the relaxed ones (no torque satisfied every row: the rows gave
+way), and the QP's status counts.
 
 ``--guard auto none`` compares the filter with and without its guard (``SafetyFilter(guard=...)``:
 the distance HOCBF's rows beside the C3BF's, or the C3BF's alone; label ``/unguarded``): each

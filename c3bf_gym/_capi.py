@@ -121,8 +121,9 @@ def _packable(typ) -> bool:
 def unpack(typingctx, handle, like):
     """In compiled code: the structure :func:`pack` wrote into ``handle`` (uint64 (w,)), of the numba
     type ``like`` (a type reference: pass ``numba.typeof(structure)`` from Python). The arrays are
-    views of the packed arrays' memory, without reference counts; nothing is checked at run time,
-    so the handle must come from :func:`pack` of a structure of exactly that type, still alive."""
+    views of the packed arrays' memory, without reference counts: the caller must neither keep them
+    nor return them to Python. Nothing is checked at run time, so the handle must come from
+    :func:`pack` of a structure of exactly that type, still alive."""
     handle_ok = (isinstance(handle, types.Array) and handle.dtype == types.uint64 and handle.ndim == 1
                  and handle.layout == "C")
     if not (handle_ok and isinstance(like, types.TypeRef) and _packable(like.instance_type)):

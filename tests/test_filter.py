@@ -689,11 +689,17 @@ def test_a_bound_hook_pickles_and_binds_again(make_env):
     env = SafetyFilter(make_env(scenario="multi"), barrier="c3bf")
     env.reset(seed=5)
     env.step(np.zeros(6, np.float32))  # binds the hook
-    assert env.hook._bound
+    tau = env.hook(np.zeros(6))  # a call from Python: its entry point and the buffers' handle
+    assert env.hook._bound and env.hook._hook_substep is not None
+    A = env.hook._A.copy()
     hook = pickle.loads(pickle.dumps(env.hook))  # the hook alone (a wrapped env pickles as its arguments)
-    assert hook._bound == ()
-    hook(np.zeros(6))
+    assert hook._bound == () and hook._hook_substep is None
+    # the same state (its QP starts cold, the original's warm: the same torque up to rounding)
+    np.testing.assert_allclose(hook(np.zeros(6)), tau, rtol=0, atol=1e-9)
     assert hook._bound and hook._bound[0] is not env.hook._bound[0] and hook.qp is not env.hook.qp
+    handle, original = hook._hook_substep[1][0], env.hook._hook_substep[1][0]
+    assert not np.array_equal(handle, original)  # the copy's own buffers
+    np.testing.assert_array_equal(env.hook._A, A)  # the original's buffers untouched by the copy's call
 
 
 def test_nominal_of_the_wrong_shape_is_refused(make_env):

@@ -296,6 +296,43 @@ def test_fused_rows_equal_the_per_class_path(make_env, guard):
     close(b1, b2, 1e-10)
 
 
+@pytest.mark.parametrize("guard", [None, DistanceHOCBF(gamma1=3.0, gamma2=4.0)])
+def test_fused_obstacle_rows_are_their_pieces_bit_for_bit(make_env, guard):
+    """The fused kernel's obstacle rows are exactly the vectorised kernels' pieces put together:
+    closest points (closest_relative, which writes each point's G), barrier terms, rows from G
+    (rows_from_terms), less the sliding term. Not to rounding: the same operations in the same
+    order, so a rewrite of the fused loop that changes any float shows here."""
+    u = make_env(scenario="none").unwrapped
+    u.reset(seed=4)
+    scene(u, np.random.default_rng(4), 3)
+    hook = SafetyHook(u, FilterConfig(barrier=C3BF(gamma=5.0, eps=1e-2), sensing_radius=0.5, guard=guard))
+    A, b, _, _, n_sensed = (x.copy() if isinstance(x, np.ndarray) else x for x in hook.rows())
+    arm, params = u.arm.kernel_arrays(u.data), hook._params
+    sensed = np.flatnonzero(u.obstacle_active & (u.obstacle_distances() <= 0.5))
+    assert n_sensed == len(sensed) == 3
+    s_count, nv = len(arm.capsule_ids), u.model.nv
+    pairs = len(sensed) * s_count
+    p, v, c, slide = (np.zeros((pairs, 3)) for _ in range(4))
+    G, t = np.zeros((pairs, 3, nv)), np.zeros((len(sensed), s_count))
+    K.closest_relative(arm.ends[:s_count], arm.ends_ab, arm.a_dot_ab, arm.length2, u.obstacle_pos[sensed],
+                       u.obstacle_vel[sensed], u.obstacle_acc[sensed], p, v, c, G, slide, t)
+    r = ((u.obstacle_radius[sensed][:, None] + arm.capsule_radius[None]) + params.margin).reshape(-1)
+    barriers = [("c3bf", params.gamma)] + ([] if guard is None else [("guard", params.guard_gamma2)])
+    for i, (kind, gain) in enumerate(barriers):
+        h, drift, grad_v, grad_p = np.zeros(pairs), np.zeros(pairs), np.zeros((pairs, 3)), np.zeros((pairs, 3))
+        inside = np.zeros(pairs, bool)
+        if kind == "c3bf":
+            K.c3bf_terms(p, v, r, params.gamma, params.p1, params.p2, h, grad_v, drift, inside, grad_p)
+        else:
+            K.hocbf_terms(p, v, r, params.guard_gamma1, h, grad_v, drift, inside, grad_p)
+        A_ref, b_ref = np.zeros((pairs, nv)), np.zeros(pairs)
+        K.rows_from_terms(grad_v, drift, h, gain, G, c, A_ref, b_ref)
+        b_ref = [bk - (gp[0] * sl[0] + gp[1] * sl[1] + gp[2] * sl[2])
+                 for bk, gp, sl in zip(b_ref.tolist(), grad_p.tolist(), slide.tolist())]
+        np.testing.assert_array_equal(A[i:len(barriers) * pairs:len(barriers)], A_ref)
+        np.testing.assert_array_equal(b[i:len(barriers) * pairs:len(barriers)], b_ref)
+
+
 def test_guard_rows_are_the_distance_hocbfs(make_env):
     """With a guard, the obstacle rows alternate: the C3BF filter's row for a point, then the row
     a distance-HOCBF filter with the guard's gains has for it. Floor and joint rows follow once."""

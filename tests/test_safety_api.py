@@ -179,6 +179,35 @@ def test_standalone_fused_and_per_class_paths_agree():
     assert len(b1) == 4 + 5 + 12  # 4 protected geoms; floor: both ends of 2 capsules, 1 of the sphere, none of the post (yaw only); 4n
 
 
+def test_obstacle_arrays_given_as_strided_views_filter_as_their_copies():
+    """Obstacles may keep their arrays as views of a simulator's state, which need not be contiguous.
+    The controller's call from Python hands contiguous buffers to compiled code by address and takes
+    the others as they are: the torques are the same, bit for bit."""
+    model = _model()
+    data = mujoco.MjData(model)
+    data.qpos[:] = (0.3, -0.6, 0.9)
+    data.qvel[:] = (0.5, -1.0, 0.7)
+    mujoco.mj_forward(model, data)
+    robot = RobotDescription.from_model(model, site="tool", joint_speed_limit=3.0)
+    state = np.zeros((2, 6))  # a simulator's (position, velocity) rows
+    state[0] = (0.45, 0.1, 0.75, -0.2, 0.0, -0.4)
+    state[1] = (-0.3, 0.2, 0.6, 0.3, 0.1, 0.0)
+    strided = Obstacles(2, position=state[:, :3], velocity=state[:, 3:], radius=np.array([0.05, 0.08]),
+                        active=np.ones(2, bool))
+    assert not strided.position.flags.c_contiguous
+    contiguous = Obstacles(2, position=state[:, :3].copy(), velocity=state[:, 3:].copy(),
+                           radius=np.array([0.05, 0.08]), active=np.ones(2, bool))
+    config = FilterConfig(sensing_radius=None)
+    tau_nom = np.array([20.0, -30.0, 10.0])
+    taus = []
+    for obstacles in (strided, contiguous):
+        controller = SafetyController(model, data, robot, obstacles, config)
+        tau, report = controller.filter(tau_nom)
+        assert report.sensed == 2 and report.correction > 0.0  # the rows are there and bind
+        taus.append(tau)
+    np.testing.assert_array_equal(taus[0], taus[1])
+
+
 def test_controller_input_errors():
     model = _model()
     data = mujoco.MjData(model)

@@ -16,12 +16,13 @@ the public classes call it through small vectorised kernels, and the filter's fu
 * :func:`point_dynamics` / :func:`capsule_ends`: position, velocity, ``c``, ``G`` and Jacobian of
   points on the arm, from ``cdof`` and ``cdof_dot`` (the formulas of :mod:`c3bf_gym.safety.dynamics`).
 * :func:`closest_relative`: closest points on the capsule axes, relative to moving obstacles,
-  with their sliding terms (:func:`_closest_terms`, one pair).
+  with their sliding terms (:func:`_closest_pair`: one pair, its terms from :func:`_closest_terms`).
 * :func:`c3bf_terms`, :func:`hocbf_terms`, :func:`rows_from_terms`, :func:`joint_limit_rows`: the
   barriers of :mod:`c3bf_gym.safety.barriers`.
 * :func:`hook_rows_whole_arm`: every row of the whole-arm filter in one call, and
   :func:`hook_substep`: those rows, the QP (:func:`c3bf_gym.safety._daqp.solve_rows`),
-  :func:`hook_post` and the report's running values (:func:`record` into a :class:`Tally`).
+  :func:`hook_post` and the report's running values (:func:`record` into a :class:`Tally`);
+  :func:`hook_substep_at`: the same with its buffers by address, for calls from Python.
 
 The floating-point operations follow the numpy code they replace (same formulas, same order where
 it matters), so results agree with it to rounding (~1e-15 relative).
@@ -701,8 +702,8 @@ def record(tally, status, m, min_h, inside, n_sensed, iterations, n_active, slac
 
 @njit(**_opts)
 def hook_substep(stage, tau_nom, tau, arm, obstacles, params, A, b, scale, limit, qp, tally, intervention_tol):
-    """One whole-arm filter step in one call (:meth:`~c3bf_gym.safety.SafetyController.__call__`,
-    and an environment's compiled policy step): the rows (:func:`hook_rows_whole_arm`, whose
+    """One whole-arm filter step in one call (an environment's compiled policy step, and
+    :meth:`~c3bf_gym.safety.SafetyController.__call__` through :func:`hook_substep_at`): the rows (:func:`hook_rows_whole_arm`, whose
     arguments ``stage`` … ``b`` are), the QP (:func:`c3bf_gym.safety._daqp.solve_rows` on ``qp``,
     priorities by :func:`low_priority_span`) in the scaled torque ``τ / scale``, :func:`hook_post`,
     which writes the torque into ``tau``, and :func:`record` of the outcome into ``tally``.

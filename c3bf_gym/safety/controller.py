@@ -276,8 +276,9 @@ class SafetyController:
         self.solve_times: list[float] | None = None
 
     def __getstate__(self) -> dict:
-        """Pickled without what :meth:`_bind` gathered (views of this process's arrays and a compiled
-        entry point): the unpickled hook binds again on its first call, to its own env's arrays."""
+        """Pickled without what :meth:`_bind` gathered (views of this process's arrays, a compiled
+        entry point and a handle of their addresses): the unpickled hook binds again on its first
+        call, to its own env's arrays."""
         state = self.__dict__.copy()
         state.update(_bound=(), _hook_substep=None)
         return state
@@ -429,24 +430,34 @@ class SafetyController:
         the kernel's dispatch."""
         self._bound = (self.arm.kernel_arrays(self.data), self._obstacle_arrays, self._params, self._A, self._b,
                        self._scale, self._limit, self.qp.buffers, self._tally, float(self.intervention_tol))
+        self._hook_substep = None  # its entry point and handle, if any, were for the buffers before
         return self._bound
 
     def _substep_entry(self) -> tuple:
-        """What :meth:`__call__` calls: the compiled entry point of
-        :func:`~c3bf_gym.safety._kernels.hook_substep_at` for exactly :meth:`_bind`'s buffers, and its
-        last two arguments, the buffers' handle (:func:`c3bf_gym._capi.pack`; the buffers stay alive
-        in ``_bound``) and numba type. Called directly, the entry point skips the dispatcher's type
-        resolution, and the handle numba's conversion of every buffer (the speed page). The
-        types are fixed: fresh C-contiguous float64 (n,) arrays tau_nom and tau (:meth:`__call__`
-        checks the shape: the entry point takes any array as the type it was compiled for) and a
-        Python int stage. Compiled on the first call from Python, not when binding: an environment
-        that calls the kernel from its own compiled step never needs it (and compiling it costs
-        seconds on an empty cache)."""
+        """What :meth:`__call__` calls: a compiled entry point and its arguments after the first three,
+        and the structure they point into (kept with them: the handle borrows its memory).
+
+        Normally the entry point of :func:`~c3bf_gym.safety._kernels.hook_substep_at` for exactly
+        :meth:`_bind`'s buffers, with their handle (:func:`c3bf_gym._capi.pack`) and numba type:
+        one array crosses into compiled code instead of every buffer, which numba would convert
+        one by one (the speed page). When the buffers include an array ``pack`` cannot describe
+        (obstacle arrays given as strided views of a simulator's state), the entry point of
+        :func:`~c3bf_gym.safety._kernels.hook_substep` itself, with the buffers: the same torques.
+        Called directly, an entry point skips the dispatcher's type resolution. The types are
+        fixed: fresh C-contiguous float64 (n,) arrays tau_nom and tau (:meth:`__call__` checks the
+        shape: the entry point takes any array as the type it was compiled for) and a Python int
+        stage. Compiled on the first call from Python, not when binding: an environment that calls
+        the kernel from its own compiled step never needs it (and compiling it costs seconds on an
+        empty cache)."""
         vec = np.zeros(len(self._limit))
         bound = self._bound or self._bind()
-        handle, bound_type = pack(bound), numba.typeof(bound)
-        entry = _kernels.hook_substep_at.compile(tuple(numba.typeof(a) for a in (0, vec, vec, handle, bound_type)))
-        self._hook_substep = (entry, handle, bound_type)
+        try:
+            arguments = (pack(bound), numba.typeof(bound))
+            kernel = _kernels.hook_substep_at
+        except ValueError:  # an array pack() cannot describe
+            arguments, kernel = bound, _kernels.hook_substep
+        entry = kernel.compile(tuple(numba.typeof(a) for a in (0, vec, vec, *arguments)))
+        self._hook_substep = (entry, arguments, bound)
         return self._hook_substep
 
     def compiled_substeps(self, version: int) -> tuple[int, tuple, bool] | None:
@@ -488,8 +499,8 @@ class SafetyController:
         if self._fused:
             if self._refresh:
                 self.obstacles.refresh(self.data)
-            substep, handle, bound_type = self._hook_substep or self._substep_entry()
-            status = substep(self.arm.claim(self.data, self._version()), tau_nom, tau, handle, bound_type)
+            substep, arguments, _ = self._hook_substep or self._substep_entry()
+            status = substep(self.arm.claim(self.data, self._version()), tau_nom, tau, *arguments)
         else:
             A, b, min_h, inside, n_sensed = self.rows()
             m = len(b)
