@@ -445,6 +445,30 @@ def test_raise_in_infeasible_state(env):
     assert not hook.report.feasible and hook.report.infeasible_steps == 1 and hook.report.slack > 0
 
 
+def test_last_describes_the_last_valid_call(env):
+    """``last`` is None before any call, describes the last call that did not raise, and a new
+    policy step's report (``begin_step``) does not change it."""
+    u = env
+    infeasible_scene(u)
+    hook = hook_for(u, on_infeasible="relax")
+    assert hook.last is None
+    hook.begin_step()
+    hook(u.data.qfrc_gravcomp.copy())
+    relaxed = hook.last
+    assert relaxed.status == "relaxed" and not relaxed.feasible and relaxed.slack > 0 and relaxed.active_rows > 0
+    assert relaxed.iterations > 0 and relaxed.solve_time > 0
+    hook.begin_step()
+    assert hook.last == relaxed
+    with pytest.raises(ValueError, match="NaN"):
+        hook(np.full(6, np.nan))
+    assert hook.last == relaxed
+    u.obstacle_active[:] = False  # nothing near: the next call is solved
+    refresh(u)
+    hook(u.data.qfrc_gravcomp.copy())
+    assert hook.last.status == "solved" and hook.last.feasible and hook.last.slack == 0.0
+    assert relaxed.status == "relaxed"  # an object read earlier keeps its call's values
+
+
 def test_relax_reports_and_does_not_return_nominal(env):
     u = env
     infeasible_scene(u)

@@ -635,11 +635,13 @@ def violations_by_kind(residual, norm, n_obstacle, stride, n_floor, tol, out):
 # ----------------------------------------------------------------------------- the policy step's report
 
 #: Entries of :attr:`Tally.values`, the running values of a :class:`~c3bf_gym.safety.StepSafety`
-#: over a policy step's calls, then the last call's own; :data:`T_VIOLATION` starts the largest
-#: violation of each of the five row kinds.
+#: over a policy step's calls; :data:`T_VIOLATION` starts the largest violation of each of the
+#: five row kinds.
 (T_SUBSTEPS, T_MIN_CONSTRAINT, T_MIN_H, T_INSIDE, T_SENSED, T_ACTIVE_ROWS, T_CORRECTION, T_INTERVENED,
- T_INFEASIBLE_STEPS, T_SLACK, T_LAST_ITERATIONS, T_LAST_ACTIVE, T_LAST_SLACK, T_VIOLATION) = range(14)
+ T_INFEASIBLE_STEPS, T_SLACK, T_VIOLATION) = range(11)
 TALLY_SIZE = T_VIOLATION + 5
+#: Entries of :attr:`Tally.last`: the last recorded call's own values
+L_STATUS, L_ITERATIONS, L_ACTIVE, L_SLACK = range(4)
 
 
 class Tally(NamedTuple):
@@ -647,13 +649,17 @@ class Tally(NamedTuple):
 
     Attributes:
         values: (TALLY_SIZE,) float64, laid out by the ``T_*`` indices (counts and flags as
-            exact floats).
+            exact floats); a new policy step starts them from :data:`TALLY_START`.
         tau_nominal, tau: (n,) the last call's nominal and filtered torques [N m].
+        last: (4,) float64, laid out by the ``L_*`` indices: the last recorded call's status,
+            DAQP iterations, active rows and slack. A new policy step keeps them: they describe
+            that call until the next one.
     """
 
     values: np.ndarray
     tau_nominal: np.ndarray
     tau: np.ndarray
+    last: np.ndarray
 
 
 #: :attr:`Tally.values` at the start of a policy step: no calls, the running minima at inf,
@@ -669,7 +675,7 @@ def record(tally, status, m, min_h, inside, n_sensed, iterations, n_active, slac
     """Fold one solved call (``status`` ≥ 0, :func:`c3bf_gym.safety._daqp.solve_rows`' codes; its
     ``m`` rows, the first ``n_obstacle`` the obstacles', ``n_floor`` floor rows after them) into
     ``tally``: the running extremes and counts of :class:`~c3bf_gym.safety.StepSafety`, the last
-    call's torques, iterations, active rows and slack, and, when rows gave way, the largest
+    call's torques, status, iterations, active rows and slack, and, when rows gave way, the largest
     violation of each kind (:func:`violations_by_kind` on the QP's residuals)."""
     values = tally.values
     values[T_SUBSTEPS] += 1.0
@@ -690,9 +696,10 @@ def record(tally, status, m, min_h, inside, n_sensed, iterations, n_active, slac
         values[T_CORRECTION] = correction
     if correction > intervention_tol:
         values[T_INTERVENED] = 1.0
-    values[T_LAST_ITERATIONS] = iterations
-    values[T_LAST_ACTIVE] = n_active
-    values[T_LAST_SLACK] = slack
+    tally.last[L_STATUS] = status
+    tally.last[L_ITERATIONS] = iterations
+    tally.last[L_ACTIVE] = n_active
+    tally.last[L_SLACK] = slack
     if status != SOLVED:
         values[T_INFEASIBLE_STEPS] += 1.0
         values[T_SLACK] = max(values[T_SLACK], slack)

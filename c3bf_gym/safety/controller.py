@@ -170,7 +170,7 @@ class SafetyController:
     Attributes:
         config: the settings it was built with.
         report: the :class:`StepSafety` accumulated since :meth:`begin_step`.
-        last: the last call's :class:`~c3bf_gym.safety.priority_qp.QPResult`.
+        last: the last call's :class:`~c3bf_gym.safety.priority_qp.QPResult` (None before the first).
         solve_times: when a list (set ``record_times=True``), every call's wall time [s] is
             appended, for latency percentiles.
     """
@@ -267,12 +267,12 @@ class SafetyController:
         self._obstacle_arrays = _kernels.ObstacleArrays(obstacles.active, self._distances, obstacles.position,
                                                         obstacles.velocity, obstacles.acceleration, obstacles.radius)
         # the report's running values, in compiled code (_kernels.record); solve_time beside them
-        self._tally = _kernels.Tally(np.zeros(_kernels.TALLY_SIZE), np.zeros(n), np.zeros(n))
+        self._tally = _kernels.Tally(np.zeros(_kernels.TALLY_SIZE), np.zeros(n), np.zeros(n), np.zeros(4))
         self._solve_time = 0.0
         self.begin_step()
         self._bound: tuple = ()  # hook_substep's arguments after the first three (_bind)
         self._hook_substep: tuple | None = None  # what __call__ calls (_substep_entry)
-        self.last: QPResult | None = None
+        self._last_time: float | None = None  # the last recorded call's wall time [s] (None: no call yet)
         self.solve_times: list[float] | None = None
 
     def __getstate__(self) -> dict:
@@ -530,21 +530,32 @@ class SafetyController:
                         self._stride, self._n_floor_rows, self.intervention_tol)
 
     def _settle(self, status: int, elapsed: float) -> None:
-        """After a call (or compiled calls) with ``status``: raise on invalid input; set
-        :attr:`last`; with ``on_infeasible="raise"``, raise on a call with no safe torque (its
+        """After a call (or compiled calls) with ``status``: raise on invalid input; keep the
+        call's wall time ``elapsed`` for :attr:`last` (its other values are in the tally); with ``on_infeasible="raise"``, raise on a call with no safe torque (its
         report recorded first)."""
         raise_bad_input(status)
-        values = self._tally.values
-        feasible = status == _daqp.SOLVED
-        iterations, active, slack = values[_kernels.T_LAST_ITERATIONS:_kernels.T_LAST_SLACK + 1].tolist()
-        self.last = QPResult(self.qp.buffers.u, slack, feasible, STATUS[status], int(iterations), int(active), elapsed)
-        if not feasible and self.on_infeasible == "raise":
+        self._last_time = elapsed
+        if status != _daqp.SOLVED and self.on_infeasible == "raise":
+            values = self._tally.values
             violation = dict(zip(ROW_KINDS, values[_kernels.T_VIOLATION:].tolist()))
             raise SafetyInfeasibleError(
                 f"no torque within the limits satisfies the safety rows (status {STATUS[status]!r}, largest "
                 f"violation by kind {self._violation_text(violation)}, min h {values[_kernels.T_MIN_H]:.3g}); pass "
                 "on_infeasible='relax' to let the rows give way by priority instead"
             )
+
+    @property
+    def last(self) -> QPResult | None:
+        """The last call's :class:`~c3bf_gym.safety.priority_qp.QPResult` (None before the first
+        call; a call that raised on invalid input leaves it as it was). Built at every read from
+        what the call recorded: keep the object, not the attribute, to hold one call's values
+        (its ``tau`` is the QP's buffer all the same)."""
+        if self._last_time is None:
+            return None
+        status, iterations, active, slack = self._tally.last.tolist()
+        status = int(status)
+        return QPResult(self.qp.buffers.u, slack, status == _daqp.SOLVED, STATUS[status], int(iterations), int(active),
+                        self._last_time)
 
     @property
     def report(self) -> StepSafety:
