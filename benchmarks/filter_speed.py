@@ -14,6 +14,15 @@ split columns stay empty ("nan"). Median, p99, max and mean in µs of all calls,
 solved ones, and median and p99 of the relaxed ones (no torque satisfied every row: the rows gave
 way), and the QP's status counts.
 
+**The same calls in compiled code.** Each latency run is repeated with the same seed while
+:class:`Replay` records every call's inputs; then every call is replayed in order with its inputs
+restored (untimed, in Python) and :func:`c3bf_gym.safety._kernels.hook_substep` alone timed in
+compiled code with the CPU's time-stamp counter: the call an environment's compiled policy step
+makes between two physics steps, without the ~1.4 µs of a call from Python. The replay must give
+every recorded torque bit for bit (it replays the same solves, warm starts included); the script
+says so beside the median, p99 and mean, or says that it did not. ``--no-replay`` skips it (the
+package's versions before the fused kernel lack what it records).
+
 ``--guard auto none`` compares the filter with and without its guard (``SafetyFilter(guard=...)``:
 the distance HOCBF's rows beside the C3BF's, or the C3BF's alone; label ``/unguarded``): each
 obstacle count runs ``--latency-rounds`` rounds (default 2) of ``--calls / rounds`` calls per
@@ -23,7 +32,7 @@ noise and the arrangements hit the variants alike; then the ratios of the first 
 Env steps with and without the filter, against the bare physics: ``benchmarks/env_speed.py``.
 
 Usage: ``python benchmarks/filter_speed.py [--calls 3000] [--obstacles 1 4 8] [--policy adversarial]
-[--guard G [G ...]] [--latency-rounds R] [--split] [--profile] [--json PATH]``. The script also times
+[--guard G [G ...]] [--latency-rounds R] [--split] [--profile] [--no-replay] [--json PATH]``. The script also times
 other versions of the package (``PYTHONPATH=/path/to/other/checkout``): it prints which
 ``c3bf_gym`` it imported, so two trees can be timed alternately with the same script.
 """
@@ -41,10 +50,15 @@ import time
 import gymnasium as gym
 import mujoco
 import numpy as np
+from llvmlite import ir
+from numba import njit
+from numba.core import cgutils, types
+from numba.extending import intrinsic
 
 import c3bf_gym  # noqa: F401  (registers C3BFReach-v0)
 from c3bf_gym import SafetyFilter
 from c3bf_gym.envs.reach import DISTANCE_CUTOFF
+from c3bf_gym.safety import _kernels
 from c3bf_gym.scenarios import ObstacleSample, ObstacleSpec
 
 
@@ -119,14 +133,89 @@ def _rows_of_last_call(qp) -> int:
     return int(plain.used[0])
 
 
+@intrinsic
+def _cycles(typingctx):
+    """The CPU's time-stamp counter (``llvm.readcyclecounter``), read in compiled code."""
+
+    def codegen(context, builder, signature, args):
+        counter = cgutils.get_or_insert_function(builder.module, ir.FunctionType(ir.IntType(64), []),
+                                                 "llvm.readcyclecounter")
+        return builder.call(counter, [])
+
+    return types.uint64(), codegen
+
+
+@njit
+def _read_cycles():
+    return _cycles()
+
+
+def cycles_per_second() -> float:
+    """The time-stamp counter's rate, against ``time.perf_counter`` over 0.2 s."""
+    start, counted = time.perf_counter(), _read_cycles()
+    time.sleep(0.2)
+    return (_read_cycles() - counted) / (time.perf_counter() - start)
+
+
+@njit
+def _timed_substep(stage, tau_nom, tau, buffers):
+    """One compiled filter call, as an environment's compiled policy step makes it between two
+    physics steps; returns ``(status, time-stamp counter ticks)``."""
+    start = _cycles()
+    status = _kernels.hook_substep(stage, tau_nom, tau, *buffers)
+    return status, _cycles() - start
+
+
+class Replay:
+    """The hook's calls again, each timed inside compiled code (no Python in the timed window).
+
+    While the latency run goes, :meth:`record` keeps, for every call, what the fused kernel
+    reads (every writable array of the arm's and the obstacles' kernel structures), the QP's
+    cold-start flags (a reset between calls), the nominal torque and the answer. :meth:`run`
+    restores each call's inputs in Python, untimed, then times
+    :func:`c3bf_gym.safety._kernels.hook_substep` alone, and checks that every call gives the
+    recorded torque bit for bit: it replays the same solves, warm starts included.
+    """
+
+    def __init__(self, hook) -> None:
+        self.hook = hook
+        self.buffers = hook._bound or hook._bind()
+        arm, obstacles, qp = self.buffers[0], self.buffers[1], self.buffers[7]
+        self.arrays = [a for a in (*arm, *obstacles) if isinstance(a, np.ndarray) and a.flags.writeable]
+        self.cold = qp.cold
+        self.frames: list[tuple] = []
+
+    def record(self, tau_nom: np.ndarray) -> None:
+        self.frames.append(([a.copy() for a in self.arrays], self.cold.copy(), np.array(tau_nom, np.float64)))
+
+    def answer(self, tau: np.ndarray) -> None:
+        self.frames[-1] += (np.array(tau, np.float64),)
+
+    def run(self) -> tuple[list[float], bool]:
+        """Every recorded call once, in order: ``(seconds per call, all torques equal)``."""
+        rate = cycles_per_second()
+        tau = np.empty(len(self.hook._limit))
+        ticks, same = [], True
+        for arrays, cold, tau_nom, want in self.frames:
+            for target, value in zip(self.arrays, arrays):
+                np.copyto(target, value)
+            np.copyto(self.cold, cold)
+            status, counted = _timed_substep(2, tau_nom, tau, self.buffers)
+            ticks.append(counted)
+            same = same and status >= 0 and np.array_equal(tau, want)
+        return [t / rate for t in ticks], same
+
+
 class TimedHook:
     """Installed in place of the filter hook: times each call and, with ``split``, its rows / QP
     parts (timers wrapped around ``SafetyHook.rows`` and the QP's solve; they see only a hook that
     calls them, not the fused whole-arm kernel, and cost the timed calls ~1 µs)."""
 
-    def __init__(self, hook, profiler: cProfile.Profile | None = None, split: bool = False) -> None:
+    def __init__(self, hook, profiler: cProfile.Profile | None = None, split: bool = False,
+                 replay: Replay | None = None) -> None:
         self.hook = hook
         self.profiler = profiler
+        self.replay = replay
         self.calls = 0
         self.total: list[float] = []
         self.rows: list[float] = []
@@ -135,6 +224,8 @@ class TimedHook:
         self.sensed: list[int] = []
         self.n_rows: list[int] = []
         self.relaxed: list[bool] = []
+        self.compiled: list[float] = []  # the same calls replayed, compiled only (Replay)
+        self.compiled_same = True
         if not split:
             return
         rows = hook.rows
@@ -172,6 +263,8 @@ class TimedHook:
 
 
     def __call__(self, tau: np.ndarray) -> np.ndarray:
+        if self.replay is not None:
+            self.replay.record(tau)
         if self.profiler is not None:
             self.profiler.enable()
             out = self.hook(tau)
@@ -180,12 +273,14 @@ class TimedHook:
             start = time.perf_counter()
             out = self.hook(tau)
             self.total.append(time.perf_counter() - start)
+        if self.replay is not None:
+            self.replay.answer(out)
         self._record()
         return out
 
 
 def hook_latency(count: int, calls: int, seed: int, policy: str = "adversarial", profile: bool = False,
-                 split: bool = False, guard: str = "auto") -> TimedHook:
+                 split: bool = False, guard: str = "auto", replay: bool = False) -> TimedHook:
     env = SafetyFilter(gym.make("C3BFReach-v0", scenario="none"), barrier="c3bf",
                        **({} if guard == "auto" else {"guard": None}))
     u = env.unwrapped
@@ -200,7 +295,7 @@ def hook_latency(count: int, calls: int, seed: int, policy: str = "adversarial",
     env.reset(seed=seed)
     place_obstacles(u, count, rng)
     profiler = cProfile.Profile() if profile else None
-    timed = TimedHook(env.hook, profiler, split)
+    timed = TimedHook(env.hook, profiler, split, Replay(env.hook) if replay else None)
     u.remove_torque_hook("filter")
     u.add_torque_hook(timed, "filter")
     steps = 0
@@ -211,6 +306,9 @@ def hook_latency(count: int, calls: int, seed: int, policy: str = "adversarial",
         action = adversarial_action(u) if policy == "adversarial" else rng.uniform(-1, 1, 6).astype(np.float32)
         env.step(action)
         steps += 1
+    if timed.replay is not None:  # before close: the recorded arrays are views of the env's data
+        timed.compiled, timed.compiled_same = timed.replay.run()
+        timed.replay = None
     env.close()
     if profiler is not None:
         stream = io.StringIO()
@@ -239,7 +337,11 @@ def summary(timed: list[TimedHook]) -> dict:
             status[k] = status.get(k, 0) + v
     relaxed_total = [v for t in timed for v, relaxed in zip(t.total, t.relaxed) if relaxed]
     solved_total = [v for t in timed for v, relaxed in zip(t.total, t.relaxed) if not relaxed]
+    compiled = [v for t in timed for v in t.compiled]
     return {
+        "compiled_median_us": us(compiled, 50), "compiled_p99_us": us(compiled, 99),
+        "compiled_mean_us": float(np.mean(compiled) * 1e6) if compiled else math.nan,
+        "compiled_same_torques": all(t.compiled_same for t in timed),
         "total_median_us": us(pool["total"], 50), "total_p99_us": us(pool["total"], 99),
         "total_max_us": us(pool["total"], 100), "total_mean_us": float(np.mean(pool["total"]) * 1e6),
         "relaxed_median_us": us(relaxed_total, 50),
@@ -269,6 +371,8 @@ def main(argv: list[str] | None = None) -> dict:
                         help="also time the rows and the QP apart (only a hook that calls them: not the fused whole-arm kernel)")
     parser.add_argument("--profile", action="store_true", help="print a cProfile top-15 of the filtered steps (4 obstacles)")
     parser.add_argument("--no-throughput", action="store_true", help=argparse.SUPPRESS)  # accepted: throughput moved to env_speed.py
+    parser.add_argument("--no-replay", action="store_true",
+                        help="skip replaying the calls in compiled code (Replay; older trees of the package lack it)")
     parser.add_argument("--json", metavar="PATH", help="also write the results as JSON to PATH")
     args = parser.parse_args(argv)
     if args.calls < 1 or any(not 1 <= k <= 8 for k in args.obstacles):
@@ -295,6 +399,9 @@ def main(argv: list[str] | None = None) -> dict:
             for s in variants[r % len(variants):] + variants[: r % len(variants)]:  # rotate who goes first
                 timed[s].append(hook_latency(count, per_round, args.seed + r, args.policy,
                                             split=args.split, guard=s))
+                if not args.no_replay:  # the same calls again, recorded (which would disturb the timing above)
+                    again = hook_latency(count, per_round, args.seed + r, args.policy, guard=s, replay=True)
+                    timed[s][-1].compiled, timed[s][-1].compiled_same = again.compiled, again.compiled_same
         rows_by_variant = {s: summary(timed[s]) for s in variants}
         out["hook"][count] = ({variant_name(s): row for s, row in rows_by_variant.items()} if len(variants) > 1
                               else rows_by_variant[variants[0]])
@@ -316,6 +423,14 @@ def main(argv: list[str] | None = None) -> dict:
                   f"{a['relaxed_median_us'] / b['relaxed_median_us']:>11.2f} "
                   f"{a['relaxed_p99_us'] / b['relaxed_p99_us']:>6.2f} | {'':>15} | "
                   f"{a['qp_median_us'] / b['qp_median_us']:>7.2f} {a['qp_p99_us'] / b['qp_p99_us']:>7.2f}")
+    if not args.no_replay:
+        print("\nthe same calls replayed in compiled code, each timed alone (what an environment's compiled policy "
+              "step runs between two physics steps) [µs]")
+        for count, rows in out["hook"].items():
+            for name, row in (rows.items() if len(variants) > 1 else [("", rows)]):
+                print(f"{count:>4} {name:>10} | median {row['compiled_median_us']:5.1f}  p99 {row['compiled_p99_us']:5.1f}  "
+                      f"mean {row['compiled_mean_us']:5.1f} | torques as called from Python: "
+                      f"{'equal, bit for bit' if row['compiled_same_torques'] else 'NOT EQUAL (the replay is not faithful)'}")
     if args.profile:
         hook_latency(4, min(args.calls, 2000), args.seed, args.policy, profile=True)
 

@@ -37,6 +37,10 @@ def test_filter_speed_prints_the_hook_latency_table(tmp_path):
     for count in ("1", "4"):
         row = result["hook"][count]
         assert row["total_median_us"] > 0 and row["total_mean_us"] > 0 and sum(row["status"].values()) >= 40
+        # the compiled replay times the same calls: it must give the torques they gave, bit for bit
+        assert row["compiled_same_torques"] is True
+        assert 0 < row["compiled_median_us"] <= row["compiled_p99_us"] and row["compiled_mean_us"] > 0
+    assert "replayed in compiled code" in done.stdout and "equal, bit for bit" in done.stdout
 
 
 def test_train_speed_prints_filtered_and_unfiltered_throughput_side_by_side(tmp_path):
