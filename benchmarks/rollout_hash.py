@@ -5,8 +5,9 @@ For each named filter of the table below (spelled with ``barrier``/``guard`` set
 version of ``SafetyFilter`` since the guard takes) and for no filter, and each of the paper's four
 scenarios, it runs ``EPISODES`` seeded episodes of ``STEPS`` policy steps, alternating uniformly
 random and chattering ±1 torques, and hashes the observations, joint positions and velocities,
-rewards, goal and obstacle distances, effort and the safety report's numbers. Run it on two trees
-and compare the printed hashes::
+rewards, goal and obstacle distances, effort and the safety report's numbers; a second hash
+leaves the report's numbers out (a change to the report alone moves only the first). Run it on
+two trees and compare the printed hashes::
 
     PYTHONPATH=/path/to/other/checkout python benchmarks/rollout_hash.py 2 60
     python benchmarks/rollout_hash.py 2 60
@@ -32,8 +33,10 @@ FILTERS = (("c3bf+hocbf", dict(barrier="c3bf")), ("c3bf", dict(barrier="c3bf", g
            ("hocbf", dict(barrier="hocbf")), ("none", None))  # fmt: skip
 
 
-def fingerprint(settings: dict | None, episodes: int, steps: int) -> str:
-    digest = hashlib.sha256()
+def fingerprint(settings: dict | None, episodes: int, steps: int) -> tuple[str, str]:
+    """``(everything, the steps alone)``: the second leaves out the safety report's numbers, so a
+    change to the report alone shows as the first hash moving while the second stays."""
+    digest, steps_only = hashlib.sha256(), hashlib.sha256()
     for scenario in ("static", "head_on", "crossing", "multi"):
         env = gym.make("C3BFReach-v0", scenario=scenario)
         env = env if settings is None else SafetyFilter(env, **settings)
@@ -48,6 +51,8 @@ def fingerprint(settings: dict | None, episodes: int, steps: int) -> str:
                 obs, reward, _, _, info = env.step(action)
                 data = env.unwrapped.data
                 numbers = [reward, info["distance"], info["min_distance"], info["reward_effort"]]
+                for array in (obs, data.qpos, data.qvel, np.array(numbers)):
+                    steps_only.update(array.tobytes())
                 if settings is not None:
                     safety = info["safety"]
                     numbers += [safety["slack"], safety["min_h"], safety["correction"], safety["min_constraint"],
@@ -55,19 +60,21 @@ def fingerprint(settings: dict | None, episodes: int, steps: int) -> str:
                 for array in (obs, data.qpos, data.qvel, np.array(numbers)):
                     digest.update(array.tobytes())
         env.close()
-    return digest.hexdigest()[:16]
+    return digest.hexdigest()[:16], steps_only.hexdigest()[:16]
 
 
 def main() -> None:
     episodes = int(sys.argv[1]) if len(sys.argv) > 1 else 2
     steps = int(sys.argv[2]) if len(sys.argv) > 2 else 60
     print(f"c3bf_gym from {os.path.dirname(c3bf_gym.__file__)}")
-    total = hashlib.sha256()
+    total, total_steps = hashlib.sha256(), hashlib.sha256()
+    print(f"{'filter':<11} {'everything':<16} steps alone")
     for label, settings in FILTERS:
-        value = fingerprint(settings, episodes, steps)
+        value, steps_value = fingerprint(settings, episodes, steps)
         total.update(value.encode())
-        print(f"{label:<11} {value}")
-    print(f"{'all':<11} {total.hexdigest()[:16]}")
+        total_steps.update(steps_value.encode())
+        print(f"{label:<11} {value} {steps_value}")
+    print(f"{'all':<11} {total.hexdigest()[:16]} {total_steps.hexdigest()[:16]}")
 
 
 if __name__ == "__main__":

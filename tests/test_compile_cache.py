@@ -19,7 +19,7 @@ PROBE = """
 import json, numpy as np
 from c3bf_gym.safety import _kernels
 out = np.empty(3)
-_kernels.hook_post(np.zeros((0, 3)), np.zeros(0), np.array([2.0, -2.0, 0.5]), np.full(3, 0.5), np.zeros(3),
+_kernels.hook_post(np.zeros(0), np.zeros(0), np.zeros(0), np.array([2.0, -2.0, 0.5]), np.full(3, 0.5), np.zeros(3),
                    np.ones(3), out)
 stats = _kernels.hook_post.stats
 print(json.dumps({"hits": sum(stats.cache_hits.values()), "misses": sum(stats.cache_misses.values()),

@@ -469,6 +469,25 @@ def test_last_describes_the_last_valid_call(env):
     assert relaxed.status == "relaxed"  # an object read earlier keeps its call's values
 
 
+@pytest.mark.parametrize("relaxed", [False, True])
+def test_min_constraint_is_the_smallest_row_residual_at_the_applied_torque(env, relaxed):
+    """The report's ``min_constraint`` is ``min_k A_k τ − b_k`` over the call's rows, in their
+    own units, at the torque returned (up to rounding), whether the rows held or gave way."""
+    u = env
+    infeasible_scene(u)
+    if not relaxed:
+        u.obstacle_vel[:] = 0.0  # the same obstacle at rest: every row can hold
+        refresh(u)
+    hook = hook_for(u, on_infeasible="relax")
+    hook.begin_step()
+    tau = hook(u.data.qfrc_gravcomp + 5.0)
+    assert hook.last.feasible is not relaxed
+    A, b, *_ = hook.rows()  # the same state: the rows of that call
+    want = (A @ tau - b).min()
+    assert hook.report.min_constraint == pytest.approx(want, rel=1e-9, abs=1e-9 * np.abs(b).max())
+    assert bool(want < -1e-3) is relaxed
+
+
 def test_relax_reports_and_does_not_return_nominal(env):
     u = env
     infeasible_scene(u)
@@ -625,7 +644,8 @@ def _unfused_call(hook, tau_nom):
     tau_nom = np.ascontiguousarray(tau_nom, dtype=np.float64)
     result = hook.qp.solve_scaled(tau_nom, A, b, hook._scale, hook._low_priority_span(len(b)), hook._stride)
     tau = np.empty_like(tau_nom)
-    _kernels.hook_post(A, b, result.tau, hook._scale, tau_nom, hook._limit, tau)
+    qp, m = hook.qp.buffers, len(b)
+    _kernels.hook_post(b, qp.norm[:m], qp.residual[:m], result.tau, hook._scale, tau_nom, hook._limit, tau)
     return tau, result
 
 

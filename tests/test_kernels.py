@@ -360,16 +360,24 @@ def test_guard_rows_are_the_distance_hocbfs(make_env):
 
 
 def test_hook_post():
+    """The torque, the smallest residual ``A τ − b`` in the rows' units from the QP's normalised
+    residuals (a row no torque can change counting ``−b_k``), and the correction."""
     rng = np.random.default_rng(9)
     A, b, u = rng.normal(size=(5, 3)), rng.normal(size=5), rng.normal(size=3)
     scale, limit = np.array([2.0, 3.0, 4.0]), np.array([1.0, 1.0, 1.0])
+    norm = np.linalg.norm(A * scale, axis=1)
+    residual_hat = ((A * scale) @ u - b) / norm  # what solve_rows leaves in qp.residual
     tau_nom = np.array([3.0, -0.5, -2.0])
     tau = np.zeros(3)
-    residual, correction = K.hook_post(A, b, u, scale, tau_nom, limit, tau)
+    residual, correction = K.hook_post(b, norm, residual_hat, u, scale, tau_nom, limit, tau)
     close(tau, u * scale)
-    assert residual == pytest.approx((A @ (u * scale) - b).min(), rel=1e-14)
+    assert residual == pytest.approx((A @ (u * scale) - b).min(), rel=1e-12)
     assert correction == pytest.approx(np.linalg.norm(u * scale - np.clip(tau_nom, -limit, limit)), rel=1e-14)
-    assert K.hook_post(np.zeros((0, 3)), np.zeros(0), u, scale, tau_nom, limit, tau)[0] == np.inf
+    # a row no torque can change (norm 0) counts -b_k, whatever its residual entry holds
+    lowest = int(np.argmin(A @ (u * scale) - b))
+    norm[lowest], b[lowest] = 0.0, 1e3
+    assert K.hook_post(b, norm, residual_hat, u, scale, tau_nom, limit, tau)[0] == -1e3
+    assert K.hook_post(np.zeros(0), np.zeros(0), np.zeros(0), u, scale, tau_nom, limit, tau)[0] == np.inf
 
 
 def test_kernels_are_cached_on_disk():

@@ -578,22 +578,25 @@ def hook_rows_whole_arm(stage, arm, obstacles, params, A, b):
 
 
 @njit(**_opts)
-def hook_post(A, b, u, scale, tau_nom, limit, tau):
-    """The filter's bookkeeping after the QP: ``tau = u · scale``; returns ``(min_k A_k tau − b_k``
-    (the rows' own units; inf without rows), ``‖tau − clip(tau_nom, ±limit)‖``)."""
-    m, n = A.shape
+def hook_post(b, norm, residual, u, scale, tau_nom, limit, tau):
+    """The filter's bookkeeping after the QP (:func:`c3bf_gym.safety._daqp.solve_rows` on ``m``
+    rows ``A τ ≥ b``; ``norm``, ``residual`` (m,) its ``qp.norm`` and ``qp.residual``):
+    ``tau = u · scale``; returns ``(min_k A_k tau − b_k`` in the rows' own units (inf without
+    rows), ``‖tau − clip(tau_nom, ±limit)‖)``.
+
+    ``A_k tau − b_k`` is taken as ``‖A_k s‖ (â_k u − b̂_k)``, the row's norm times its normalised
+    residual at ``u``: the same value up to rounding, without a second pass over the rows. A row
+    no torque can change (``norm[k] == 0``) counts ``−b_k``."""
+    n = u.shape[0]
     sq = 0.0
     for j in range(n):
         tau[j] = u[j] * scale[j]
         d = tau[j] - max(min(tau_nom[j], limit[j]), -limit[j])
         sq += d * d
-    residual = np.inf
-    for i in range(m):
-        acc = 0.0
-        for j in range(n):
-            acc += A[i, j] * tau[j]
-        residual = min(residual, acc - b[i])
-    return residual, math.sqrt(sq)
+    low = np.inf
+    for k in range(b.shape[0]):
+        low = min(low, norm[k] * residual[k] if norm[k] > 0.0 else -b[k])
+    return low, math.sqrt(sq)
 
 
 @njit(**_opts)
@@ -727,7 +730,7 @@ def hook_substep(stage, tau_nom, tau, arm, obstacles, params, A, b, scale, limit
                                                      low_priority_span(m, n_fixed, guarded), stride, qp)
     if status < 0:
         return status
-    residual, correction = hook_post(A[:m], b[:m], qp.u, scale, tau_nom, limit, tau)
+    residual, correction = hook_post(b[:m], qp.norm[:m], qp.residual[:m], qp.u, scale, tau_nom, limit, tau)
     record(tally, status, m, min_h, inside, n_sensed, iterations, n_active, slack, residual, correction, tau_nom,
            tau, qp, m - n_fixed, stride, n_floor, intervention_tol)
     return status

@@ -92,7 +92,9 @@ class StepSafety:
         inside: some protected point was already inside an obstacle's (margin-inflated) radius.
         infeasible_steps: number of physics steps whose QP needed slack.
         min_constraint: the smallest row residual ``A τ − b`` at the applied torque (the QP
-            constraint value: >= 0 when every row holds) [row units]; inf with no row.
+            constraint value: >= 0 when every row holds) [row units]; inf with no row. Taken
+            from the QP's row-normalised residuals times the rows' norms
+            (:func:`~c3bf_gym.safety._kernels.hook_post`).
         violation: what gave way: for each of :data:`ROW_KINDS`, the largest row-normalised
             violation ``(b_k − A_k τ) / ‖A_k s‖`` over the step's infeasible physics steps [N m
             in the scaled torque], 0.0 where none (for "unmovable", the violated ``b_k``). In
@@ -508,8 +510,9 @@ class SafetyController:
             status, iterations, active, slack = _daqp.solve_rows(
                 tau_nom, A, b, self._scale, self._low_priority_span(m), self._stride, qp)
             if status >= 0:
-                # τ = u s, the smallest row residual A u − b and ‖τ − clip(τ_nom)‖ (the filter's change)
-                residual, correction = _kernels.hook_post(A, b, qp.u, self._scale, tau_nom, self._limit, tau)
+                # τ = u s, the smallest row residual A τ − b and ‖τ − clip(τ_nom)‖ (the filter's change)
+                residual, correction = _kernels.hook_post(b, qp.norm[:m], qp.residual[:m], qp.u, self._scale, tau_nom,
+                                                          self._limit, tau)
                 self._record(status, m, min_h, inside, n_sensed, iterations, active, slack, residual, correction,
                              tau_nom, tau)
         elapsed = _perf_counter() - start
