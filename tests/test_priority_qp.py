@@ -181,7 +181,7 @@ def test_rows_no_torque_can_change():
     assert held.feasible and held.slack == 0.0
 
 
-@pytest.mark.parametrize("length", [1e-8, 1e-5, 1e-3, 1.0])
+@pytest.mark.parametrize("length", [1e-8, 1e-5, 1e-3, 1e-2, 1.0, 1e3])
 def test_short_rows_that_torque_can_still_change_are_solved_as_any_other(length):
     """A row far shorter than the others (a point the joints barely move) but above the length
     below which no torque can change it: held where it can be, like its unit-length twin. DAQP
@@ -193,6 +193,8 @@ def test_short_rows_that_torque_can_still_change_are_solved_as_any_other(length)
     b = np.array([0.1 * length, 0.5, -2.0])
     result = qp.solve_scaled(np.zeros(2), A, b, np.ones(2), n_obstacle_rows=1)
     assert result.status == "solved" and result.tau[0] == pytest.approx(0.5, abs=1e-9)
+    # residuals are the normalised rows', whatever the rows' lengths: u0 - 0.1, u0 - 0.5, u1 + 2
+    np.testing.assert_allclose(qp.buffers.residual[:3], [0.4, 0.0, 2.0], atol=1e-9)
     # out of reach by its own length: it gives way, the others hold
     far = qp.solve_scaled(np.zeros(2), A, np.array([2.0 * length, 0.5, -2.0]), np.ones(2), n_obstacle_rows=1)
     assert far.status == "relaxed" and far.tau[0] == pytest.approx(1.0, abs=1e-6)
