@@ -270,11 +270,6 @@ SOLVED, RELAXED, FAILED = 0, 1, 2
 BAD_NOMINAL, BAD_ROWS = -1, -2
 #: rows whose coefficients (times the scale) are shorter than this cannot change with the torque
 ROW_NORM_MIN = 1e-12
-#: rows shorter than this are handed to DAQP normalised, longer ones as they are (DAQP normalises
-#: every row itself). DAQP takes a row whose squared length is below its ``zero_tol`` (1e-11) for
-#: a zero row, and a zero row that cannot hold for an infeasible problem; this keeps every row it
-#: sees five orders of magnitude above that.
-DAQP_ROW_MIN = 1e-3
 #: [row-normalised] a row counts as held (and, at the bound, as active) within this
 ACTIVE_TOL = 1e-6
 #: [row-normalised] a prioritised answer that violates a row by more than this proves that no
@@ -297,9 +292,6 @@ class QPBuffers(NamedTuple):
         lo, hi: (n,) the box of ``u``.
         u: (n,) the solution.
         norm: (rows,) each row's norm ``‖A_k s‖`` (0: left out).
-        unit: (rows,) what turns row ``k`` of the workspaces' ``A`` and bound into the normalised
-            row: ``1 / norm[k]`` for a row they hold as it is (``A_k s``, ``b_k``), 1 for one
-            they hold normalised (shorter than :data:`DAQP_ROW_MIN`).
         residual: (rows,) each row's normalised residual ``â_k u − b̂_k`` at the solution (> −tol:
             held); for a zero row, ``−b_k``.
         cold: int64 (2,) 1: the next solve of ``plain`` (``cold[0]``) or ``hier`` (``cold[1]``)
@@ -314,7 +306,6 @@ class QPBuffers(NamedTuple):
     hi: np.ndarray
     u: np.ndarray
     norm: np.ndarray
-    unit: np.ndarray
     residual: np.ndarray
     cold: np.ndarray
     last: np.ndarray
@@ -335,12 +326,9 @@ def solve_rows(tau_nom, A, b, scale, n_obstacle_rows, stride, qp):
     """The filter's QP (module docstring) for the rows ``A τ ≥ b`` (m, n) and nominal torque
     ``tau_nom`` (n,), in ``u = τ / scale``; the solution goes to ``qp.u`` (:class:`QPBuffers`).
 
-    1. Rows are scaled (``A_k s``) and handed to DAQP as they are, which normalises every row
-       itself; a row shorter than :data:`DAQP_ROW_MIN` is handed over normalised (``qp.unit``).
-       Residuals and tolerances below are the normalised rows'. A row shorter than
-       :data:`ROW_NORM_MIN` cannot change with the torque: with ``b_k ≤ 0`` it holds, with
-       ``b_k > 0`` it can never hold (``impossible``, its ``b_k``). Both are left out of the
-       solves.
+    1. Rows are scaled (``A_k s``) and normalised; a row shorter than :data:`ROW_NORM_MIN` cannot
+       change with the torque: with ``b_k ≤ 0`` it holds, with ``b_k > 0`` it can never hold
+       (``impossible``, its ``b_k``). Both are left out of the solves.
     2. All rows hard (``qp.plain``, its problem sized to the ``m`` rows: DAQP reads none past
        them), warm-started from its previous solve's working set. If DAQP finds the optimum and
        every row holds within :data:`ACTIVE_TOL`, that is the answer (:data:`SOLVED`).
@@ -390,14 +378,9 @@ def solve_rows(tau_nom, A, b, scale, n_obstacle_rows, stride, qp):
             impossible = max(impossible, b[k])
             continue
         qp.norm[k] = norm
-        if norm < DAQP_ROW_MIN:
-            for j in range(n):
-                plain.A[k, j] /= norm
-            plain.lower[n + k] = b[k] / norm
-            qp.unit[k] = 1.0
-        else:
-            plain.lower[n + k] = b[k]
-            qp.unit[k] = 1.0 / norm
+        for j in range(n):
+            plain.A[k, j] /= norm
+        plain.lower[n + k] = b[k] / norm
     plain.problem[PROBLEM_M] = n + m
     status = SOLVED
     iterations = 0
@@ -457,7 +440,7 @@ def _barrier_row(k, n_obstacle_rows, stride):
 
 @njit(**STEP_KERNEL_OPTIONS)
 def _solve_by_priority(qp, m, n_obstacle_rows, stride):
-    """Step 3 of :func:`solve_rows` on the rows ``qp.plain`` holds (scaled; ``qp.unit``):
+    """Step 3 of :func:`solve_rows` on the rows ``qp.plain`` holds (scaled and normalised):
     returns ``(exit flag, iterations)``; on success (flag ≥ 1) ``qp.u`` is the answer, clipped
     to the box."""
     plain, hier = qp.plain, qp.hier
@@ -515,8 +498,8 @@ def _solve_by_priority(qp, m, n_obstacle_rows, stride):
 
 @njit(**STEP_KERNEL_OPTIONS)
 def _residuals(plain, qp, m):
-    """``qp.residual[k] = â_k u − b̂_k`` for the first ``m`` rows, normalised (``qp.unit``); returns
-    their minimum over the rows that are not left out (inf without one)."""
+    """``qp.residual[k] = â_k u − b̂_k`` for the first ``m`` (normalised) rows; returns their minimum
+    over the rows that are not left out (inf without one)."""
     n = qp.u.shape[0]
     low = np.inf
     for k in range(m):
@@ -525,6 +508,6 @@ def _residuals(plain, qp, m):
         acc = 0.0
         for j in range(n):
             acc += plain.A[k, j] * qp.u[j]
-        qp.residual[k] = (acc - plain.lower[n + k]) * qp.unit[k]
+        qp.residual[k] = acc - plain.lower[n + k]
         low = min(low, qp.residual[k])
     return low

@@ -92,8 +92,8 @@ class PriorityQP:
         self.max_rows = rows
         self.buffers = _daqp.QPBuffers(self._plain.buffers, self._hier.buffers,
                                        np.array([level1_rows, level2_rows], np.int64), self.tau_min, self.tau_max,
-                                       np.zeros(n), np.zeros(max(rows, 1)), np.ones(max(rows, 1)),
-                                       np.zeros(max(rows, 1)), np.ones(2, np.int64), np.zeros(1, np.int64))
+                                       np.zeros(n), np.zeros(max(rows, 1)), np.zeros(max(rows, 1)),
+                                       np.ones(2, np.int64), np.zeros(1, np.int64))
 
     def reset(self) -> None:
         """Forget the warm start: the next solve starts from an empty working set, so a sequence
