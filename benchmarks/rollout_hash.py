@@ -53,10 +53,8 @@ def fingerprint(settings: dict | None, episodes: int, steps: int) -> tuple[str, 
                 numbers = [reward, info["distance"], info["min_distance"], info["reward_effort"]]
                 for array in (obs, data.qpos, data.qvel, np.array(numbers)):
                     steps_only.update(array.tobytes())
-                if settings is not None:
-                    safety = info["safety"]
-                    numbers += [safety["slack"], safety["min_h"], safety["correction"], safety["min_constraint"],
-                                safety["infeasible_steps"]]
+                if settings is not None:  # every entry of the report, in a fixed order
+                    numbers += [float(info["safety"][key]) for key in sorted(info["safety"])]
                 for array in (obs, data.qpos, data.qvel, np.array(numbers)):
                     digest.update(array.tobytes())
         env.close()

@@ -3,11 +3,14 @@
 from __future__ import annotations
 
 import json
+import platform
 import subprocess
 import sys
 from pathlib import Path
 
 BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
+#: filter_speed.py replays the filter's calls timed with the x86 time-stamp counter, only there
+REPLAYED = platform.machine() in ("x86_64", "AMD64", "i686", "i386")
 
 
 def test_env_speed_prints_every_configuration_against_the_bare_physics(tmp_path):
@@ -37,10 +40,15 @@ def test_filter_speed_prints_the_hook_latency_table(tmp_path):
     for count in ("1", "4"):
         row = result["hook"][count]
         assert row["total_median_us"] > 0 and row["total_mean_us"] > 0 and sum(row["status"].values()) >= 40
-        # the compiled replay times the same calls: it must give the torques they gave, bit for bit
-        assert row["compiled_same_torques"] is True
-        assert 0 < row["compiled_median_us"] <= row["compiled_p99_us"] and row["compiled_mean_us"] > 0
-    assert "replayed in compiled code" in done.stdout and "equal, bit for bit" in done.stdout
+        if REPLAYED:  # the compiled replay times the same calls: it must give their torques, bit for bit
+            assert row["compiled_same_torques"] is True
+            assert 0 < row["compiled_median_us"] <= row["compiled_p99_us"] and row["compiled_mean_us"] > 0
+    if REPLAYED:
+        assert "replayed in compiled code" in done.stdout and "equal, bit for bit" in done.stdout
+    skipped = subprocess.run([sys.executable, str(BENCHMARKS / "filter_speed.py"), "--calls", "10", "--obstacles", "1",
+                              "--no-replay", "--json", str(out)], capture_output=True, text=True, timeout=600)  # fmt: skip
+    assert skipped.returncode == 0, skipped.stderr[-2000:]
+    assert json.loads(out.read_text())["hook"]["1"]["compiled_same_torques"] is None  # not "equal": not checked
 
 
 def test_train_speed_prints_filtered_and_unfiltered_throughput_side_by_side(tmp_path):

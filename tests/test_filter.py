@@ -738,9 +738,11 @@ def test_a_bound_hook_pickles_and_binds_again(make_env):
     A = env.hook._A.copy()
     hook = pickle.loads(pickle.dumps(env.hook))  # the hook alone (a wrapped env pickles as its arguments)
     assert hook._bound == () and hook._hook_substep is None
+    assert env.hook.last is not None and hook.last is None  # the copy's QP is new: it has no last call
     # the same state (its QP starts cold, the original's warm: the same torque up to rounding)
     np.testing.assert_allclose(hook(np.zeros(6)), tau, rtol=0, atol=1e-9)
     assert hook._bound and hook._bound[0] is not env.hook._bound[0] and hook.qp is not env.hook.qp
+    np.testing.assert_array_equal(hook.last.tau, hook.qp.buffers.u)
     handle, original = hook._hook_substep[1][0], env.hook._hook_substep[1][0]
     assert not np.array_equal(handle, original)  # the copy's own buffers
     np.testing.assert_array_equal(env.hook._A, A)  # the original's buffers untouched by the copy's call

@@ -200,6 +200,20 @@ def test_short_rows_that_torque_can_still_change_are_solved_as_any_other(length)
     assert far.status == "relaxed" and far.tau[0] == pytest.approx(1.0, abs=1e-6)
 
 
+@pytest.mark.parametrize("length", [1e-3, 0.02, 1.0, 1e3])
+@pytest.mark.parametrize("need", [1e-5, 5e-4])
+def test_a_binding_row_holds_to_the_same_tolerance_whatever_its_length(length, need):
+    """A row that binds by a small amount (``u0 ≥ need``, scaled by ``length``) is held, as its
+    unit-length twin is: the QP's tolerance is the normalised rows' (``ACTIVE_TOL``) for every
+    row. DAQP's own test of a violated row is in the row's units, so a short row handed to it as
+    it is would stay violated and the call would come back relaxed."""
+    qp = PriorityQP(2, -np.ones(2), np.ones(2), 2, 0)
+    A = np.array([[length, 0.0], [0.0, 1.0]])
+    result = qp.solve_scaled(np.zeros(2), A, np.array([need * length, -2.0]), np.ones(2))
+    assert result.status == "solved" and result.slack == 0.0
+    assert result.tau[0] == pytest.approx(need, rel=1e-9)
+
+
 def test_bad_input_is_refused():
     qp = PriorityQP(2, -np.ones(2), np.ones(2), 2, 0)
     A = np.eye(2)

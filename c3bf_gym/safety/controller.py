@@ -282,7 +282,7 @@ class SafetyController:
         entry point and a handle of their addresses): the unpickled hook binds again on its first
         call, to its own env's arrays."""
         state = self.__dict__.copy()
-        state.update(_bound=(), _hook_substep=None)
+        state.update(_bound=(), _hook_substep=None, _last_time=None)  # the copy's QP is new: no last call
         return state
 
     def _version(self) -> int | None:
@@ -534,7 +534,8 @@ class SafetyController:
 
     def _settle(self, status: int, elapsed: float) -> None:
         """After a call (or compiled calls) with ``status``: raise on invalid input; keep the
-        call's wall time ``elapsed`` for :attr:`last` (its other values are in the tally); with ``on_infeasible="raise"``, raise on a call with no safe torque (its
+        call's wall time ``elapsed`` for :attr:`last` (its other values are in the tally);
+        with ``on_infeasible="raise"``, raise on a call with no safe torque (its
         report recorded first)."""
         raise_bad_input(status)
         self._last_time = elapsed
@@ -549,10 +550,11 @@ class SafetyController:
 
     @property
     def last(self) -> QPResult | None:
-        """The last call's :class:`~c3bf_gym.safety.priority_qp.QPResult` (None before the first
-        call; a call that raised on invalid input leaves it as it was). Built at every read from
-        what the call recorded: keep the object, not the attribute, to hold one call's values
-        (its ``tau`` is the QP's buffer all the same)."""
+        """The :class:`~c3bf_gym.safety.priority_qp.QPResult` of the last call that did not raise on
+        invalid input (None before the first, and in a pickled copy, whose QP is new). Built at
+        every read from what the call recorded: keep the object, not the attribute, to hold one
+        call's values (its ``tau`` is the QP's buffer all the same). After compiled calls
+        (:meth:`compiled_substeps_done`) ``solve_time`` is NaN: they are not timed."""
         if self._last_time is None:
             return None
         status, iterations, active, slack = self._tally.last.tolist()
