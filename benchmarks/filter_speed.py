@@ -17,11 +17,11 @@ way), and the QP's status counts.
 **The same calls in compiled code.** Each latency run is repeated with the same seed while
 :class:`Replay` records every call's inputs; then every call is replayed in order with its inputs
 restored (untimed, in Python) and :func:`c3bf_gym.safety._kernels.hook_substep` alone timed in
-compiled code with the CPU's time-stamp counter: the call an environment's compiled policy step
-makes between two physics steps, without the ~1.4 µs of a call from Python. The replay must give
-every recorded torque bit for bit (it replays the same solves, warm starts included); the script
-says so beside the median, p99 and mean, or says that it did not. ``--no-replay`` skips it (the
-package's versions before the fused kernel lack what it records).
+compiled code with the CPU's time-stamp counter (x86 only): the call an environment's compiled
+policy step makes between two physics steps, without what a call from Python adds around it. The
+replay must give every recorded torque bit for bit (it replays the same solves, warm starts
+included); the script says so beside the median, p99 and mean, or says that it did not.
+``--no-replay`` skips it (the package's versions before the fused kernel lack what it records).
 
 ``--guard auto none`` compares the filter with and without its guard (``SafetyFilter(guard=...)``:
 the distance HOCBF's rows beside the C3BF's, or the C3BF's alone; label ``/unguarded``): each
