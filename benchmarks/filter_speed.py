@@ -192,9 +192,9 @@ class Replay:
     def __init__(self, hook) -> None:
         self.hook = hook
         self.buffers = hook._bound or hook._bind()
-        arm, obstacles, qp = self.buffers[0], self.buffers[1], self.buffers[7]
+        arm, obstacles = self.buffers[:2]
         self.arrays = [a for a in (*arm, *obstacles) if isinstance(a, np.ndarray) and a.flags.writeable]
-        self.cold = qp.cold
+        self.cold = hook.qp.buffers.cold
         self.frames: list[tuple] = []
 
     def record(self, tau_nom: np.ndarray) -> None:
