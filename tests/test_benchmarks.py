@@ -64,3 +64,21 @@ def test_train_speed_prints_filtered_and_unfiltered_throughput_side_by_side(tmp_
     refused = subprocess.run([sys.executable, str(BENCHMARKS / "train_speed.py"), "--rounds", "0"],
                              capture_output=True, text=True, timeout=300)  # fmt: skip
     assert refused.returncode == 2 and "--rounds must be >= 1" in refused.stderr
+
+
+def test_filter_parts_times_the_filtered_step_without_its_qp_and_without_its_rows(tmp_path):
+    out = tmp_path / "filter_parts.json"
+    done = subprocess.run([sys.executable, str(BENCHMARKS / "filter_parts.py"), "--runs", "1", "--rounds", "1",
+                           "--steps", "5", "--json", str(out)], capture_output=True, text=True, timeout=900)  # fmt: skip
+    assert done.returncode == 0, done.stderr[-2000:]
+    for name in ("filter", "no QP", "no rows, no QP", "a filtered step of 2× leaves the filter"):
+        assert name in done.stdout
+    result = json.loads(out.read_text())
+    assert set(result["runs"]) == {"filter", "no QP", "no rows, no QP"}
+    assert all(len(runs) == 1 and runs[0]["breakdown"]["physics_us"] > 0 for runs in result["runs"].values())
+    assert result["budget_us_for_2x"] == (2.0 - result["unfiltered_ratio"]) * result["physics_us"]
+    # The edited copies passed the check that they step as the unfiltered env does; the filter itself
+    # (which changes random torques) fails it, so the check can tell.
+    unedited = subprocess.run([sys.executable, str(BENCHMARKS / "filter_parts.py"), "--same-steps", "30"],
+                              capture_output=True, text=True, timeout=600)  # fmt: skip
+    assert unedited.returncode == 1, unedited.stderr[-2000:]

@@ -1,0 +1,178 @@
+"""What a filtered step costs without the filter's QP, and without its rows too: the floor that any
+faster QP, or any faster rows, leaves under the filtered step.
+
+The script copies the ``c3bf_gym`` package it imports into a temporary folder once per variant
+and edits the copy's :func:`c3bf_gym.safety._kernels.hook_substep`, the filter's call at every
+physics step (the package itself is not touched):
+
+* ``no QP``: the QP (``solve_rows``) is replaced by the nominal torque clipped to the torque
+  limits. The rows are built as always (the arm's dynamics, the capsule ends, every barrier,
+  guard, floor and joint-limit row), then reported as held.
+* ``no rows, no QP``: the rows are left out too (``hook_rows_whole_arm``, which also computes the
+  arm's dynamics). What remains is the filtered path's own work: the wrapper's Python once per
+  policy step, the compiled policy step's calls and their report.
+
+``filter`` is the package as it is. Every variant runs ``benchmarks/env_speed.py``
+(``--reset-samples 0``) in its own process, the variants alternating (the order rotating from run
+to run), ``--runs`` times. With random torques, the two edited filters apply what the unfiltered
+environment applies, so their filtered steps follow the unfiltered trajectory step for step: the
+script checks this in every variant before timing it. The difference between their filtered and
+unfiltered steps, the breakdown line's "filter per physics step", is then exactly what their
+remaining parts cost. (The adversary's column is not comparable across variants: without the QP
+it drives the arm into the obstacles, whose contacts make the physics itself dearer.)
+
+Printed per variant and run: the filtered step with random torques × the bare physics, and the
+filter per physics step [µs]; then the budget a filtered step of 2× the bare physics leaves the
+filter, ``(2 − unfiltered ×) × the bare physics per physics step`` (median over all runs).
+
+Usage: ``python benchmarks/filter_parts.py [--runs 4] [--rounds 5] [--steps 500] [--env ID]
+[--json PATH]``. The copies compile their kernels on first use (about 15 s each).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import statistics
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+KERNELS = Path("safety") / "_kernels.py"
+#: the text of hook_substep each edit replaces, and its replacement
+_ROWS = "    m, min_h, inside, n_sensed = hook_rows_whole_arm(stage, arm, obstacles, params, A, b)\n"
+_NO_ROWS = "    m, min_h, inside, n_sensed = 0, np.inf, False, 0\n"
+_QP = ("    status, iterations, n_active, slack = solve_rows(tau_nom, A[:m], b[:m], scale,\n"
+       "                                                     low_priority_span(m, n_fixed, guarded), stride, qp)\n")
+_NO_QP = ("    for j in range(tau_nom.shape[0]):\n"
+          "        qp.u[j] = min(max(tau_nom[j] / scale[j], qp.lo[j]), qp.hi[j])\n"
+          "    for k in range(m):\n"
+          "        qp.norm[k] = 1.0\n"
+          "        qp.residual[k] = 1.0\n"
+          "    status, iterations, n_active, slack = 0, 0, 0, 0.0\n")  # fmt: skip
+VARIANTS = {"filter": (), "no QP": ((_QP, _NO_QP),), "no rows, no QP": ((_ROWS, _NO_ROWS), (_QP, _NO_QP))}
+
+
+def edited_copy(package: Path, edits: tuple, root: Path) -> Path:
+    """A copy of ``package`` (the ``c3bf_gym`` folder) under ``root``, its ``hook_substep`` edited;
+    returns ``root`` (the folder to put on ``PYTHONPATH``). A checkout's package finds its MJCF
+    files in the top-level ``assets/`` beside it: that is copied too.
+
+    Raises:
+        SystemExit: an edit's text is not in the kernel exactly once (the kernel changed since
+            this script was written: update the edits).
+    """
+    shutil.copytree(package, root / "c3bf_gym", ignore=shutil.ignore_patterns("_numba_cache", "__pycache__"))
+    if not (package / "assets").is_dir():
+        shutil.copytree(package.parent / "assets", root / "assets")
+    kernels = root / "c3bf_gym" / KERNELS
+    source = kernels.read_text()
+    for old, new in edits:
+        if source.count(old) != 1:
+            raise SystemExit(f"filter_parts.py: {KERNELS} no longer holds this line of hook_substep once; "
+                             f"update the script's edits:\n{old}")  # fmt: skip
+        source = source.replace(old, new)
+    kernels.write_text(source)
+    return root
+
+
+def same_steps(env_id: str, steps: int, seed: int) -> bool:
+    """Whether the default ``SafetyFilter`` of the imported package, given random actions, steps
+    exactly as the unfiltered environment does (equal observations at every step)."""
+    import gymnasium as gym
+    import numpy as np
+
+    import c3bf_gym  # noqa: F401  (registers the environments)
+    from c3bf_gym import SafetyFilter
+
+    plain, filtered = gym.make(env_id, scenario="multi"), SafetyFilter(gym.make(env_id, scenario="multi"))
+    plain.reset(seed=seed)
+    filtered.reset(seed=seed)
+    rng = np.random.default_rng(seed)
+    for _ in range(steps):
+        action = rng.uniform(plain.action_space.low, plain.action_space.high).astype(np.float32)
+        a, *_, a_end, a_cut, _ = plain.step(action)
+        b, *_, b_end, b_cut, _ = filtered.step(action)
+        if not np.array_equal(a, b):
+            return False
+        if a_end or a_cut or b_end or b_cut:
+            plain.reset()
+            filtered.reset()
+    return True
+
+
+def _run(root: Path | None, argv: list[str]) -> subprocess.CompletedProcess:
+    env = dict(os.environ)
+    if root is not None:
+        env["PYTHONPATH"] = os.pathsep.join([str(root), env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
+    return subprocess.run([sys.executable, *argv], env=env, capture_output=True, text=True)
+
+
+def main(argv: list[str] | None = None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--runs", type=int, default=4, help="env_speed.py runs per variant, alternated (default 4)")
+    parser.add_argument("--rounds", type=int, default=5, help="env_speed.py's --rounds (default 5)")
+    parser.add_argument("--steps", type=int, default=500, help="env_speed.py's --steps (default 500)")
+    parser.add_argument("--env", default="C3BFReach-v0", choices=["C3BFReach-v0", "C3BFReachPanda-v0"])
+    parser.add_argument("--json", type=Path, help="also write the results as JSON here")
+    parser.add_argument("--same-steps", type=int, metavar="N", help=argparse.SUPPRESS)  # the check, in a variant's process
+    args = parser.parse_args(argv)
+    if args.same_steps is not None:
+        raise SystemExit(0 if same_steps(args.env, args.same_steps, 0) else 1)
+    if args.runs < 1 or args.rounds < 1 or args.steps < 1:
+        parser.error("--runs, --rounds and --steps must be >= 1")
+
+    import c3bf_gym
+
+    package = Path(c3bf_gym.__file__).resolve().parent
+    print(f"c3bf_gym from {package}; {args.env}, scenario multi, random torques; "
+          f"{args.runs} alternated runs of env_speed.py --rounds {args.rounds} --steps {args.steps}")  # fmt: skip
+    results: dict[str, list[dict]] = {name: [] for name in VARIANTS}
+    with tempfile.TemporaryDirectory(prefix="filter_parts_") as tmp:
+        roots = {name: edited_copy(package, edits, Path(tmp) / str(i)) if edits else None
+                 for i, (name, edits) in enumerate(VARIANTS.items())}  # fmt: skip
+        for name, root in roots.items():
+            if root is None:
+                continue
+            check = _run(root, [__file__, "--env", args.env, "--same-steps", "60"])
+            if check.returncode != 0:
+                raise SystemExit(f"filter_parts.py: the {name!r} variant does not step as the unfiltered env "
+                                 f"does, so its difference would not be its parts' cost\n{check.stderr[-2000:]}")  # fmt: skip
+        names = list(VARIANTS)
+        for run in range(args.runs):
+            for name in names[run % len(names):] + names[: run % len(names)]:
+                out = Path(tmp) / f"{len(results[name])}_{name.replace(' ', '_').replace(',', '')}.json"
+                done = _run(roots[name], [str(HERE / "env_speed.py"), "--env", args.env, "--rounds", str(args.rounds),
+                                          "--steps", str(args.steps), "--reset-samples", "0", "--json", str(out)])  # fmt: skip
+                if done.returncode != 0:
+                    raise SystemExit(f"filter_parts.py: env_speed.py failed for {name!r}:\n{done.stderr[-2000:]}")
+                results[name].append(json.loads(out.read_text()))
+
+    def column(name: str, pick, digits: int) -> str:
+        return ", ".join(f"{pick(r):.{digits}f}" for r in results[name])
+
+    width = max(map(len, VARIANTS)) + 2
+    print(f"\n{'':<{width}}| filtered step, random torques, × bare physics | filter per physics step [µs]")
+    for name in VARIANTS:
+        print(f"{name:<{width}}| {column(name, lambda r: r['ratio_to_bare']['filtered random'], 2):<46} | "
+              f"{column(name, lambda r: r['breakdown']['filter_random_us'], 1)}")  # fmt: skip
+    every = [r for runs in results.values() for r in runs]
+    unfiltered = statistics.median(r["ratio_to_bare"]["unfiltered"] for r in every)
+    physics = statistics.median(r["breakdown"]["physics_us"] for r in every)
+    budget = (2.0 - unfiltered) * physics
+    print(f"\nthe unfiltered step {unfiltered:.2f}× the bare physics ({physics:.1f} µs per physics step), medians over "
+          f"all runs: a filtered step of 2× leaves the filter {budget:.1f} µs per physics step")  # fmt: skip
+    result = {"env": args.env, "runs": results, "unfiltered_ratio": unfiltered, "physics_us": physics,
+              "budget_us_for_2x": budget}  # fmt: skip
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(result, indent=2))
+    return result
+
+
+if __name__ == "__main__":
+    main()
