@@ -169,7 +169,7 @@ def main(argv: list[str] | None = None) -> dict:
         names = list(VARIANTS)
         for run in range(args.runs):
             for name in names[run % len(names):] + names[: run % len(names)]:
-                out = Path(tmp) / f"{len(results[name])}_{name.replace(' ', '_').replace(',', '')}.json"
+                out = roots[name] / f"env_speed_{run}.json"
                 done = _run(roots[name], [str(HERE / "env_speed.py"), "--env", args.env, "--rounds", str(args.rounds),
                                           "--steps", str(args.steps), "--reset-samples", "0", "--json", str(out)])  # fmt: skip
                 if done.returncode != 0:
