@@ -168,7 +168,7 @@ def _add_plot_training(sub: argparse._SubParsersAction) -> None:
         "for run directories, grouped by filter (mean and min-max band over seeds).",
     )
     p.add_argument("runs", nargs="+", help="run directories (each with config.json and episodes.csv)")
-    p.add_argument("--out", default="docs/training_curves.png")
+    p.add_argument("--out", default="docs/results/training/training_curves.png")
     p.add_argument("--table", default=None, help="also write a summary table (markdown) here")
     p.add_argument("--evaluation", default=FINAL_EVAL_FILE,
                    help="the final models' numbers come from this file in each run directory: the run's own "

@@ -1,7 +1,7 @@
 #!/usr/bin/env python
 """Write every table in docs/ from the committed results, with the code that writes them in a run.
 
-    python scripts/regenerate_tables.py                       # rewrite docs/*table*.md (and the training curves)
+    python scripts/regenerate_tables.py                       # rewrite the tables in docs/ (and the training curves)
     python scripts/regenerate_tables.py --from-run results    # first copy a main job's results into docs/experiments/
     python scripts/regenerate_tables.py --out /tmp/tables     # write elsewhere (docs/ is only read)
 
@@ -11,9 +11,10 @@
   :func:`c3bf_gym.experiments.markdown_table`: the run's own ``table.md`` and ``sensing.md``.
   ``experiments_panda_table.md`` and ``sensing_panda_table.md`` likewise from
   ``docs/experiments_panda/`` (the main job with ``--robot panda``).
-* ``training_table*.md``: what ``c3bf-gym plot-training docs/runs/GLOB --evaluation FILE --out
-  docs/FIGURE --table docs/TABLE`` writes, for each row of :data:`TRAINING_TABLES`, with the
-  table's curves (``training_curves*.png``).
+* ``results/training/training_table*.md``: what ``c3bf-gym plot-training docs/runs/GLOB
+  --evaluation FILE --out docs/results/training/FIGURE --table docs/results/training/TABLE``
+  writes, for each row of :data:`TRAINING_TABLES`, with the table's curves
+  (``training_curves*.png``) beside it.
 
 ``tests/test_tables.py`` checks that the committed tables equal what this script writes.
 """
@@ -34,7 +35,10 @@ RESULT_FILES = ("table.json", "sensing.json", "config.json")
 #: Where each robot's experiments live under docs/, and the suffix of their tables' names.
 EXPERIMENT_FOLDERS = {"ur5e": ("experiments", ""), "panda": ("experiments_panda", "_panda")}
 
-#: Training tables: ``(table, run directories under docs/runs (glob), evaluation file, figure)``.
+#: Where the training tables and their curves live, under docs/ (the RL results page includes them).
+TRAINING_FOLDER = "results/training"
+#: Training tables: ``(table, run directories under docs/runs (glob), evaluation file, figure)``,
+#: the table and the figure in :data:`TRAINING_FOLDER`.
 TRAINING_TABLES = (
     ("training_table.md", "sac_residual_10hz_dw10_aw3_set_*", "eval_200.json", "training_curves.png"),
     ("training_table_aw10.md", "sac_residual_10hz_dw10_aw10_set_*", "eval_200.json", "training_curves_aw10.png"),
@@ -71,23 +75,26 @@ def experiment_tables(docs: Path) -> dict[str, str]:
 
 
 def training_tables(docs: Path, out: Path) -> dict[str, str]:
-    """``{file name: text}`` of the training tables, from ``docs/runs``; their figures go to ``out``."""
+    """``{path under docs/: text}`` of the training tables, from ``docs/runs``; their figures go to
+    ``out``/:data:`TRAINING_FOLDER`."""
     from c3bf_gym.plots import plot_training
 
     tables = {}
     for name, pattern, evaluation, figure in TRAINING_TABLES:
         runs = sorted((docs / "runs").glob(pattern))
-        tables[name] = plot_training(runs, out / figure, evaluation=evaluation) + "\n"
+        figure_path = out / TRAINING_FOLDER / figure
+        tables[f"{TRAINING_FOLDER}/{name}"] = plot_training(runs, figure_path, evaluation=evaluation) + "\n"
     return tables
 
 
 def regenerate(docs: Path = DOCS, out: Path | None = None) -> dict[str, str]:
     """Write every table (and the training curves) from ``docs``' results into ``out`` (default:
-    ``docs``); returns ``{file name: text}``."""
+    ``docs``); returns ``{path under docs/: text}``."""
     out = docs if out is None else out
     out.mkdir(parents=True, exist_ok=True)
     tables = {**experiment_tables(docs), **training_tables(docs, out)}
     for name, text in tables.items():
+        (out / name).parent.mkdir(parents=True, exist_ok=True)
         (out / name).write_text(text)
     return tables
 
