@@ -1,4 +1,5 @@
-// MathJax for pymdownx.arithmatex (generic mode), as Material for MkDocs documents it.
+// MathJax's configuration for pymdownx.arithmatex (generic mode), as Material for MkDocs documents it.
+// MathJax itself loads after this file, from the copy the site carries (mkdocs.yml, scripts/mathjax_hook.py).
 window.MathJax = {
   tex: {
     inlineMath: [["\\(", "\\)"]],
