@@ -270,7 +270,7 @@ def test_fused_hook_rows_match_numpy_assembly(make_env, barrier, seed):
     A, b, min_h, inside, n_sensed = hook.rows()
     A_ref, b_ref, h_ref, inside_ref, sensed_ref = numpy_rows(u, hook)
     assert n_sensed == sensed_ref >= 1 and inside == inside_ref
-    assert len(hook._floor_ends) == 12 and len(b) == 7 * n_sensed + 12 + 24
+    assert len(hook._floor_ends) == 12 and len(b) == 6 * n_sensed + 12 + 24  # 6 capsules: link1 (pan axis) is not one
     close(A, A_ref, 1e-10)
     close(b, b_ref, 1e-10)
     assert min_h == pytest.approx(h_ref, rel=1e-10)
@@ -291,7 +291,7 @@ def test_fused_rows_equal_the_per_class_path(make_env, guard):
     A1, b1, h1, in1, n1 = (x.copy() if isinstance(x, np.ndarray) else x for x in fused.rows())
     A2, b2, h2, in2, n2 = generic.rows()
     assert n1 == n2 == 3 and in1 == in2 and h1 == pytest.approx(h2, rel=1e-12)
-    assert len(b1) == 7 * 3 * (1 if guard is None else 2) + 12 + 24
+    assert len(b1) == 6 * 3 * (1 if guard is None else 2) + 12 + 24
     close(A1, A2, 1e-10)
     close(b1, b2, 1e-10)
 
@@ -346,7 +346,7 @@ def test_guard_rows_are_the_distance_hocbfs(make_env):
     A, b, h, _, n = (x.copy() if isinstance(x, np.ndarray) else x for x in guarded.rows())
     A1, b1, h1, _, _ = (x.copy() if isinstance(x, np.ndarray) else x for x in alone.rows())
     A2, b2, *_ = hocbf.rows()
-    k = 7 * n
+    k = 6 * n
     assert n == 2 and len(b) == 2 * k + 36 and h == h1  # min h is the barrier's, not the guard's
     close(A[:2 * k:2], A1[:k], 0.0)
     close(b[:2 * k:2], b1[:k], 0.0)

@@ -112,20 +112,24 @@ def arm_bodies(u):
 # ----------------------------------------------------------------------------- construction
 
 
-def test_protected_capsules_are_the_moving_capsule_geoms(env):
+def test_protected_capsules_are_the_movable_capsule_geoms(env):
     u = env
     arm = u.arm
     m = u.model
-    expected = [g for g in u.arm_geom_ids if m.geom_type[g] == mujoco.mjtGeom.mjGEOM_CAPSULE]
-    assert list(arm.capsule_ids) == expected  # the base is a cylinder on the fixed body
-    assert arm.capsule_names == ["link1", "link2", "link3", "link4", "link5", "link6", "tool"]
+    # the base is a cylinder on the fixed body; link1 lies on the base's pan axis (nothing moves it away)
+    expected = [g for g in u.arm_geom_ids if m.geom_type[g] == mujoco.mjtGeom.mjGEOM_CAPSULE][1:]
+    assert list(arm.capsule_ids) == expected == list(u.robot.geom_ids)
+    assert arm.capsule_names == ["link2", "link3", "link4", "link5", "link6", "tool"]
     np.testing.assert_array_equal(arm.capsule_radius, m.geom_size[expected, 0])
+    half = m.geom_size[expected, 1]
+    np.testing.assert_array_equal(arm.capsule_local[:, 1, 2], half)  # capsules as they are: a, b = (0, 0, ∓half)
+    np.testing.assert_array_equal(arm.capsule_local[:, 0, 2], -half)
     assert arm.site_id == u.ee_site_id
 
 
 def test_model_without_moving_capsules_rejected(env):
     u = env
-    with pytest.raises(ValueError, match="no capsule or sphere geoms"):
+    with pytest.raises(ValueError, match="no protected geoms on moving arm bodies"):
         ArmModel(u.model, np.array([u.arm_geom_ids[0]]), u.ee_site_id)  # the base cylinder only
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
@@ -16,7 +17,7 @@ from gymnasium.envs.mujoco.mujoco_env import MujocoEnv
 from c3bf_gym.envs._kernels import Observed, Physics, departed, entry, filtered_steps, observe, physics_steps
 from c3bf_gym.safety.dynamics import ArmModel
 from c3bf_gym.safety.obstacles import Obstacles
-from c3bf_gym.safety.robot import RobotDescription
+from c3bf_gym.safety.robot import RobotDescription, UnprotectedGeometryWarning
 from c3bf_gym.scenarios import (
     MAX_OBSTACLES,
     ArmCapsules,
@@ -413,8 +414,13 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
             radius=self.obstacle_radius, active=self.obstacle_active, distances=self.distances,
         )  # fmt: skip
         #: The arm as the safety filter sees it: its protected capsules, torque and joint limits.
-        self.robot = RobotDescription.from_model(self.model, site="ee_site",
-                                                 joint_speed_limit=self.task_robot.joint_speed_limit)  # fmt: skip
+        #: Link 1 lies on the base's pan axis, which no joint can move it away from: it is left
+        #: out (the from_model warning says so), like the base, and the scenarios' keep-out zone
+        #: keeps spheres off both.
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", UnprotectedGeometryWarning)
+            self.robot = RobotDescription.from_model(self.model, site="ee_site",
+                                                     joint_speed_limit=self.task_robot.joint_speed_limit)  # fmt: skip
         self._setup_reach_bounds()
 
     def _initialize_simulation(self) -> tuple[mujoco.MjModel, mujoco.MjData]:
@@ -504,7 +510,7 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
     def arm(self) -> ArmModel:
         """The arm's :class:`~c3bf_gym.safety.dynamics.ArmModel`, shared by every hook on this env."""
         if self._arm is None:
-            self._arm = ArmModel(self.model, self.arm_geom_ids, self.ee_site_id)
+            self._arm = ArmModel(self.model, self.robot.geom_ids, self.ee_site_id)
         return self._arm
 
     # ------------------------------------------------------------------ hooks

@@ -8,8 +8,8 @@ through :mod:`._daqp`) → the controller (:mod:`.controller`: rows and QP, one 
 call). ``c3bf_gym.filter.SafetyHook`` runs the controller inside ``C3BFReachEnv`` and
 ``c3bf_gym.SafetyFilter`` is the Gymnasium wrapper around that.
 
-Example, on a user's own arm (``model`` with torque motors and capsule collision geoms, a mocap
-sphere ``ball``)::
+Example, on a user's own arm (``model`` with torque motors, collision geoms of any type but
+planes, height fields and SDFs, a mocap sphere ``ball``)::
 
     robot = RobotDescription.from_model(model, bodies=["upper_arm", "forearm"], site="tool",
                                         joint_speed_limit=2.0)
@@ -19,19 +19,21 @@ sphere ``ball``)::
     mujoco.mj_step1(model, data)
     obstacles.velocity[0] = ball_velocity
     tau, report = controller.filter(tau_nominal)
-    data.ctrl[:] = tau
+    robot.write_ctrl(model, data, tau)
     mujoco.mj_step2(model, data)
 """
 
 from c3bf_gym.safety.config import DEFAULT_FILTER, FILTERS, GUARD_GAMMA, FilterConfig
 from c3bf_gym.safety.controller import SafetyController, SafetyInfeasibleError, StepSafety
+from c3bf_gym.safety.geometry import Capsule, UnsupportedGeomError, enclosing_capsule, fit_capsule
 from c3bf_gym.safety.obstacles import MocapSpheres, Obstacles
-from c3bf_gym.safety.robot import RobotDescription, UnsupportedModelError
+from c3bf_gym.safety.robot import RobotDescription, UnprotectedGeometryWarning, UnsupportedModelError
 
 __all__ = [
     "DEFAULT_FILTER",
     "FILTERS",
     "GUARD_GAMMA",
+    "Capsule",
     "FilterConfig",
     "MocapSpheres",
     "Obstacles",
@@ -39,5 +41,9 @@ __all__ = [
     "SafetyController",
     "SafetyInfeasibleError",
     "StepSafety",
+    "UnprotectedGeometryWarning",
+    "UnsupportedGeomError",
     "UnsupportedModelError",
+    "enclosing_capsule",
+    "fit_capsule",
 ]

@@ -161,19 +161,20 @@ def point_dynamics(chain, cdof, cdof_dot, com, qvel, Minv, qacc_free, packed, ja
 
 
 @njit(**_opts)
-def capsule_ends(geom_xpos, geom_xmat, ids, half, chain, cdof, cdof_dot, com, qvel, Minv, qacc_free,
+def capsule_ends(geom_xpos, geom_xmat, ids, local, chain, cdof, cdof_dot, com, qvel, Minv, qacc_free,
                  ends, ends_ab, a_dot_ab, jac):
-    """The capsule axes' end points (a = centre − half z, b = centre + half z), packed
-    ``[pos | vel | c | G]`` in ``ends`` (2S, 3, 3 + nv; a's then b's), their differences
-    ``ends_ab = b − a`` (S, 3, 3 + nv) and ``a_dot_ab = ⟨a, b − a⟩`` (S,)."""
+    """The capsule axes' end points (a, b: ``local`` (S, 2, 3) in the geom's frame, placed by the
+    geom's ``xpos`` and ``xmat``), packed ``[pos | vel | c | G]`` in ``ends`` (2S, 3, 3 + nv; a's
+    then b's), their differences ``ends_ab = b − a`` (S, 3, 3 + nv) and ``a_dot_ab = ⟨a, b − a⟩`` (S,)."""
     s_count = ids.shape[0]
     ncol = ends.shape[2]
     for s in range(s_count):
         g = ids[s]
-        for i in range(3):
-            axis = geom_xmat[g, 3 * i + 2] * half[s]
-            ends[s, i, 0] = geom_xpos[g, i] - axis
-            ends[s_count + s, i, 0] = geom_xpos[g, i] + axis
+        for e in range(2):
+            la0, la1, la2 = local[s, e, 0], local[s, e, 1], local[s, e, 2]
+            for i in range(3):
+                ends[e * s_count + s, i, 0] = geom_xpos[g, i] + (
+                    geom_xmat[g, 3 * i] * la0 + geom_xmat[g, 3 * i + 1] * la1 + geom_xmat[g, 3 * i + 2] * la2)
     for p in range(2 * s_count):
         x = (ends[p, 0, 0], ends[p, 1, 0], ends[p, 2, 0])
         _one_point(p, x, chain[p % s_count], cdof, cdof_dot, com, qvel, Minv, qacc_free, ends, jac)
@@ -403,6 +404,27 @@ def floor_rows(ends, idx, z_min, gamma, A, b):
         b[k] = ((ends[e, 2, 0] - z_min[k]) * (-gamma * gamma) - 2.0 * gamma * ends[e, 2, 1]) - ends[e, 2, 2]
 
 
+@njit(**_opts)
+def friction_margin(A, b, frictionloss):
+    """Tighten rows ``A τ ≥ b`` (m, nv) for joint dry friction: ``b_k += Σ_j |A_kj| f_j``.
+
+    MuJoCo's friction loss adds a joint force ``φ_j`` with ``|φ_j| ≤ f_j`` (``dof_frictionloss``)
+    that the rows' ``ẍ = G τ + c`` does not predict; it enters every row as the torque does, so
+    ``A (τ + φ) ≥ b`` for every admissible ``φ`` exactly when the tightened row holds at ``τ``.
+    A no-op when no dof has friction loss."""
+    nv = frictionloss.shape[0]
+    largest = 0.0
+    for j in range(nv):
+        largest = max(largest, frictionloss[j])
+    if largest <= 0.0:
+        return
+    for k in range(b.shape[0]):
+        extra = 0.0
+        for j in range(nv):
+            extra += abs(A[k, j]) * frictionloss[j]
+        b[k] += extra
+
+
 # ----------------------------------------------------------------------------- the fused filter rows
 
 
@@ -416,7 +438,9 @@ class ArmArrays(NamedTuple):
         capsule_ids: (S,) the protected geoms.
         M_rowadr, M_rownnz, M_colind: MuJoCo's sparse layout of ``M``.
         damping: (nv,) ``h D``, the integrator's implicit damping.
-        capsule_half, length2, capsule_radius: (S,) half-lengths, squared lengths, radii [m].
+        frictionloss: (nv,) each dof's dry friction bound [N m or N] (:func:`friction_margin`).
+        capsule_local: (S, 2, 3) the capsule axes' end points in their geoms' frames [m].
+        length2, capsule_radius: (S,) the axes' squared lengths, the radii [m].
         chain: (S, nv) bool, the dofs that move each geom.
         factor: (nv, nv) scratch for the factorisation of ``M + h D``.
         end_jac: (2S, 3, nv) scratch for the capsule ends' Jacobians.
@@ -439,7 +463,8 @@ class ArmArrays(NamedTuple):
     M_rownnz: np.ndarray
     M_colind: np.ndarray
     damping: np.ndarray
-    capsule_half: np.ndarray
+    frictionloss: np.ndarray
+    capsule_local: np.ndarray
     length2: np.ndarray
     capsule_radius: np.ndarray
     chain: np.ndarray
@@ -512,6 +537,7 @@ def hook_rows_whole_arm(stage, arm, obstacles, params, A, b):
        (``params.guard_gamma2 > 0``), the guard's row for the same point right after it.
     3. The floor rows of the capsule ends ``params.floor_ends`` (:func:`floor_rows`).
     4. With ``params.joint_rows``, the ``4 nv`` joint-limit rows (:func:`joint_limit_rows`).
+    5. Every row tightened for the joints' dry friction (:func:`friction_margin`).
 
     The rows go to ``A``, ``b``. Returns ``(rows, min h of the barrier's rows (not the guard's), any
     inside, sensed count)``.
@@ -522,7 +548,7 @@ def hook_rows_whole_arm(stage, arm, obstacles, params, A, b):
         step_inverse(arm.M, arm.M_rowadr, arm.M_rownnz, arm.M_colind, arm.damping, arm.qfrc_passive, arm.qfrc_bias,
                      arm.factor, arm.Minv, arm.qacc_free)
     if stage >= 1:
-        capsule_ends(arm.geom_xpos, arm.geom_xmat, arm.capsule_ids, arm.capsule_half, arm.chain, arm.cdof,
+        capsule_ends(arm.geom_xpos, arm.geom_xmat, arm.capsule_ids, arm.capsule_local, arm.chain, arm.cdof,
                      arm.cdof_dot, arm.com, arm.qvel, arm.Minv, arm.qacc_free, arm.ends, arm.ends_ab, arm.a_dot_ab,
                      arm.end_jac)
     ends_a = arm.ends[:s_count]
@@ -571,6 +597,7 @@ def hook_rows_whole_arm(stage, arm, obstacles, params, A, b):
         joint_limit_rows(arm.qpos, arm.qvel, arm.Minv, arm.qacc_free, params.q_lo, params.q_hi, params.qd_max,
                          gains[0], gains[1], gains[2], A[m:m + 4 * nv], b[m:m + 4 * nv])
         m += 4 * nv
+    friction_margin(A[:m], b[:m], arm.frictionloss)
     return m, min_h, inside_any, n_sensed
 
 

@@ -17,7 +17,9 @@ configurations the project compares. At every physics step (between ``mj_step1``
    ``z_min`` the floor plus the capsule radius plus ``margin``. Contact forces are not in the
    model ``ẍ = G τ + c``, so the arm must not lean on the floor;
 4. joint position and velocity limits contribute ``4 n`` rows
-   (:class:`~c3bf_gym.safety.barriers.JointLimits`);
+   (:class:`~c3bf_gym.safety.barriers.JointLimits`); every row is tightened for the joints' dry
+   friction (``frictionloss``: a bounded force the rows cannot predict,
+   :func:`~c3bf_gym.safety._kernels.friction_margin`);
 5. :class:`~c3bf_gym.safety.priority_qp.PriorityQP` (DAQP) returns the torque closest to the
    nominal one (in the metric ``weight``) that satisfies every row within the actuator limits.
    When none does, the rows give way by priority: the barrier's rows first, while the joint
@@ -144,7 +146,7 @@ class SafetyController:
 
         controller = SafetyController(model, data, robot, obstacles, FilterConfig())
         tau, report = controller.filter(tau_nom)
-        data.ctrl[:] = tau          # (minus any gravity compensation the model applies itself)
+        robot.write_ctrl(model, data, tau)   # gear, actuator order, gravity compensation
         mujoco.mj_step2(model, data)
 
     Args:
@@ -193,6 +195,7 @@ class SafetyController:
             raise UnsupportedModelError("points='ee' protects the tool site, and the robot has none: pass site= to "
                                         "RobotDescription.from_model")  # fmt: skip
         self.model, self.data, self.robot, self.obstacles = model, data, robot, obstacles
+        self._M_diagonal = int(model.M_rowadr[0] + model.M_rownnz[0] - 1)  # M[0, 0] in data.M's CSR layout
         self._refresh = type(obstacles).refresh is not Obstacles.refresh
         self._distances = obstacles.distances if obstacles.distances is not None else np.zeros((obstacles.capacity, 0))
         self.config = config
@@ -310,11 +313,19 @@ class SafetyController:
         Returns:
             ``(tau, report)``: tau (n,) [N m], within ``robot.torque_limit``.
 
+        ``data`` must hold the state's kinematics and dynamics (``mj_step1`` or ``mj_forward`` since
+        the state was last set): the filter reads them, it does not compute them.
+
         Raises:
             ValueError: ``tau_nom`` of the wrong shape, or with NaN or inf.
+            RuntimeError: ``data`` has no mass matrix yet (a fresh or reset ``MjData`` before
+                ``mj_forward``); nothing is computed.
             SafetyInfeasibleError: with ``on_infeasible="raise"``, when no torque within the
                 limits satisfies every row.
         """
+        if not self.data.M[self._M_diagonal] > 0.0:
+            raise RuntimeError("data holds no dynamics yet (its mass matrix is zero): call mujoco.mj_forward(model, "
+                               "data) or mujoco.mj_step1(model, data) before filter()")  # fmt: skip
         self.begin_step()
         return self(tau_nom), self.report
 
@@ -389,6 +400,7 @@ class SafetyController:
                 data.qpos, data.qvel, arm.Minv, arm.qacc_free, out=Rows(self._A[m:], self._b[m:])
             )
             m += self._n_joint_rows
+        _kernels.friction_margin(self._A[:m], self._b[:m], arm.frictionloss)
         return self._A[:m], self._b[:m], min_h, inside, len(sensed)
 
     def _floor_setup(self, model: mujoco.MjModel) -> tuple[np.ndarray, np.ndarray]:
@@ -412,7 +424,7 @@ class SafetyController:
             moving.append(not level[joints].all())
         moving = np.array(moving)
         # both ends of a capsule; one of a sphere (its two ends coincide)
-        ends = np.flatnonzero(np.concatenate([moving, moving & (self.arm.capsule_half > 0.0)]))
+        ends = np.flatnonzero(np.concatenate([moving, moving & (self.arm._length2 > 0.0)]))
         radius = np.tile(self.arm.capsule_radius, 2)[ends]
         return ends, model.geom_pos[floors[0], 2] + radius + self.margin
 

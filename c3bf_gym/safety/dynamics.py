@@ -33,6 +33,7 @@ import mujoco
 import numpy as np
 
 from c3bf_gym.safety import _kernels
+from c3bf_gym.safety.geometry import enclosing_capsule
 
 __all__ = ["ArmModel", "PointDynamics", "segment_closest_points"]
 
@@ -92,31 +93,32 @@ class ArmModel:
 
     Args:
         model: the compiled MuJoCo model (``C3BFReachEnv.model``).
-        arm_geom_ids: geoms of the arm; capsules and spheres (segments of length 0) among them on
-            moving bodies become protected segments (the fixed base cannot move and is left to the
-            scenario's keep-out zone).
+        arm_geom_ids: geoms of the arm; those on moving bodies become protected capsules, each
+            the capsule that contains the geom (:func:`~c3bf_gym.safety.geometry.enclosing_capsule`:
+            capsules and spheres as they are, cylinders, ellipsoids, boxes and meshes enclosed).
+            Geoms on bodies no joint moves are left out (they cannot be moved away from an
+            obstacle; the env leaves its fixed base to the scenario's keep-out zone).
         site_id: the tool site (``ee_site``), or -1 for none (then :meth:`site_dynamics` is
             unavailable).
+
+    Raises:
+        ValueError: no geom on a moving body, or geoms on more than one kinematic tree.
+        ~c3bf_gym.safety.geometry.UnsupportedGeomError: a plane, height field or SDF geom among them.
     """
 
     def __init__(self, model: mujoco.MjModel, arm_geom_ids: np.ndarray, site_id: int) -> None:
         self.model = model
         self.nv = model.nv
         self.site_id = int(site_id)
-        kinds = (int(mujoco.mjtGeom.mjGEOM_CAPSULE), int(mujoco.mjtGeom.mjGEOM_SPHERE))
-        ids = [
-            int(g)
-            for g in arm_geom_ids
-            if int(model.geom_type[g]) in kinds and self._chain_mask(model, model.geom_bodyid[g]).any()
-        ]
+        ids = [int(g) for g in arm_geom_ids if self._chain_mask(model, model.geom_bodyid[g]).any()]
         if not ids:
-            raise ValueError("the model has no capsule or sphere geoms on moving arm bodies")
+            raise ValueError("the model has no protected geoms on moving arm bodies")
         self.capsule_ids = np.array(ids)
-        # a slice (a view, no gather) when the capsules are consecutive geoms, as in ur5e.xml
-        contiguous = ids == list(range(ids[0], ids[0] + len(ids)))
-        self._capsule_index = slice(ids[0], ids[0] + len(ids)) if contiguous else self.capsule_ids
-        self.capsule_radius = model.geom_size[self.capsule_ids, 0].copy()
-        self.capsule_half = model.geom_size[self.capsule_ids, 1].copy()
+        #: the enclosing capsule of each protected geom, in the geom's frame
+        self.capsules = tuple(enclosing_capsule(model, g) for g in ids)
+        self.capsule_radius = np.array([c.radius for c in self.capsules])
+        #: (S, 2, 3) each capsule's axis end points a, b in its geom's frame [m]
+        self.capsule_local = np.ascontiguousarray([(c.a, c.b) for c in self.capsules], dtype=np.float64)
         self.capsule_names = [model.geom(g).name for g in self.capsule_ids]
         roots = {int(model.body_rootid[model.geom_bodyid[g]]) for g in self.capsule_ids}
         if len(roots) != 1:
@@ -133,8 +135,11 @@ class ArmModel:
         self._M_rownnz = np.asarray(model.M_rownnz, dtype=np.int64)
         self._M_colind = np.asarray(model.M_colind, dtype=np.int64)
         self.implicit_damping = np.asarray(implicit_damping, dtype=np.float64)
-        self.capsule_half = np.asarray(self.capsule_half, dtype=np.float64)
-        self._length2 = (2.0 * self.capsule_half) ** 2
+        #: (nv,) each dof's dry friction bound ``dof_frictionloss`` [N m or N]: a force the rows
+        #: cannot predict, which they are tightened for (:func:`~c3bf_gym.safety._kernels.friction_margin`)
+        self.frictionloss = np.ascontiguousarray(model.dof_frictionloss, dtype=np.float64)
+        axis = self.capsule_local[:, 1] - self.capsule_local[:, 0]
+        self._length2 = np.einsum("ij,ij->i", axis, axis)
         self.capsule_radius = np.asarray(self.capsule_radius, dtype=np.float64)
         self._ends = np.zeros((2 * s, 3, 3 + nv))  # ends a then b, packed [pos | vel | c | G]
         self._ends_a = self._ends[:s]
@@ -214,8 +219,8 @@ class ArmModel:
         v = self.views(data)
         return _kernels.ArmArrays(
             v.M, v.qfrc_passive, v.qfrc_bias, v.geom_xpos, v.geom_xmat, v.cdof, v.cdof_dot, v.com, v.qpos, v.qvel,
-            self._capsule_ids, self._M_rowadr, self._M_rownnz, self._M_colind, self.implicit_damping,
-            self.capsule_half, self._length2, self.capsule_radius, self.capsule_chain, self._factor, self._end_jac,
+            self._capsule_ids, self._M_rowadr, self._M_rownnz, self._M_colind, self.implicit_damping, self.frictionloss,
+            self.capsule_local, self._length2, self.capsule_radius, self.capsule_chain, self._factor, self._end_jac,
             self.Minv, self.qacc_free, self._ends, self._ends_ab, self._a_dot_ab,
         )
 
@@ -232,7 +237,7 @@ class ArmModel:
             return
         v = self.views(self._data)
         self._ends_current = True
-        _kernels.capsule_ends(v.geom_xpos, v.geom_xmat, self._capsule_ids, self.capsule_half, self.capsule_chain,
+        _kernels.capsule_ends(v.geom_xpos, v.geom_xmat, self._capsule_ids, self.capsule_local, self.capsule_chain,
                               v.cdof, v.cdof_dot, v.com, v.qvel, self.Minv, self.qacc_free,
                               self._ends, self._ends_ab, self._a_dot_ab, self._end_jac)
 
@@ -260,15 +265,12 @@ class ArmModel:
         self._ends_current = True
         return stage
 
-    def _capsule_axes(self, data: mujoco.MjData) -> tuple[np.ndarray, np.ndarray]:
-        """Centres and half-axis vectors (S, 3), (S, 3) of the protected capsules [m]."""
-        ids = self._capsule_index
-        return data.geom_xpos[ids], data.geom_xmat[ids, 2::3] * self.capsule_half[:, None]  # z column of xmat
-
     def capsule_segments(self, data: mujoco.MjData) -> tuple[np.ndarray, np.ndarray]:
         """End points (S, 3), (S, 3) of the protected capsules' axes, in world coordinates [m]."""
-        centre, axis = self._capsule_axes(data)
-        return centre - axis, centre + axis
+        ids = self.capsule_ids
+        xpos, xmat = data.geom_xpos[ids], data.geom_xmat[ids].reshape(-1, 3, 3)
+        ends = xpos[:, None, :] + np.einsum("sij,sej->sei", xmat, self.capsule_local)
+        return ends[:, 0], ends[:, 1]
 
     @staticmethod
     def _unpack(packed: np.ndarray) -> PointDynamics:
