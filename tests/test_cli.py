@@ -1,0 +1,31 @@
+"""The command line's own behaviour (c3bf_gym/cli.py): its version, and the errors a new user meets.
+Each command's options are tested with the module it runs (test_experiments.py, test_training.py)."""
+
+from __future__ import annotations
+
+from importlib import metadata
+
+import pytest
+
+import c3bf_gym
+from c3bf_gym.cli import main
+
+
+def _exit(argv: list[str]) -> int:
+    with pytest.raises(SystemExit) as stop:
+        main(argv)
+    return stop.value.code
+
+
+def test_version_is_the_installed_distributions(capsys):
+    assert _exit(["--version"]) == 0
+    assert capsys.readouterr().out == f"c3bf-gym {metadata.version('c3bf-gym')}\n"
+
+
+def test_version_without_an_installed_distribution_is_the_packages_own(monkeypatch, capsys):
+    def not_installed(name: str) -> str:
+        raise metadata.PackageNotFoundError(name)
+
+    monkeypatch.setattr(metadata, "version", not_installed)
+    assert _exit(["--version"]) == 0
+    assert capsys.readouterr().out == f"c3bf-gym {c3bf_gym.__version__}\n"
