@@ -18,6 +18,7 @@ inside ``wrapper_class``, where it would not see the filter's info. Here ``Monit
 from __future__ import annotations
 
 import csv
+import importlib
 import json
 import os
 import sys
@@ -85,6 +86,34 @@ ACTIONS = ("impedance", "residual", "torque")
 #: A run's ``filter``: "none" or a name of :data:`~c3bf_gym.safety.FILTERS` (the default
 #: :data:`~c3bf_gym.safety.DEFAULT_FILTER`, the C3BF with its distance-HOCBF guard).
 TRAIN_FILTERS = ("none", *FILTERS)
+
+
+#: How to install what Stable-Baselines3 runs need (the README's Install section): a CPU torch
+#: first, or pip may pull a multi-GB CUDA build.
+_TRAIN_EXTRA = ('install a CPU torch first, pip install torch --index-url https://download.pytorch.org/whl/cpu, '
+               'then pip install "c3bf-gym[train]"')
+
+
+def _require_train_extra(*modules: str, purpose: str = "training with Stable-Baselines3") -> None:
+    """Import the top-level ``modules`` (of the ``train`` extra and what it depends on).
+
+    Raises:
+        ImportError: one or more of them is not installed; the message names them and how to
+            install the extra (:data:`_TRAIN_EXTRA`). A module that fails to import for another
+            reason raises its own error.
+    """
+    missing = []
+    for module in modules:
+        try:
+            importlib.import_module(module)
+        except ModuleNotFoundError as error:  # this module, or another of them that it imports
+            name = (error.name or "").partition(".")[0]
+            if name not in modules:
+                raise
+            if name not in missing:
+                missing.append(name)
+    if missing:
+        raise ImportError(f"{purpose} needs {', '.join(missing)}, not installed here: {_TRAIN_EXTRA}")
 
 
 def filter_config(filter: str | FilterConfig | None, guard_gamma: float | None = None) -> FilterConfig | None:
@@ -407,6 +436,7 @@ def train(config: TrainConfig, address: str | None = None) -> Path:
         return train_rllib(config, address)
     if address is not None:
         raise ValueError("address is the Ray cluster of the rllib engine; this run's engine is 'sb3'")
+    _require_train_extra("torch", "stable_baselines3", "tensorboard", *(("tqdm", "rich") if config.progress_bar else ()))
     import torch
     from stable_baselines3.common.callbacks import CallbackList, CheckpointCallback, EvalCallback
     from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
@@ -533,6 +563,7 @@ def _load_policy(model_path: Path, config: dict, run_dir: Path | None, determini
         from c3bf_gym.rllib import load_policy
 
         return load_policy(model_path, deterministic)
+    _require_train_extra("torch", "stable_baselines3", purpose="evaluating a Stable-Baselines3 model")
     from stable_baselines3 import PPO, SAC
 
     model = {"sac": SAC, "ppo": PPO}[config.get("algo", "sac")].load(model_path, device="cpu")

@@ -3,6 +3,7 @@ Each command's options are tested with the module it runs (test_experiments.py, 
 
 from __future__ import annotations
 
+import sys
 from importlib import metadata
 
 import pytest
@@ -29,3 +30,17 @@ def test_version_without_an_installed_distribution_is_the_packages_own(monkeypat
     monkeypatch.setattr(metadata, "version", not_installed)
     assert _exit(["--version"]) == 0
     assert capsys.readouterr().out == f"c3bf-gym {c3bf_gym.__version__}\n"
+
+
+@pytest.mark.parametrize("module", ["torch", "stable_baselines3"])
+def test_train_and_evaluate_without_the_train_extra_say_how_to_install_it(module, monkeypatch, tmp_path, capsys):
+    monkeypatch.setitem(sys.modules, module, None)  # import fails as if it were not installed
+    model = tmp_path / "model.zip"
+    model.write_bytes(b"")
+    for argv in (["train", "--out", str(tmp_path / "runs")], ["evaluate", str(model)]):
+        assert _exit(argv) == 2
+        error = capsys.readouterr().err
+        assert error.startswith(f"c3bf-gym {argv[0]}: error: ") and f"needs {module}, not installed here" in error
+        assert "pip install torch --index-url https://download.pytorch.org/whl/cpu" in error
+        assert 'then pip install "c3bf-gym[train]"' in error
+    assert not (tmp_path / "runs").exists()  # nothing written before the check
