@@ -44,3 +44,17 @@ def test_train_and_evaluate_without_the_train_extra_say_how_to_install_it(module
         assert "pip install torch --index-url https://download.pytorch.org/whl/cpu" in error
         assert 'then pip install "c3bf-gym[train]"' in error
     assert not (tmp_path / "runs").exists()  # nothing written before the check
+
+
+@pytest.mark.parametrize(("argv", "wrong", "valid"), [
+    (["--hyperparams", '{"learning_rat": 0.001}'], "unknown SAC hyperparameters 'learning_rat'", "learning_rate"),
+    (["--algo", "ppo", "--hyperparams", '{"n_step": 64, "seed": 1}'], "unknown PPO hyperparameters 'n_step', 'seed'", "n_steps"),
+    (["--hyperparams", "[1]"], "hyperparams must be a dict of keyword arguments, got [1]", None),
+])  # fmt: skip
+def test_train_refuses_bad_hyperparameters_before_writing_anything(argv, wrong, valid, tmp_path, capsys):
+    assert _exit(["train", "--out", str(tmp_path / "runs"), *argv]) == 2
+    error = capsys.readouterr().err
+    assert f"c3bf-gym train: error: {wrong}" in error and "Traceback" not in error
+    if valid:
+        assert "valid keys: " in error and f" {valid}," in error
+    assert not (tmp_path / "runs").exists()
