@@ -57,7 +57,8 @@ print('SHIPPED', ' '.join(shipped))
 
 def _clean_env() -> dict[str, str]:
     env = dict(os.environ)
-    for key in ("PYTHONPATH", "PYTHONHOME", "VIRTUAL_ENV", "PYTHONSTARTUP"):
+    # NUMBA_CACHE_DIR too: the installed package must load the kernels its build compiled into it
+    for key in ("PYTHONPATH", "PYTHONHOME", "VIRTUAL_ENV", "PYTHONSTARTUP", "NUMBA_CACHE_DIR"):
         env.pop(key, None)
     return env
 
