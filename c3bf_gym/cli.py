@@ -5,7 +5,8 @@
     c3bf-gym evaluate MODEL [options]   roll out a saved model
     c3bf-gym plot-training RUNS...      learning curves of several runs, grouped by filter
 
-Run ``c3bf-gym COMMAND --help`` for each command's options.
+Run ``c3bf-gym COMMAND --help`` for each command's options; ``c3bf-gym --version`` prints the
+installed version.
 """
 
 from __future__ import annotations
@@ -188,12 +189,27 @@ def _run_plot_training(args: argparse.Namespace) -> int:
     return 0
 
 
+def _version() -> str:
+    """The version of the installed ``c3bf-gym`` distribution (its package metadata), or the
+    package's own ``c3bf_gym.__version__`` where no distribution is installed (a checkout on
+    ``PYTHONPATH``)."""
+    from importlib import metadata
+
+    try:
+        return metadata.version("c3bf-gym")
+    except metadata.PackageNotFoundError:
+        from c3bf_gym import __version__
+
+        return __version__
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="c3bf-gym",
         description="Safe robot-arm RL with Collision Cone Control Barrier Functions: the paper's "
         "experiments, and Stable-Baselines3 baselines with and without the safety filter.",
     )
+    parser.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     from c3bf_gym.experiments import add_parser as add_experiments
 

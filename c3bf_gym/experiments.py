@@ -59,8 +59,8 @@ class MinimumJerk:
 #: those of them that ``--scenarios`` selects.
 SENSING_SCENARIOS = ("head_on", "crossing")
 
-#: ``--quick``: a smoke run of every output in about a minute (1 seed, 3-s episodes, a sweep of
-#: 2 radii at one speed with 1 seed). Replaces only the options left at their defaults.
+#: ``--quick``: a smoke run of every output (1 seed, 3-s episodes, a sweep of 2 radii at one speed
+#: with 1 seed). Replaces only the options left at their defaults.
 QUICK: dict[str, Any] = {
     "seeds": (0,),
     "duration": 3.0,
@@ -475,7 +475,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     quick = p.add_argument("--quick", action="store_true")
     options = {a.dest: a.option_strings[0] for a in p._actions}
     preset = ", ".join(f"{options[k]} {' '.join(map(str, v)) if isinstance(v, tuple) else v}" for k, v in QUICK.items())
-    quick.help = f"a smoke run of every output in about a minute: {preset} (options set to other values than their defaults win)"
+    quick.help = f"a smoke run of every output in about 20 s: {preset} (options set to other values than their defaults win)"
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     p.set_defaults(func=_run)
 

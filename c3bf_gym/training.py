@@ -18,6 +18,8 @@ inside ``wrapper_class``, where it would not see the filter's info. Here ``Monit
 from __future__ import annotations
 
 import csv
+import importlib
+import inspect
 import json
 import os
 import sys
@@ -85,6 +87,34 @@ ACTIONS = ("impedance", "residual", "torque")
 #: A run's ``filter``: "none" or a name of :data:`~c3bf_gym.safety.FILTERS` (the default
 #: :data:`~c3bf_gym.safety.DEFAULT_FILTER`, the C3BF with its distance-HOCBF guard).
 TRAIN_FILTERS = ("none", *FILTERS)
+
+
+#: How to install what Stable-Baselines3 runs need (the README's Install section): a CPU torch
+#: first, or pip may pull a multi-GB CUDA build.
+_TRAIN_EXTRA = ('install a CPU torch first, pip install torch --index-url https://download.pytorch.org/whl/cpu, '
+               'then pip install "c3bf-gym[train]"')
+
+
+def _require_train_extra(*modules: str, purpose: str = "training with Stable-Baselines3") -> None:
+    """Import the top-level ``modules`` (of the ``train`` extra and what it depends on).
+
+    Raises:
+        ImportError: one or more of them is not installed; the message names them and how to
+            install the extra (:data:`_TRAIN_EXTRA`). A module that fails to import for another
+            reason raises its own error.
+    """
+    missing = []
+    for module in modules:
+        try:
+            importlib.import_module(module)
+        except ModuleNotFoundError as error:  # this module, or another of them that it imports
+            name = (error.name or "").partition(".")[0]
+            if name not in modules:
+                raise
+            if name not in missing:
+                missing.append(name)
+    if missing:
+        raise ImportError(f"{purpose} needs {', '.join(missing)}, not installed here: {_TRAIN_EXTRA}")
 
 
 def filter_config(filter: str | FilterConfig | None, guard_gamma: float | None = None) -> FilterConfig | None:
@@ -217,6 +247,8 @@ class TrainConfig:
         filter_config(self.filter, self.guard_gamma)  # the filter's own checks, guard_gamma's included
         for name in ("distance_weight", "action_weight"):
             validation.number(name, getattr(self, name), low=0.0)
+        if not (isinstance(self.hyperparams, dict) and all(isinstance(key, str) for key in self.hyperparams)):
+            raise ValueError(f"hyperparams must be a dict of keyword arguments, got {self.hyperparams!r}")
         if not isinstance(self.normalize_obs, bool):
             raise ValueError(f"normalize_obs must be True or False, got {self.normalize_obs!r}")
         for name in ("timesteps", "n_envs", "eval_freq", "eval_episodes", "checkpoint_freq"):
@@ -407,10 +439,12 @@ def train(config: TrainConfig, address: str | None = None) -> Path:
         return train_rllib(config, address)
     if address is not None:
         raise ValueError("address is the Ray cluster of the rllib engine; this run's engine is 'sb3'")
+    _require_train_extra("torch", "stable_baselines3", "tensorboard", *(("tqdm", "rich") if config.progress_bar else ()))
     import torch
     from stable_baselines3.common.callbacks import CallbackList, CheckpointCallback, EvalCallback
     from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
+    _check_sb3_hyperparams(config)
     torch.set_num_threads(1)  # one core per run: the machine runs several runs side by side
     run_dir, hyper = start_run(config)
     filter_ = filter_config(config.filter, config.guard_gamma)
@@ -467,12 +501,36 @@ def training_envs(config: TrainConfig):
     return SubprocVecEnv(thunks) if config.n_envs > 1 else DummyVecEnv(thunks)
 
 
+def _sb3_algorithm(algo: str):
+    """The Stable-Baselines3 class of an algorithm of :data:`ALGORITHMS`."""
+    from stable_baselines3 import PPO, SAC
+
+    return {"sac": SAC, "ppo": PPO}[algo]
+
+
+#: The SB3 constructor's arguments that a run sets itself, not through ``hyperparams``.
+_RUN_ARGUMENTS = ("policy", "env", "seed", "verbose", "tensorboard_log", "_init_setup_model")
+
+
+def _check_sb3_hyperparams(config: TrainConfig) -> None:
+    """Check ``config.hyperparams`` against the keyword arguments of its SB3 algorithm's
+    constructor, before a run writes anything.
+
+    Raises:
+        ValueError: a key the constructor does not take (or that the run sets itself:
+            :data:`_RUN_ARGUMENTS`); the message names the valid keys.
+    """
+    valid = [name for name in inspect.signature(_sb3_algorithm(config.algo)).parameters if name not in _RUN_ARGUMENTS]
+    unknown = [key for key in config.hyperparams if key not in valid]
+    if unknown:
+        raise ValueError(f"unknown {config.algo.upper()} hyperparameters {', '.join(map(repr, unknown))}; "
+                         f"valid keys: {', '.join(valid)}")  # fmt: skip
+
+
 def sb3_model(config: TrainConfig, venv, hyper: dict[str, Any], **kwargs: Any):
     """The SB3 model of ``config`` (its algorithm and obstacle encoder, hyperparameters ``hyper``)
     on ``venv``; ``kwargs`` go to the algorithm's constructor."""
-    from stable_baselines3 import PPO, SAC
-
-    algo = {"sac": SAC, "ppo": PPO}[config.algo]
+    algo = _sb3_algorithm(config.algo)
     if config.obstacle_encoder == "set":
         from c3bf_gym.policies import ObstacleSetExtractor
 
@@ -533,9 +591,8 @@ def _load_policy(model_path: Path, config: dict, run_dir: Path | None, determini
         from c3bf_gym.rllib import load_policy
 
         return load_policy(model_path, deterministic)
-    from stable_baselines3 import PPO, SAC
-
-    model = {"sac": SAC, "ppo": PPO}[config.get("algo", "sac")].load(model_path, device="cpu")
+    _require_train_extra("torch", "stable_baselines3", purpose="evaluating a Stable-Baselines3 model")
+    model = _sb3_algorithm(config.get("algo", "sac")).load(model_path, device="cpu")
     normalizer = _load_normalizer(run_dir / NORMALIZATION_FILE) if run_dir else None
 
     def policy(obs: np.ndarray) -> np.ndarray:

@@ -1,4 +1,6 @@
-"""The speed benchmarks the README names run, and print what their docs say they print."""
+"""The speed benchmarks the README names run: their exit status and the JSON they write (its keys and
+structure, and the relations between its numbers), not the wording of their printed tables. The long
+ones (a training loop, edited copies of the package compiled afresh) are slow tests."""
 
 from __future__ import annotations
 
@@ -8,21 +10,22 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
 #: filter_speed.py replays the filter's calls timed with the x86 time-stamp counter, only there
 REPLAYED = platform.machine() in ("x86_64", "AMD64", "i686", "i386")
 
 
-def test_env_speed_prints_every_configuration_against_the_bare_physics(tmp_path):
+def test_env_speed_times_every_configuration_against_the_bare_physics(tmp_path):
     out = tmp_path / "env_speed.json"
     done = subprocess.run([sys.executable, str(BENCHMARKS / "env_speed.py"), "--rounds", "2", "--steps", "5",
                            "--reset-samples", "2", "--json", str(out)], capture_output=True, text=True, timeout=600)  # fmt: skip
     assert done.returncode == 0, done.stderr[-2000:]
-    for name in ("bare", "unfiltered", "filtered random", "filtered adversarial", "Pusher-v5", "reset", "breakdown"):
-        assert name in done.stdout
     result = json.loads(out.read_text())
     assert set(result["breakdown"]) == {"physics_us", "env_us", "filter_random_us", "filter_adversarial_us"}
     assert result["breakdown"]["physics_us"] > 0
+    assert {"bare", "unfiltered", "filtered random", "filtered adversarial", "Pusher-v5"} <= set(result["us_per_step"])
     assert result["ratio_to_bare"]["bare"] == 1.0 and all(len(v) == 2 for v in result["us_per_step"].values())
     assert set(result["reset_ms"]) == {"static", "head_on", "crossing", "multi", "random"}
     refused = subprocess.run([sys.executable, str(BENCHMARKS / "env_speed.py"), "--rounds", "0"],
@@ -30,12 +33,11 @@ def test_env_speed_prints_every_configuration_against_the_bare_physics(tmp_path)
     assert refused.returncode == 2 and "--rounds and --steps must be >= 1" in refused.stderr
 
 
-def test_filter_speed_prints_the_hook_latency_table(tmp_path):
+def test_filter_speed_times_the_hook_latency(tmp_path):
     out = tmp_path / "filter_speed.json"
     done = subprocess.run([sys.executable, str(BENCHMARKS / "filter_speed.py"), "--calls", "40", "--obstacles", "1", "4",
                            "--json", str(out)], capture_output=True, text=True, timeout=600)  # fmt: skip
     assert done.returncode == 0, done.stderr[-2000:]
-    assert "filter hook per physics step" in done.stdout and "QP status" in done.stdout
     result = json.loads(out.read_text())
     for count in ("1", "4"):
         row = result["hook"][count]
@@ -43,20 +45,18 @@ def test_filter_speed_prints_the_hook_latency_table(tmp_path):
         if REPLAYED:  # the compiled replay times the same calls: it must give their torques, bit for bit
             assert row["compiled_same_torques"] is True
             assert 0 < row["compiled_median_us"] <= row["compiled_p99_us"] and row["compiled_mean_us"] > 0
-    if REPLAYED:
-        assert "replayed in compiled code" in done.stdout and "equal, bit for bit" in done.stdout
     skipped = subprocess.run([sys.executable, str(BENCHMARKS / "filter_speed.py"), "--calls", "10", "--obstacles", "1",
                               "--no-replay", "--json", str(out)], capture_output=True, text=True, timeout=600)  # fmt: skip
     assert skipped.returncode == 0, skipped.stderr[-2000:]
     assert json.loads(out.read_text())["hook"]["1"]["compiled_same_torques"] is None  # not "equal": not checked
 
 
-def test_train_speed_prints_filtered_and_unfiltered_throughput_side_by_side(tmp_path):
+@pytest.mark.slow
+def test_train_speed_times_filtered_and_unfiltered_throughput_side_by_side(tmp_path):
     out = tmp_path / "train_speed.json"
     done = subprocess.run([sys.executable, str(BENCHMARKS / "train_speed.py"), "--actions", "torque", "--rounds", "2",
                            "--steps", "64", "--json", str(out)], capture_output=True, text=True, timeout=900)  # fmt: skip
     assert done.returncode == 0, done.stderr[-2000:]
-    assert "unfiltered ÷ filtered" in done.stdout
     result = json.loads(out.read_text())
     rows = {(r["action"], r["filter"]): r for r in result["results"]}
     assert set(rows) == {("torque", "none"), ("torque", "c3bf+hocbf")}
@@ -66,20 +66,18 @@ def test_train_speed_prints_filtered_and_unfiltered_throughput_side_by_side(tmp_
     assert refused.returncode == 2 and "--rounds must be >= 1" in refused.stderr
 
 
+@pytest.mark.slow
 def test_filter_parts_times_the_filtered_step_without_its_qp_and_without_its_rows(tmp_path):
     out = tmp_path / "filter_parts.json"
     done = subprocess.run([sys.executable, str(BENCHMARKS / "filter_parts.py"), "--runs", "1", "--rounds", "1",
                            "--steps", "5", "--json", str(out)], capture_output=True, text=True, timeout=900)  # fmt: skip
     assert done.returncode == 0, done.stderr[-2000:]
-    for name in ("filter", "no QP", "no rows, no QP", "a filtered step of 2× leaves the filter"):
-        assert name in done.stdout
     result = json.loads(out.read_text())
     assert set(result["runs"]) == {"filter", "no QP", "no rows, no QP"}
     assert all(len(runs) == 1 and runs[0]["breakdown"]["physics_us"] > 0 for runs in result["runs"].values())
     assert result["budget_us_for_2x"] == (2.0 - result["unfiltered_ratio"]) * result["physics_us"]
     # The edited copies passed the check that they step as the unfiltered env does; the filter itself
-    # (which changes random torques) fails it, so the check can tell.
+    # (which changes random torques) fails it, with its own exit status, so the check can tell.
     unedited = subprocess.run([sys.executable, str(BENCHMARKS / "filter_parts.py"), "--same-steps", "30"],
                               capture_output=True, text=True, timeout=600)  # fmt: skip
     assert unedited.returncode == 3, unedited.stderr[-2000:]
-    assert "the filtered trajectory leaves the unfiltered one at policy step" in unedited.stdout

@@ -971,22 +971,24 @@ def test_panda_resets_where_the_ur5e_keep_out_found_no_path(scenario, seed):
     env.close()
 
 
-def test_a_source_checkout_on_sys_path_finds_its_assets():
+def test_a_source_checkout_on_sys_path_finds_its_assets(checkout_env):
     """Ray workers start in the driver's directory, so a checkout's ``c3bf_gym`` can shadow the
-    installed one there: it finds the MJCF in the checkout's top-level assets/ folder."""
-    import os
+    installed one there: it finds the MJCF in the checkout's top-level assets/ folder. The kernels
+    it compiles are cached outside the checkout (conftest.py's ``checkout_env``)."""
     import subprocess
     import sys
     from pathlib import Path
 
     repo = Path(__file__).resolve().parents[1]
+    cached = set(repo.glob("c3bf_gym/**/_numba_cache/*"))
     code = ("import gymnasium as gym, c3bf_gym; env = gym.make('C3BFReachPanda-v0'); env.reset(seed=0); "
             "print(c3bf_gym.__file__, env.unwrapped.model.nu)")  # fmt: skip
     done = subprocess.run([sys.executable, "-c", code], cwd=repo, capture_output=True, text=True, timeout=300,
-                          env={**os.environ, "PYTHONPATH": str(repo)})  # fmt: skip
+                          env=checkout_env)  # fmt: skip
     assert done.returncode == 0, done.stderr[-2000:]
     module, nu = done.stdout.split()
     assert Path(module).resolve().is_relative_to(repo / "c3bf_gym") and nu == "7"
+    assert set(repo.glob("c3bf_gym/**/_numba_cache/*")) == cached
 
 
 def test_compiled_physics_steps_are_the_bindings_steps(make_env):

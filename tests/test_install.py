@@ -33,7 +33,7 @@ filtered = SafetyFilter(gym.make('C3BFReach-v0', scenario='multi'), barrier='c3b
 filtered.reset(seed=0)
 for _ in range(3):
     obs, reward, terminated, truncated, info = filtered.step(filtered.action_space.sample())
-assert info['safety']['sensed'] >= 0, info
+assert info['safety']['sensed'] > 0, info  # the multi scenario's obstacles reach the filter's rows
 behind = SafetyFilter(c3bf_gym.CartesianImpedanceAction(gym.make('C3BFReach-v0', scenario='multi')))
 behind.reset(seed=0)  # the filter behind the impedance controller: called from Python
 behind.step(behind.action_space.sample())
@@ -57,7 +57,8 @@ print('SHIPPED', ' '.join(shipped))
 
 def _clean_env() -> dict[str, str]:
     env = dict(os.environ)
-    for key in ("PYTHONPATH", "PYTHONHOME", "VIRTUAL_ENV", "PYTHONSTARTUP"):
+    # NUMBA_CACHE_DIR too: the installed package must load the kernels its build compiled into it
+    for key in ("PYTHONPATH", "PYTHONHOME", "VIRTUAL_ENV", "PYTHONSTARTUP", "NUMBA_CACHE_DIR"):
         env.pop(key, None)
     return env
 
