@@ -50,7 +50,7 @@ KERNELS = Path("safety") / "_kernels.py"
 #: the text of hook_substep each edit replaces, and its replacement
 _ROWS = "    m, min_h, inside, n_sensed = hook_rows_whole_arm(stage, arm, obstacles, params, A, b)\n"
 _NO_ROWS = "    m, min_h, inside, n_sensed = 0, np.inf, False, 0\n"
-_QP = ("    status, iterations, n_active, slack = solve_rows(tau_nom, A[:m], b[:m], scale,\n"
+_QP = ("    status, iterations, n_active, slack = solve_rows(tau_nom, A[:m], b[:m], scale, params.dofs,\n"
        "                                                     low_priority_span(m, n_fixed, guarded), stride, qp)\n")
 _NO_QP = ("    for j in range(tau_nom.shape[0]):\n"
           "        qp.u[j] = min(max(tau_nom[j] / scale[j], qp.lo[j]), qp.hi[j])\n"

@@ -11,18 +11,16 @@ filter) and how often the filter intervened.
         --joint-speed-limit 2.0
 
 What the model needs (the filter checks and names what is missing): a torque motor (<motor>) on
-every joint, torque limits (ctrlrange, forcerange or the joint's actuatorfrcrange), capsule or
-sphere collision geoms on the links to protect, a tool site, and joint ranges. The project's own
-arms run as they are:
+every joint, torque limits (ctrlrange, forcerange or the joint's actuatorfrcrange), collision geoms
+on the links to protect (meshes, boxes and cylinders are enclosed by capsules; the script prints
+them), a tool site, and joint ranges. The project's own arms run as they are:
 
     python examples/own_arm.py assets/ur5e.xml --site ee_site --joint-speed-limit 3.14159
     python examples/own_arm.py assets/panda.xml --site ee_site --joint-speed-limit 2.175
 
-MuJoCo Menagerie models often use meshes for collision and position servos for actuators: protect
-capsules added beside the meshes (e.g. a geom group of capsules, --group N) and replace the servos
-by <motor> actuators; the filter refuses, by name, any model it cannot protect. The
-mujoco-menagerie package downloads Menagerie's models on first use; pass the path of the
-downloaded arm's XML.
+MuJoCo Menagerie models often use position servos for actuators: replace them by <motor>
+actuators; the filter refuses, by name, any model it cannot protect. The mujoco-menagerie package
+downloads Menagerie's models on first use; pass the path of the downloaded arm's XML.
 """
 
 from __future__ import annotations
@@ -76,7 +74,6 @@ def run(model: mujoco.MjModel, robot: RobotDescription, args: argparse.Namespace
     nominal = CartesianImpedance(stiffness=300.0, posture=data.qpos.copy(), max_force=150.0)
     start = data.site_xpos[robot.site_id].copy()
     goal = start + np.asarray(args.move)
-    gear = model.actuator_gear[robot.actuator_ids, 0]
     lowest, interventions, infeasible, path = np.inf, 0, 0, []
     for step in range(int(round(args.seconds / model.opt.timestep))):
         mujoco.mj_step1(model, data)
@@ -95,8 +92,7 @@ def run(model: mujoco.MjModel, robot: RobotDescription, args: argparse.Namespace
             tau, report = controller.filter(tau)
             interventions += report.intervened
             infeasible += not report.feasible
-        # the motors add what MuJoCo's own gravity compensation does not
-        data.ctrl[robot.actuator_ids] = (tau - data.qfrc_gravcomp) / gear
+        robot.write_ctrl(model, data, tau)  # gear, actuator order, gravity compensation through the motors
         mujoco.mj_step2(model, data)
         data.mocap_pos[mocap] += velocity * model.opt.timestep
     return {"lowest": lowest, "interventions": interventions, "infeasible": infeasible, "path": np.array(path)}
@@ -122,6 +118,7 @@ def main(argv: list[str] | None = None) -> int:
     robot = RobotDescription.from_model(model, bodies=args.bodies, group=args.group, site=args.site,
                                         joint_speed_limit=args.joint_speed_limit)  # fmt: skip
     print(f"{model.nv} joints, protecting {', '.join(model.geom(g).name or str(g) for g in robot.geom_ids)}")
+    print(robot.describe(model))
     # where the tool is halfway through its move, without a ball: the ball meets it there
     path = run(model, robot, args, None, filtered=False)["path"]
     meet_step = int(round(0.5 * args.move_time / model.opt.timestep))

@@ -71,7 +71,7 @@ def random_scene(u, rng, n_obstacles, clearance=(0.02, 0.25), speed=0.4, qd=0.5)
         u._park_all()
         mujoco.mj_forward(m, d)
         for slot in range(n_obstacles):
-            gid = rng.choice(u.arm.capsule_ids[1:])  # link2 ... tool
+            gid = rng.choice(u.arm.capsule_ids)  # link2 ... tool (link 1 is not protected)
             radius = rng.uniform(0.04, 0.08)
             centre, _ = beside_capsule(u, gid, rng.uniform(*clearance), radius, rng, t=rng.uniform(0.2, 0.8))
             put_obstacle(u, slot, centre, radius, rng.uniform(-speed, speed, 3))
@@ -139,7 +139,7 @@ FIXED_ROWS = 12 + 24
 
 def end_heights(u):
     """Heights of both ends of every capsule but link 1, ends a then ends b (the filter's order)."""
-    ends = [capsule_frame(u, gid) for gid in u.arm.capsule_ids[1:]]
+    ends = [capsule_frame(u, gid) for gid in u.arm.capsule_ids]
     return np.array([a[2] for a, _ in ends] + [b[2] for _, b in ends])
 
 
@@ -153,8 +153,8 @@ def expected_rows(u, hook, qacc, delta=1e-5):
     independently: ``ḣ + γ h`` of every (obstacle, point) pair, with ``ḣ`` the central finite
     difference of ``h`` along the motion (joints at ``q̈``, obstacles at their velocity; the
     closest points found anew at each instant), then the floor conditions
-    ``z̈ + 2γ ż + γ² (z − r − margin)`` (γ = 10) of both ends of every capsule but link 1 (which
-    the vertical pan joint keeps at one height), ``ż`` and ``z̈`` differenced the same way, then
+    ``z̈ + 2γ ż + γ² (z − r − margin)`` (γ = 10) of both ends of every protected capsule (link 1,
+    on the pan axis, is not one), ``ż`` and ``z̈`` differenced the same way, then
     the 24 joint-limit conditions."""
     m, d = u.model, u.data
     q0, qd0, pos0, version = d.qpos.copy(), d.qvel.copy(), u.obstacle_pos.copy(), u.state_version
@@ -178,7 +178,7 @@ def expected_rows(u, hook, qacc, delta=1e-5):
     values = list(h_dot + hook.barrier.gamma * h_now)
     z_dot = (z_shifted[0] - z_shifted[1]) / (2 * delta)
     z_ddot = (z_shifted[0] - 2.0 * z_now + z_shifted[1]) / delta**2
-    radius = np.tile(m.geom_size[u.arm.capsule_ids[1:], 0], 2)
+    radius = np.tile(m.geom_size[u.arm.capsule_ids, 0], 2)
     values += list(z_ddot + 20.0 * z_dot + 100.0 * (z_now - radius - hook.margin))
     # joint limits (JointLimits docstring; defaults γ₁ = γ₂ = 10, γ_v = 20)
     q, qd = d.qpos, d.qvel
@@ -310,7 +310,7 @@ def test_far_obstacle_pushing_nominal_is_not_filtered(env):
     """An obstacle beyond the sensing radius adds no row, so even a torque driving the arm
     straight at it passes unchanged; with a larger sensing radius the same torque is filtered."""
     u = env
-    gid = u.arm.capsule_ids[2]
+    gid = u.arm.capsule_ids[1]
     centre, _ = beside_capsule(u, gid, 0.2, 0.06)
     put_obstacle(u, 0, centre, 0.06)
     u.data.qvel[:] = 0.0
@@ -338,7 +338,7 @@ def test_obstacles_beyond_sensing_radius_add_no_row(env):
     hook_ee = hook_for(u, sensing_radius=0.15, points="ee")
     clearances = [0.05, 0.1, 0.14, 0.16, 0.3, 0.6]
     for slot, clearance in enumerate(clearances):
-        gid = u.arm.capsule_ids[2] if slot % 2 else u.arm.capsule_ids[1]
+        gid = u.arm.capsule_ids[1] if slot % 2 else u.arm.capsule_ids[0]
         centre, _ = beside_capsule(u, gid, clearance, 0.05, rng)
         put_obstacle(u, slot, centre, 0.05)
     refresh(u)
@@ -430,7 +430,7 @@ def test_torque_limits_are_never_exceeded(env):
 
 def infeasible_scene(u, inside=False):
     """An obstacle 3 cm from link3 (or overlapping it), rushing at it at 3 m/s."""
-    gid = u.arm.capsule_ids[2]
+    gid = u.arm.capsule_ids[1]
     centre, normal = beside_capsule(u, gid, -0.03 if inside else 0.03, 0.06)  # margin is 0.02
     put_obstacle(u, 0, centre, 0.06, -3.0 * normal)
     refresh(u)
@@ -513,7 +513,7 @@ def test_overlap_is_reported_and_the_recovery_row_pushes_apart(env):
     tau = hook(tau_nom.copy())
     assert hook.report.inside
     pd = reference.closest_dynamics(u.arm, u.obstacle_pos[:1])
-    s = list(u.arm.capsule_ids).index(u.arm.capsule_ids[2])
+    s = list(u.arm.capsule_ids).index(u.arm.capsule_ids[1])
     away = pd.pos[s] - u.obstacle_pos[0]
     assert away @ (pd.G[s] @ (tau - tau_nom)) > 0.0
 
@@ -543,7 +543,7 @@ def test_point_inside_the_margin_gets_a_bounded_recovery_row(env, clearance):
     fast: the C3BF falls back to its recovery row, the violation is reported, and the QP stays
     well scaled (a clamped cone gave rows with b ~ 3e5 and 1e4-1e6 proxsuite iterations)."""
     u = env
-    gid = u.arm.capsule_ids[2]
+    gid = u.arm.capsule_ids[1]
     centre, normal = beside_capsule(u, gid, clearance, 0.06)
     put_obstacle(u, 0, centre, 0.06, -3.0 * normal)
     refresh(u)

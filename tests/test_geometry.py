@@ -196,7 +196,8 @@ def test_filter_before_the_dynamics_are_computed_is_refused():
 
 def test_friction_loss_tightens_every_row_by_its_worst_case():
     """Dry friction is a force of at most ``frictionloss`` per dof that the rows cannot predict: each
-    row's bound rises by ``Σ_j |A_kj| f_j``, the same in the compiled and the per-class rows."""
+    obstacle and floor row's bound rises by ``Σ_j |A_kj| f_j``, the same in the compiled and the
+    per-class rows; the joint-limit rows are left as they are."""
     model = _model()
     data = mujoco.MjData(model)
     data.qpos[:] = (0.3, -0.6, 0.9)
@@ -210,9 +211,15 @@ def test_friction_loss_tightens_every_row_by_its_worst_case():
     A, b, *_ = (x.copy() for x in SafetyController(model, data, robot, balls, config).rows()[:2])
     frictionless = _model()
     frictionless.dof_frictionloss[:] = 0.0
-    A0, b0, *_ = SafetyController(frictionless, data, robot, balls, config).rows()
+    robot0 = RobotDescription.from_model(frictionless, site="tool", joint_speed_limit=3.0)
+    np.testing.assert_array_equal(robot.unmodelled_force, model.dof_frictionloss)
+    np.testing.assert_array_equal(robot0.unmodelled_force, 0.0)
+    A0, b0, *_ = SafetyController(frictionless, data, robot0, balls, config).rows()
     np.testing.assert_array_equal(A, A0)
-    np.testing.assert_allclose(b, b0 + np.abs(A0) @ model.dof_frictionloss, rtol=0, atol=1e-12)
+    joint_rows = 4 * robot.n  # the last rows: a joint's own friction never drives it towards a limit
+    np.testing.assert_allclose(b[:-joint_rows], b0[:-joint_rows] + np.abs(A0[:-joint_rows]) @ model.dof_frictionloss,
+                               rtol=0, atol=1e-12)  # fmt: skip
+    np.testing.assert_array_equal(b[-joint_rows:], b0[-joint_rows:])
     generic = SafetyController(model, data, robot, balls, config)
     generic._fused = False
     A2, b2, *_ = generic.rows()

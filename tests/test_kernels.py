@@ -120,6 +120,16 @@ def test_joint_limit_rows_match_numpy():
         -(-c + gv * (jl.qd_max - qd)),
         -(c + gv * (qd + jl.qd_max)),
     ]))  # fmt: skip
+    # the same joints as 3 of a larger model's: rows over all of its dofs' torques
+    dofs, qpos_ids = np.array([1, 3, 4]), np.array([2, 4, 6])
+    big = rng.normal(size=(6, 6))
+    part = JointLimits(lo[:3], hi[:3], jl.qd_max[:3], gamma1=4.0, gamma2=9.0, gamma_v=15.0)
+    q_full, qd_full, c_full = rng.normal(size=8), rng.normal(size=6), rng.normal(size=6)
+    A2, b2 = part.rows(q_full, qd_full, big, c_full, dofs=dofs, qpos_ids=qpos_ids)
+    A3, b3 = part.rows(q_full[qpos_ids], qd_full[dofs], big[dofs], c_full[dofs])
+    assert A2.shape == (12, 6)
+    close(A2, A3)
+    close(b2, b3)
 
 
 # ----------------------------------------------------------------------------- dynamics

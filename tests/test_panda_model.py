@@ -16,7 +16,7 @@ import mujoco
 import numpy as np
 import pytest
 
-from c3bf_gym.safety import RobotDescription
+from c3bf_gym.safety import RobotDescription, UnprotectedGeometryWarning
 
 ROOT = Path(__file__).resolve().parents[1]
 ASSETS = resources.files("c3bf_gym.assets")  # as installed
@@ -191,10 +191,12 @@ def test_scene_keeps_the_ur5e_scene_obstacles():
 
 def test_robot_description_accepts_the_panda():
     model = _load("panda_scene.xml")
-    robot = RobotDescription.from_model(model, site="ee_site", joint_speed_limit=_speed_limit(model))
+    with pytest.warns(UnprotectedGeometryWarning, match=r"geom 'link1' lies on the axis of the joints that move it"):
+        robot = RobotDescription.from_model(model, site="ee_site", joint_speed_limit=_speed_limit(model))
     assert robot.n == 7
     np.testing.assert_array_equal(robot.torque_limit, TORQUE)
-    assert sorted(model.geom(g).name for g in robot.geom_ids) == sorted(CAPSULES)
+    # every capsule but link1's, which lies on joint 1's axis (it only turns about itself)
+    assert sorted(model.geom(g).name for g in robot.geom_ids) == sorted(CAPSULES[1:])
     assert robot.site_id == model.site("ee_site").id
     np.testing.assert_allclose(robot.joint_range, np.column_stack([Q_MIN, Q_MAX]))
     np.testing.assert_allclose(robot.joint_speed_limit, SPEED)
@@ -210,7 +212,7 @@ def test_example_keeps_the_ball_off_the_panda(capsys):
     argv = [str(ASSETS / "panda.xml"), "--site", "ee_site", "--joint-speed-limit", "2.175"]
     assert module.main(argv) == 0
     out = capsys.readouterr().out
-    assert "7 joints, protecting link1, link2, link3, link4, link5, link6, link7, hand" in out
+    assert "7 joints, protecting link2, link3, link4, link5, link6, link7, hand" in out
     clearance = {k: float(v) for k, v in re.findall(r"(unfiltered|filtered)\s*: lowest clearance ([-+\d.]+) mm", out)}
     assert clearance["unfiltered"] < 0.0, out
     assert clearance["filtered"] > 0.0, out

@@ -87,10 +87,10 @@ BAD_MODELS = [
     (ARM.replace('<motor name="elbow" joint="elbow" ctrlrange="-20 20"/>', '<motor name="elbow" joint="elbow"/>'),
      {}, r"actuator 'elbow' has no torque limit"),
     (ARM.split("<actuator>")[0] + "</mujoco>", {}, r"no actuators"),
-    (ARM, {"geoms": ["floor"]}, r"geom 'floor' is on a body no joint moves"),
+    (ARM, {"geoms": ["floor"]}, r"geom 'floor' is on a body the arm's joints do not move"),
     (ARM, {"geoms": ["post", "upper"]}, r"geom 'post' lies on the axis of the joints that move it.*leave it out"),
     (ARM.replace('<body name="ball"', '<site name="corner" pos="1 1 0"/><body name="ball"'), {"site": "corner"},
-     r"site 'corner' is on body 'world', which no joint moves"),
+     r"site 'corner' is on body 'world', which the arm's joints do not move"),
     (ARM, {"geoms": ["upper", "nope"]}, r"unknown geom 'nope'.*post.*upper"),
     (ARM.replace('<body name="ball" mocap="true" pos="0.6 0 1.2">', '<body name="ball" pos="0.6 0 1.2"><freejoint/>'),
      {}, r"is a free joint"),
@@ -254,3 +254,71 @@ def test_raise_policy_on_the_standalone_controller():
     with pytest.raises(SafetyInfeasibleError):
         controller.filter(data.qfrc_bias.copy())
     np.testing.assert_array_equal(data.qpos, qpos)
+
+
+#: The inline arm with a two-finger gripper on position servos (force-limited) at the wrist, and a
+#: free box lying on the floor: dofs the filter does not drive.
+GRIPPER_ARM = ARM.replace(
+    '<site name="tool" pos="0.4 0 0"/>',
+    '''<site name="tool" pos="0.4 0 0"/>
+          <body name="finger_l" pos="0.4 0 0.02">
+            <joint name="finger_l" type="slide" axis="0 0 1" range="0 0.03" damping="5" frictionloss="0.5"/>
+            <geom name="finger_l" type="box" size="0.03 0.01 0.005" mass="0.05"/>
+          </body>
+          <body name="finger_r" pos="0.4 0 -0.02">
+            <joint name="finger_r" type="slide" axis="0 0 -1" range="0 0.03" damping="5"/>
+            <geom name="finger_r" type="box" size="0.03 0.01 0.005" mass="0.05"/>
+          </body>''',
+).replace(
+    '<body name="ball" mocap="true" pos="0.6 0 1.2">',
+    '<body name="crate" pos="1.2 0.8 0.05"><freejoint name="crate"/><geom type="box" size="0.05 0.05 0.05" mass="0.3"/></body>'
+    '<body name="ball" mocap="true" pos="0.6 0 1.2">',
+).replace(
+    "</actuator>",
+    '<position name="finger_l" joint="finger_l" kp="200" ctrlrange="0 0.03" forcerange="-15 15"/>'
+    '<position name="finger_r" joint="finger_r" kp="200" ctrlrange="0 0.03" forcerange="-15 15"/></actuator>',
+)
+ARM_JOINTS = ["yaw", "shoulder", "elbow"]
+
+
+def test_an_arm_with_a_gripper_and_other_bodies_is_filtered_on_its_own_joints():
+    """joints= names the arm: the filter drives those; the gripper's servos and a free body are left
+    to the model, their forces bounded by the servos' forcerange (and the joints' friction loss), and
+    the fingers are protected like the links. A servo whose force has no bound is refused."""
+    model = _model(GRIPPER_ARM)
+    with pytest.raises(UnsupportedModelError, match=r"joint 'crate' is a free joint.*name the arm's joints with joints="):
+        RobotDescription.from_model(model)  # the gripper and the crate are not the arm's
+    robot = RobotDescription.from_model(model, joints=ARM_JOINTS, site="tool", joint_speed_limit=3.0)
+    assert (robot.n, robot.nv) == (3, 11) and robot.dof_ids.tolist() == [0, 1, 2]
+    assert {"finger_l", "finger_r", "upper", "fore", "wrist"} <= {model.geom(g).name for g in robot.geom_ids}
+    finger_l, finger_r = model.joint("finger_l").dofadr[0], model.joint("finger_r").dofadr[0]
+    bound = robot.unmodelled_force
+    assert bound[finger_l] == 15.5 and bound[finger_r] == 15.0 and bound[robot.dof_ids].tolist() == [0.0] * 3
+    unbounded = GRIPPER_ARM.replace('ctrlrange="0 0.03" forcerange="-15 15"/></actuator>', 'ctrlrange="0 0.03"/></actuator>')
+    with pytest.raises(UnsupportedModelError, match=r"actuator 'finger_r' drives joint 'finger_r'.*no force bound"):
+        RobotDescription.from_model(_model(unbounded), joints=ARM_JOINTS)
+
+    # the arm pulled up into a falling ball while the gripper opens and closes: kept off every protected geom
+    lowest = {}
+    for filtered in (False, True):
+        data = mujoco.MjData(model)
+        data.qpos[robot.dof_ids] = (0.0, -0.3, 0.4)
+        mujoco.mj_forward(model, data)
+        balls = MocapSpheres(model, ["ball"])
+        controller = SafetyController(model, data, robot, balls)
+        ball, lowest[filtered] = model.geom("ball").id, np.inf
+        for step in range(750):
+            mujoco.mj_step1(model, data)
+            lowest[filtered] = min(lowest[filtered], *(mujoco.mj_geomDistance(model, data, ball, g, 1.0, None)
+                                                       for g in robot.geom_ids))  # fmt: skip
+            q, qd = data.qpos[robot.dof_ids], data.qvel[robot.dof_ids]
+            tau = 60.0 * (np.array([0.0, -1.2, 0.0]) - q) - 8.0 * qd + data.qfrc_bias[robot.dof_ids]
+            tau = np.clip(tau, -robot.torque_limit, robot.torque_limit)
+            if filtered:
+                balls.velocity[0] = (0.0, 0.0, -1.0)
+                tau, report = controller.filter(tau)
+            robot.write_ctrl(model, data, tau)
+            data.ctrl[model.actuator("finger_l").id :] = 0.03 * ((step // 100) % 2)  # the gripper opens and closes
+            mujoco.mj_step2(model, data)
+            data.mocap_pos[0] += model.opt.timestep * np.array([0.0, 0.0, -1.0])
+    assert lowest[False] < 0.0 < lowest[True], lowest

@@ -322,9 +322,10 @@ def _clear(buffers, start, stop):
 
 
 @njit(**STEP_KERNEL_OPTIONS)
-def solve_rows(tau_nom, A, b, scale, n_obstacle_rows, stride, qp):
-    """The filter's QP (module docstring) for the rows ``A τ ≥ b`` (m, n) and nominal torque
-    ``tau_nom`` (n,), in ``u = τ / scale``; the solution goes to ``qp.u`` (:class:`QPBuffers`).
+def solve_rows(tau_nom, A, b, scale, cols, n_obstacle_rows, stride, qp):
+    """The filter's QP (module docstring) for the rows ``A[:, cols] τ ≥ b`` (``A`` (m, k), ``cols``
+    (n,): the columns of the torque's dofs among ``A``'s ``k``) and nominal torque ``tau_nom``
+    (n,), in ``u = τ / scale``; the solution goes to ``qp.u`` (:class:`QPBuffers`).
 
     1. Rows are scaled (``A_k s``) and normalised; a row shorter than :data:`ROW_NORM_MIN` cannot
        change with the torque: with ``b_k ≤ 0`` it holds, with ``b_k > 0`` it can never hold
@@ -364,7 +365,7 @@ def solve_rows(tau_nom, A, b, scale, n_obstacle_rows, stride, qp):
     for k in range(m):
         sq = 0.0
         for j in range(n):
-            a = A[k, j] * scale[j]
+            a = A[k, cols[j]] * scale[j]
             plain.A[k, j] = a
             sq += a * a
         norm = math.sqrt(sq)

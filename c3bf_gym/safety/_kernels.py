@@ -371,23 +371,28 @@ def rows_from_terms(grad_v, drift, h, gamma, G, c, A, b):
 
 
 @njit(**_opts)
-def joint_limit_rows(q, qd, Minv, c_q, q_lo, q_hi, qd_max, g1, g2, gv, A, b):
-    """The ``4n`` rows of :class:`~c3bf_gym.safety.barriers.JointLimits` into ``A`` (4n, n), ``b`` (4n,)
-    (row blocks: position upper, position lower, speed upper, speed lower)."""
-    n = q.shape[0]
+def joint_limit_rows(q, qd, Minv, c_q, dofs, qpos_ids, q_lo, q_hi, qd_max, g1, g2, gv, A, b):
+    """The ``4n`` rows of :class:`~c3bf_gym.safety.barriers.JointLimits` into ``A`` (4n, k), ``b`` (4n,)
+    (row blocks: position upper, position lower, speed upper, speed lower) for the ``n`` joints at
+    dofs ``dofs`` (rows of ``Minv`` (·, k), entries of ``qd``, ``c_q``) and ``qpos`` addresses
+    ``qpos_ids`` (entries of ``q``)."""
+    n = dofs.shape[0]
+    ncol = Minv.shape[1]
     g12 = g1 * g2
     g1p2 = g1 + g2
     for i in range(n):
-        for j in range(n):
-            mij = Minv[i, j]
+        d = dofs[i]
+        for j in range(ncol):
+            mij = Minv[d, j]
             A[i, j] = -mij
             A[n + i, j] = mij
             A[2 * n + i, j] = -mij
             A[3 * n + i, j] = mij
-        b[i] = ((g12 * q[i] + g1p2 * qd[i]) + c_q[i]) + (-g12 * q_hi[i])
-        b[n + i] = ((-g12 * q[i] + -g1p2 * qd[i]) + -c_q[i]) + g12 * q_lo[i]
-        b[2 * n + i] = (gv * qd[i] + c_q[i]) + (-gv * qd_max[i])
-        b[3 * n + i] = (-gv * qd[i] + -c_q[i]) + (-gv * qd_max[i])
+        qi, qdi, ci = q[qpos_ids[i]], qd[d], c_q[d]
+        b[i] = ((g12 * qi + g1p2 * qdi) + ci) + (-g12 * q_hi[i])
+        b[n + i] = ((-g12 * qi + -g1p2 * qdi) + -ci) + g12 * q_lo[i]
+        b[2 * n + i] = (gv * qdi + ci) + (-gv * qd_max[i])
+        b[3 * n + i] = (-gv * qdi + -ci) + (-gv * qd_max[i])
 
 
 @njit(**_opts)
@@ -405,23 +410,30 @@ def floor_rows(ends, idx, z_min, gamma, A, b):
 
 
 @njit(**_opts)
-def friction_margin(A, b, frictionloss):
-    """Tighten rows ``A τ ≥ b`` (m, nv) for joint dry friction: ``b_k += Σ_j |A_kj| f_j``.
+def unmodelled_margin(A, b, bound):
+    """Tighten rows ``A f ≥ b`` (m, nv), written for the generalised force ``f`` on every dof, for
+    forces the filter cannot predict: ``b_k += Σ_j |A_kj| bound_j``.
 
-    MuJoCo's friction loss adds a joint force ``φ_j`` with ``|φ_j| ≤ f_j`` (``dof_frictionloss``)
-    that the rows' ``ẍ = G τ + c`` does not predict; it enters every row as the torque does, so
-    ``A (τ + φ) ≥ b`` for every admissible ``φ`` exactly when the tightened row holds at ``τ``.
-    A no-op when no dof has friction loss."""
-    nv = frictionloss.shape[0]
+    A force ``φ_j`` with ``|φ_j| ≤ bound_j`` (:attr:`~c3bf_gym.safety.RobotDescription.unmodelled_force`:
+    joint dry friction, the actuators of dofs that are not the arm's) enters every row as the
+    torque does, so ``A (τ + φ) ≥ b`` for every admissible ``φ`` exactly when the tightened row
+    holds at ``τ``. A no-op when every bound is 0.
+
+    The filter tightens the obstacle and floor rows, not the joint-limit rows: a joint's own
+    friction opposes its motion, so it never drives the joint towards a position or speed limit,
+    and the worst case over ``|φ_j| ≤ bound_j`` (a friction that accelerates a joint at rest) would
+    leave a light arm no torque for them (robosuite's Jaco at rest). The other dofs' forces reach
+    those rows only through the coupling of ``M⁻¹``, which they leave out."""
+    nv = bound.shape[0]
     largest = 0.0
     for j in range(nv):
-        largest = max(largest, frictionloss[j])
+        largest = max(largest, bound[j])
     if largest <= 0.0:
         return
     for k in range(b.shape[0]):
         extra = 0.0
         for j in range(nv):
-            extra += abs(A[k, j]) * frictionloss[j]
+            extra += abs(A[k, j]) * bound[j]
         b[k] += extra
 
 
@@ -438,7 +450,6 @@ class ArmArrays(NamedTuple):
         capsule_ids: (S,) the protected geoms.
         M_rowadr, M_rownnz, M_colind: MuJoCo's sparse layout of ``M``.
         damping: (nv,) ``h D``, the integrator's implicit damping.
-        frictionloss: (nv,) each dof's dry friction bound [N m or N] (:func:`friction_margin`).
         capsule_local: (S, 2, 3) the capsule axes' end points in their geoms' frames [m].
         length2, capsule_radius: (S,) the axes' squared lengths, the radii [m].
         chain: (S, nv) bool, the dofs that move each geom.
@@ -463,7 +474,6 @@ class ArmArrays(NamedTuple):
     M_rownnz: np.ndarray
     M_colind: np.ndarray
     damping: np.ndarray
-    frictionloss: np.ndarray
     capsule_local: np.ndarray
     length2: np.ndarray
     capsule_radius: np.ndarray
@@ -501,8 +511,10 @@ class RowParams(NamedTuple):
         sensing_radius, margin: [m].
         floor_gamma: the floor rows' gain [1/s]; ``floor_ends`` (F,) the capsule ends that get
             one, ``floor_min`` (F,) their lowest allowed heights [m].
-        joint_rows: add the ``4 nv`` joint-limit rows, with ``joint_gains`` (γ₁, γ₂, γ_v) and the
-            limits ``q_lo``, ``q_hi``, ``qd_max`` (nv,).
+        joint_rows: add the ``4 n`` joint-limit rows, with ``joint_gains`` (γ₁, γ₂, γ_v) and the
+            limits ``q_lo``, ``q_hi``, ``qd_max`` (n,).
+        dofs, qpos_ids: (n,) the arm's dofs and their ``qpos`` addresses.
+        unmodelled_force: (nv,) bounds of the forces the filter cannot predict (:func:`unmodelled_margin`).
     """
 
     kind: int
@@ -521,6 +533,9 @@ class RowParams(NamedTuple):
     q_lo: np.ndarray
     q_hi: np.ndarray
     qd_max: np.ndarray
+    dofs: np.ndarray
+    qpos_ids: np.ndarray
+    unmodelled_force: np.ndarray
 
 
 @njit(**_opts)
@@ -537,13 +552,17 @@ def hook_rows_whole_arm(stage, arm, obstacles, params, A, b):
        (``params.guard_gamma2 > 0``), the guard's row for the same point right after it.
     3. The floor rows of the capsule ends ``params.floor_ends`` (:func:`floor_rows`).
     4. With ``params.joint_rows``, the ``4 nv`` joint-limit rows (:func:`joint_limit_rows`).
-    5. Every row tightened for the joints' dry friction (:func:`friction_margin`).
+    Before the joint-limit rows, the obstacle and floor rows are tightened for the forces the
+    filter cannot predict (:func:`unmodelled_margin`).
+
+    The rows are written for the generalised force on every dof of the model (``A`` (·, nv)); the
+    QP reads the columns of the arm's dofs (``params.dofs``).
 
     The rows go to ``A``, ``b``. Returns ``(rows, min h of the barrier's rows (not the guard's), any
     inside, sensed count)``.
     """
     s_count = arm.ends_ab.shape[0]
-    nv = arm.Minv.shape[0]
+    n = params.dofs.shape[0]
     if stage >= 2:
         step_inverse(arm.M, arm.M_rowadr, arm.M_rownnz, arm.M_colind, arm.damping, arm.qfrc_passive, arm.qfrc_bias,
                      arm.factor, arm.Minv, arm.qacc_free)
@@ -592,12 +611,13 @@ def hook_rows_whole_arm(stage, arm, obstacles, params, A, b):
     n_floor = params.floor_ends.shape[0]
     floor_rows(arm.ends, params.floor_ends, params.floor_min, params.floor_gamma, A[m:m + n_floor], b[m:m + n_floor])
     m += n_floor
+    unmodelled_margin(A[:m], b[:m], params.unmodelled_force)
     if params.joint_rows:
         gains = params.joint_gains
-        joint_limit_rows(arm.qpos, arm.qvel, arm.Minv, arm.qacc_free, params.q_lo, params.q_hi, params.qd_max,
-                         gains[0], gains[1], gains[2], A[m:m + 4 * nv], b[m:m + 4 * nv])
-        m += 4 * nv
-    friction_margin(A[:m], b[:m], arm.frictionloss)
+        joint_limit_rows(arm.qpos, arm.qvel, arm.Minv, arm.qacc_free, params.dofs, params.qpos_ids, params.q_lo,
+                         params.q_hi, params.qd_max,
+                         gains[0], gains[1], gains[2], A[m:m + 4 * n], b[m:m + 4 * n])
+        m += 4 * n
     return m, min_h, inside_any, n_sensed
 
 
@@ -750,10 +770,10 @@ def hook_substep(stage, tau_nom, tau, arm, obstacles, params, A, b, scale, limit
     """
     m, min_h, inside, n_sensed = hook_rows_whole_arm(stage, arm, obstacles, params, A, b)
     n_floor = params.floor_ends.shape[0]
-    n_fixed = n_floor + (4 * arm.Minv.shape[0] if params.joint_rows else 0)
+    n_fixed = n_floor + (4 * params.dofs.shape[0] if params.joint_rows else 0)
     guarded = params.guard_gamma2 > 0.0
     stride = 2 if guarded else 1  # obstacle rows: barrier, guard, barrier, guard, ... beside a guard
-    status, iterations, n_active, slack = solve_rows(tau_nom, A[:m], b[:m], scale,
+    status, iterations, n_active, slack = solve_rows(tau_nom, A[:m], b[:m], scale, params.dofs,
                                                      low_priority_span(m, n_fixed, guarded), stride, qp)
     if status < 0:
         return status

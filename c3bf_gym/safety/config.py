@@ -57,8 +57,8 @@ class FilterConfig:
             [m], > 0; None for the environment's own (the paper's perception boundary).
         ee_radius: radius of the protected tool sphere with ``points="ee"`` [m], >= 0.
         joint_limits: add the ``4 n`` joint position and speed rows.
-        joint_speed_fraction: the joint speed bound as a fraction of the UR5e's 180 deg/s,
-            in (0, 1].
+        joint_speed_fraction: the joint speed bound as a fraction of the robot's own
+            (:attr:`~c3bf_gym.safety.RobotDescription.joint_speed_limit`), in (0, 1].
         floor_gamma: gain [1/s] of the floor rows' second-order barrier, > 0: every capsule end
             that can move vertically keeps ``margin`` above an upright world plane.
         weight: the QP metric: ``"limits"`` (W = diag(1/τ_max²): relative changes weigh the same

@@ -17,9 +17,10 @@ configurations the project compares. At every physics step (between ``mj_step1``
    ``z_min`` the floor plus the capsule radius plus ``margin``. Contact forces are not in the
    model ``ẍ = G τ + c``, so the arm must not lean on the floor;
 4. joint position and velocity limits contribute ``4 n`` rows
-   (:class:`~c3bf_gym.safety.barriers.JointLimits`); every row is tightened for the joints' dry
-   friction (``frictionloss``: a bounded force the rows cannot predict,
-   :func:`~c3bf_gym.safety._kernels.friction_margin`);
+   (:class:`~c3bf_gym.safety.barriers.JointLimits`). The obstacle and floor rows are tightened for
+   the forces the filter cannot predict, each bounded
+   (:attr:`~c3bf_gym.safety.RobotDescription.unmodelled_force`: joint dry friction, the actuators of
+   dofs that are not the arm's, such as a gripper's): :func:`~c3bf_gym.safety._kernels.unmodelled_margin`;
 5. :class:`~c3bf_gym.safety.priority_qp.PriorityQP` (DAQP) returns the torque closest to the
    nominal one (in the metric ``weight``) that satisfies every row within the actuator limits.
    When none does, the rows give way by priority: the barrier's rows first, while the joint
@@ -189,8 +190,9 @@ class SafetyController:
             raise TypeError(f"robot must be a RobotDescription, got {type(robot).__name__}")
         if not isinstance(obstacles, Obstacles):
             raise TypeError(f"obstacles must be an Obstacles, got {type(obstacles).__name__}")
-        if robot.n != model.nv:
-            raise ValueError(f"robot has {robot.n} joints but the model {model.nv} dofs: describe this model")
+        if robot.nv != model.nv:
+            raise ValueError(f"robot was described from a model of {robot.nv} dofs, this one has {model.nv}: describe "
+                             "this model")  # fmt: skip
         if config.points == "ee" and robot.site_id < 0:
             raise UnsupportedModelError("points='ee' protects the tool site, and the robot has none: pass site= to "
                                         "RobotDescription.from_model")  # fmt: skip
@@ -219,7 +221,7 @@ class SafetyController:
         if not np.array_equal(self.arm.capsule_ids, robot.geom_ids):
             raise ValueError(f"arm protects geoms {self.arm.capsule_ids.tolist()}, the robot {robot.geom_ids.tolist()}: "
                              "share an ArmModel built from this robot")  # fmt: skip
-        n = model.nv
+        n = robot.n
         limit = np.array(robot.torque_limit)
         # rows per sensed obstacle: one per protected point, and its guard's
         points_count = len(self.arm.capsule_ids) if points == "whole_arm" else 1
@@ -239,8 +241,12 @@ class SafetyController:
         self._scale = limit.copy() if weight == "limits" else np.ones(n)
         self.qp = PriorityQP(n, -limit / self._scale, limit / self._scale, max_rows - barrier_rows, barrier_rows)
         self._limit = limit
-        self._A = np.zeros((max_rows, n))
+        # rows on the generalised force of every dof (the QP reads the arm's columns, self._dofs)
+        self._A = np.zeros((max_rows, model.nv))
         self._b = np.zeros(max_rows)
+        self._dofs = np.asarray(robot.dof_ids, dtype=np.int64)
+        self._qpos_ids = np.asarray(model.jnt_qposadr[model.dof_jntid[robot.dof_ids]], dtype=np.int64)
+        self._unmodelled = np.ascontiguousarray(robot.unmodelled_force, dtype=np.float64)
         self._capsule_radius = self.arm.capsule_radius
         # The whole-arm rows of the built-in barriers come from one compiled kernel
         # (c3bf_gym.safety._kernels.hook_rows_whole_arm, sharing the barrier classes' per-point code);
@@ -267,7 +273,7 @@ class SafetyController:
         self._params = _kernels.RowParams(
             int(kind), *map(float, params), *guard_gains, float(self.sensing_radius), float(self.margin),
             float(self.floor_gamma), self._floor_idx, self._floor_min, joint_limits is not None,
-            *(np.ascontiguousarray(x, dtype=np.float64) for x in jl),
+            *(np.ascontiguousarray(x, dtype=np.float64) for x in jl), self._dofs, self._qpos_ids, self._unmodelled,
         )
         self._obstacle_arrays = _kernels.ObstacleArrays(obstacles.active, self._distances, obstacles.position,
                                                         obstacles.velocity, obstacles.acceleration, obstacles.radius)
@@ -395,12 +401,11 @@ class SafetyController:
             m = len(barriers) * len(p)
         if self._n_floor_rows:
             m += self._floor_rows(self._A[m:], self._b[m:])
+        _kernels.unmodelled_margin(self._A[:m], self._b[:m], self._unmodelled)
         if self.joint_limits is not None:
-            self.joint_limits.rows(
-                data.qpos, data.qvel, arm.Minv, arm.qacc_free, out=Rows(self._A[m:], self._b[m:])
-            )
+            self.joint_limits.rows(data.qpos, data.qvel, arm.Minv, arm.qacc_free, out=Rows(self._A[m:], self._b[m:]),
+                                   dofs=self._dofs, qpos_ids=self._qpos_ids)
             m += self._n_joint_rows
-        _kernels.friction_margin(self._A[:m], self._b[:m], arm.frictionloss)
         return self._A[:m], self._b[:m], min_h, inside, len(sensed)
 
     def _floor_setup(self, model: mujoco.MjModel) -> tuple[np.ndarray, np.ndarray]:
@@ -520,7 +525,7 @@ class SafetyController:
             m = len(b)
             qp = self.qp.buffers
             status, iterations, active, slack = _daqp.solve_rows(
-                tau_nom, A, b, self._scale, self._low_priority_span(m), self._stride, qp)
+                tau_nom, A, b, self._scale, self._dofs, self._low_priority_span(m), self._stride, qp)
             if status >= 0:
                 # τ = u s, the smallest row residual A τ − b and ‖τ − clip(τ_nom)‖ (the filter's change)
                 residual, correction = _kernels.hook_post(b, qp.norm[:m], qp.residual[:m], qp.u, self._scale, tau_nom,

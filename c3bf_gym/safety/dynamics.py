@@ -135,9 +135,6 @@ class ArmModel:
         self._M_rownnz = np.asarray(model.M_rownnz, dtype=np.int64)
         self._M_colind = np.asarray(model.M_colind, dtype=np.int64)
         self.implicit_damping = np.asarray(implicit_damping, dtype=np.float64)
-        #: (nv,) each dof's dry friction bound ``dof_frictionloss`` [N m or N]: a force the rows
-        #: cannot predict, which they are tightened for (:func:`~c3bf_gym.safety._kernels.friction_margin`)
-        self.frictionloss = np.ascontiguousarray(model.dof_frictionloss, dtype=np.float64)
         axis = self.capsule_local[:, 1] - self.capsule_local[:, 0]
         self._length2 = np.einsum("ij,ij->i", axis, axis)
         self.capsule_radius = np.asarray(self.capsule_radius, dtype=np.float64)
@@ -219,7 +216,7 @@ class ArmModel:
         v = self.views(data)
         return _kernels.ArmArrays(
             v.M, v.qfrc_passive, v.qfrc_bias, v.geom_xpos, v.geom_xmat, v.cdof, v.cdof_dot, v.com, v.qpos, v.qvel,
-            self._capsule_ids, self._M_rowadr, self._M_rownnz, self._M_colind, self.implicit_damping, self.frictionloss,
+            self._capsule_ids, self._M_rowadr, self._M_rownnz, self._M_colind, self.implicit_damping,
             self.capsule_local, self._length2, self.capsule_radius, self.capsule_chain, self._factor, self._end_jac,
             self.Minv, self.qacc_free, self._ends, self._ends_ab, self._a_dot_ab,
         )

@@ -82,6 +82,7 @@ class PriorityQP:
 
     def __init__(self, n: int, tau_min: np.ndarray, tau_max: np.ndarray, level1_rows: int, level2_rows: int) -> None:
         self.n = int(n)
+        self._cols = np.arange(self.n, dtype=np.int64)  # the rows' columns are the torque's, in order
         self.tau_min = np.array(tau_min, dtype=np.float64)
         self.tau_max = np.array(tau_max, dtype=np.float64)
         self._levels = (int(level1_rows), int(level2_rows))
@@ -132,8 +133,8 @@ class PriorityQP:
             raise ValueError(f"{m} rows exceed the {self.max_rows} this QP was built for")
         if n_obstacle_rows is None:
             n_obstacle_rows = m
-        code, iterations, active, slack = _daqp.solve_rows(tau_nom, A, b, scale, int(n_obstacle_rows), int(stride),
-                                                           self.buffers)
+        code, iterations, active, slack = _daqp.solve_rows(tau_nom, A, b, scale, self._cols, int(n_obstacle_rows),
+                                                           int(stride), self.buffers)
         raise_bad_input(code)
         return QPResult(self.buffers.u, slack, code == _daqp.SOLVED, STATUS[code], iterations, active,
                         time.perf_counter() - start)

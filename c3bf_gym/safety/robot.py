@@ -1,30 +1,37 @@
 """What the safety filter needs to know about a robot, read from any MuJoCo model.
 
-:meth:`RobotDescription.from_model` reads the actuated joints, their torque limits, the protected
-collision geoms, the tool site and the joint position and speed limits, and refuses a model the
-filter cannot protect with an error that names the joint, actuator or geom at fault.
+:meth:`RobotDescription.from_model` reads the arm's joints, their torque limits, the protected
+collision geoms, the tool site, the joint position and speed limits, and what the filter cannot
+predict, and refuses a model the filter cannot protect with an error that names the joint,
+actuator or geom at fault.
 
 What the filter assumes of the model (and checks):
 
-* every degree of freedom belongs to a hinge or slide joint of the arm and is driven by exactly
-  one torque motor (``<motor>``: direct transmission to the joint, no activation dynamics, a
-  fixed gain and no bias), so that the filter's torque is the model's joint force. Obstacles
-  are not bodies with dofs: mocap bodies, or no bodies at all;
-* every protected geom is on a body the joints move, and some joint can move it (not only turn
+* the arm's joints (all of the model's, or those named by ``joints=``) are hinge or slide joints,
+  each driven by exactly one torque motor (``<motor>``: direct transmission to the joint, no
+  activation dynamics, a fixed gain and no bias), so that the filter's torque is the model's
+  joint force;
+* every other degree of freedom (a gripper's fingers, free bodies, the joints of other
+  mechanisms) is left to the model. Its actuators' forces are not known when the filter runs,
+  so each must be bounded: the filter's rows hold for every force within the bounds
+  (:attr:`RobotDescription.unmodelled_force`). Obstacles are mocap bodies, or no bodies at all;
+* every protected geom is on a body the arm's joints move, and they can move it (not only turn
   it about its own axis). The filter protects the capsule that contains it
   (:func:`~c3bf_gym.safety.geometry.enclosing_capsule`: capsules and spheres as they are;
   cylinders, ellipsoids, boxes and meshes enclosed); :meth:`RobotDescription.describe` lists them;
 * torque limits are finite and symmetric per joint: the tightest of the joint's
   ``actuatorfrcrange`` (which bounds the total actuator force, gravity compensation included),
   the actuator's ``forcerange`` and ``gear × ctrlrange``, each taken as ``min(-low, high)``.
+
+Contact and equality-constraint forces on the arm are not modelled: the arm must not touch
+things, which is what the filter is for.
 """
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Iterable
 from dataclasses import dataclass
-
-import warnings
 
 import mujoco
 import numpy as np
@@ -36,6 +43,8 @@ __all__ = ["RobotDescription", "UnprotectedGeometryWarning", "UnsupportedModelEr
 
 _SURFACES = (int(mujoco.mjtGeom.mjGEOM_PLANE), int(mujoco.mjtGeom.mjGEOM_HFIELD), int(mujoco.mjtGeom.mjGEOM_SDF))
 _JOINT_TYPES = (int(mujoco.mjtJoint.mjJNT_HINGE), int(mujoco.mjtJoint.mjJNT_SLIDE))
+_DIRECT = (int(mujoco.mjtTrn.mjTRN_JOINT), int(mujoco.mjtTrn.mjTRN_JOINTINPARENT))
+_OBJ = mujoco.mjtObj
 
 
 class UnsupportedModelError(ValueError):
@@ -54,8 +63,8 @@ def _name(model: mujoco.MjModel, kind: mujoco.mjtObj, index: int) -> str:
 
 def _ids(model: mujoco.MjModel, kind: mujoco.mjtObj, names: Iterable[str | int], what: str) -> list[int]:
     """Indices of named (or indexed) objects; an unknown name lists the valid ones."""
-    count = {mujoco.mjtObj.mjOBJ_GEOM: model.ngeom, mujoco.mjtObj.mjOBJ_BODY: model.nbody,
-             mujoco.mjtObj.mjOBJ_SITE: model.nsite}[kind]  # fmt: skip
+    count = {_OBJ.mjOBJ_GEOM: model.ngeom, _OBJ.mjOBJ_BODY: model.nbody, _OBJ.mjOBJ_SITE: model.nsite,
+             _OBJ.mjOBJ_JOINT: model.njnt}[kind]  # fmt: skip
     out = []
     for name in names:
         index = name if isinstance(name, (int, np.integer)) and not isinstance(name, bool) else None
@@ -68,14 +77,32 @@ def _ids(model: mujoco.MjModel, kind: mujoco.mjtObj, names: Iterable[str | int],
     return out
 
 
+def _is_motor(model: mujoco.MjModel, a: int) -> bool:
+    """A torque motor: no activation dynamics, a fixed gain and no bias."""
+    return (int(model.actuator_dyntype[a]) == int(mujoco.mjtDyn.mjDYN_NONE)
+            and int(model.actuator_gaintype[a]) == int(mujoco.mjtGain.mjGAIN_FIXED)
+            and int(model.actuator_biastype[a]) == int(mujoco.mjtBias.mjBIAS_NONE))  # fmt: skip
+
+
+def _chain(model: mujoco.MjModel, body: int) -> np.ndarray:
+    """(nv,) bool: the dofs that move ``body`` (its own and its ancestors')."""
+    mask = np.zeros(model.nv, dtype=bool)
+    while body > 0:
+        mask[model.body_dofadr[body] : model.body_dofadr[body] + model.body_dofnum[body]] = True
+        body = model.body_parentid[body]
+    return mask
+
+
 @dataclass(frozen=True, eq=False)
 class RobotDescription:
     """An arm as the safety filter sees it. Build it with :meth:`from_model`.
 
     Attributes:
-        n: number of joints (= the model's dofs).
-        actuator_ids: (n,) the torque motor of each dof, in dof order.
-        torque_limit: (n,) symmetric torque bound [N m or N] of each dof.
+        n: number of the arm's joints (its dofs; the filter's torque has this length).
+        nv: the model's number of dofs (``n`` plus those left to the model).
+        dof_ids: (n,) the arm's dofs, ascending.
+        actuator_ids: (n,) the torque motor of each of the arm's dofs.
+        torque_limit: (n,) symmetric torque bound [N m or N] of each of the arm's dofs.
         geom_ids: (S,) the protected collision geoms.
         capsules: (S,) the capsule the filter protects for each of them, in the geom's frame
             (:class:`~c3bf_gym.safety.geometry.Capsule`).
@@ -83,13 +110,19 @@ class RobotDescription:
         joint_range: (n, 2) joint position limits [rad or m]; rows of a joint without limits are
             ``(-inf, inf)``.
         joint_speed_limit: (n,) joint speed bound [rad/s or m/s], or None when not given.
-        gear: (n,) each dof's motor gear (joint torque per unit of ``ctrl``).
+        gear: (n,) each arm dof's motor gear (joint torque per unit of ``ctrl``).
         gravcomp_in_actuator: (n,) whether the dof's joint routes gravity compensation through
             its actuator (``actuatorgravcomp="true"``): then the joint torque is the motor's plus
             ``data.qfrc_gravcomp``.
+        unmodelled_force: (nv,) per dof of the model, a bound on the generalised force [N m or N]
+            the filter cannot predict: the joint's dry friction (``frictionloss``) and, on dofs
+            that are not the arm's, the force their actuators may apply. The rows hold for every
+            such force within the bounds.
     """
 
     n: int
+    nv: int
+    dof_ids: np.ndarray
     actuator_ids: np.ndarray
     torque_limit: np.ndarray
     geom_ids: np.ndarray
@@ -99,12 +132,14 @@ class RobotDescription:
     joint_speed_limit: np.ndarray | None
     gear: np.ndarray
     gravcomp_in_actuator: np.ndarray
+    unmodelled_force: np.ndarray
 
     @classmethod
     def from_model(
         cls,
         model: mujoco.MjModel,
         *,
+        joints: Iterable[str | int] | None = None,
         geoms: Iterable[str | int] | None = None,
         bodies: Iterable[str | int] | None = None,
         group: int | None = None,
@@ -113,133 +148,189 @@ class RobotDescription:
     ) -> RobotDescription:
         """Read the description of the arm in ``model``.
 
+        The arm: the joints ``joints`` (names or ids), or every joint of the model. The filter
+        sets their torques; the model's other dofs keep whatever their own actuators do, within
+        those actuators' force bounds.
+
         Protected geoms: the union of ``geoms`` (names or ids), the geoms of ``bodies`` and the
         geoms of geom group ``group`` (0-5); with none of the three, every geom on a body the
-        joints move that can collide (``contype`` or ``conaffinity`` nonzero), of any type but
-        planes, height fields and SDFs. Each is protected as the capsule that contains it
-        (:func:`~c3bf_gym.safety.geometry.enclosing_capsule`).
+        arm's joints move that can collide (``contype`` or ``conaffinity`` nonzero), of any type
+        but planes, height fields and SDFs (a gripper on the arm included). Each is protected as
+        the capsule that contains it (:func:`~c3bf_gym.safety.geometry.enclosing_capsule`).
 
         Warns (:class:`UnprotectedGeometryWarning`), naming them: with the default selection, a
-        moving body whose geoms all have collisions switched off (so none is protected), and a
-        colliding geom left out because no joint can move it away (it lies on the axes of the
-        hinges that move it).
+        body the arm moves whose geoms all have collisions switched off (so none is protected),
+        and a colliding geom left out because the arm's joints cannot move it away (it lies on
+        the axes of the hinges that move it).
 
         Args:
             model: a compiled MuJoCo model.
+            joints: the arm's joints (None: all of the model's).
             geoms, bodies, group: the protected geoms (above).
             site: the tool site's name or id (None: none; the impedance controller needs one).
-            joint_speed_limit: the joint speed bound [rad/s or m/s], one value or one per dof
+            joint_speed_limit: the joint speed bound [rad/s or m/s], one value or one per arm dof
                 (None: none given; the filter's joint-speed rows then refuse to run).
 
         Raises:
-            UnsupportedModelError: no actuators or no dofs; a dof without exactly one torque
-                motor, or an actuator that is not a torque motor (named); a ball or free joint
-                (named); a selected plane, height field or SDF geom (named), or one on a body no
-                joint moves, or that no joint can move away; no protected geom; an unknown name;
-                a torque limit that is missing or not finite (named); a tool site on a body no
-                joint moves (named).
+            UnsupportedModelError: no actuators or no dofs; an arm joint that is not a hinge or
+                slide joint, or without exactly one torque motor, or an actuator on it that is not
+                a torque motor (named); an actuator on another dof whose force has no bound, or
+                that does not drive a joint directly (named); a selected plane, height field or
+                SDF geom (named), or one the arm's joints do not move, or cannot move away; no
+                protected geom; an unknown name; a torque limit that is missing or not finite
+                (named); a tool site the arm's joints do not move (named).
         """
         if model.nu == 0:
             raise UnsupportedModelError("the model has no actuators: the filter needs a torque motor on every joint")
         if model.nv == 0:
             raise UnsupportedModelError("the model has no degrees of freedom")
-        for j in range(model.njnt):
+        dofs = cls._arm_dofs(model, joints)
+        actuators = cls._motors(model, dofs, hint=joints is None)
+        limit = np.array([cls._torque_limit(model, int(a)) for a in actuators])
+        ids, capsules = cls._protected(model, dofs, geoms, bodies, group)
+        site_id = -1 if site is None else _ids(model, _OBJ.mjOBJ_SITE, [site], "site")[0]
+        if site_id >= 0 and not _chain(model, model.site_bodyid[site_id])[dofs].any():
+            body = _name(model, _OBJ.mjOBJ_BODY, model.site_bodyid[site_id])
+            raise UnsupportedModelError(f"site {_name(model, _OBJ.mjOBJ_SITE, site_id)} is on body {body}, which the "
+                                        "arm's joints do not move: name a site on the arm's last link")  # fmt: skip
+        joint_range = np.tile([-np.inf, np.inf], (len(dofs), 1))
+        for i, dof in enumerate(dofs):
+            j = model.dof_jntid[dof]
+            if model.jnt_limited[j]:
+                joint_range[i] = model.jnt_range[j]
+        speed = cls._speed_limit(joint_speed_limit, len(dofs))
+        gear = model.actuator_gear[actuators, 0].copy()
+        gravcomp = model.jnt_actgravcomp[model.dof_jntid[dofs]].astype(bool)
+        unmodelled = model.dof_frictionloss.astype(float) + cls._other_forces(model, dofs)
+        for array in (dofs, actuators, limit, ids, joint_range, gear, gravcomp, unmodelled, speed):
+            if array is not None:
+                array.setflags(write=False)
+        return cls(len(dofs), int(model.nv), dofs, actuators, limit, ids, capsules, int(site_id), joint_range, speed,
+                   gear, gravcomp, unmodelled)
+
+    @staticmethod
+    def _arm_dofs(model: mujoco.MjModel, joints: Iterable[str | int] | None) -> np.ndarray:
+        """The dofs of ``joints`` (all joints when None), ascending; refuses other joint types."""
+        chosen = range(model.njnt) if joints is None else _ids(model, _OBJ.mjOBJ_JOINT, joints, "joint")
+        for j in chosen:
             if int(model.jnt_type[j]) not in _JOINT_TYPES:
                 kind = mujoco.mjtJoint(model.jnt_type[j]).name.removeprefix("mjJNT_").lower()
                 raise UnsupportedModelError(
-                    f"joint {_name(model, mujoco.mjtObj.mjOBJ_JOINT, j)} is a {kind} joint: the filter supports hinge "
-                    "and slide joints only (obstacles must be mocap bodies, not free bodies)"
+                    f"joint {_name(model, _OBJ.mjOBJ_JOINT, j)} is a {kind} joint: the arm's joints must be hinge or "
+                    "slide joints (name the arm's joints with joints=; obstacles must be mocap bodies)"
                 )
-        actuator_of = np.full(model.nv, -1)
+        return np.array(sorted(int(model.jnt_dofadr[j]) for j in chosen), dtype=int)
+
+    @staticmethod
+    def _motors(model: mujoco.MjModel, dofs: np.ndarray, hint: bool) -> np.ndarray:
+        """(n,) the one torque motor of each of the arm's dofs."""
+        actuator_of = dict.fromkeys(dofs.tolist(), -1)
         for a in range(model.nu):
-            label = f"actuator {_name(model, mujoco.mjtObj.mjOBJ_ACTUATOR, a)}"
-            trn = int(model.actuator_trntype[a])
-            if trn not in (int(mujoco.mjtTrn.mjTRN_JOINT), int(mujoco.mjtTrn.mjTRN_JOINTINPARENT)):
-                raise UnsupportedModelError(f"{label} does not drive a joint directly (transmission "
-                                            f"{mujoco.mjtTrn(trn).name}): the filter needs torque motors")  # fmt: skip
-            motor = (int(model.actuator_dyntype[a]) == int(mujoco.mjtDyn.mjDYN_NONE)
-                     and int(model.actuator_gaintype[a]) == int(mujoco.mjtGain.mjGAIN_FIXED)
-                     and int(model.actuator_biastype[a]) == int(mujoco.mjtBias.mjBIAS_NONE))  # fmt: skip
-            if not motor:
+            if int(model.actuator_trntype[a]) not in _DIRECT:
+                continue
+            dof = int(model.jnt_dofadr[model.actuator_trnid[a, 0]])
+            if dof not in actuator_of:
+                continue
+            label = f"actuator {_name(model, _OBJ.mjOBJ_ACTUATOR, a)}"
+            if not _is_motor(model, a):
                 raise UnsupportedModelError(
                     f"{label} is not a torque motor (position, velocity or other servos add feedback the filter's "
                     "torque would not control): use <motor>"
                 )
-            dof = int(model.jnt_dofadr[model.actuator_trnid[a, 0]])
             if actuator_of[dof] >= 0:
                 raise UnsupportedModelError(f"{label} drives a joint that actuator "
-                                            f"{_name(model, mujoco.mjtObj.mjOBJ_ACTUATOR, actuator_of[dof])} drives too")  # fmt: skip
+                                            f"{_name(model, _OBJ.mjOBJ_ACTUATOR, actuator_of[dof])} drives too")  # fmt: skip
             actuator_of[dof] = a
-        for dof in np.flatnonzero(actuator_of < 0):
-            joint = _name(model, mujoco.mjtObj.mjOBJ_JOINT, model.dof_jntid[dof])
-            raise UnsupportedModelError(f"joint {joint} has no torque motor: the filter needs one on every joint")
-        limit = np.array([cls._torque_limit(model, int(a)) for a in actuator_of])
+        for dof, a in actuator_of.items():
+            if a < 0:
+                joint = _name(model, _OBJ.mjOBJ_JOINT, model.dof_jntid[dof])
+                extra = " (or name the arm's joints with joints=, leaving this one to the model)" if hint else ""
+                raise UnsupportedModelError(f"joint {joint} has no torque motor: the filter needs one on every arm "
+                                            f"joint{extra}")  # fmt: skip
+        return np.array(list(actuator_of.values()), dtype=int)
 
+    @classmethod
+    def _other_forces(cls, model: mujoco.MjModel, dofs: np.ndarray) -> np.ndarray:
+        """(nv,) the largest force the actuators of the dofs that are not the arm's can apply:
+        ``max|forcerange|`` when force-limited, else ``|gear| max|ctrlrange|`` for a torque motor,
+        capped by the joint's ``actuatorfrcrange``; 0 on the arm's dofs."""
+        bound = np.zeros(model.nv)
+        arm = set(dofs.tolist())
+        for a in range(model.nu):
+            label = f"actuator {_name(model, _OBJ.mjOBJ_ACTUATOR, a)}"
+            trn = int(model.actuator_trntype[a])
+            if trn in _DIRECT and int(model.jnt_dofadr[model.actuator_trnid[a, 0]]) in arm:
+                continue
+            if trn not in _DIRECT:
+                raise UnsupportedModelError(f"{label} does not drive a joint directly (transmission "
+                                            f"{mujoco.mjtTrn(trn).name}): the filter cannot bound its force on the "
+                                            "arm")  # fmt: skip
+            joint = model.actuator_trnid[a, 0]
+            if model.actuator_forcelimited[a]:
+                force = np.abs(model.actuator_forcerange[a]).max()
+            elif _is_motor(model, a) and model.actuator_ctrllimited[a]:
+                force = abs(model.actuator_gear[a, 0]) * np.abs(model.actuator_ctrlrange[a]).max()
+            else:
+                force = np.inf
+            if model.jnt_actfrclimited[joint]:
+                force = min(force, np.abs(model.jnt_actfrcrange[joint]).max())
+            if not np.isfinite(force):
+                raise UnsupportedModelError(f"{label} drives joint {_name(model, _OBJ.mjOBJ_JOINT, joint)}, which is "
+                                            "not the arm's, with no force bound: set its forcerange (or the joint's "
+                                            "actuatorfrcrange), so the filter can allow for it")  # fmt: skip
+            dof = int(model.jnt_dofadr[joint])
+            width = {int(mujoco.mjtJoint.mjJNT_FREE): 6, int(mujoco.mjtJoint.mjJNT_BALL): 3}.get(int(model.jnt_type[joint]), 1)
+            bound[dof : dof + width] += force
+        return bound
+
+    @classmethod
+    def _protected(cls, model: mujoco.MjModel, dofs: np.ndarray, geoms, bodies, group) -> tuple[np.ndarray, tuple]:
+        """The protected geoms (ascending) and their enclosing capsules (:meth:`from_model`)."""
         chosen: set[int] = set()
         if geoms is not None:
-            chosen.update(_ids(model, mujoco.mjtObj.mjOBJ_GEOM, geoms, "geom"))
+            chosen.update(_ids(model, _OBJ.mjOBJ_GEOM, geoms, "geom"))
         if bodies is not None:
-            for body in _ids(model, mujoco.mjtObj.mjOBJ_BODY, bodies, "body"):
+            for body in _ids(model, _OBJ.mjOBJ_BODY, bodies, "body"):
                 chosen.update(int(g) for g in np.flatnonzero(model.geom_bodyid == body))
         if group is not None:
             group = validation.integer("group", group, low=0)
             chosen.update(int(g) for g in np.flatnonzero(model.geom_group == group))
         explicit = geoms is not None or bodies is not None or group is not None
         if not explicit:
-            chosen = cls._default_geoms(model)
+            chosen = cls._default_geoms(model, dofs)
         for g in sorted(chosen):
-            label = f"geom {_name(model, mujoco.mjtObj.mjOBJ_GEOM, g)}"
-            if not model.body_dofnum[cls._root_chain(model, model.geom_bodyid[g])].any():
-                raise UnsupportedModelError(f"{label} is on a body no joint moves: nothing the filter does can move it "
-                                            "away from an obstacle; leave it out")  # fmt: skip
+            if not _chain(model, model.geom_bodyid[g])[dofs].any():
+                raise UnsupportedModelError(f"geom {_name(model, _OBJ.mjOBJ_GEOM, g)} is on a body the arm's joints "
+                                            "do not move: nothing the filter does can move it away from an obstacle; "
+                                            "leave it out")  # fmt: skip
         capsules = {}
         for g in sorted(chosen):
             try:
                 capsules[g] = enclosing_capsule(model, g)
             except UnsupportedGeomError as error:
                 raise UnsupportedModelError(str(error)) from None
-        frozen = [g for g in sorted(chosen) if cls._immovable(model, g, capsules[g])]
-        for g in frozen:
-            label = f"geom {_name(model, mujoco.mjtObj.mjOBJ_GEOM, g)}"
-            why = (f"{label} lies on the axis of the joints that move it: they only turn it about itself, so nothing "
-                   "the filter does can move it away from an obstacle")
+        for g in [g for g in sorted(chosen) if cls._immovable(model, dofs, g, capsules[g])]:
+            why = (f"geom {_name(model, _OBJ.mjOBJ_GEOM, g)} lies on the axis of the joints that move it: they only "
+                   "turn it about itself, so nothing the filter does can move it away from an obstacle")
             if explicit:
                 raise UnsupportedModelError(f"{why}; leave it out")
-            warnings.warn(f"{why}; it is not protected", UnprotectedGeometryWarning, stacklevel=2)
+            warnings.warn(f"{why}; it is not protected", UnprotectedGeometryWarning, stacklevel=3)
             chosen.discard(g)
         if not chosen:
             raise UnsupportedModelError("no protected geom: select geoms by geoms, bodies or group")
+        ids = np.array(sorted(chosen), dtype=int)
+        return ids, tuple(capsules[g] for g in ids)
 
-        site_id = -1 if site is None else _ids(model, mujoco.mjtObj.mjOBJ_SITE, [site], "site")[0]
-        if site_id >= 0 and not model.body_dofnum[cls._root_chain(model, model.site_bodyid[site_id])].any():
-            body = _name(model, mujoco.mjtObj.mjOBJ_BODY, model.site_bodyid[site_id])
-            raise UnsupportedModelError(f"site {_name(model, mujoco.mjtObj.mjOBJ_SITE, site_id)} is on body {body}, "
-                                        "which no joint moves: name a site on the arm's last link")  # fmt: skip
-        joint_range = np.tile([-np.inf, np.inf], (model.nv, 1))
-        for dof in range(model.nv):
-            j = model.dof_jntid[dof]
-            if model.jnt_limited[j]:
-                joint_range[dof] = model.jnt_range[j]
-        speed = None
-        if joint_speed_limit is not None:
-            values = np.broadcast_to(np.asarray(joint_speed_limit, dtype=float), (model.nv,)).copy() \
-                if np.ndim(joint_speed_limit) == 0 else np.asarray(list(joint_speed_limit), dtype=float)  # fmt: skip
-            if values.shape != (model.nv,) or not np.all(np.isfinite(values) & (values > 0)):
-                raise UnsupportedModelError(f"joint_speed_limit must be one finite number > 0 or {model.nv} of them "
-                                            f"(one per dof), got {joint_speed_limit!r}")  # fmt: skip
-            speed = values
-        for array in (limit, joint_range) + (() if speed is None else (speed,)):
-            array.setflags(write=False)
-        ids = np.array(sorted(chosen))
-        ids.setflags(write=False)
-        actuators = actuator_of.astype(int)
-        actuators.setflags(write=False)
-        gear = model.actuator_gear[actuators, 0].copy()
-        gravcomp = model.jnt_actgravcomp[model.dof_jntid].astype(bool)
-        for array in (gear, gravcomp):
-            array.setflags(write=False)
-        return cls(int(model.nv), actuators, limit, ids, tuple(capsules[g] for g in ids), int(site_id), joint_range,
-                   speed, gear, gravcomp)
+    @staticmethod
+    def _speed_limit(value: float | Iterable[float] | None, n: int) -> np.ndarray | None:
+        """The joint speed limits (n,) from one value or n of them (None: None)."""
+        if value is None:
+            return None
+        values = np.full(n, float(value)) if np.ndim(value) == 0 else np.asarray(list(value), dtype=float)
+        if values.shape != (n,) or not np.all(np.isfinite(values) & (values > 0)):
+            raise UnsupportedModelError(f"joint_speed_limit must be one finite number > 0 or {n} of them (one per arm "
+                                        f"dof), got {value!r}")  # fmt: skip
+        return values
 
     def write_ctrl(self, model: mujoco.MjModel, data: mujoco.MjData, tau: np.ndarray) -> None:
         """Set ``data.ctrl`` so that the arm's motors apply the joint torques ``tau`` (n,) [N m or
@@ -256,43 +347,45 @@ class RobotDescription:
         tau = np.asarray(tau, dtype=float)
         if tau.shape != (self.n,) or not np.all(np.isfinite(tau)):
             raise ValueError(f"tau must be {self.n} finite joint torques, got {tau!r}")
-        ctrl = tau - np.where(self.gravcomp_in_actuator, data.qfrc_gravcomp, 0.0)
+        ctrl = tau - np.where(self.gravcomp_in_actuator, data.qfrc_gravcomp[self.dof_ids], 0.0)
         ctrl /= self.gear
         low, high = model.actuator_ctrlrange[self.actuator_ids].T
         limited = model.actuator_ctrllimited[self.actuator_ids].astype(bool)
         outside = limited & ((ctrl < low - 1e-9 * np.abs(low)) | (ctrl > high + 1e-9 * np.abs(high)))
         if outside.any():
             a = int(self.actuator_ids[np.flatnonzero(outside)[0]])
-            raise ValueError(f"actuator {_name(model, mujoco.mjtObj.mjOBJ_ACTUATOR, a)} would need ctrl "
+            raise ValueError(f"actuator {_name(model, _OBJ.mjOBJ_ACTUATOR, a)} would need ctrl "
                              f"{ctrl[outside][0]:.6g}, outside its ctrlrange {tuple(model.actuator_ctrlrange[a])}")  # fmt: skip
         data.ctrl[self.actuator_ids] = ctrl
 
-    @classmethod
-    def _default_geoms(cls, model: mujoco.MjModel) -> set[int]:
-        """Every colliding geom (not a plane, height field or SDF) on a moving body; warns naming
-        the moving bodies that carry geoms but none that collides."""
-        moving = {b for b in range(1, model.nbody) if model.body_dofnum[cls._root_chain(model, b)].any()}
+    @staticmethod
+    def _default_geoms(model: mujoco.MjModel, dofs: np.ndarray) -> set[int]:
+        """Every colliding geom (not a plane, height field or SDF) on a body the arm's ``dofs``
+        move; warns naming such bodies that carry geoms but none that collides."""
+        moving = {b for b in range(1, model.nbody) if _chain(model, b)[dofs].any()}
         on_moving = [g for g in range(model.ngeom) if int(model.geom_bodyid[g]) in moving]
         chosen = {g for g in on_moving if int(model.geom_type[g]) not in _SURFACES
                   and (model.geom_contype[g] or model.geom_conaffinity[g])}  # fmt: skip
         bare = sorted({int(model.geom_bodyid[g]) for g in on_moving} - {int(model.geom_bodyid[g]) for g in chosen})
         if bare:
-            names = ", ".join(_name(model, mujoco.mjtObj.mjOBJ_BODY, b) for b in bare)
+            names = ", ".join(_name(model, _OBJ.mjOBJ_BODY, b) for b in bare)
             warnings.warn(f"bodies {names} move with the arm but none of their geoms can collide (contype = "
                           "conaffinity = 0), so the default selection protects none of them; pass bodies=, geoms= or "
-                          "group= to protect them", UnprotectedGeometryWarning, stacklevel=3)  # fmt: skip
+                          "group= to protect them", UnprotectedGeometryWarning, stacklevel=4)  # fmt: skip
         return chosen
 
     @staticmethod
-    def _immovable(model: mujoco.MjModel, geom: int, capsule: Capsule) -> bool:
-        """Whether no joint can translate either end of ``capsule`` (on ``geom``), checked at the
-        model's reference configuration and at one turned by 0.3 rad (0.03 m) per joint (within
-        the limits): the geom lies on the axes of every hinge that moves it."""
+    def _immovable(model: mujoco.MjModel, dofs: np.ndarray, geom: int, capsule: Capsule) -> bool:
+        """Whether the arm's ``dofs`` cannot translate either end of ``capsule`` (on ``geom``),
+        checked at the model's reference configuration and at one turned by 0.3 rad (0.03 m) per
+        joint (within the limits): the geom lies on the axes of every hinge that moves it."""
         data = mujoco.MjData(model)
         jac = np.zeros((3, model.nv))
         for offset in (0.0, 0.3):
             data.qpos[:] = model.qpos0
             for j in range(model.njnt):
+                if int(model.jnt_type[j]) not in _JOINT_TYPES:
+                    continue
                 step = offset if model.jnt_type[j] == mujoco.mjtJoint.mjJNT_HINGE else 0.1 * offset
                 low, high = model.jnt_range[j] if model.jnt_limited[j] else (-np.inf, np.inf)
                 adr = model.jnt_qposadr[j]
@@ -302,7 +395,7 @@ class RobotDescription:
             xmat = data.geom_xmat[geom].reshape(3, 3)
             for end in (capsule.a, capsule.b):
                 mujoco.mj_jac(model, data, jac, None, data.geom_xpos[geom] + xmat @ end, model.geom_bodyid[geom])
-                if np.abs(jac).max() > 1e-9:
+                if np.abs(jac[:, dofs]).max() > 1e-9:
                     return False
         return True
 
@@ -311,20 +404,11 @@ class RobotDescription:
         in their place (radius, length) [m]: one line each."""
         lines = [f"{'geom':<24} {'body':<20} {'type':<10} {'radius':>8} {'length':>8}"]
         for g, capsule in zip(self.geom_ids, self.capsules, strict=True):
-            geom = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_GEOM, g) or f"#{g}"
-            body = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_BODY, model.geom_bodyid[g]) or f"#{model.geom_bodyid[g]}"
+            geom = mujoco.mj_id2name(model, _OBJ.mjOBJ_GEOM, g) or f"#{g}"
+            body = mujoco.mj_id2name(model, _OBJ.mjOBJ_BODY, model.geom_bodyid[g]) or f"#{model.geom_bodyid[g]}"
             lines.append(f"{geom:<24} {body:<20} {capsule.source:<10} {capsule.radius:8.4f} "
                          f"{2 * capsule.half_length:8.4f}")  # fmt: skip
         return "\n".join(lines)
-
-    @staticmethod
-    def _root_chain(model: mujoco.MjModel, body: int) -> list[int]:
-        """``body`` and its ancestors up to (not including) the world body."""
-        chain = []
-        while body > 0:
-            chain.append(int(body))
-            body = model.body_parentid[body]
-        return chain
 
     @staticmethod
     def _torque_limit(model: mujoco.MjModel, a: int) -> float:
@@ -339,7 +423,7 @@ class RobotDescription:
             gear = abs(model.actuator_gear[a, 0])
             bounds.append(np.sort(model.actuator_ctrlrange[a] * gear))
         limits = [min(-low, high) for low, high in bounds]
-        label = f"actuator {_name(model, mujoco.mjtObj.mjOBJ_ACTUATOR, a)}"
+        label = f"actuator {_name(model, _OBJ.mjOBJ_ACTUATOR, a)}"
         if not limits:
             raise UnsupportedModelError(f"{label} has no torque limit: set its ctrlrange or forcerange, or the joint's "
                                         "actuatorfrcrange")  # fmt: skip
@@ -356,8 +440,8 @@ class RobotDescription:
     def require_joint_limits(self, model: mujoco.MjModel) -> None:
         """Raise :class:`UnsupportedModelError` naming the first joint without position limits,
         or when no joint speed limit was given (the joint-limit rows need both)."""
-        for dof in np.flatnonzero(~self.joint_limited()):
-            joint = _name(model, mujoco.mjtObj.mjOBJ_JOINT, model.dof_jntid[dof])
+        for i in np.flatnonzero(~self.joint_limited()):
+            joint = _name(model, _OBJ.mjOBJ_JOINT, model.dof_jntid[self.dof_ids[i]])
             raise UnsupportedModelError(f"joint {joint} has no position limits (limited=\"true\" range=...), which the "
                                         "filter's joint-limit rows need; add them, or build the filter with "
                                         "joint_limits=False")  # fmt: skip

@@ -130,19 +130,27 @@ class JointLimits:
         Minv: ArrayLike,
         c_q: ArrayLike,
         out: Rows | None = None,
+        *,
+        dofs: ArrayLike | None = None,
+        qpos_ids: ArrayLike | None = None,
     ) -> Rows:
-        """The ``4n`` limit rows ``A @ τ >= b`` at state ``(q, q̇)``.
+        """The ``4n`` limit rows ``A @ τ >= b`` at state ``(q, q̇)``, for a torque ``τ`` on ``k``
+        dofs (``k = n`` unless the limited joints are some of a larger model's).
 
         Args:
-            q: (n,) joint positions [rad].
-            qd: (n,) joint velocities [rad/s].
-            Minv: (n, n) inverse mass matrix (``q̈ = Minv τ + c_q``).
-            c_q: (n,) joint acceleration at zero torque [rad/s²].
-            out: optional preallocated :class:`Rows` with ``out.A`` (>= 4n, n) and
+            q: (n,) joint positions [rad]; with ``qpos_ids``, a model's ``qpos`` (nq,).
+            qd: (n,) joint velocities [rad/s]; with ``dofs``, a model's ``qvel`` (k,).
+            Minv: (n, k) the map from the torque to the limited joints' accelerations
+                (``q̈ = Minv τ + c_q``); with ``dofs``, the whole (k, k) inverse mass matrix.
+            c_q: (n,) joint acceleration at zero torque [rad/s²]; with ``dofs``, (k,).
+            out: optional preallocated :class:`Rows` with ``out.A`` (>= 4n, k) and
                 ``out.b`` (>= 4n,); the first 4n rows are overwritten.
+            dofs, qpos_ids: (n,) where the limited joints are in a larger model's arrays: their
+                dofs (rows of ``Minv``, entries of ``qd`` and ``c_q``) and their ``qpos``
+                addresses. None: the first ``n`` of each, in order.
 
         Returns:
-            :class:`Rows` with ``A`` (4n, n) and ``b`` (4n,), in the row order of
+            :class:`Rows` with ``A`` (4n, k) and ``b`` (4n,), in the row order of
             the class docstring (views of ``out`` when given).
 
         Raises:
@@ -154,16 +162,27 @@ class JointLimits:
         qd = np.asarray(qd, dtype=np.float64)
         Minv = np.asarray(Minv, dtype=np.float64)
         c_q = np.asarray(c_q, dtype=np.float64)
-        for name, arr, shape in (
-            ("q", q, (n,)),
-            ("qd", qd, (n,)),
-            ("Minv", Minv, (n, n)),
-            ("c_q", c_q, (n,)),
-        ):
+        first = np.arange(n, dtype=np.int64)
+        k = Minv.shape[1] if Minv.ndim == 2 else -1
+        rows = n if dofs is None else k
+        checks = [("qd", qd, (rows,)), ("Minv", Minv, (rows, max(k, n))), ("c_q", c_q, (rows,))]
+        if qpos_ids is None:
+            checks.append(("q", q, (n,)))
+        else:
+            qpos_ids = np.asarray(qpos_ids, dtype=np.int64)
+            if q.ndim != 1 or qpos_ids.shape != (n,) or not np.all((qpos_ids >= 0) & (qpos_ids < len(q))):
+                raise ValueError(f"qpos_ids must be {n} indices into q; got {qpos_ids!r} for q of shape {q.shape}")
+        if dofs is not None:
+            dofs = np.asarray(dofs, dtype=np.int64)
+            if dofs.shape != (n,) or not np.all((dofs >= 0) & (dofs < k)):
+                raise ValueError(f"dofs must be {n} indices into the rows of Minv; got {dofs!r}")
+        for name, arr, shape in checks:
             if arr.shape != shape:
                 raise ValueError(f"{name} must have shape {shape}; got {arr.shape}")
-        A, b = row_buffers(out, m, n)
+        dofs = first if dofs is None else dofs
+        qpos_ids = first if qpos_ids is None else qpos_ids
+        A, b = row_buffers(out, m, Minv.shape[1])
         # compiled: A = [−Minv; Minv; −Minv; Minv], b from the expansions in __init__'s comment
-        _kernels.joint_limit_rows(q, qd, contiguous(Minv), c_q, self._q_lo, self._q_hi, self._qd_max,
+        _kernels.joint_limit_rows(q, qd, contiguous(Minv), c_q, dofs, qpos_ids, self._q_lo, self._q_hi, self._qd_max,
                                   self._g1, self._g2, self._gv, A, b)
         return Rows(A, b)
