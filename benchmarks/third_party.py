@@ -7,7 +7,11 @@ benchmark adds only the scene, in code (:func:`build_scene`): a floor, the obsta
 no contacts: clearance is measured, not felt), a tool site on the last link when the arm has none,
 and a torque motor on any joint without one. The arm is described by
 ``RobotDescription.from_model``'s default selection (every colliding geom on a moving body, meshes
-enclosed by capsules) and filtered by the default ``SafetyController`` (``FilterConfig()``).
+enclosed by capsules) and filtered by the default ``SafetyController`` (``FilterConfig()``, no
+sensing radius: every sphere adds rows). The arm's geoms keep the file's ``contype`` and
+``conaffinity``, so the arms can touch the floor and robosuite's Sawyer its own links and base (its
+file excludes no pair; its first link touches the base at the start): contact forces are outside
+the filter's model, as in the project's own environment.
 
 Episodes of ``--seconds`` (5 s) at a 0.002 s physics step start from robosuite's initial joint
 configuration of the arm. Obstacle spheres (radius 5-8 cm, speed 0.1-0.4 m/s) are aimed at a random
@@ -151,18 +155,18 @@ ARMS = {
     # are this variant's): KUKA's LBR iiwa specification sheet, axis speeds A1-A7.
     "iiwa": Arm("iiwa", (0.0, 0.65, 0.0, -1.89, 0.0, 0.6, 0.0), _deg(98, 98, 100, 130, 140, 180, 180)),
     # Rethink Robotics Sawyer: the velocity limits of Rethink's own model (sawyer_description's
-    # URDF, right_j0-right_j6: 1.74, 1.328, 1.957, 1.957, 3.485, 3.485, 4.545 rad/s); Rethink's
-    # public datasheet gives no per-joint speeds, so these are the manufacturer's model values,
-    # not a datasheet's.
+    # URDF, right_j0-right_j6, as quoted in public code); Rethink's public datasheet gives no
+    # per-joint speeds, so these are the manufacturer's model values, not a datasheet's (unsure).
     "sawyer": Arm("sawyer", (0.0, -1.18, 0.0, 2.18, 0.0, 0.57, -1.57),
                   (1.74, 1.328, 1.957, 1.957, 3.485, 3.485, 4.545)),
-    # Kinova Gen3 (7 dof): the Gen3 user guide's maximum joint speeds, 1.39 rad/s (79.6 deg/s) for
-    # the large actuators (joints 1-4) and 1.22 rad/s (69.9 deg/s) for the small ones (5-7), as in
-    # Kinova's ros_kortex URDF; not checked against the PDF here (unsure).
+    # Kinova Gen3 (7 dof): 80 deg/s (1.3963 rad/s) for the large actuators (joints 1-4) and
+    # 70 deg/s (1.2218 rad/s) for the small ones (5-7), the velocity limits of Kinova's ros_kortex
+    # model of the Gen3; the Gen3 user guide's own table was not checked here (unsure).
     "kinova3": Arm("kinova3", (0.0, 0.65, 0.0, 1.89, 0.0, 0.6, -np.pi / 2), (1.3963,) * 4 + (1.2218,) * 3),
-    # Kinova Jaco 2 (j2s7s300): 36 deg/s for the KA-75+ actuators (joints 1-4) and 48 deg/s for
-    # the KA-58 ones (5-7), the velocity limits of Kinova's kinova-ros URDF (0.628 and 0.838
-    # rad/s); the actuator datasheet robosuite cites for the torques was not checked here (unsure).
+    # Kinova Jaco 2 (j2s7s300): 36 deg/s (0.628 rad/s) for joints 1-4, the velocity limit of
+    # Kinova's kinova-ros model (seen for joints 1 and 2); 48 deg/s for the KA-58 wrist actuators
+    # (5-7) is the Jaco 2 specification as remembered, not checked against the actuator datasheet
+    # robosuite cites for the torques (unsure).
     "jaco": Arm("jaco", (3.192, 3.68, 0.0, 1.17, 0.05, 3.76, 3.142), _deg(36, 36, 36, 36, 48, 48, 48)),
 }
 
