@@ -1,0 +1,529 @@
+"""The safety filter on arms nobody here modelled: robosuite's MJCF arms (issue 32).
+
+The arms are the MJCF files robosuite 1.5.2 ships (``robosuite/models/assets/robots/<arm>/robot.xml``
+and their meshes), fetched from PyPI by :func:`robosuite_assets`; robosuite's runtime is not used
+and nothing of it is copied into this repository. Each arm is loaded as its file describes it; the
+benchmark adds only the scene, in code (:func:`build_scene`): a floor, the obstacle spheres (mocap,
+no contacts: clearance is measured, not felt), a tool site on the last link when the arm has none,
+and a torque motor on any joint without one. The arm is described by
+``RobotDescription.from_model``'s default selection (every colliding geom on a moving body, meshes
+enclosed by capsules) and filtered by the default ``SafetyController`` (``FilterConfig()``, no
+sensing radius: every sphere adds rows). The arm's geoms keep the file's ``contype`` and
+``conaffinity``, so the arms can touch the floor and robosuite's Sawyer its own links and base (its
+file excludes no pair; its first link touches the base at the start): contact forces are outside
+the filter's model, as in the project's own environment.
+
+Episodes of ``--seconds`` (5 s) at a 0.002 s physics step start from robosuite's initial joint
+configuration of the arm. Obstacle spheres (radius 5-8 cm, speed 0.1-0.4 m/s) are aimed at a random
+point of a random protected capsule or at the tool, as in the project's scenarios:
+
+* ``static``: one sphere at rest, its surface 0.1-0.3 m from the point it is aimed at;
+* ``head_on``: one sphere coming at the point along the horizontal line from the base's axis
+  through it, reaching it 0.8-2 s after the start;
+* ``crossing``: one sphere crossing that line at 50-90 deg, reaching the point 0.8-2 s in;
+* ``multi``: four at once (static, head_on and two crossing), each aimed independently.
+
+Every sphere spawns at least 0.1 m (surface to surface) from every protected capsule and keeps its
+whole 5 s path above the floor and outside a keep-out cylinder around the base's vertical axis
+(the base and shoulder cannot dodge, so no controller could). Policies (:data:`POLICIES`):
+
+* ``random``: gravity and Coriolis compensation (``data.qfrc_bias``) plus torques drawn uniformly
+  within ``robot.torque_limit``, the draw held for 10 physics steps (a 50 Hz policy at 500 Hz
+  physics), clipped to the limits;
+* ``adversarial``: ``data.qfrc_bias`` plus ``Jᵀ F`` for a 400 N force pulling the arm point
+  nearest to the nearest sphere (on its capsule's axis) towards the sphere's centre, clipped to
+  the limits: ``benchmarks/guarantee.py``'s adversary on a torque-driven arm.
+
+Every episode runs twice on the same seed: filtered and unfiltered. Collisions are judged by
+MuJoCo alone: ``mj_geomDistance`` between every sphere and every protected geom (the geom itself,
+e.g. the mesh, not its capsule) at the start and after every physics step; negative is
+penetration. Per arm x scenario x policy the table prints: episodes, filtered episodes with a
+collision, the lowest clearance [m], infeasible physics steps per 1,000 (the filter's QP needed
+slack), the largest ``|q̇_i| / q̇_max,i`` (the manufacturer's speed, :data:`ARMS`; the default
+filter holds ``joint_speed_fraction`` = 0.5 of it), and the same three without the filter. An arm
+the library refuses (``UnsupportedModelError``) is listed with the library's message instead.
+
+Usage::
+
+    python benchmarks/third_party.py --quick
+    python benchmarks/third_party.py --episodes 10 --arms iiwa sawyer jaco --json third_party.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import multiprocessing as mp
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+import warnings
+import zipfile
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import mujoco
+import numpy as np
+
+from c3bf_gym.safety import FilterConfig, MocapSpheres, RobotDescription, SafetyController, UnsupportedModelError
+from c3bf_gym.safety.dynamics import ArmModel, segment_closest_points
+
+ROBOSUITE_VERSION = "1.5.2"
+#: Environment variable naming the folder :func:`robosuite_assets` downloads and extracts into.
+CACHE_VARIABLE = "C3BF_ROBOSUITE_CACHE"
+_ASSETS = "robosuite/models/assets"
+_EXTRACTED = (f"{_ASSETS}/robots/", f"{_ASSETS}/grippers/")
+
+
+def robosuite_assets(cache: str | os.PathLike | None = None) -> Path:
+    """The ``robosuite/models/assets`` folder of robosuite 1.5.2, holding ``robots/`` and
+    ``grippers/`` (MJCF files and meshes), downloaded and extracted on first use.
+
+    The wheel comes from PyPI through pip (``pip download --no-deps robosuite==1.5.2``) into
+    ``cache``; only the members under ``robosuite/models/assets/robots/`` and ``.../grippers/`` are
+    extracted (into a temporary folder, then moved into place, so an interrupted or concurrent
+    extraction never leaves a partial tree). Later calls only check that the folder is there.
+
+    Args:
+        cache: the folder for the wheel and the extracted files; None: ``$C3BF_ROBOSUITE_CACHE``,
+            else ``~/.cache/c3bf-gym/robosuite-1.5.2``.
+
+    Raises:
+        RuntimeError: pip failed (its output is in the message; PyPI must be reachable), or the
+            wheel has no ``robosuite/models/assets/robots/``.
+    """
+    default = Path.home() / ".cache" / "c3bf-gym" / f"robosuite-{ROBOSUITE_VERSION}"
+    cache = Path(cache if cache is not None else os.environ.get(CACHE_VARIABLE) or default).expanduser()
+    assets = cache / _ASSETS
+    if (assets / "robots").is_dir() and (assets / "grippers").is_dir():
+        return assets
+    cache.mkdir(parents=True, exist_ok=True)
+    wheels = sorted(cache.glob(f"robosuite-{ROBOSUITE_VERSION}-*.whl"))
+    if not wheels:
+        done = subprocess.run([sys.executable, "-m", "pip", "download", "--no-deps", "--only-binary=:all:",
+                               f"robosuite=={ROBOSUITE_VERSION}", "-d", str(cache)],
+                              capture_output=True, text=True)  # fmt: skip
+        wheels = sorted(cache.glob(f"robosuite-{ROBOSUITE_VERSION}-*.whl"))
+        if done.returncode != 0 or not wheels:
+            raise RuntimeError(f"pip download robosuite=={ROBOSUITE_VERSION} failed:\n{done.stdout}{done.stderr}")
+    with zipfile.ZipFile(wheels[-1]) as wheel, tempfile.TemporaryDirectory(dir=cache) as scratch:
+        members = [name for name in wheel.namelist() if name.startswith(_EXTRACTED)]
+        if not any(name.startswith(_EXTRACTED[0]) for name in members):
+            raise RuntimeError(f"{wheels[-1]} has no {_EXTRACTED[0]}")
+        wheel.extractall(scratch, members)
+        if not assets.is_dir():
+            assets.parent.mkdir(parents=True, exist_ok=True)
+            try:
+                os.replace(Path(scratch) / _ASSETS, assets)
+            except OSError:  # another process moved its copy in first
+                if not assets.is_dir():
+                    raise
+        else:  # a partial earlier tree (one of robots/, grippers/ missing): complete it
+            for part in ("robots", "grippers"):
+                if not (assets / part).is_dir():
+                    shutil.move(str(Path(scratch) / _ASSETS / part), assets / part)
+    return assets
+
+
+@dataclass(frozen=True)
+class Arm:
+    """How the benchmark runs one robosuite arm.
+
+    Attributes:
+        folder: the arm's folder under ``robots/``.
+        init_qpos: (n,) the starting joint configuration [rad]: robosuite's own ``init_qpos`` for
+            the arm (``robosuite/models/robots/manipulators/<arm>_robot.py``).
+        joint_speed_limit: (n,) the manufacturer's joint speed limits [rad/s] (sources in
+            :data:`ARMS`).
+    """
+
+    folder: str
+    init_qpos: tuple[float, ...]
+    joint_speed_limit: tuple[float, ...]
+
+
+def _deg(*values: float) -> tuple[float, ...]:
+    return tuple(float(np.deg2rad(v)) for v in values)
+
+
+#: The arms, by name. Joint speed limits are not in the MJCF files; each comes with its source.
+ARMS = {
+    # KUKA LBR iiwa 7 R800 (robosuite's "iiwa7"; its torque limits 176/176/110/110/110/40/40 N m
+    # are this variant's): KUKA's LBR iiwa specification sheet, axis speeds A1-A7.
+    "iiwa": Arm("iiwa", (0.0, 0.65, 0.0, -1.89, 0.0, 0.6, 0.0), _deg(98, 98, 100, 130, 140, 180, 180)),
+    # Rethink Robotics Sawyer: the velocity limits of Rethink's own model (sawyer_description's
+    # URDF, right_j0-right_j6, as quoted in public code); Rethink's public datasheet gives no
+    # per-joint speeds, so these are the manufacturer's model values, not a datasheet's (unsure).
+    "sawyer": Arm("sawyer", (0.0, -1.18, 0.0, 2.18, 0.0, 0.57, -1.57),
+                  (1.74, 1.328, 1.957, 1.957, 3.485, 3.485, 4.545)),
+    # Kinova Gen3 (7 dof): 80 deg/s (1.3963 rad/s) for the large actuators (joints 1-4) and
+    # 70 deg/s (1.2218 rad/s) for the small ones (5-7), the velocity limits of Kinova's ros_kortex
+    # model of the Gen3; the Gen3 user guide's own table was not checked here (unsure).
+    "kinova3": Arm("kinova3", (0.0, 0.65, 0.0, 1.89, 0.0, 0.6, -np.pi / 2), (1.3963,) * 4 + (1.2218,) * 3),
+    # Kinova Jaco 2 (j2s7s300): 36 deg/s (0.628 rad/s) for joints 1-4, the velocity limit of
+    # Kinova's kinova-ros model (seen for joints 1 and 2); 48 deg/s for the KA-58 wrist actuators
+    # (5-7) is the Jaco 2 specification as remembered, not checked against the actuator datasheet
+    # robosuite cites for the torques (unsure).
+    "jaco": Arm("jaco", (3.192, 3.68, 0.0, 1.17, 0.05, 3.76, 3.142), _deg(36, 36, 36, 36, 48, 48, 48)),
+}
+
+SCENARIOS = {"static": ("static",), "head_on": ("head_on",), "crossing": ("crossing",),
+             "multi": ("static", "head_on", "crossing", "crossing")}  # fmt: skip
+POLICIES = ("random", "adversarial")
+
+TIMESTEP = 0.002  # [s] physics step, set on every model (robosuite's files say 0.002 too)
+HOLD_STEPS = 10  # the random policy's draw is held 10 physics steps: 50 Hz at 500 Hz physics
+PULL_FORCE = 400.0  # [N] the adversary's pull
+RADIUS = (0.05, 0.08)  # [m] sphere radii
+SPEED = (0.1, 0.4)  # [m/s] sphere speeds
+MEET_TIME = (0.8, 2.0)  # [s] when a moving sphere reaches its aim point
+STATIC_GAP = (0.1, 0.3)  # [m] a static sphere's surface from its aim point
+CROSSING_ANGLE = (50.0, 90.0)  # [deg] a crossing sphere's heading from the head-on line
+SPAWN_CLEARANCE = 0.1  # [m] from every protected capsule at the start
+KEEP_OUT = (0.2, 0.45)  # [m] radius and height of the cylinder about the base's axis no path enters
+MIN_HEIGHT = 0.05  # [m] every sphere's surface stays this far above the floor
+EXTRA_MOTOR_TORQUE = 10.0  # [N m] bound of a motor added to a joint the file leaves without one
+CUTOFF = 1.0  # [m] distances beyond this are not resolved (the lowest clearance is capped here)
+_BALL = "c3bf_ball{}"
+
+
+# ----------------------------------------------------------------------------- the scene
+
+
+def build_scene(assets: Path, arm: str, spheres: int) -> tuple[mujoco.MjModel, RobotDescription, list[str]]:
+    """The arm's robosuite MJCF with the benchmark's scene added, and its description.
+
+    Added: ``model.opt.timestep`` = :data:`TIMESTEP`; a floor plane at z = 0 (the arm's base
+    stands on it); ``spheres`` mocap spheres ``c3bf_ball0``... (contype = conaffinity = 0, radius
+    set per episode); a site ``c3bf_tool`` on the last body when the file has no site; and a
+    ``<motor>`` (±:data:`EXTRA_MOTOR_TORQUE` N m) on every joint without an actuator.
+
+    Returns:
+        (model, robot, notes): the compiled model, ``RobotDescription.from_model`` with the
+        default geom selection, the first site as the tool and the arm's speed limits, and the
+        warnings and additions to report (strings).
+
+    Raises:
+        ValueError: an unknown arm (names the valid ones), or a file that reads angles in degrees.
+        UnsupportedModelError: the library refuses the model (its message says why).
+    """
+    if arm not in ARMS:
+        raise ValueError(f"unknown arm {arm!r}; choose from {', '.join(ARMS)}")
+    path = Path(assets) / "robots" / ARMS[arm].folder / "robot.xml"
+    spec = mujoco.MjSpec.from_file(str(path))
+    if spec.compiler.degree:  # MuJoCo reads angles in degrees unless <compiler angle="radian"/>
+        raise ValueError(f"{path} reads angles in degrees; the joint limits and init_qpos here are radians")
+    notes = []
+    spec.option.timestep = TIMESTEP
+    # the tool: a site on the last link (the body deepest in the tree; robosuite's "right_hand",
+    # where its grippers attach). robosuite's only site, "right_center", is on the fixed base.
+    parents = spec.compile().body_parentid
+    depth = [0] * len(parents)
+    for body in range(1, len(parents)):
+        depth[body] = depth[parents[body]] + 1
+    last = spec.bodies[len(depth) - 1 - int(np.argmax(depth[::-1]))]  # spec.bodies[i] is model body i
+    tool = last.sites[0].name if last.sites else None
+    if tool is None:
+        tool = "c3bf_tool"
+        last.add_site(name=tool)
+        notes.append(f"added a tool site on the last link, body {last.name!r}")
+    spec.worldbody.add_geom(name="c3bf_floor", type=mujoco.mjtGeom.mjGEOM_PLANE, size=[3.0, 3.0, 0.1])
+    for k in range(spheres):
+        body = spec.worldbody.add_body(name=_BALL.format(k), mocap=True, pos=[5.0 + k, 0.0, 1.0])
+        body.add_geom(name=_BALL.format(k), type=mujoco.mjtGeom.mjGEOM_SPHERE, size=[RADIUS[0], 0, 0],
+                      contype=0, conaffinity=0, rgba=[0.9, 0.2, 0.15, 0.6])  # fmt: skip
+    driven = {actuator.target for actuator in spec.actuators}
+    for joint in spec.joints:
+        # e.g. a Sawyer head joint: the filter needs a torque motor on every dof (robosuite 1.5.2's
+        # sawyer comments its head_pan joint out, so none of ARMS needs this today)
+        if joint.name not in driven:
+            spec.add_actuator(name=f"c3bf_motor_{joint.name}", target=joint.name,
+                              trntype=mujoco.mjtTrn.mjTRN_JOINT, ctrllimited=mujoco.mjtLimited.mjLIMITED_TRUE,
+                              ctrlrange=[-EXTRA_MOTOR_TORQUE, EXTRA_MOTOR_TORQUE])  # fmt: skip
+            notes.append(f"added a ±{EXTRA_MOTOR_TORQUE:g} N m motor on joint {joint.name!r}")
+    model = spec.compile()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        robot = RobotDescription.from_model(model, site=tool, joint_speed_limit=ARMS[arm].joint_speed_limit)
+    notes += [str(w.message) for w in caught]
+    return model, robot, notes
+
+
+# ----------------------------------------------------------------------------- spheres
+
+
+def _spawn(rng: np.random.Generator, kinds: tuple[str, ...], a: np.ndarray, b: np.ndarray, capsule_radius: np.ndarray,
+           tool: np.ndarray, horizon: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Positions (K, 3), velocities (K, 3) and radii (K,) of one sphere per kind, aimed at the
+    capsules ``a``-``b`` (S, 3) of ``capsule_radius`` (S,) or the ``tool`` (3,) [m] (module
+    docstring); RuntimeError when 1,000 attempts place none."""
+    out = np.zeros((len(kinds), 3)), np.zeros((len(kinds), 3)), np.zeros(len(kinds))
+    for k, kind in enumerate(kinds):
+        for _ in range(1000):
+            s = int(rng.integers(len(a) + 1))
+            aim = tool if s == len(a) else a[s] + rng.uniform() * (b[s] - a[s])
+            radius, speed = rng.uniform(*RADIUS), rng.uniform(*SPEED)
+            outward = np.array([aim[0], aim[1], 0.0])
+            outward = outward / np.linalg.norm(outward) if np.linalg.norm(outward) > 1e-6 else np.array([1.0, 0, 0])
+            if kind == "static":
+                direction = rng.normal(size=3)
+                direction /= np.linalg.norm(direction)
+                reach = (0.0 if s == len(a) else capsule_radius[s]) + radius + rng.uniform(*STATIC_GAP)
+                position, velocity = aim + reach * direction, np.zeros(3)
+            else:
+                heading = -outward
+                if kind == "crossing":  # turned away from the head-on line, rolled about it
+                    side = np.cross(heading, [0.0, 0.0, 1.0])
+                    side /= np.linalg.norm(side)
+                    roll = rng.uniform(0.0, 2 * np.pi)
+                    normal = np.cos(roll) * side + np.sin(roll) * np.cross(heading, side)
+                    angle = np.deg2rad(rng.uniform(*CROSSING_ANGLE))
+                    heading = np.cos(angle) * heading + np.sin(angle) * normal
+                velocity = speed * heading
+                position = aim - velocity * rng.uniform(*MEET_TIME)
+            if _placeable(position, velocity, radius, a, b, capsule_radius, horizon):
+                out[0][k], out[1][k], out[2][k] = position, velocity, radius
+                break
+        else:
+            raise RuntimeError(f"no {kind} sphere could be placed in 1,000 attempts")
+    return out
+
+
+def _placeable(position: np.ndarray, velocity: np.ndarray, radius: float, a: np.ndarray, b: np.ndarray,
+               capsule_radius: np.ndarray, horizon: float) -> bool:
+    """Clear of every capsule by :data:`SPAWN_CLEARANCE`, and a path over ``horizon`` s that stays
+    :data:`MIN_HEIGHT` above the floor and out of the :data:`KEEP_OUT` cylinder."""
+    closest = segment_closest_points(a, b, position[None])[0]
+    if np.min(np.linalg.norm(closest - position, axis=1) - capsule_radius) - radius < SPAWN_CLEARANCE:
+        return False
+    path = position + np.linspace(0.0, horizon, 51)[:, None] * velocity
+    if np.min(path[:, 2]) - radius < MIN_HEIGHT:
+        return False
+    low = path[:, 2] < KEEP_OUT[1] + radius
+    return not np.any(np.linalg.norm(path[low, :2], axis=1) < KEEP_OUT[0] + radius)
+
+
+# ----------------------------------------------------------------------------- one episode
+
+
+@dataclass
+class Episode:
+    """One episode's outcome (lengths in m)."""
+
+    arm: str
+    scenario: str
+    policy: str
+    filtered: bool
+    seed: int
+    steps: int = 0
+    collided: bool = False
+    lowest_clearance: float = CUTOFF
+    infeasible_steps: int = 0
+    max_speed_ratio: float = 0.0
+
+
+_SCENES: dict = {}  # (assets, arm, spheres) -> build_scene(...), per process
+
+
+def run_episode(task: tuple[str, str, str, str, bool, int, float]) -> Episode:
+    """One episode: ``task`` = (assets folder, arm, scenario, policy, filtered, seed, seconds)."""
+    assets, arm, scenario, policy, filtered, seed, seconds = task
+    kinds = SCENARIOS[scenario]
+    key = (assets, arm, len(kinds))
+    if key not in _SCENES:
+        _SCENES[key] = build_scene(Path(assets), arm, len(kinds))
+    model, robot, _ = _SCENES[key]
+    data = mujoco.MjData(model)
+    data.qpos[:] = ARMS[arm].init_qpos
+    mujoco.mj_forward(model, data)
+    arm_model = ArmModel(model, robot.geom_ids, robot.site_id)
+    a, b = arm_model.capsule_segments(data)
+    rng = np.random.default_rng(seed)
+    position, velocity, radius = _spawn(rng, kinds, a, b, arm_model.capsule_radius, data.site_xpos[robot.site_id],
+                                        seconds)  # fmt: skip
+    balls = [model.geom(_BALL.format(k)).id for k in range(len(kinds))]
+    mocap = [model.body(_BALL.format(k)).mocapid[0] for k in range(len(kinds))]
+    model.geom_size[balls, 0] = radius
+    data.mocap_pos[mocap] = position
+    mujoco.mj_forward(model, data)
+    spheres = MocapSpheres(model, [_BALL.format(k) for k in range(len(kinds))])
+    controller = SafetyController(model, data, robot, spheres, FilterConfig()) if filtered else None
+    if controller is not None:
+        arm_model = controller.arm
+    out = Episode(arm, scenario, policy, filtered, seed)
+    limit, speed_limit = robot.torque_limit, robot.joint_speed_limit
+    jac = np.zeros((3, model.nv))
+    draw = np.zeros(model.nv)
+    policy_rng = np.random.default_rng([seed, 1])
+    steps = int(round(seconds / TIMESTEP))
+
+    def measure() -> None:  # MuJoCo's own distances, sphere to geom, at the current kinematics
+        for ball in balls:
+            for geom in robot.geom_ids:
+                gap = mujoco.mj_geomDistance(model, data, ball, int(geom), min(out.lowest_clearance, CUTOFF), None)
+                out.lowest_clearance = min(out.lowest_clearance, gap)
+        out.collided |= out.lowest_clearance < 0.0
+        out.max_speed_ratio = max(out.max_speed_ratio, float(np.max(np.abs(data.qvel) / speed_limit)))
+
+    for step in range(steps):
+        mujoco.mj_step1(model, data)  # kinematics of the state the last physics step reached
+        measure()
+        if policy == "random":
+            if step % HOLD_STEPS == 0:
+                draw = policy_rng.uniform(-limit, limit)
+            tau = data.qfrc_bias + draw
+        else:
+            a, b = arm_model.capsule_segments(data)
+            centres = data.mocap_pos[mocap]
+            closest = segment_closest_points(a, b, centres)  # (K, S, 3)
+            gaps = np.linalg.norm(closest - centres[:, None], axis=2) - arm_model.capsule_radius - radius[:, None]
+            k, s = np.unravel_index(int(np.argmin(gaps)), gaps.shape)
+            pull = centres[k] - closest[k, s]
+            mujoco.mj_jac(model, data, jac, None, closest[k, s], int(model.geom_bodyid[robot.geom_ids[s]]))
+            tau = data.qfrc_bias + jac.T @ (PULL_FORCE * pull / max(np.linalg.norm(pull), 1e-9))
+        tau = np.clip(tau, -limit, limit)
+        if controller is not None:
+            spheres.velocity[:] = velocity
+            tau, report = controller.filter(tau)
+            out.infeasible_steps += report.infeasible_steps
+        robot.write_ctrl(model, data, tau)
+        mujoco.mj_step2(model, data)
+        data.mocap_pos[mocap] += velocity * TIMESTEP
+        out.steps += 1
+    mujoco.mj_kinematics(model, data)
+    measure()
+    return out
+
+
+# ----------------------------------------------------------------------------- the table
+
+
+def summarise(episodes: list[Episode]) -> list[dict]:
+    """One row per (arm, scenario, policy), filtered and unfiltered episodes side by side."""
+    rows = {}
+    for e in sorted(episodes, key=lambda e: (list(ARMS).index(e.arm), list(SCENARIOS).index(e.scenario),
+                                             POLICIES.index(e.policy), e.seed)):  # fmt: skip
+        row = rows.setdefault((e.arm, e.scenario, e.policy), {
+            "arm": e.arm, "scenario": e.scenario, "policy": e.policy, "episodes": 0, "collision_episodes": 0,
+            "lowest_clearance_m": CUTOFF, "infeasible_per_1000_steps": 0.0, "max_speed_ratio": 0.0,
+            "unfiltered_collision_episodes": 0, "unfiltered_lowest_clearance_m": CUTOFF,
+            "unfiltered_max_speed_ratio": 0.0, "_steps": 0, "_infeasible": 0})  # fmt: skip
+        prefix = "" if e.filtered else "unfiltered_"
+        row["episodes"] += e.filtered
+        row[prefix + "collision_episodes"] += int(e.collided)
+        row[prefix + "lowest_clearance_m"] = min(row[prefix + "lowest_clearance_m"], e.lowest_clearance)
+        row[prefix + "max_speed_ratio"] = max(row[prefix + "max_speed_ratio"], e.max_speed_ratio)
+        if e.filtered:
+            row["_steps"] += e.steps
+            row["_infeasible"] += e.infeasible_steps
+    for row in rows.values():
+        row["infeasible_per_1000_steps"] = 1e3 * row.pop("_infeasible") / max(row.pop("_steps"), 1)
+    return list(rows.values())
+
+
+def print_table(rows: list[dict], unsupported: dict[str, str]) -> None:
+    """The table (module docstring), then the arms the library refused with its message."""
+    print(f"{'':<31}{' filtered ':-^52}   {' unfiltered ':-^32}")
+    print(f"{'arm':<8} {'scenario':<9} {'policy':<11} {'episodes':>8} {'collisions':>10} {'lowest [m]':>10} "
+          f"{'infeas/1k':>9} {'max|qd|/lim':>11}   "
+          f"{'collisions':>10} {'lowest [m]':>10} {'max|qd|/lim':>11}")  # fmt: skip
+    for r in rows:
+        filtered = (f"{r['episodes']:>8} {r['collision_episodes']:>10} {r['lowest_clearance_m']:>+10.4f} "
+                    f"{r['infeasible_per_1000_steps']:>9.2f} {r['max_speed_ratio']:>11.2f}")  # fmt: skip
+        unfiltered = (f"{r['unfiltered_collision_episodes']:>10} {r['unfiltered_lowest_clearance_m']:>+10.4f} "
+                      f"{r['unfiltered_max_speed_ratio']:>11.2f}")  # fmt: skip
+        print(f"{r['arm']:<8} {r['scenario']:<9} {r['policy']:<11} {filtered}   {unfiltered}")
+    for arm, why in unsupported.items():
+        print(f"{arm}: not run, the library refuses it: {why}")
+
+
+# ----------------------------------------------------------------------------- main
+
+
+def _check_arm(assets: Path, arm: str) -> tuple[str | None, list[str]]:
+    """(None, notes) when the default filter runs on ``arm``, else (the library's refusal, notes)."""
+    try:
+        model, robot, notes = build_scene(assets, arm, 1)
+        SafetyController(model, mujoco.MjData(model), robot, MocapSpheres(model, [_BALL.format(0)]), FilterConfig())
+    except UnsupportedModelError as error:
+        return str(error), []
+    return None, notes
+
+
+def _choices(values: list[str], valid, what: str, parser: argparse.ArgumentParser) -> list[str]:
+    unknown = [v for v in values if v not in valid]
+    if unknown:
+        parser.error(f"unknown {what} {', '.join(unknown)}; choose from {', '.join(valid)}")
+    return list(dict.fromkeys(values))
+
+
+def main(argv: list[str] | None = None) -> dict:
+    """Run the benchmark (``argv``: the command line without the program name) and return what it
+    writes to ``--json``: ``settings``, ``unsupported`` (arm -> the library's message), ``notes``
+    (arm -> added scene parts and the library's warnings) and ``configurations`` (the rows)."""
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--episodes", type=int, default=10, help="episodes per configuration (each run filtered "
+                        "and unfiltered)")  # fmt: skip
+    parser.add_argument("--arms", nargs="+", help=f"from {', '.join(ARMS)} (default: all)")
+    parser.add_argument("--scenarios", nargs="+", help=f"from {', '.join(SCENARIOS)} (default: all)")
+    parser.add_argument("--policies", nargs="+", default=list(POLICIES), help=f"from {', '.join(POLICIES)}")
+    parser.add_argument("--seconds", type=float, default=5.0, help="episode length [s]")
+    parser.add_argument("--seed", type=int, default=0, help="episode i uses seed + i in every configuration")
+    parser.add_argument("--workers", type=int, default=1, help="processes")
+    parser.add_argument("--json", type=Path, help="write the settings and the table here")
+    parser.add_argument("--cache", help=f"robosuite download folder (default ${CACHE_VARIABLE} or "
+                        f"~/.cache/c3bf-gym/robosuite-{ROBOSUITE_VERSION})")  # fmt: skip
+    parser.add_argument("--quick", action="store_true", help="smoke run: 1 episode of 1 s, by default on iiwa "
+                        "in static and head_on")  # fmt: skip
+    args = parser.parse_args(argv)
+    if args.quick:
+        args.episodes, args.seconds = 1, 1.0
+    arms = _choices(args.arms or (["iiwa"] if args.quick else list(ARMS)), ARMS, "arm", parser)
+    scenarios = _choices(args.scenarios or (["static", "head_on"] if args.quick else list(SCENARIOS)), SCENARIOS,
+                         "scenario", parser)  # fmt: skip
+    policies = _choices(args.policies, POLICIES, "policy", parser)
+    if args.episodes < 1 or args.workers < 1 or not args.seconds > 0:
+        parser.error("--episodes and --workers must be >= 1 and --seconds > 0")
+    assets = robosuite_assets(args.cache)
+
+    unsupported, notes = {}, {}
+    for arm in arms:
+        why, notes[arm] = _check_arm(assets, arm)
+        if why is not None:
+            unsupported[arm] = why
+    runnable = [arm for arm in arms if arm not in unsupported]
+    tasks = [(str(assets), arm, scenario, policy, filtered, args.seed + i, args.seconds)
+             for arm in runnable for scenario in scenarios for policy in policies
+             for i in range(args.episodes) for filtered in (True, False)]  # fmt: skip
+    print(f"robosuite {ROBOSUITE_VERSION} arms from {assets}: {len(tasks)} episodes of {args.seconds:g} s "
+          f"(dt {TIMESTEP} s) on {args.workers} worker(s)")  # fmt: skip
+    for arm, lines in notes.items():
+        for line in lines:
+            print(f"{arm}: {line}")
+    start = time.perf_counter()
+    if args.workers == 1:
+        episodes = [run_episode(task) for task in tasks]
+    else:
+        with mp.get_context("spawn").Pool(args.workers) as pool:
+            episodes = pool.map(run_episode, tasks, chunksize=1)
+    rows = summarise(episodes)
+    print_table(rows, unsupported)
+    print(f"wall time {time.perf_counter() - start:.1f} s")
+    result = {"settings": {"robosuite": ROBOSUITE_VERSION, "episodes_per_configuration": args.episodes,
+                           "seconds": args.seconds, "timestep": TIMESTEP, "seed": args.seed, "arms": arms,
+                           "scenarios": scenarios, "policies": policies, "filter": "FilterConfig()",
+                           "joint_speed_limit_rad_s": {arm: list(ARMS[arm].joint_speed_limit) for arm in arms}},
+              "unsupported": unsupported, "notes": notes, "configurations": rows,
+              "episodes": [asdict(e) for e in episodes]}  # fmt: skip
+    if args.json is not None:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(result, indent=2))
+        print(f"wrote {args.json}")
+    return result
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,109 @@
+"""The safety filter on robosuite's arms (benchmarks/third_party.py): the arms load as their MJCF
+files describe them, every link's collision mesh is protected, and the benchmark's scene is a
+real threat (the unfiltered adversary collides).
+
+robosuite 1.5.2's wheel is fetched from PyPI on first use (``robosuite_assets``: into
+``$C3BF_ROBOSUITE_CACHE`` or ``~/.cache/c3bf-gym/robosuite-1.5.2``)."""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+import warnings
+from pathlib import Path
+
+import mujoco
+import numpy as np
+import pytest
+
+from c3bf_gym.safety import UnprotectedGeometryWarning
+
+
+def _load_benchmark():
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / "third_party.py"
+    spec = importlib.util.spec_from_file_location("third_party_benchmark", path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # dataclasses look their module up while the class is built
+    spec.loader.exec_module(module)
+    return module
+
+
+tp = _load_benchmark()
+
+
+@pytest.fixture(scope="module")
+def assets() -> Path:
+    return tp.robosuite_assets()
+
+
+def test_only_the_robot_and_gripper_assets_are_extracted(assets):
+    assert {p.name for p in assets.iterdir()} == {"robots", "grippers"}
+    assert {p.name for p in assets.parent.iterdir()} == {"assets"}
+    assert (assets / "robots" / "iiwa" / "robot.xml").is_file()
+    assert tp.robosuite_assets(assets.parents[2]) == assets  # already there: found, not fetched again
+
+
+@pytest.mark.parametrize("arm", list(tp.ARMS))
+def test_each_arm_loads_and_every_link_collision_geom_is_protected(assets, arm):
+    """Every colliding geom on a moving body is protected (meshes as the capsules that contain
+    them), except those the library names as lying on their joints' axes; the tool is on the
+    last link; the arm starts inside its joint limits."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", UnprotectedGeometryWarning)  # build_scene records, never leaks, them
+        model, robot, notes = tp.build_scene(assets, arm, 2)
+    assert model.opt.timestep == tp.TIMESTEP
+    skipped = {line.split("'")[1] for line in notes if "lies on the axis" in line}
+    moving = {b for b in range(1, model.nbody) if any(model.body_dofnum[a] for a in _ancestors(model, b))}
+    colliding = {g for g in range(model.ngeom) if model.geom_bodyid[g] in moving
+                 and (model.geom_contype[g] or model.geom_conaffinity[g])}  # fmt: skip
+    protected = {int(g) for g in robot.geom_ids}
+    assert protected == {g for g in colliding if model.geom(g).name not in skipped}
+    assert len(protected) >= 6
+    for g, capsule in zip(robot.geom_ids, robot.capsules, strict=True):
+        kind = mujoco.mjtGeom(model.geom_type[g]).name.removeprefix("mjGEOM_").lower()
+        assert capsule.source == kind and capsule.radius > 0.0
+    if arm != "sawyer":  # robosuite's sawyer collides as spheres and cylinders, the others as meshes
+        assert all(c.source == "mesh" for c in robot.capsules)
+    assert model.body(model.site_bodyid[robot.site_id]).name == "right_hand"
+    q = np.array(tp.ARMS[arm].init_qpos)
+    assert np.all((robot.joint_range[:, 0] <= q) & (q <= robot.joint_range[:, 1]))
+    assert robot.joint_speed_limit.shape == (7,)
+
+
+def _ancestors(model, body):
+    while body > 0:
+        yield body
+        body = model.body_parentid[body]
+
+
+def test_kinova3_is_refused_by_the_default_filter_by_name(assets):
+    """Kinova Gen3's continuous joints have no position limits, which the joint-limit rows need."""
+    why, _ = tp._check_arm(assets, "kinova3")
+    assert why is not None and "'Actuator1' has no position limits" in why
+
+
+def test_the_benchmark_runs_writes_its_json_and_the_unfiltered_adversary_collides(assets, tmp_path):
+    out = tmp_path / "third_party.json"
+    result = tp.main(["--arms", "iiwa", "kinova3", "--scenarios", "static", "head_on", "--episodes", "1",
+                      "--seconds", "1", "--json", str(out), "--cache", str(assets.parents[2])])  # fmt: skip
+    written = tp.json.loads(out.read_text())
+    assert set(written) == {"settings", "unsupported", "notes", "configurations", "episodes"}
+    assert list(written["unsupported"]) == ["kinova3"]
+    rows = written["configurations"]
+    assert [(r["scenario"], r["policy"]) for r in rows] == [(s, p) for s in ("static", "head_on")
+                                                            for p in ("random", "adversarial")]  # fmt: skip
+    keys = {"arm", "scenario", "policy", "episodes", "collision_episodes", "lowest_clearance_m",
+            "infeasible_per_1000_steps", "max_speed_ratio", "unfiltered_collision_episodes",
+            "unfiltered_lowest_clearance_m", "unfiltered_max_speed_ratio"}  # fmt: skip
+    assert all(set(r) == keys and r["episodes"] == 1 for r in rows)
+    assert all(e["steps"] == 500 for e in written["episodes"])
+    # the scene is a real threat: without the filter the adversary drives the arm into a sphere
+    assert any(r["unfiltered_collision_episodes"] for r in rows if r["policy"] == "adversarial")
+    assert result["configurations"] == rows
+
+
+def test_the_command_line_names_the_valid_choices(capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        tp.main(["--arms", "ur10"])
+    assert exit_info.value.code == 2
+    assert "unknown arm ur10; choose from iiwa, sawyer, kinova3, jaco" in capsys.readouterr().err
