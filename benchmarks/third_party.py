@@ -7,8 +7,9 @@ benchmark adds only the scene, in code (:func:`build_scene`): a floor, the obsta
 no contacts: clearance is measured, not felt), a tool site on the last link when the arm has none,
 and a torque motor on any joint without one. The arm is described by
 ``RobotDescription.from_model``'s default selection (every colliding geom on a moving body, meshes
-enclosed by capsules) and filtered by the default ``SafetyController`` (``FilterConfig()``, no
-sensing radius: every sphere adds rows). The arm's geoms keep the file's ``contype`` and
+enclosed by capsules; with a gripper, its fingers swept over their stroke) and filtered by the
+default filter with the project's environment's sensing radius (``FilterConfig(sensing_radius=``
+:data:`SENSING_RADIUS` ``)``: a sphere adds rows once its surface is within 1 m of the arm). The arm's geoms keep the file's ``contype`` and
 ``conaffinity``, so the arms can touch the floor and robosuite's Sawyer its own links and base (its
 file excludes no pair; its first link touches the base at the start): contact forces are outside
 the filter's model, as in the project's own environment.
@@ -138,11 +139,14 @@ class Arm:
             the arm (``robosuite/models/robots/manipulators/<arm>_robot.py``).
         joint_speed_limit: (n,) the manufacturer's joint speed limits [rad/s] (sources in
             :data:`ARMS`).
+        gripper: a gripper file of robosuite's ``grippers/`` to attach at the last link, as
+            robosuite attaches its grippers (None: the bare arm).
     """
 
     folder: str
     init_qpos: tuple[float, ...]
     joint_speed_limit: tuple[float, ...]
+    gripper: str | None = None
 
 
 def _deg(*values: float) -> tuple[float, ...]:
@@ -168,6 +172,10 @@ ARMS = {
     # (5-7) is the Jaco 2 specification as remembered, not checked against the actuator datasheet
     # robosuite cites for the torques (unsure).
     "jaco": Arm("jaco", (3.192, 3.68, 0.0, 1.17, 0.05, 3.76, 3.142), _deg(36, 36, 36, 36, 48, 48, 48)),
+    # the Sawyer with robosuite's default gripper for it (RethinkGripper: two slide fingers on
+    # force-limited position servos), attached at "right_hand" as robosuite's add_gripper does
+    "sawyer+gripper": Arm("sawyer", (0.0, -1.18, 0.0, 2.18, 0.0, 0.57, -1.57),
+                          (1.74, 1.328, 1.957, 1.957, 3.485, 3.485, 4.545), "rethink_gripper.xml"),
 }
 
 SCENARIOS = {"static": ("static",), "head_on": ("head_on",), "crossing": ("crossing",),
@@ -187,6 +195,8 @@ KEEP_OUT = (0.2, 0.45)  # [m] radius and height of the cylinder about the base's
 MIN_HEIGHT = 0.05  # [m] every sphere's surface stays this far above the floor
 EXTRA_MOTOR_TORQUE = 10.0  # [N m] bound of a motor added to a joint the file leaves without one
 CUTOFF = 1.0  # [m] distances beyond this are not resolved (the lowest clearance is capped here)
+SENSING_RADIUS = 1.0  # [m] the filter's, as C3BFReach-v0's default
+CONFIG = FilterConfig(sensing_radius=SENSING_RADIUS)  # the default filter at the env's sensing radius
 _BALL = "c3bf_ball{}"
 
 
@@ -225,8 +235,17 @@ def build_scene(assets: Path, arm: str, spheres: int) -> tuple[mujoco.MjModel, R
     for body in range(1, len(parents)):
         depth[body] = depth[parents[body]] + 1
     last = spec.bodies[len(depth) - 1 - int(np.argmax(depth[::-1]))]  # spec.bodies[i] is model body i
-    tool = last.sites[0].name if last.sites else None
-    if tool is None:
+    arm_joints = [joint.name for joint in spec.joints]
+    if ARMS[arm].gripper is not None:
+        # robosuite's add_gripper merges the gripper's bodies into the arm's last link; its
+        # actuators (the fingers' servos) come with them; the tool is its grip site
+        gripper = mujoco.MjSpec.from_file(str(Path(assets) / "grippers" / ARMS[arm].gripper))
+        last.add_frame().attach_body(gripper.worldbody.first_body(), "gripper0_", "")
+        tool = "gripper0_grip_site"
+        notes.append(f"attached {ARMS[arm].gripper} at body {last.name!r}; the tool is its grip site")
+    elif last.sites:
+        tool = last.sites[0].name
+    else:
         tool = "c3bf_tool"
         last.add_site(name=tool)
         notes.append(f"added a tool site on the last link, body {last.name!r}")
@@ -236,7 +255,7 @@ def build_scene(assets: Path, arm: str, spheres: int) -> tuple[mujoco.MjModel, R
         body.add_geom(name=_BALL.format(k), type=mujoco.mjtGeom.mjGEOM_SPHERE, size=[RADIUS[0], 0, 0],
                       contype=0, conaffinity=0, rgba=[0.9, 0.2, 0.15, 0.6])  # fmt: skip
     driven = {actuator.target for actuator in spec.actuators}
-    for joint in spec.joints:
+    for joint in (j for j in spec.joints if j.name in arm_joints):
         # e.g. a Sawyer head joint: the filter needs a torque motor on every dof (robosuite 1.5.2's
         # sawyer comments its head_pan joint out, so none of ARMS needs this today)
         if joint.name not in driven:
@@ -247,7 +266,8 @@ def build_scene(assets: Path, arm: str, spheres: int) -> tuple[mujoco.MjModel, R
     model = spec.compile()
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        robot = RobotDescription.from_model(model, site=tool, joint_speed_limit=ARMS[arm].joint_speed_limit)
+        robot = RobotDescription.from_model(model, joints=arm_joints, site=tool,
+                                            joint_speed_limit=ARMS[arm].joint_speed_limit)  # fmt: skip
     notes += [str(w.message) for w in caught]
     return model, robot, notes
 
@@ -337,9 +357,10 @@ def run_episode(task: tuple[str, str, str, str, bool, int, float]) -> Episode:
         _SCENES[key] = build_scene(Path(assets), arm, len(kinds))
     model, robot, _ = _SCENES[key]
     data = mujoco.MjData(model)
-    data.qpos[:] = ARMS[arm].init_qpos
+    dofs = robot.dof_ids  # the arm's; a gripper's fingers are the model's other dofs
+    data.qpos[model.jnt_qposadr[model.dof_jntid[dofs]]] = ARMS[arm].init_qpos
     mujoco.mj_forward(model, data)
-    arm_model = ArmModel(model, robot.geom_ids, robot.site_id)
+    arm_model = ArmModel(model, robot.geom_ids, robot.site_id, robot.dof_ids)
     a, b = arm_model.capsule_segments(data)
     rng = np.random.default_rng(seed)
     position, velocity, radius = _spawn(rng, kinds, a, b, arm_model.capsule_radius, data.site_xpos[robot.site_id],
@@ -350,13 +371,13 @@ def run_episode(task: tuple[str, str, str, str, bool, int, float]) -> Episode:
     data.mocap_pos[mocap] = position
     mujoco.mj_forward(model, data)
     spheres = MocapSpheres(model, [_BALL.format(k) for k in range(len(kinds))])
-    controller = SafetyController(model, data, robot, spheres, FilterConfig()) if filtered else None
+    controller = SafetyController(model, data, robot, spheres, CONFIG) if filtered else None
     if controller is not None:
         arm_model = controller.arm
     out = Episode(arm, scenario, policy, filtered, seed)
     limit, speed_limit = robot.torque_limit, robot.joint_speed_limit
     jac = np.zeros((3, model.nv))
-    draw = np.zeros(model.nv)
+    draw = np.zeros(robot.n)
     policy_rng = np.random.default_rng([seed, 1])
     steps = int(round(seconds / TIMESTEP))
 
@@ -366,7 +387,7 @@ def run_episode(task: tuple[str, str, str, str, bool, int, float]) -> Episode:
                 gap = mujoco.mj_geomDistance(model, data, ball, int(geom), min(out.lowest_clearance, CUTOFF), None)
                 out.lowest_clearance = min(out.lowest_clearance, gap)
         out.collided |= out.lowest_clearance < 0.0
-        out.max_speed_ratio = max(out.max_speed_ratio, float(np.max(np.abs(data.qvel) / speed_limit)))
+        out.max_speed_ratio = max(out.max_speed_ratio, float(np.max(np.abs(data.qvel[dofs]) / speed_limit)))
 
     for step in range(steps):
         mujoco.mj_step1(model, data)  # kinematics of the state the last physics step reached
@@ -374,7 +395,7 @@ def run_episode(task: tuple[str, str, str, str, bool, int, float]) -> Episode:
         if policy == "random":
             if step % HOLD_STEPS == 0:
                 draw = policy_rng.uniform(-limit, limit)
-            tau = data.qfrc_bias + draw
+            tau = data.qfrc_bias[dofs] + draw
         else:
             a, b = arm_model.capsule_segments(data)
             centres = data.mocap_pos[mocap]
@@ -383,7 +404,7 @@ def run_episode(task: tuple[str, str, str, str, bool, int, float]) -> Episode:
             k, s = np.unravel_index(int(np.argmin(gaps)), gaps.shape)
             pull = centres[k] - closest[k, s]
             mujoco.mj_jac(model, data, jac, None, closest[k, s], int(model.geom_bodyid[robot.geom_ids[s]]))
-            tau = data.qfrc_bias + jac.T @ (PULL_FORCE * pull / max(np.linalg.norm(pull), 1e-9))
+            tau = (data.qfrc_bias + jac.T @ (PULL_FORCE * pull / max(np.linalg.norm(pull), 1e-9)))[dofs]
         tau = np.clip(tau, -limit, limit)
         if controller is not None:
             spheres.velocity[:] = velocity
@@ -447,7 +468,7 @@ def _check_arm(assets: Path, arm: str) -> tuple[str | None, list[str]]:
     """(None, notes) when the default filter runs on ``arm``, else (the library's refusal, notes)."""
     try:
         model, robot, notes = build_scene(assets, arm, 1)
-        SafetyController(model, mujoco.MjData(model), robot, MocapSpheres(model, [_BALL.format(0)]), FilterConfig())
+        SafetyController(model, mujoco.MjData(model), robot, MocapSpheres(model, [_BALL.format(0)]), CONFIG)
     except UnsupportedModelError as error:
         return str(error), []
     return None, notes
@@ -514,7 +535,7 @@ def main(argv: list[str] | None = None) -> dict:
     print(f"wall time {time.perf_counter() - start:.1f} s")
     result = {"settings": {"robosuite": ROBOSUITE_VERSION, "episodes_per_configuration": args.episodes,
                            "seconds": args.seconds, "timestep": TIMESTEP, "seed": args.seed, "arms": arms,
-                           "scenarios": scenarios, "policies": policies, "filter": "FilterConfig()",
+                           "scenarios": scenarios, "policies": policies, "filter": repr(CONFIG),
                            "joint_speed_limit_rad_s": {arm: list(ARMS[arm].joint_speed_limit) for arm in arms}},
               "unsupported": unsupported, "notes": notes, "configurations": rows,
               "episodes": [asdict(e) for e in episodes]}  # fmt: skip

@@ -322,3 +322,25 @@ def test_an_arm_with_a_gripper_and_other_bodies_is_filtered_on_its_own_joints():
             mujoco.mj_step2(model, data)
             data.mocap_pos[0] += model.opt.timestep * np.array([0.0, 0.0, -1.0])
     assert lowest[False] < 0.0 < lowest[True], lowest
+
+
+def test_a_finger_is_protected_over_its_whole_stroke():
+    """A geom that joints the filter does not drive move (a finger) is protected by a capsule on the
+    last body the arm moves that holds it at every finger position: its corners at both ends of the
+    stroke and halfway lie inside that capsule."""
+    model = _model(GRIPPER_ARM)
+    robot = RobotDescription.from_model(model, joints=ARM_JOINTS, site="tool", joint_speed_limit=3.0)
+    data = mujoco.MjData(model)
+    for name in ("finger_l", "finger_r"):
+        geom = model.geom(name).id
+        capsule = robot.capsules[list(robot.geom_ids).index(geom)]
+        assert capsule.body == model.body("fore").id and capsule.source == "box"
+        joint = model.joint(name)
+        half = model.geom_size[geom]
+        corners = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)]) * half
+        for finger in np.linspace(*model.jnt_range[joint.id], 3):
+            data.qpos[joint.qposadr[0]] = finger
+            mujoco.mj_kinematics(model, data)
+            world = data.geom_xpos[geom] + corners @ data.geom_xmat[geom].reshape(3, 3).T
+            local = (world - data.xpos[capsule.body]) @ data.xmat[capsule.body].reshape(3, 3)
+            assert capsule.distance(local).max() <= 1e-9

@@ -62,9 +62,15 @@ def test_each_arm_loads_and_every_link_collision_geom_is_protected(assets, arm):
     for g, capsule in zip(robot.geom_ids, robot.capsules, strict=True):
         kind = mujoco.mjtGeom(model.geom_type[g]).name.removeprefix("mjGEOM_").lower()
         assert capsule.source == kind and capsule.radius > 0.0
-    if arm != "sawyer":  # robosuite's sawyer collides as spheres and cylinders, the others as meshes
+    if not arm.startswith("sawyer"):  # robosuite's sawyer collides as spheres and cylinders, the others as meshes
         assert all(c.source == "mesh" for c in robot.capsules)
-    assert model.body(model.site_bodyid[robot.site_id]).name == "right_hand"
+    fingers = [g for g, c in zip(robot.geom_ids, robot.capsules, strict=True) if c.body >= 0]
+    if tp.ARMS[arm].gripper is None:
+        assert not fingers and model.body(model.site_bodyid[robot.site_id]).name == "right_hand"
+    else:  # the gripper's fingers are swept over their stroke, on the hand the arm moves
+        assert robot.nv == robot.n + 2 and {model.body(c.body).name for c in robot.capsules if c.body >= 0} == {
+            "gripper0_gripper_base"}  # fmt: skip
+        assert len(fingers) >= 4 and model.site(robot.site_id).name == "gripper0_grip_site"
     q = np.array(tp.ARMS[arm].init_qpos)
     assert np.all((robot.joint_range[:, 0] <= q) & (q <= robot.joint_range[:, 1]))
     assert robot.joint_speed_limit.shape == (7,)

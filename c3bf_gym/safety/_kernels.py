@@ -161,30 +161,34 @@ def point_dynamics(chain, cdof, cdof_dot, com, qvel, Minv, qacc_free, packed, ja
 
 
 @njit(**_opts)
-def capsule_ends(geom_xpos, geom_xmat, ids, local, chain, cdof, cdof_dot, com, qvel, Minv, qacc_free,
-                 ends, ends_ab, a_dot_ab, jac):
-    """The capsule axes' end points (a, b: ``local`` (S, 2, 3) in the geom's frame, placed by the
-    geom's ``xpos`` and ``xmat``), packed ``[pos | vel | c | G]`` in ``ends`` (2S, 3, 3 + nv; a's
-    then b's), their differences ``ends_ab = b − a`` (S, 3, 3 + nv) and ``a_dot_ab = ⟨a, b − a⟩`` (S,)."""
+def capsule_ends(arm):
+    """The capsule axes' end points (a, b: ``arm.capsule_local`` (S, 2, 3), in the frame of geom
+    ``arm.capsule_ids[s]``, or of body ``arm.capsule_body[s]`` where that is >= 0), packed
+    ``[pos | vel | c | G]`` in ``arm.ends`` (2S, 3, 3 + nv; a's then b's), their differences
+    ``arm.ends_ab = b − a`` (S, 3, 3 + nv) and ``arm.a_dot_ab = ⟨a, b − a⟩`` (S,)
+    (:class:`ArmArrays`)."""
+    ids, local, ends, ends_ab = arm.capsule_ids, arm.capsule_local, arm.ends, arm.ends_ab
     s_count = ids.shape[0]
     ncol = ends.shape[2]
     for s in range(s_count):
-        g = ids[s]
+        body = arm.capsule_body[s]
+        pos = arm.geom_xpos[ids[s]] if body < 0 else arm.xpos[body]
+        mat = arm.geom_xmat[ids[s]] if body < 0 else arm.xmat[body]
         for e in range(2):
             la0, la1, la2 = local[s, e, 0], local[s, e, 1], local[s, e, 2]
             for i in range(3):
-                ends[e * s_count + s, i, 0] = geom_xpos[g, i] + (
-                    geom_xmat[g, 3 * i] * la0 + geom_xmat[g, 3 * i + 1] * la1 + geom_xmat[g, 3 * i + 2] * la2)
+                ends[e * s_count + s, i, 0] = pos[i] + (mat[3 * i] * la0 + mat[3 * i + 1] * la1 + mat[3 * i + 2] * la2)
     for p in range(2 * s_count):
         x = (ends[p, 0, 0], ends[p, 1, 0], ends[p, 2, 0])
-        _one_point(p, x, chain[p % s_count], cdof, cdof_dot, com, qvel, Minv, qacc_free, ends, jac)
+        _one_point(p, x, arm.chain[p % s_count], arm.cdof, arm.cdof_dot, arm.com, arm.qvel, arm.Minv, arm.qacc_free,
+                   ends, arm.end_jac)
     for s in range(s_count):
         dot = 0.0
         for i in range(3):
             for c in range(ncol):
                 ends_ab[s, i, c] = ends[s_count + s, i, c] - ends[s, i, c]
             dot += ends[s, i, 0] * ends_ab[s, i, 0]
-        a_dot_ab[s] = dot
+        arm.a_dot_ab[s] = dot
 
 
 @njit(**_opts)
@@ -445,9 +449,12 @@ class ArmArrays(NamedTuple):
     views, updated in place, never replaced. ``S`` protected geoms, ``nv`` dofs.
 
     Attributes:
-        M, qfrc_passive, qfrc_bias, geom_xpos, geom_xmat, cdof, cdof_dot, com, qpos, qvel: the
-            ``MjData`` arrays the dynamics read (``com``: the arm's root subtree centre of mass).
+        M, qfrc_passive, qfrc_bias, geom_xpos, geom_xmat, xpos, xmat, cdof, cdof_dot, com, qpos,
+            qvel: the ``MjData`` arrays the dynamics read (``com``: the arm's root subtree centre of
+            mass).
         capsule_ids: (S,) the protected geoms.
+        capsule_body: (S,) -1 where a capsule is in its geom's frame, else the body in whose frame
+            it is (:func:`~c3bf_gym.safety.geometry.protected_capsule`).
         M_rowadr, M_rownnz, M_colind: MuJoCo's sparse layout of ``M``.
         damping: (nv,) ``h D``, the integrator's implicit damping.
         capsule_local: (S, 2, 3) the capsule axes' end points in their geoms' frames [m].
@@ -464,12 +471,15 @@ class ArmArrays(NamedTuple):
     qfrc_bias: np.ndarray
     geom_xpos: np.ndarray
     geom_xmat: np.ndarray
+    xpos: np.ndarray
+    xmat: np.ndarray
     cdof: np.ndarray
     cdof_dot: np.ndarray
     com: np.ndarray
     qpos: np.ndarray
     qvel: np.ndarray
     capsule_ids: np.ndarray
+    capsule_body: np.ndarray
     M_rowadr: np.ndarray
     M_rownnz: np.ndarray
     M_colind: np.ndarray
@@ -567,9 +577,7 @@ def hook_rows_whole_arm(stage, arm, obstacles, params, A, b):
         step_inverse(arm.M, arm.M_rowadr, arm.M_rownnz, arm.M_colind, arm.damping, arm.qfrc_passive, arm.qfrc_bias,
                      arm.factor, arm.Minv, arm.qacc_free)
     if stage >= 1:
-        capsule_ends(arm.geom_xpos, arm.geom_xmat, arm.capsule_ids, arm.capsule_local, arm.chain, arm.cdof,
-                     arm.cdof_dot, arm.com, arm.qvel, arm.Minv, arm.qacc_free, arm.ends, arm.ends_ab, arm.a_dot_ab,
-                     arm.end_jac)
+        capsule_ends(arm)
     ends_a = arm.ends[:s_count]
     ends_ab, a_dot_ab, length2, capsule_radius = arm.ends_ab, arm.a_dot_ab, arm.length2, arm.capsule_radius
     gamma = params.gamma

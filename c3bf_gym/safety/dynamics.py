@@ -33,7 +33,7 @@ import mujoco
 import numpy as np
 
 from c3bf_gym.safety import _kernels
-from c3bf_gym.safety.geometry import enclosing_capsule
+from c3bf_gym.safety.geometry import protected_capsule
 
 __all__ = ["ArmModel", "PointDynamics", "segment_closest_points"]
 
@@ -70,6 +70,8 @@ class _DataViews(NamedTuple):
     com: np.ndarray
     geom_xpos: np.ndarray
     geom_xmat: np.ndarray
+    xpos: np.ndarray
+    xmat: np.ndarray
 
 
 def segment_closest_points(a: np.ndarray, b: np.ndarray, centres: np.ndarray) -> np.ndarray:
@@ -100,13 +102,18 @@ class ArmModel:
             obstacle; the env leaves its fixed base to the scenario's keep-out zone).
         site_id: the tool site (``ee_site``), or -1 for none (then :meth:`site_dynamics` is
             unavailable).
+        arm_dofs: the dofs the filter drives (None: all of them); a geom that other dofs move
+            too (a gripper's finger) is protected by the capsule that holds it over their range,
+            on the last body the arm alone moves (:func:`~c3bf_gym.safety.geometry.protected_capsule`).
 
     Raises:
         ValueError: no geom on a moving body, or geoms on more than one kinematic tree.
-        ~c3bf_gym.safety.geometry.UnsupportedGeomError: a plane, height field or SDF geom among them.
+        ~c3bf_gym.safety.geometry.UnsupportedGeomError: a plane, height field or SDF geom among
+            them, or one swept by joints it cannot sweep.
     """
 
-    def __init__(self, model: mujoco.MjModel, arm_geom_ids: np.ndarray, site_id: int) -> None:
+    def __init__(self, model: mujoco.MjModel, arm_geom_ids: np.ndarray, site_id: int,
+                 arm_dofs: np.ndarray | None = None) -> None:
         self.model = model
         self.nv = model.nv
         self.site_id = int(site_id)
@@ -114,17 +121,21 @@ class ArmModel:
         if not ids:
             raise ValueError("the model has no protected geoms on moving arm bodies")
         self.capsule_ids = np.array(ids)
-        #: the enclosing capsule of each protected geom, in the geom's frame
-        self.capsules = tuple(enclosing_capsule(model, g) for g in ids)
+        arm_dofs = np.arange(model.nv) if arm_dofs is None else np.asarray(arm_dofs, dtype=int)
+        #: the capsule protected for each geom (in the geom's frame, or its mount body's)
+        self.capsules = tuple(protected_capsule(model, g, arm_dofs) for g in ids)
         self.capsule_radius = np.array([c.radius for c in self.capsules])
-        #: (S, 2, 3) each capsule's axis end points a, b in its geom's frame [m]
+        #: (S, 2, 3) each capsule's axis end points a, b in its frame [m]
         self.capsule_local = np.ascontiguousarray([(c.a, c.b) for c in self.capsules], dtype=np.float64)
+        #: (S,) -1 for a capsule in its geom's frame, else the body whose frame holds it
+        self.capsule_body = np.array([c.body for c in self.capsules], dtype=np.int64)
+        frames = [model.geom_bodyid[g] if c.body < 0 else c.body for g, c in zip(ids, self.capsules, strict=True)]
         self.capsule_names = [model.geom(g).name for g in self.capsule_ids]
-        roots = {int(model.body_rootid[model.geom_bodyid[g]]) for g in self.capsule_ids}
+        roots = {int(model.body_rootid[body]) for body in frames}
         if len(roots) != 1:
             raise ValueError("all arm capsules must belong to one kinematic tree")
         self._root = roots.pop()
-        self.capsule_chain = np.array([self._chain_mask(model, model.geom_bodyid[g]) for g in self.capsule_ids])
+        self.capsule_chain = np.array([self._chain_mask(model, body) for body in frames])
         self.site_chain = self._chain_mask(model, model.site_bodyid[self.site_id]) if self.site_id >= 0 else None
         s, nv = len(self.capsule_ids), self.nv
         #: ``h D``, the implicit damping the integrator adds to the mass matrix's diagonal (nv,).
@@ -205,7 +216,7 @@ class ArmModel:
         if data is not self._views_of:
             self._views = _DataViews(
                 data.M, data.qfrc_passive, data.qfrc_bias, data.qpos, data.qvel, data.cdof, data.cdof_dot,
-                data.subtree_com[self._root], data.geom_xpos, data.geom_xmat,
+                data.subtree_com[self._root], data.geom_xpos, data.geom_xmat, data.xpos, data.xmat,
             )
             self._views_of = data
         return self._views
@@ -215,8 +226,9 @@ class ArmModel:
         (:class:`~c3bf_gym.safety._kernels.ArmArrays`; views, valid while both live)."""
         v = self.views(data)
         return _kernels.ArmArrays(
-            v.M, v.qfrc_passive, v.qfrc_bias, v.geom_xpos, v.geom_xmat, v.cdof, v.cdof_dot, v.com, v.qpos, v.qvel,
-            self._capsule_ids, self._M_rowadr, self._M_rownnz, self._M_colind, self.implicit_damping,
+            v.M, v.qfrc_passive, v.qfrc_bias, v.geom_xpos, v.geom_xmat, v.xpos, v.xmat, v.cdof, v.cdof_dot, v.com,
+            v.qpos, v.qvel, self._capsule_ids, self.capsule_body, self._M_rowadr, self._M_rownnz, self._M_colind,
+            self.implicit_damping,
             self.capsule_local, self._length2, self.capsule_radius, self.capsule_chain, self._factor, self._end_jac,
             self.Minv, self.qacc_free, self._ends, self._ends_ab, self._a_dot_ab,
         )
@@ -232,11 +244,8 @@ class ArmModel:
         """
         if self._ends_current:
             return
-        v = self.views(self._data)
         self._ends_current = True
-        _kernels.capsule_ends(v.geom_xpos, v.geom_xmat, self._capsule_ids, self.capsule_local, self.capsule_chain,
-                              v.cdof, v.cdof_dot, v.com, v.qvel, self.Minv, self.qacc_free,
-                              self._ends, self._ends_ab, self._a_dot_ab, self._end_jac)
+        _kernels.capsule_ends(self.kernel_arrays(self._data))
 
     def end_dynamics(self) -> PointDynamics:
         """:class:`PointDynamics` (views) of both ends of every capsule axis: rows ``0 … S-1``
@@ -264,8 +273,9 @@ class ArmModel:
 
     def capsule_segments(self, data: mujoco.MjData) -> tuple[np.ndarray, np.ndarray]:
         """End points (S, 3), (S, 3) of the protected capsules' axes, in world coordinates [m]."""
-        ids = self.capsule_ids
-        xpos, xmat = data.geom_xpos[ids], data.geom_xmat[ids].reshape(-1, 3, 3)
+        ids, body = self.capsule_ids, self.capsule_body
+        xpos = np.where(body[:, None] < 0, data.geom_xpos[ids], data.xpos[body])
+        xmat = np.where(body[:, None] < 0, data.geom_xmat[ids], data.xmat[body]).reshape(-1, 3, 3)
         ends = xpos[:, None, :] + np.einsum("sij,sej->sei", xmat, self.capsule_local)
         return ends[:, 0], ends[:, 1]
 

@@ -20,6 +20,11 @@ box, mesh     fitted to the corners, or to the vertices of the mesh's convex hul
 ============  ==========================================================================
 
 Planes, height fields and SDF geoms have no enclosing capsule and are refused.
+
+A geom moved by joints the filter does not drive (a gripper's fingers) gets the capsule that holds
+it over those joints' whole range, in the frame of the last body the arm alone moves
+(:func:`protected_capsule`): the filter cannot steer the fingers, but it can keep obstacles off
+everywhere they can be.
 """
 
 from __future__ import annotations
@@ -29,9 +34,10 @@ from typing import NamedTuple
 import mujoco
 import numpy as np
 
-__all__ = ["Capsule", "UnsupportedGeomError", "enclosing_capsule", "fit_capsule"]
+__all__ = ["Capsule", "UnsupportedGeomError", "enclosing_capsule", "fit_capsule", "protected_capsule"]
 
 _T = mujoco.mjtGeom
+_HINGE, _SLIDE = int(mujoco.mjtJoint.mjJNT_HINGE), int(mujoco.mjtJoint.mjJNT_SLIDE)
 
 
 class UnsupportedGeomError(ValueError):
@@ -39,19 +45,23 @@ class UnsupportedGeomError(ValueError):
 
 
 class Capsule(NamedTuple):
-    """A capsule in a geom's frame: the points within ``radius`` of the segment ``a``–``b``.
+    """A capsule: the points within ``radius`` of the segment ``a``–``b``.
 
     Attributes:
-        a, b: (3,) the segment's end points in the geom's frame [m] (equal for a sphere).
+        a, b: (3,) the segment's end points [m] (equal for a sphere), in the geom's frame, or in
+            body ``body``'s frame.
         radius: [m].
         source: the geom type it encloses ("capsule", "sphere", "cylinder", "ellipsoid", "box",
             "mesh").
+        body: -1: ``a`` and ``b`` are in the geom's frame; else the body in whose frame they are
+            (:func:`protected_capsule`).
     """
 
     a: np.ndarray
     b: np.ndarray
     radius: float
     source: str
+    body: int = -1
 
     @property
     def half_length(self) -> float:
@@ -179,3 +189,84 @@ def enclosing_capsule(model: mujoco.MjModel, geom: int) -> Capsule:
     type_name = mujoco.mjtGeom(kind).name.removeprefix("mjGEOM_").lower()
     raise UnsupportedGeomError(f"geom {name!r} is a {type_name}: it has no enclosing capsule, so the filter cannot "
                                "protect it; leave it out of the protected geoms")
+
+
+#: Samples of a hinge's range when sweeping a geom over it (the chords' sagitta is added).
+_HINGE_SAMPLES = 17
+#: At most this many joints the filter does not drive may move one protected geom.
+_MAX_SWEPT_JOINTS = 4
+
+
+def _core(model: mujoco.MjModel, geom: int) -> tuple[np.ndarray, float]:
+    """Points (P, 3) in the geom's frame and a radius whose Minkowski sum holds the geom: a
+    primitive's enclosing segment ends and capsule radius, a box's corners or a mesh's hull
+    vertices with radius 0."""
+    kind = int(model.geom_type[geom])
+    if kind == _T.mjGEOM_BOX:
+        return _box_corners(model.geom_size[geom].astype(float)), 0.0
+    if kind == _T.mjGEOM_MESH:
+        return _mesh_points(model, int(model.geom_dataid[geom])), 0.0
+    capsule = enclosing_capsule(model, geom)
+    return np.stack([capsule.a, capsule.b]), capsule.radius
+
+
+def protected_capsule(model: mujoco.MjModel, geom: int, arm_dofs: np.ndarray) -> Capsule:
+    """The capsule the filter protects for geom ``geom`` when it drives the dofs ``arm_dofs``.
+
+    A geom that only the arm's dofs move gets :func:`enclosing_capsule`, in its own frame. A geom
+    that other dofs move too (a finger on a gripper's joints) gets a capsule in the frame of its
+    *mount*, the last body on its chain that the arm's dofs alone move, holding the geom at every
+    position of the other joints between the mount and it: slide joints at both ends of their
+    range (the geom's points move on straight lines between them), hinges at
+    :data:`_HINGE_SAMPLES` angles with the arcs' largest sagitta added to the radius.
+
+    Raises:
+        UnsupportedGeomError: a plane, height field or SDF geom; a geom moved by a joint the
+            filter does not drive that is not a limited hinge or slide joint, or by more than
+            :data:`_MAX_SWEPT_JOINTS` of them (named).
+    """
+    arm = np.zeros(model.nv, dtype=bool)
+    arm[np.asarray(arm_dofs, dtype=int)] = True
+    path, body = [], int(model.geom_bodyid[geom])
+    while body > 0:
+        path.append(body)
+        body = int(model.body_parentid[body])
+    others = [b for b in path if not arm[model.body_dofadr[b] : model.body_dofadr[b] + model.body_dofnum[b]].all()]
+    if not others:
+        return enclosing_capsule(model, geom)
+    mount = int(model.body_parentid[others[-1]])  # the body above the highest one another dof moves
+    name = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_GEOM, geom) or f"#{geom}"
+    below = path[: path.index(others[-1]) + 1]
+    if any(arm[model.body_dofadr[b] : model.body_dofadr[b] + model.body_dofnum[b]].any() for b in below):
+        raise UnsupportedGeomError(f"geom {name!r} is moved by a joint the filter drives below one it does not: "
+                                   "the arm's joints must come first on its chain")
+    joints = [j for b in others for j in range(model.body_jntadr[b], model.body_jntadr[b] + model.body_jntnum[b])]
+    values, sagitta = [], 0.0
+    for j in joints:
+        jname = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_JOINT, j) or f"#{j}"
+        kind = int(model.jnt_type[j])
+        if kind not in (_HINGE, _SLIDE) or not model.jnt_limited[j]:
+            raise UnsupportedGeomError(f"geom {name!r} is moved by joint {jname!r}, which the filter does not drive "
+                                       "and which is not a limited hinge or slide joint: its reach is unknown")
+        low, high = model.jnt_range[j]
+        if kind == _SLIDE:
+            values.append((low, high))
+        else:
+            values.append(tuple(np.linspace(low, high, _HINGE_SAMPLES)))
+            # points at up to the geom's reach from the hinge's axis move on arcs: chord sagitta
+            reach = float(np.linalg.norm(model.geom_aabb[geom, 3:]) + np.linalg.norm(model.geom_pos[geom]))
+            sagitta += reach * (1.0 - np.cos(0.5 * (high - low) / (_HINGE_SAMPLES - 1)))
+    if len(joints) > _MAX_SWEPT_JOINTS:
+        raise UnsupportedGeomError(f"geom {name!r} is moved by {len(joints)} joints the filter does not drive; at most "
+                                   f"{_MAX_SWEPT_JOINTS} are swept")
+    core, radius = _core(model, geom)
+    data = mujoco.MjData(model)
+    swept = []
+    for setting in np.array(np.meshgrid(*values, indexing="ij")).reshape(len(joints), -1).T:
+        data.qpos[:] = model.qpos0
+        data.qpos[model.jnt_qposadr[joints]] = setting
+        mujoco.mj_kinematics(model, data)
+        world = data.geom_xpos[geom] + core @ data.geom_xmat[geom].reshape(3, 3).T
+        swept.append((world - data.xpos[mount]) @ data.xmat[mount].reshape(3, 3))
+    fitted = fit_capsule(np.concatenate(swept), enclosing_capsule(model, geom).source)
+    return fitted._replace(radius=fitted.radius + radius + sagitta, body=mount)

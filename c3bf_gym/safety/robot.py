@@ -37,7 +37,7 @@ import mujoco
 import numpy as np
 
 from c3bf_gym import validation
-from c3bf_gym.safety.geometry import Capsule, UnsupportedGeomError, enclosing_capsule
+from c3bf_gym.safety.geometry import Capsule, UnsupportedGeomError, protected_capsule
 
 __all__ = ["RobotDescription", "UnprotectedGeometryWarning", "UnsupportedModelError"]
 
@@ -306,7 +306,7 @@ class RobotDescription:
         capsules = {}
         for g in sorted(chosen):
             try:
-                capsules[g] = enclosing_capsule(model, g)
+                capsules[g] = protected_capsule(model, g, dofs)
             except UnsupportedGeomError as error:
                 raise UnsupportedModelError(str(error)) from None
         for g in [g for g in sorted(chosen) if cls._immovable(model, dofs, g, capsules[g])]:
@@ -392,9 +392,11 @@ class RobotDescription:
                 data.qpos[adr] = np.clip(data.qpos[adr] + step, low, high)
             mujoco.mj_kinematics(model, data)
             mujoco.mj_comPos(model, data)
-            xmat = data.geom_xmat[geom].reshape(3, 3)
+            frame = model.geom_bodyid[geom] if capsule.body < 0 else capsule.body
+            xpos, xmat = (data.geom_xpos[geom], data.geom_xmat[geom]) if capsule.body < 0 else \
+                (data.xpos[frame], data.xmat[frame])  # fmt: skip
             for end in (capsule.a, capsule.b):
-                mujoco.mj_jac(model, data, jac, None, data.geom_xpos[geom] + xmat @ end, model.geom_bodyid[geom])
+                mujoco.mj_jac(model, data, jac, None, xpos + xmat.reshape(3, 3) @ end, frame)
                 if np.abs(jac[:, dofs]).max() > 1e-9:
                     return False
         return True
