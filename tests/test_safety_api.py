@@ -105,13 +105,23 @@ def test_models_the_filter_cannot_protect_are_refused_by_name(xml, kwargs, messa
         RobotDescription.from_model(_model(xml), **kwargs)
 
 
-def test_joint_limits_need_ranges_and_speed_limits():
+def test_joint_limits_need_speed_limits_and_a_continuous_joint_gets_speed_rows_only():
+    """A joint without position limits (a continuous one) keeps its speed rows; its position rows
+    are ``0 τ ≥ −1``, which hold, so the filter still runs and holds the other joints' limits."""
     model = _model(ARM.replace(' range="-2.5 2.5"', ""))
     robot = RobotDescription.from_model(model, joint_speed_limit=2.0)
     data = mujoco.MjData(model)
-    with pytest.raises(UnsupportedModelError, match=r"joint 'elbow' has no position limits"):
-        SafetyController(model, data, robot, Obstacles(1))
-    SafetyController(model, data, robot, Obstacles(1), FilterConfig(joint_limits=False))  # fine without them
+    data.qpos[:] = (0.3, -0.6, 4.0)  # the elbow far beyond any range: nothing to hold
+    mujoco.mj_forward(model, data)
+    controller = SafetyController(model, data, robot, Obstacles(1))
+    A, b, *_ = controller.rows()
+    n = 3
+    A, b = A[-4 * n :], b[-4 * n :]  # the joint-limit rows come last
+    np.testing.assert_array_equal(A[[2, n + 2]], 0.0)  # the elbow's position rows, upper and lower
+    np.testing.assert_array_equal(b[[2, n + 2]], -1.0)
+    assert np.all(np.abs(A[[0, 1, n, n + 1, 2 * n + 2, 3 * n + 2]]).sum(axis=1) > 0)  # the others, and its speed rows
+    _, report = controller.filter(np.zeros(3))
+    assert report.feasible
     robot = RobotDescription.from_model(_model(), site="tool")
     with pytest.raises(UnsupportedModelError, match="joint speed limits"):
         SafetyController(_model(), mujoco.MjData(_model()), robot, Obstacles(1))

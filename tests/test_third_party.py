@@ -1,6 +1,6 @@
 """The safety filter on robosuite's arms (benchmarks/third_party.py): the arms load as their MJCF
-files describe them, every link's collision mesh is protected, and the benchmark's scene is a
-real threat (the unfiltered adversary collides).
+files describe them (a gripper attached as robosuite attaches it), every link's collision mesh is
+protected, and the benchmark's scene is a real threat (the unfiltered adversary collides).
 
 robosuite 1.5.2's wheel is fetched from PyPI on first use (``robosuite_assets``: into
 ``$C3BF_ROBOSUITE_CACHE`` or ``~/.cache/c3bf-gym/robosuite-1.5.2``)."""
@@ -82,10 +82,13 @@ def _ancestors(model, body):
         body = model.body_parentid[body]
 
 
-def test_kinova3_is_refused_by_the_default_filter_by_name(assets):
-    """Kinova Gen3's continuous joints have no position limits, which the joint-limit rows need."""
+def test_kinova3_runs_with_its_continuous_joints(assets):
+    """Kinova Gen3's joints 1, 3, 5 and 7 turn without limit: the default filter keeps their speed
+    rows and runs."""
     why, _ = tp._check_arm(assets, "kinova3")
-    assert why is not None and "'Actuator1' has no position limits" in why
+    assert why is None
+    model, robot, _ = tp.build_scene(assets, "kinova3", 1)
+    assert (~robot.joint_limited()).sum() == 4
 
 
 def test_the_benchmark_runs_writes_its_json_and_the_unfiltered_adversary_collides(assets, tmp_path):
@@ -94,10 +97,10 @@ def test_the_benchmark_runs_writes_its_json_and_the_unfiltered_adversary_collide
                       "--seconds", "1", "--json", str(out), "--cache", str(assets.parents[2])])  # fmt: skip
     written = tp.json.loads(out.read_text())
     assert set(written) == {"settings", "unsupported", "notes", "configurations", "episodes"}
-    assert list(written["unsupported"]) == ["kinova3"]
+    assert list(written["unsupported"]) == []
     rows = written["configurations"]
-    assert [(r["scenario"], r["policy"]) for r in rows] == [(s, p) for s in ("static", "head_on")
-                                                            for p in ("random", "adversarial")]  # fmt: skip
+    assert [(r["arm"], r["scenario"], r["policy"]) for r in rows] == [
+        (a, s, p) for a in ("iiwa", "kinova3") for s in ("static", "head_on") for p in ("random", "adversarial")]
     keys = {"arm", "scenario", "policy", "episodes", "collision_episodes", "lowest_clearance_m",
             "infeasible_per_1000_steps", "max_speed_ratio", "unfiltered_collision_episodes",
             "unfiltered_lowest_clearance_m", "unfiltered_max_speed_ratio"}  # fmt: skip

@@ -379,7 +379,7 @@ def joint_limit_rows(q, qd, Minv, c_q, dofs, qpos_ids, q_lo, q_hi, qd_max, g1, g
     """The ``4n`` rows of :class:`~c3bf_gym.safety.barriers.JointLimits` into ``A`` (4n, k), ``b`` (4n,)
     (row blocks: position upper, position lower, speed upper, speed lower) for the ``n`` joints at
     dofs ``dofs`` (rows of ``Minv`` (·, k), entries of ``qd``, ``c_q``) and ``qpos`` addresses
-    ``qpos_ids`` (entries of ``q``)."""
+    ``qpos_ids`` (entries of ``q``). An infinite limit's position row is ``0 τ ≥ −1``."""
     n = dofs.shape[0]
     ncol = Minv.shape[1]
     g12 = g1 * g2
@@ -395,6 +395,10 @@ def joint_limit_rows(q, qd, Minv, c_q, dofs, qpos_ids, q_lo, q_hi, qd_max, g1, g
         qi, qdi, ci = q[qpos_ids[i]], qd[d], c_q[d]
         b[i] = ((g12 * qi + g1p2 * qdi) + ci) + (-g12 * q_hi[i])
         b[n + i] = ((-g12 * qi + -g1p2 * qdi) + -ci) + g12 * q_lo[i]
+        for k in (i, n + i):  # no limit on that side (a continuous joint): 0 τ ≥ −1, which holds
+            if not math.isfinite(b[k]):
+                A[k, :ncol] = 0.0
+                b[k] = -1.0
         b[2 * n + i] = (gv * qdi + ci) + (-gv * qd_max[i])
         b[3 * n + i] = (-gv * qdi + -ci) + (-gv * qd_max[i])
 

@@ -440,13 +440,9 @@ class RobotDescription:
         return np.all(np.isfinite(self.joint_range), axis=1)
 
     def require_joint_limits(self, model: mujoco.MjModel) -> None:
-        """Raise :class:`UnsupportedModelError` naming the first joint without position limits,
-        or when no joint speed limit was given (the joint-limit rows need both)."""
-        for i in np.flatnonzero(~self.joint_limited()):
-            joint = _name(model, _OBJ.mjOBJ_JOINT, model.dof_jntid[self.dof_ids[i]])
-            raise UnsupportedModelError(f"joint {joint} has no position limits (limited=\"true\" range=...), which the "
-                                        "filter's joint-limit rows need; add them, or build the filter with "
-                                        "joint_limits=False")  # fmt: skip
+        """Raise :class:`UnsupportedModelError` when no joint speed limit was given (the joint-limit
+        rows need one per joint; a joint without position limits, a continuous one, gets speed
+        rows only)."""
         if self.joint_speed_limit is None:
             raise UnsupportedModelError("the joint-limit rows need joint speed limits: pass joint_speed_limit= to "
                                         "RobotDescription.from_model, or build the filter with joint_limits=False")  # fmt: skip

@@ -28,19 +28,20 @@ class JointLimits:
         lower:   q̈ + γ_v (q̇ + qd_max) ≥ 0
 
     Row order: ``[position upper (n), position lower (n), velocity upper (n),
-    velocity lower (n)]``.
+    velocity lower (n)]``. The position row of an infinite limit (a continuous
+    joint) is ``0 τ ≥ −1``, which always holds.
 
     Args:
-        q_lo: (n,) lower position limits [rad], finite.
-        q_hi: (n,) upper position limits [rad], finite, ``q_lo < q_hi``. Give
-            unlimited (continuous) joints wide finite limits.
+        q_lo: (n,) lower position limits [rad], or -inf for none.
+        q_hi: (n,) upper position limits [rad], or +inf for none, ``q_lo < q_hi``.
         qd_max: (n,) or scalar speed limits [rad/s], finite and > 0.
         gamma1: position-barrier gain γ₁ [1/s], finite and > 0.
         gamma2: position-barrier gain γ₂ [1/s], finite and > 0.
         gamma_v: velocity-barrier gain γ_v [1/s], finite and > 0.
 
     Raises:
-        ValueError: on inconsistent shapes, non-finite limits, ``q_lo >= q_hi``,
+        ValueError: on inconsistent shapes, NaN limits (or ``q_lo = +inf``,
+            ``q_hi = -inf``), ``q_lo >= q_hi``,
             ``qd_max <= 0`` or a gain that is not finite and > 0.
 
     """
@@ -65,8 +66,8 @@ class JointLimits:
         if qd_arr.shape not in ((), (n,)):
             raise ValueError(f"qd_max must be a scalar or have shape ({n},); got {qd_arr.shape}")
         qd_arr = np.broadcast_to(qd_arr, (n,)).copy()
-        if not (np.all(np.isfinite(q_lo)) and np.all(np.isfinite(q_hi))):
-            raise ValueError("q_lo and q_hi must be finite")
+        if np.any(np.isnan(q_lo) | np.isnan(q_hi) | (q_lo == np.inf) | (q_hi == -np.inf)):
+            raise ValueError("q_lo must be finite or -inf, q_hi finite or +inf")
         bad = np.flatnonzero(~(q_lo < q_hi))
         if bad.size:
             raise ValueError(
