@@ -116,3 +116,23 @@ def test_the_command_line_names_the_valid_choices(capsys):
         tp.main(["--arms", "ur10"])
     assert exit_info.value.code == 2
     assert "unknown arm ur10; choose from iiwa, sawyer, kinova3, jaco" in capsys.readouterr().err
+
+
+def _guide_snippet() -> str:
+    """The own-robot guide's robosuite example, as the guide shows it."""
+    guide = (Path(__file__).resolve().parents[1] / "docs" / "guides" / "own-robot.md").read_text()
+    section = guide.split("## A robosuite arm, from its MJCF file", 1)[1]
+    return section.split("```python\n", 1)[1].split("```", 1)[0]
+
+
+def test_the_guides_robosuite_example_runs_in_under_30_lines_and_keeps_the_ball_off(assets, capsys):
+    snippet = _guide_snippet()
+    assert len(snippet.strip().splitlines()) < 30
+    filter_line = "    tau, report = controller.filter(np.clip(tau, -robot.torque_limit, robot.torque_limit))\n"
+    assert filter_line in snippet
+    lowest = {}
+    for filtered in (True, False):
+        code = snippet if filtered else snippet.replace(filter_line, "    tau = np.clip(tau, -robot.torque_limit, robot.torque_limit)\n")
+        exec(compile(code, "own-robot.md", "exec"), {"assets": str(assets)})
+        lowest[filtered] = float(capsys.readouterr().out.rsplit("lowest clearance", 1)[1].split("mm")[0])
+    assert lowest[False] < 0.0 < lowest[True], lowest
