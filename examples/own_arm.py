@@ -7,7 +7,7 @@ with the filter (c3bf_gym.safety.SafetyController), and the script prints the lo
 between the ball and the protected geoms (MuJoCo's own mj_geomDistance, independent of the
 filter) and how often the filter intervened.
 
-    python examples/own_arm.py path/to/arm.xml --site tool --bodies link1 link2 link3 \\
+    python examples/own_arm.py path/to/arm.xml --site tool --bodies link2 link3 \\
         --joint-speed-limit 2.0
 
 What the model needs (the filter checks and names what is missing): a torque motor (<motor>) on
