@@ -1,7 +1,8 @@
 """The safety filter as a library: any MuJoCo arm, any obstacles, with or without Gymnasium.
 
 The data flow, one module each: the robot (:mod:`.robot`: what the filter needs to know about
-an arm, read from its MuJoCo model; :mod:`.dynamics`: its dynamics at points on it) → the
+an arm, read from its MuJoCo model; :mod:`.geometry`: the capsules that enclose its geoms;
+:mod:`.dynamics`: its dynamics at points on it) → the
 obstacles (:mod:`.obstacles`) → the settings (:mod:`.config`) → the constraint rows
 (:mod:`.barriers` for their math, :mod:`._kernels` compiled) → the QP (:mod:`.priority_qp`, DAQP
 through :mod:`._daqp`) → the controller (:mod:`.controller`: rows and QP, one physics step per
