@@ -56,6 +56,38 @@ def min_jerk(start: np.ndarray, goal: np.ndarray, duration: float, t: float) -> 
     return start + pos * delta, vel * delta, acc * delta
 
 
+def picture(model: mujoco.MjModel, robot: RobotDescription, path: str) -> None:
+    """A PNG of the arm at its start with the capsules the filter protects drawn over it
+    (translucent), from a camera that looks at the arm: what ``robot.describe`` lists, seen."""
+    import imageio.v3 as iio  # the experiments extra
+
+    data = mujoco.MjData(model)
+    if model.nkey:
+        mujoco.mj_resetDataKeyframe(model, data, 0)
+    mujoco.mj_forward(model, data)
+    a, b, radius = robot.capsule_segments(data)
+    camera = mujoco.MjvCamera()
+    mujoco.mjv_defaultFreeCamera(model, camera)
+    camera.lookat[:] = (a + b).mean(axis=0) / 2
+    camera.distance, camera.azimuth, camera.elevation = 2.5 * np.ptp(np.vstack([a, b]), axis=0).max() + 0.5, 135, -20
+    with mujoco.Renderer(model, 480, 640) as renderer:
+        renderer.update_scene(data, camera)
+        scene = renderer.scene
+        for start, end, r in zip(a, b, radius, strict=True):
+            if scene.ngeom == scene.maxgeom:
+                break
+            geom = scene.geoms[scene.ngeom]
+            mujoco.mjv_initGeom(geom, mujoco.mjtGeom.mjGEOM_CAPSULE, np.zeros(3), np.zeros(3), np.eye(3).ravel(),
+                                np.array([0.1, 0.6, 1.0, 0.35], dtype=np.float32))  # fmt: skip
+            if np.allclose(start, end):  # a sphere
+                mujoco.mjv_initGeom(geom, mujoco.mjtGeom.mjGEOM_SPHERE, np.full(3, r), start, np.eye(3).ravel(),
+                                    np.array([0.1, 0.6, 1.0, 0.35], dtype=np.float32))  # fmt: skip
+            else:
+                mujoco.mjv_connector(geom, mujoco.mjtGeom.mjGEOM_CAPSULE, r, start, end)
+            scene.ngeom += 1
+        iio.imwrite(path, renderer.render())
+
+
 def run(model: mujoco.MjModel, robot: RobotDescription, args: argparse.Namespace, ball: tuple | None,
         filtered: bool) -> dict:
     """One rollout of ``args.seconds``; ``ball`` = (start, velocity) or None (parked far away)."""
@@ -112,6 +144,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--ball-radius", type=float, default=0.05, help="[m]")
     parser.add_argument("--ball-speed", type=float, default=0.4, help="[m/s]")
     parser.add_argument("--margin", type=float, default=FilterConfig.margin, help="the filter's margin [m]")
+    parser.add_argument("--picture", help="also write a PNG of the arm with its protected capsules drawn over it")
     args = parser.parse_args(argv)
 
     model = load(args.model, args.ball_radius)
@@ -119,6 +152,9 @@ def main(argv: list[str] | None = None) -> int:
                                         joint_speed_limit=args.joint_speed_limit)  # fmt: skip
     print(f"{model.nv} joints, protecting {', '.join(model.geom(g).name or str(g) for g in robot.geom_ids)}")
     print(robot.describe(model))
+    if args.picture:
+        picture(model, robot, args.picture)
+        print(f"wrote {args.picture}")
     # where the tool is halfway through its move, without a ball: the ball meets it there
     path = run(model, robot, args, None, filtered=False)["path"]
     meet_step = int(round(0.5 * args.move_time / model.opt.timestep))

@@ -51,3 +51,21 @@ def test_example_names_what_the_model_lacks(tmp_path):
     path.write_text(ARM.replace('<motor name="elbow" joint="elbow" ctrlrange="-20 20"/>', ""))
     with pytest.raises(c3bf_gym.UnsupportedModelError, match="joint 'elbow' has no torque motor"):
         _example().main([str(path), "--site", "tool"])
+
+
+
+def test_example_draws_the_protected_capsules(tmp_path, capsys):
+    """--picture writes the arm with its protected capsules drawn over it in translucent blue: the
+    arm's own geoms and the floor are grey, so blue pixels are the capsules'."""
+    import imageio.v3 as iio
+
+    from test_geometry import ARM as SHAPES  # links that are a box, a cylinder and a mesh
+
+    path = tmp_path / "arm.xml"
+    path.write_text(SHAPES.split('<body name="ball"')[0] + "</worldbody>" + SHAPES.split("</worldbody>")[1])
+    picture = tmp_path / "capsules.png"
+    assert _example().main([str(path), "--site", "tool", "--seconds", "0.1", "--picture", str(picture)]) == 0
+    assert f"wrote {picture}" in capsys.readouterr().out
+    image = iio.imread(picture).astype(int)
+    assert image.shape == (480, 640, 3)
+    assert ((image[..., 2] - image[..., 0]) > 60).sum() > 500

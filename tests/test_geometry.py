@@ -155,6 +155,14 @@ def test_default_selection_protects_every_colliding_shape_and_names_what_it_leav
     assert [c.source for c in robot.capsules] == ["box", "cylinder", "mesh"]
     table = robot.describe(model)
     assert "fore" in table and "mesh" in table and len(table.splitlines()) == 4
+    data = mujoco.MjData(model)
+    data.qpos[:] = (0.4, -0.7, 1.1)
+    mujoco.mj_kinematics(model, data)
+    a, b, radius = robot.capsule_segments(data)  # in world coordinates, as the filter places them
+    a2, b2 = ArmModel(model, robot.geom_ids, -1).capsule_segments(data)
+    np.testing.assert_array_equal(a, a2)
+    np.testing.assert_array_equal(b, b2)
+    np.testing.assert_array_equal(radius, [c.radius for c in robot.capsules])
     # a moving body whose geoms all have collisions off is named, with the reason
     xml = ARM.replace('<geom name="post" type="box" size="0.05 0.05 0.15" pos="0.1 0 0.15" mass="2"/>',
                       '<geom name="post" type="box" size="0.05 0.05 0.15" pos="0.1 0 0.15" mass="2" contype="0" '

@@ -26,7 +26,14 @@ planes, height fields and SDFs, a mocap sphere ``ball``)::
 
 from c3bf_gym.safety.config import DEFAULT_FILTER, FILTERS, GUARD_GAMMA, FilterConfig
 from c3bf_gym.safety.controller import SafetyController, SafetyInfeasibleError, StepSafety
-from c3bf_gym.safety.geometry import Capsule, UnsupportedGeomError, enclosing_capsule, fit_capsule, protected_capsule
+from c3bf_gym.safety.geometry import (
+    Capsule,
+    UnsupportedGeomError,
+    enclosing_capsule,
+    fit_capsule,
+    protected_capsule,
+    world_segments,
+)
 from c3bf_gym.safety.obstacles import MocapSpheres, Obstacles
 from c3bf_gym.safety.robot import RobotDescription, UnprotectedGeometryWarning, UnsupportedModelError
 
@@ -48,4 +55,5 @@ __all__ = [
     "enclosing_capsule",
     "fit_capsule",
     "protected_capsule",
+    "world_segments",
 ]

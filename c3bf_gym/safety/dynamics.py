@@ -33,7 +33,7 @@ import mujoco
 import numpy as np
 
 from c3bf_gym.safety import _kernels
-from c3bf_gym.safety.geometry import protected_capsule
+from c3bf_gym.safety.geometry import protected_capsule, world_segments
 
 __all__ = ["ArmModel", "PointDynamics", "segment_closest_points"]
 
@@ -273,11 +273,7 @@ class ArmModel:
 
     def capsule_segments(self, data: mujoco.MjData) -> tuple[np.ndarray, np.ndarray]:
         """End points (S, 3), (S, 3) of the protected capsules' axes, in world coordinates [m]."""
-        ids, body = self.capsule_ids, self.capsule_body
-        xpos = np.where(body[:, None] < 0, data.geom_xpos[ids], data.xpos[body])
-        xmat = np.where(body[:, None] < 0, data.geom_xmat[ids], data.xmat[body]).reshape(-1, 3, 3)
-        ends = xpos[:, None, :] + np.einsum("sij,sej->sei", xmat, self.capsule_local)
-        return ends[:, 0], ends[:, 1]
+        return world_segments(data, self.capsule_ids, self.capsule_local, self.capsule_body)
 
     @staticmethod
     def _unpack(packed: np.ndarray) -> PointDynamics:

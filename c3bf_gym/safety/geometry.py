@@ -34,7 +34,7 @@ from typing import NamedTuple
 import mujoco
 import numpy as np
 
-__all__ = ["Capsule", "UnsupportedGeomError", "enclosing_capsule", "fit_capsule", "protected_capsule"]
+__all__ = ["Capsule", "UnsupportedGeomError", "enclosing_capsule", "fit_capsule", "protected_capsule", "world_segments"]
 
 _T = mujoco.mjtGeom
 _HINGE, _SLIDE = int(mujoco.mjtJoint.mjJNT_HINGE), int(mujoco.mjtJoint.mjJNT_SLIDE)
@@ -270,3 +270,21 @@ def protected_capsule(model: mujoco.MjModel, geom: int, arm_dofs: np.ndarray) ->
         swept.append((world - data.xpos[mount]) @ data.xmat[mount].reshape(3, 3))
     fitted = fit_capsule(np.concatenate(swept), enclosing_capsule(model, geom).source)
     return fitted._replace(radius=fitted.radius + radius + sagitta, body=mount)
+
+
+def world_segments(data: mujoco.MjData, geom_ids: np.ndarray, local: np.ndarray,
+                   body: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The capsules' axis end points in world coordinates [m], (S, 3) each, at ``data``'s
+    kinematics (after ``mj_kinematics``, ``mj_step1`` or ``mj_forward``).
+
+    Args:
+        data: the model's data.
+        geom_ids: (S,) the protected geoms.
+        local: (S, 2, 3) each capsule's ends ``a``, ``b`` in its frame (:class:`Capsule`).
+        body: (S,) -1 where the frame is the geom's, else the body whose frame it is.
+    """
+    geom_frame = body[:, None] < 0
+    pos = np.where(geom_frame, data.geom_xpos[geom_ids], data.xpos[body])
+    mat = np.where(geom_frame, data.geom_xmat[geom_ids], data.xmat[body]).reshape(-1, 3, 3)
+    ends = pos[:, None, :] + np.einsum("sij,sej->sei", mat, local)
+    return ends[:, 0], ends[:, 1]

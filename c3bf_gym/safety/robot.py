@@ -37,7 +37,7 @@ import mujoco
 import numpy as np
 
 from c3bf_gym import validation
-from c3bf_gym.safety.geometry import Capsule, UnsupportedGeomError, protected_capsule
+from c3bf_gym.safety.geometry import Capsule, UnsupportedGeomError, protected_capsule, world_segments
 
 __all__ = ["RobotDescription", "UnprotectedGeometryWarning", "UnsupportedModelError"]
 
@@ -400,6 +400,15 @@ class RobotDescription:
                 if np.abs(jac[:, dofs]).max() > 1e-9:
                     return False
         return True
+
+    def capsule_segments(self, data: mujoco.MjData) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The protected capsules in world coordinates at ``data``'s kinematics (after
+        ``mj_kinematics``, ``mj_step1`` or ``mj_forward``): axis end points ``a``, ``b`` (S, 3) and
+        radii (S,) [m], in the order of :attr:`geom_ids` (to draw them, or to measure against them)."""
+        local = np.array([(c.a, c.b) for c in self.capsules])
+        body = np.array([c.body for c in self.capsules], dtype=int)
+        a, b = world_segments(data, self.geom_ids, local, body)
+        return a, b, np.array([c.radius for c in self.capsules])
 
     def describe(self, model: mujoco.MjModel) -> str:
         """A table of the protected geoms (name, body, type) and the capsules the filter protects
