@@ -40,7 +40,8 @@ MuJoCo alone: ``mj_geomDistance`` between every sphere and every protected geom 
 e.g. the mesh, not its capsule) at the start and after every physics step; negative is
 penetration. Per arm x scenario x policy the table prints: episodes, filtered episodes with a
 collision, the lowest clearance [m], infeasible physics steps per 1,000 (the filter's QP needed
-slack), the largest ``|q̇_i| / q̇_max,i`` (the manufacturer's speed, :data:`ARMS`; the default
+slack), ``hard/1k`` those where rows of the last priority (the guard's, the floor's or the joint
+limits') gave way too, the largest ``|q̇_i| / q̇_max,i`` (the manufacturer's speed, :data:`ARMS`; the default
 filter holds ``joint_speed_fraction`` = 0.5 of it), and the same three without the filter. An arm
 the library refuses (``UnsupportedModelError``) is listed with the library's message instead.
 
@@ -48,6 +49,8 @@ Usage::
 
     python benchmarks/third_party.py --quick
     python benchmarks/third_party.py --episodes 10 --arms iiwa sawyer jaco --json third_party.json
+    python benchmarks/third_party.py --episodes 8 --arms iiwa sawyer --scenarios multi head_on --no-unfiltered \\
+        --set joint_speed_fraction=1.0 guard_gamma=20       # another filter setting, on the same seeds
 """
 
 from __future__ import annotations
@@ -196,6 +199,8 @@ MIN_HEIGHT = 0.05  # [m] every sphere's surface stays this far above the floor
 EXTRA_MOTOR_TORQUE = 10.0  # [N m] bound of a motor added to a joint the file leaves without one
 CUTOFF = 1.0  # [m] distances beyond this are not resolved (the lowest clearance is capped here)
 SENSING_RADIUS = 1.0  # [m] the filter's, as C3BFReach-v0's default
+#: The kinds of rows that give way last (priority 1): the ``hard/1k`` column counts steps where any did.
+HARD_ROWS = ("guard", "floor", "joint_limits")
 CONFIG = FilterConfig(sensing_radius=SENSING_RADIUS)  # the default filter at the env's sensing radius
 _BALL = "c3bf_ball{}"
 
@@ -342,15 +347,18 @@ class Episode:
     collided: bool = False
     lowest_clearance: float = CUTOFF
     infeasible_steps: int = 0
+    hard_relaxed_steps: int = 0
     max_speed_ratio: float = 0.0
 
 
 _SCENES: dict = {}  # (assets, arm, spheres) -> build_scene(...), per process
 
 
-def run_episode(task: tuple[str, str, str, str, bool, int, float]) -> Episode:
-    """One episode: ``task`` = (assets folder, arm, scenario, policy, filtered, seed, seconds)."""
-    assets, arm, scenario, policy, filtered, seed, seconds = task
+def run_episode(task: tuple[str, str, str, str, FilterConfig | None, int, float]) -> Episode:
+    """One episode: ``task`` = (assets folder, arm, scenario, policy, the filter's configuration or
+    None for none, seed, seconds)."""
+    assets, arm, scenario, policy, config, seed, seconds = task
+    filtered = config is not None
     kinds = SCENARIOS[scenario]
     key = (assets, arm, len(kinds))
     if key not in _SCENES:
@@ -371,7 +379,7 @@ def run_episode(task: tuple[str, str, str, str, bool, int, float]) -> Episode:
     data.mocap_pos[mocap] = position
     mujoco.mj_forward(model, data)
     spheres = MocapSpheres(model, [_BALL.format(k) for k in range(len(kinds))])
-    controller = SafetyController(model, data, robot, spheres, CONFIG) if filtered else None
+    controller = SafetyController(model, data, robot, spheres, config) if filtered else None
     if controller is not None:
         arm_model = controller.arm
     out = Episode(arm, scenario, policy, filtered, seed)
@@ -410,6 +418,7 @@ def run_episode(task: tuple[str, str, str, str, bool, int, float]) -> Episode:
             spheres.velocity[:] = velocity
             tau, report = controller.filter(tau)
             out.infeasible_steps += report.infeasible_steps
+            out.hard_relaxed_steps += any(report.violation[kind] > 0.0 for kind in HARD_ROWS)
         robot.write_ctrl(model, data, tau)
         mujoco.mj_step2(model, data)
         data.mocap_pos[mocap] += velocity * TIMESTEP
@@ -429,9 +438,9 @@ def summarise(episodes: list[Episode]) -> list[dict]:
                                              POLICIES.index(e.policy), e.seed)):  # fmt: skip
         row = rows.setdefault((e.arm, e.scenario, e.policy), {
             "arm": e.arm, "scenario": e.scenario, "policy": e.policy, "episodes": 0, "collision_episodes": 0,
-            "lowest_clearance_m": CUTOFF, "infeasible_per_1000_steps": 0.0, "max_speed_ratio": 0.0,
-            "unfiltered_collision_episodes": 0, "unfiltered_lowest_clearance_m": CUTOFF,
-            "unfiltered_max_speed_ratio": 0.0, "_steps": 0, "_infeasible": 0})  # fmt: skip
+            "lowest_clearance_m": CUTOFF, "infeasible_per_1000_steps": 0.0, "hard_relaxed_per_1000_steps": 0.0,
+            "max_speed_ratio": 0.0, "unfiltered_collision_episodes": 0, "unfiltered_lowest_clearance_m": CUTOFF,
+            "unfiltered_max_speed_ratio": 0.0, "_steps": 0, "_infeasible": 0, "_hard": 0})  # fmt: skip
         prefix = "" if e.filtered else "unfiltered_"
         row["episodes"] += e.filtered
         row[prefix + "collision_episodes"] += int(e.collided)
@@ -440,20 +449,24 @@ def summarise(episodes: list[Episode]) -> list[dict]:
         if e.filtered:
             row["_steps"] += e.steps
             row["_infeasible"] += e.infeasible_steps
+            row["_hard"] += e.hard_relaxed_steps
     for row in rows.values():
-        row["infeasible_per_1000_steps"] = 1e3 * row.pop("_infeasible") / max(row.pop("_steps"), 1)
+        steps = max(row.pop("_steps"), 1)
+        row["infeasible_per_1000_steps"] = 1e3 * row.pop("_infeasible") / steps
+        row["hard_relaxed_per_1000_steps"] = 1e3 * row.pop("_hard") / steps
     return list(rows.values())
 
 
 def print_table(rows: list[dict], unsupported: dict[str, str]) -> None:
     """The table (module docstring), then the arms the library refused with its message."""
-    print(f"{'':<31}{' filtered ':-^52}   {' unfiltered ':-^32}")
+    print(f"{'':<31}{' filtered ':-^60}   {' unfiltered ':-^32}")
     print(f"{'arm':<8} {'scenario':<9} {'policy':<11} {'episodes':>8} {'collisions':>10} {'lowest [m]':>10} "
-          f"{'infeas/1k':>9} {'max|qd|/lim':>11}   "
+          f"{'infeas/1k':>9} {'hard/1k':>7} {'max|qd|/lim':>11}   "
           f"{'collisions':>10} {'lowest [m]':>10} {'max|qd|/lim':>11}")  # fmt: skip
     for r in rows:
         filtered = (f"{r['episodes']:>8} {r['collision_episodes']:>10} {r['lowest_clearance_m']:>+10.4f} "
-                    f"{r['infeasible_per_1000_steps']:>9.2f} {r['max_speed_ratio']:>11.2f}")  # fmt: skip
+                    f"{r['infeasible_per_1000_steps']:>9.2f} {r['hard_relaxed_per_1000_steps']:>7.2f} "
+                    f"{r['max_speed_ratio']:>11.2f}")  # fmt: skip
         unfiltered = (f"{r['unfiltered_collision_episodes']:>10} {r['unfiltered_lowest_clearance_m']:>+10.4f} "
                       f"{r['unfiltered_max_speed_ratio']:>11.2f}")  # fmt: skip
         print(f"{r['arm']:<8} {r['scenario']:<9} {r['policy']:<11} {filtered}   {unfiltered}")
@@ -464,14 +477,30 @@ def print_table(rows: list[dict], unsupported: dict[str, str]) -> None:
 # ----------------------------------------------------------------------------- main
 
 
-def _check_arm(assets: Path, arm: str) -> tuple[str | None, list[str]]:
-    """(None, notes) when the default filter runs on ``arm``, else (the library's refusal, notes)."""
+def _check_arm(assets: Path, arm: str, config: FilterConfig) -> tuple[str | None, list[str]]:
+    """(None, notes) when the filter ``config`` runs on ``arm``, else (the library's refusal, notes)."""
     try:
         model, robot, notes = build_scene(assets, arm, 1)
-        SafetyController(model, mujoco.MjData(model), robot, MocapSpheres(model, [_BALL.format(0)]), CONFIG)
+        SafetyController(model, mujoco.MjData(model), robot, MocapSpheres(model, [_BALL.format(0)]), config)
     except UnsupportedModelError as error:
         return str(error), []
     return None, notes
+
+
+def _setting(item: str) -> tuple[str, object]:
+    """``"name=value"`` as ``(name, value)``: a number, true/false, none, or the text."""
+    name, sep, text = item.partition("=")
+    if not sep or not name:
+        raise ValueError(f"expected SETTING=VALUE, got {item!r}")
+    words = {"true": True, "false": False, "none": None}
+    if text.lower() in words:
+        return name, words[text.lower()]
+    for kind in (int, float):
+        try:
+            return name, kind(text)
+        except ValueError:
+            pass
+    return name, text
 
 
 def _choices(values: list[str], valid, what: str, parser: argparse.ArgumentParser) -> list[str]:
@@ -499,7 +528,15 @@ def main(argv: list[str] | None = None) -> dict:
                         f"~/.cache/c3bf-gym/robosuite-{ROBOSUITE_VERSION})")  # fmt: skip
     parser.add_argument("--quick", action="store_true", help="smoke run: 1 episode of 1 s, by default on iiwa "
                         "in static and head_on")  # fmt: skip
+    parser.add_argument("--set", nargs="+", default=[], metavar="SETTING=VALUE",
+                        help="change the filter's settings (FilterConfig fields; numbers, true/false, none or "
+                             "names), e.g. --set joint_speed_fraction=1.0 guard_gamma=20")  # fmt: skip
+    parser.add_argument("--no-unfiltered", action="store_true", help="skip the unfiltered twin of each episode")
     args = parser.parse_args(argv)
+    try:
+        config = CONFIG.replace(**dict(_setting(item) for item in args.set))
+    except (TypeError, ValueError) as error:
+        parser.error(f"--set: {error}")
     if args.quick:
         args.episodes, args.seconds = 1, 1.0
     arms = _choices(args.arms or (["iiwa"] if args.quick else list(ARMS)), ARMS, "arm", parser)
@@ -512,13 +549,14 @@ def main(argv: list[str] | None = None) -> dict:
 
     unsupported, notes = {}, {}
     for arm in arms:
-        why, notes[arm] = _check_arm(assets, arm)
+        why, notes[arm] = _check_arm(assets, arm, config)
         if why is not None:
             unsupported[arm] = why
     runnable = [arm for arm in arms if arm not in unsupported]
-    tasks = [(str(assets), arm, scenario, policy, filtered, args.seed + i, args.seconds)
+    twins = (config,) if args.no_unfiltered else (config, None)
+    tasks = [(str(assets), arm, scenario, policy, twin, args.seed + i, args.seconds)
              for arm in runnable for scenario in scenarios for policy in policies
-             for i in range(args.episodes) for filtered in (True, False)]  # fmt: skip
+             for i in range(args.episodes) for twin in twins]  # fmt: skip
     print(f"robosuite {ROBOSUITE_VERSION} arms from {assets}: {len(tasks)} episodes of {args.seconds:g} s "
           f"(dt {TIMESTEP} s) on {args.workers} worker(s)")  # fmt: skip
     for arm, lines in notes.items():
@@ -535,7 +573,7 @@ def main(argv: list[str] | None = None) -> dict:
     print(f"wall time {time.perf_counter() - start:.1f} s")
     result = {"settings": {"robosuite": ROBOSUITE_VERSION, "episodes_per_configuration": args.episodes,
                            "seconds": args.seconds, "timestep": TIMESTEP, "seed": args.seed, "arms": arms,
-                           "scenarios": scenarios, "policies": policies, "filter": repr(CONFIG),
+                           "scenarios": scenarios, "policies": policies, "filter": repr(config),
                            "joint_speed_limit_rad_s": {arm: list(ARMS[arm].joint_speed_limit) for arm in arms}},
               "unsupported": unsupported, "notes": notes, "configurations": rows,
               "episodes": [asdict(e) for e in episodes]}  # fmt: skip

@@ -85,7 +85,7 @@ def _ancestors(model, body):
 def test_kinova3_runs_with_its_continuous_joints(assets):
     """Kinova Gen3's joints 1, 3, 5 and 7 turn without limit: the default filter keeps their speed
     rows and runs."""
-    why, _ = tp._check_arm(assets, "kinova3")
+    why, _ = tp._check_arm(assets, "kinova3", tp.CONFIG)
     assert why is None
     model, robot, _ = tp.build_scene(assets, "kinova3", 1)
     assert (~robot.joint_limited()).sum() == 4
@@ -102,7 +102,7 @@ def test_the_benchmark_runs_writes_its_json_and_the_unfiltered_adversary_collide
     assert [(r["arm"], r["scenario"], r["policy"]) for r in rows] == [
         (a, s, p) for a in ("iiwa", "kinova3") for s in ("static", "head_on") for p in ("random", "adversarial")]
     keys = {"arm", "scenario", "policy", "episodes", "collision_episodes", "lowest_clearance_m",
-            "infeasible_per_1000_steps", "max_speed_ratio", "unfiltered_collision_episodes",
+            "infeasible_per_1000_steps", "hard_relaxed_per_1000_steps", "max_speed_ratio", "unfiltered_collision_episodes",
             "unfiltered_lowest_clearance_m", "unfiltered_max_speed_ratio"}  # fmt: skip
     assert all(set(r) == keys and r["episodes"] == 1 for r in rows)
     assert all(e["steps"] == 500 for e in written["episodes"])
@@ -136,3 +136,15 @@ def test_the_guides_robosuite_example_runs_in_under_30_lines_and_keeps_the_ball_
         exec(compile(code, "own-robot.md", "exec"), {"assets": str(assets)})
         lowest[filtered] = float(capsys.readouterr().out.rsplit("lowest clearance", 1)[1].split("mm")[0])
     assert lowest[False] < 0.0 < lowest[True], lowest
+
+
+def test_filter_settings_are_set_by_name_and_a_wrong_one_is_refused(assets, capsys):
+    result = tp.main(["--arms", "iiwa", "--scenarios", "static", "--policies", "random", "--episodes", "1",
+                      "--seconds", "0.2", "--no-unfiltered", "--set", "joint_speed_fraction=1.0", "guard=none",
+                      "--cache", str(assets.parents[2])])  # fmt: skip
+    assert "joint_speed_fraction=1.0" in result["settings"]["filter"] and "guard=None" in result["settings"]["filter"]
+    assert [e["filtered"] for e in result["episodes"]] == [True]
+    for bad, message in (("jsf=1", "unknown filter setting"), ("margin", "expected SETTING=VALUE")):
+        with pytest.raises(SystemExit):
+            tp.main(["--arms", "iiwa", "--set", bad, "--cache", str(assets.parents[2])])
+        assert message in capsys.readouterr().err
