@@ -354,3 +354,56 @@ def test_a_finger_is_protected_over_its_whole_stroke():
             world = data.geom_xpos[geom] + corners @ data.geom_xmat[geom].reshape(3, 3).T
             local = (world - data.xpos[capsule.body]) @ data.xmat[capsule.body].reshape(3, 3)
             assert capsule.distance(local).max() <= 1e-9
+
+
+def test_a_geom_on_hinged_fingers_is_held_at_every_angle():
+    """Two nested hinges the filter does not drive, the outer one off its body's origin: the swept
+    capsule holds the tip at every angle of a dense grid, not only at the sampled ones."""
+    xml = """<mujoco><compiler angle="radian"/><worldbody>
+      <body name="l1" pos="0 0 .3"><joint name="j1" axis="0 1 0" range="-3 3"/>
+        <geom type="capsule" fromto="0 0 0 .3 0 0" size=".04"/>
+        <body name="fbase" pos=".3 0 0"><joint name="f1" axis="0 1 0" range="0 0.6" pos="-0.3 0 0"/>
+          <inertial pos="0 0 0" mass=".01" diaginertia="1e-5 1e-5 1e-5"/>
+          <body name="mid" pos=".4 0 0"><joint name="f2" axis="0 1 0" range="0 0.6"/>
+            <inertial pos="0 0 0" mass=".01" diaginertia="1e-5 1e-5 1e-5"/>
+            <body name="tip" pos=".4 0 0"><geom name="tip" type="box" size=".01 .01 .01"/></body>
+          </body></body></body></worldbody>
+      <actuator><motor joint="j1" ctrlrange="-1 1"/><motor joint="f1" ctrlrange="-1 1"/>
+        <motor joint="f2" ctrlrange="-1 1"/></actuator></mujoco>"""
+    model = mujoco.MjModel.from_xml_string(xml)
+    robot = RobotDescription.from_model(model, joints=["j1"], geoms=["tip"])
+    capsule, geom = robot.capsules[0], model.geom("tip").id
+    assert capsule.body == model.body("l1").id
+    data = mujoco.MjData(model)
+    corners = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)]) * 0.01
+    f1, f2 = model.joint("f1").qposadr[0], model.joint("f2").qposadr[0]
+    for a in np.linspace(0.0, 0.6, 61):
+        for b in np.linspace(0.0, 0.6, 61):
+            data.qpos[[f1, f2]] = a, b
+            mujoco.mj_kinematics(model, data)
+            world = data.geom_xpos[geom] + corners @ data.geom_xmat[geom].reshape(3, 3).T
+            local = (world - data.xpos[capsule.body]) @ data.xmat[capsule.body].reshape(3, 3)
+            assert capsule.distance(local).max() <= 0.0
+
+
+def test_gear_and_gain_scale_the_torque_limits_and_the_other_dofs_bounds():
+    """A motor's joint torque is gear × gain × ctrl, and a force range bounds the actuator's force
+    before its gear: the torque limit, write_ctrl and the other dofs' force bounds all say so."""
+    xml = ARM.replace('<motor name="elbow" joint="elbow" ctrlrange="-20 20"/>',
+                      '<general name="elbow" joint="elbow" gear="5" gainprm="3" ctrlrange="-1 1"/>').replace(
+                      '<motor name="yaw" joint="yaw" ctrlrange="-40 40"/>',
+                      '<motor name="yaw" joint="yaw" gear="10" forcerange="-2 2"/>')  # fmt: skip
+    model = _model(xml)
+    robot = RobotDescription.from_model(model, site="tool", joint_speed_limit=3.0)
+    np.testing.assert_array_equal(robot.torque_limit, [20.0, 40.0, 15.0])
+    data = mujoco.MjData(model)
+    mujoco.mj_forward(model, data)
+    robot.write_ctrl(model, data, np.array([12.0, -30.0, 9.0]))
+    mujoco.mj_step2(model, data)
+    np.testing.assert_allclose(data.qfrc_actuator, [12.0, -30.0, 9.0])
+    geared = GRIPPER_ARM.replace('<position name="finger_r" joint="finger_r" kp="200" ctrlrange="0 0.03" '
+                                 'forcerange="-15 15"/>', '<motor name="finger_r" joint="finger_r" gear="10" '
+                                 'forcerange="-2 2"/>')  # fmt: skip
+    model = _model(geared)
+    others = RobotDescription.from_model(model, joints=ARM_JOINTS, site="tool", joint_speed_limit=3.0)
+    assert others.unmodelled_force[model.joint("finger_r").dofadr[0]] == 20.0  # gear 10 × force 2, no friction

@@ -395,8 +395,8 @@ def joint_limit_rows(q, qd, Minv, c_q, dofs, qpos_ids, q_lo, q_hi, qd_max, g1, g
         qi, qdi, ci = q[qpos_ids[i]], qd[d], c_q[d]
         b[i] = ((g12 * qi + g1p2 * qdi) + ci) + (-g12 * q_hi[i])
         b[n + i] = ((-g12 * qi + -g1p2 * qdi) + -ci) + g12 * q_lo[i]
-        for k in (i, n + i):  # no limit on that side (a continuous joint): 0 τ ≥ −1, which holds
-            if not math.isfinite(b[k]):
+        for k, limit in ((i, q_hi[i]), (n + i, q_lo[i])):  # none on that side (a continuous joint): 0 τ ≥ −1
+            if math.isinf(limit):
                 A[k, :ncol] = 0.0
                 b[k] = -1.0
         b[2 * n + i] = (gv * qdi + ci) + (-gv * qd_max[i])

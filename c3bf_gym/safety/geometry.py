@@ -192,9 +192,9 @@ def enclosing_capsule(model: mujoco.MjModel, geom: int) -> Capsule:
 
 
 #: Samples of a hinge's range when sweeping a geom over it (the chords' sagitta is added).
-_HINGE_SAMPLES = 17
+_HINGE_SAMPLES = 9
 #: At most this many joints the filter does not drive may move one protected geom.
-_MAX_SWEPT_JOINTS = 4
+_MAX_SWEPT_JOINTS = 3
 
 
 def _core(model: mujoco.MjModel, geom: int) -> tuple[np.ndarray, float]:
@@ -218,7 +218,8 @@ def protected_capsule(model: mujoco.MjModel, geom: int, arm_dofs: np.ndarray) ->
     *mount*, the last body on its chain that the arm's dofs alone move, holding the geom at every
     position of the other joints between the mount and it: slide joints at both ends of their
     range (the geom's points move on straight lines between them), hinges at
-    :data:`_HINGE_SAMPLES` angles with the arcs' largest sagitta added to the radius.
+    :data:`_HINGE_SAMPLES` angles, with the largest sagitta of the arcs between samples (from the
+    geom's farthest reach from each hinge's axis) added to the radius.
 
     Raises:
         UnsupportedGeomError: a plane, height field or SDF geom; a geom moved by a joint the
@@ -241,8 +242,8 @@ def protected_capsule(model: mujoco.MjModel, geom: int, arm_dofs: np.ndarray) ->
         raise UnsupportedGeomError(f"geom {name!r} is moved by a joint the filter drives below one it does not: "
                                    "the arm's joints must come first on its chain")
     joints = [j for b in others for j in range(model.body_jntadr[b], model.body_jntadr[b] + model.body_jntnum[b])]
-    values, sagitta = [], 0.0
-    for j in joints:
+    values, step = [], np.zeros(len(joints))
+    for i, j in enumerate(joints):
         jname = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_JOINT, j) or f"#{j}"
         kind = int(model.jnt_type[j])
         if kind not in (_HINGE, _SLIDE) or not model.jnt_limited[j]:
@@ -253,21 +254,26 @@ def protected_capsule(model: mujoco.MjModel, geom: int, arm_dofs: np.ndarray) ->
             values.append((low, high))
         else:
             values.append(tuple(np.linspace(low, high, _HINGE_SAMPLES)))
-            # points at up to the geom's reach from the hinge's axis move on arcs: chord sagitta
-            reach = float(np.linalg.norm(model.geom_aabb[geom, 3:]) + np.linalg.norm(model.geom_pos[geom]))
-            sagitta += reach * (1.0 - np.cos(0.5 * (high - low) / (_HINGE_SAMPLES - 1)))
+            step[i] = (high - low) / (_HINGE_SAMPLES - 1)
     if len(joints) > _MAX_SWEPT_JOINTS:
         raise UnsupportedGeomError(f"geom {name!r} is moved by {len(joints)} joints the filter does not drive; at most "
                                    f"{_MAX_SWEPT_JOINTS} are swept")
     core, radius = _core(model, geom)
     data = mujoco.MjData(model)
-    swept = []
+    swept, reach = [], np.zeros(len(joints))
     for setting in np.array(np.meshgrid(*values, indexing="ij")).reshape(len(joints), -1).T:
         data.qpos[:] = model.qpos0
         data.qpos[model.jnt_qposadr[joints]] = setting
         mujoco.mj_kinematics(model, data)
         world = data.geom_xpos[geom] + core @ data.geom_xmat[geom].reshape(3, 3).T
         swept.append((world - data.xpos[mount]) @ data.xmat[mount].reshape(3, 3))
+        for i, j in enumerate(joints):  # the core points' distance from each hinge's axis
+            rel = world - data.xanchor[j]
+            along = rel @ data.xaxis[j]
+            reach[i] = max(reach[i], float(np.sqrt(np.max(np.einsum("ij,ij->i", rel, rel) - along**2).clip(0.0))))
+    # between two samples a point at distance r from a hinge's axis moves on an arc that leaves the
+    # chord (inside the fitted capsule, which holds both ends) by at most r (1 − cos(δ/2))
+    sagitta = float(np.sum((reach + radius) * (1.0 - np.cos(0.5 * step))))
     fitted = fit_capsule(np.concatenate(swept), enclosing_capsule(model, geom).source)
     return fitted._replace(radius=fitted.radius + radius + sagitta, body=mount)
 

@@ -21,7 +21,8 @@ What the filter assumes of the model (and checks):
   cylinders, ellipsoids, boxes and meshes enclosed); :meth:`RobotDescription.describe` lists them;
 * torque limits are finite and symmetric per joint: the tightest of the joint's
   ``actuatorfrcrange`` (which bounds the total actuator force, gravity compensation included),
-  the actuator's ``forcerange`` and ``gear × ctrlrange``, each taken as ``min(-low, high)``.
+  ``gear × forcerange`` and ``gear × gain × ctrlrange`` of its motor, each taken as
+  ``min(-low, high)``.
 
 Contact and equality-constraint forces on the arm are not modelled: the arm must not touch
 things, which is what the filter is for.
@@ -110,7 +111,8 @@ class RobotDescription:
         joint_range: (n, 2) joint position limits [rad or m]; rows of a joint without limits are
             ``(-inf, inf)``.
         joint_speed_limit: (n,) joint speed bound [rad/s or m/s], or None when not given.
-        gear: (n,) each arm dof's motor gear (joint torque per unit of ``ctrl``).
+        gear: (n,) joint torque per unit of ``ctrl`` of each arm dof's motor: its gear times its
+            gain (``gainprm[0]``, 1 for ``<motor>``).
         gravcomp_in_actuator: (n,) whether the dof's joint routes gravity compensation through
             its actuator (``actuatorgravcomp="true"``): then the joint torque is the motor's plus
             ``data.qfrc_gravcomp``.
@@ -199,7 +201,7 @@ class RobotDescription:
             if model.jnt_limited[j]:
                 joint_range[i] = model.jnt_range[j]
         speed = cls._speed_limit(joint_speed_limit, len(dofs))
-        gear = model.actuator_gear[actuators, 0].copy()
+        gear = model.actuator_gear[actuators, 0] * model.actuator_gainprm[actuators, 0]  # joint torque per ctrl
         gravcomp = model.jnt_actgravcomp[model.dof_jntid[dofs]].astype(bool)
         unmodelled = model.dof_frictionloss.astype(float) + cls._other_forces(model, dofs)
         for array in (dofs, actuators, limit, ids, joint_range, gear, gravcomp, unmodelled, speed):
@@ -266,10 +268,11 @@ class RobotDescription:
                                             f"{mujoco.mjtTrn(trn).name}): the filter cannot bound its force on the "
                                             "arm")  # fmt: skip
             joint = model.actuator_trnid[a, 0]
-            if model.actuator_forcelimited[a]:
-                force = np.abs(model.actuator_forcerange[a]).max()
+            gear = abs(model.actuator_gear[a, 0])
+            if model.actuator_forcelimited[a]:  # the actuator's force, which its gear scales onto the joint
+                force = gear * np.abs(model.actuator_forcerange[a]).max()
             elif _is_motor(model, a) and model.actuator_ctrllimited[a]:
-                force = abs(model.actuator_gear[a, 0]) * np.abs(model.actuator_ctrlrange[a]).max()
+                force = gear * abs(model.actuator_gainprm[a, 0]) * np.abs(model.actuator_ctrlrange[a]).max()
             else:
                 force = np.inf
             if model.jnt_actfrclimited[joint]:
@@ -338,6 +341,11 @@ class RobotDescription:
         ``g = data.qfrc_gravcomp`` on joints that route gravity compensation through their
         actuator (current after ``mj_step1`` or ``mj_forward``) and 0 elsewhere. Other actuators'
         ``ctrl`` is left as it is.
+
+        A joint that routes gravity compensation through its actuator needs a ``ctrlrange`` with
+        room for that torque on top of ``torque_limit`` (``assets/ur5e.xml`` gives ``ctrlrange``
+        twice ``actuatorfrcrange``, which then bounds the total): the torque limit is read from the
+        joint's force bounds, and ``ctrl`` must carry ``tau − g``.
 
         Raises:
             ValueError: ``tau`` not of shape (n,) or not finite; a ``ctrl`` outside its actuator's
@@ -428,11 +436,11 @@ class RobotDescription:
         joint = model.actuator_trnid[a, 0]
         if model.jnt_actfrclimited[joint]:
             bounds.append(model.jnt_actfrcrange[joint])
-        if model.actuator_forcelimited[a]:
-            bounds.append(model.actuator_forcerange[a])
+        gear = abs(model.actuator_gear[a, 0])
+        if model.actuator_forcelimited[a]:  # the actuator's force, which its gear scales onto the joint
+            bounds.append(np.sort(model.actuator_forcerange[a] * gear))
         if model.actuator_ctrllimited[a]:
-            gear = abs(model.actuator_gear[a, 0])
-            bounds.append(np.sort(model.actuator_ctrlrange[a] * gear))
+            bounds.append(np.sort(model.actuator_ctrlrange[a] * gear * abs(model.actuator_gainprm[a, 0])))
         limits = [min(-low, high) for low, high in bounds]
         label = f"actuator {_name(model, _OBJ.mjOBJ_ACTUATOR, a)}"
         if not limits:
