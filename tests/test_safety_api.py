@@ -298,8 +298,10 @@ def test_an_arm_with_a_gripper_and_other_bodies_is_filtered_on_its_own_joints():
     model = _model(GRIPPER_ARM)
     with pytest.raises(UnsupportedModelError, match=r"joint 'crate' is a free joint.*name the arm's joints with joints="):
         RobotDescription.from_model(model)  # the gripper and the crate are not the arm's
-    robot = RobotDescription.from_model(model, joints=ARM_JOINTS, site="tool", joint_speed_limit=3.0)
-    assert (robot.n, robot.nv) == (3, 11) and robot.dof_ids.tolist() == [0, 1, 2]
+    with pytest.raises(UnsupportedModelError, match=r"joints= names no joint"):
+        RobotDescription.from_model(model, joints=[])
+    robot = RobotDescription.from_model(model, joints=ARM_JOINTS + ["yaw"], site="tool", joint_speed_limit=3.0)
+    assert (robot.n, robot.nv) == (3, 11) and robot.dof_ids.tolist() == [0, 1, 2]  # a joint named twice counts once
     assert {"finger_l", "finger_r", "upper", "fore", "wrist"} <= {model.geom(g).name for g in robot.geom_ids}
     finger_l, finger_r = model.joint("finger_l").dofadr[0], model.joint("finger_r").dofadr[0]
     bound = robot.unmodelled_force

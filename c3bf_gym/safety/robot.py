@@ -213,7 +213,9 @@ class RobotDescription:
     @staticmethod
     def _arm_dofs(model: mujoco.MjModel, joints: Iterable[str | int] | None) -> np.ndarray:
         """The dofs of ``joints`` (all joints when None), ascending; refuses other joint types."""
-        chosen = range(model.njnt) if joints is None else _ids(model, _OBJ.mjOBJ_JOINT, joints, "joint")
+        chosen = range(model.njnt) if joints is None else sorted(set(_ids(model, _OBJ.mjOBJ_JOINT, joints, "joint")))
+        if not chosen:
+            raise UnsupportedModelError("joints= names no joint: name the arm's joints (or pass None for all of them)")
         for j in chosen:
             if int(model.jnt_type[j]) not in _JOINT_TYPES:
                 kind = mujoco.mjtJoint(model.jnt_type[j]).name.removeprefix("mjJNT_").lower()
