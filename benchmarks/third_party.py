@@ -9,8 +9,8 @@ and a torque motor on any joint without one. The arm is described by
 ``RobotDescription.from_model``'s default selection (every colliding geom on a moving body, meshes
 enclosed by capsules; with a gripper, its fingers swept over their stroke) and filtered by the
 default filter with the project's environment's sensing radius (``FilterConfig(sensing_radius=``
-:data:`SENSING_RADIUS` ``)``: a sphere adds rows once its surface is within 1 m of the arm). The arm's geoms keep the file's ``contype`` and
-``conaffinity``, so the arms can touch the floor and robosuite's Sawyer its own links and base (its
+:data:`SENSING_RADIUS` ``)``: a sphere adds rows once its surface is within 1 m of the arm). The
+arm's geoms keep the file's ``contype`` and ``conaffinity``, so the arms can touch the floor and robosuite's Sawyer its own links and base (its
 file excludes no pair; its first link touches the base at the start): contact forces are outside
 the filter's model, as in the project's own environment.
 
@@ -368,7 +368,7 @@ def run_episode(task: tuple[str, str, str, str, FilterConfig | None, int, float]
     dofs = robot.dof_ids  # the arm's; a gripper's fingers are the model's other dofs
     data.qpos[model.jnt_qposadr[model.dof_jntid[dofs]]] = ARMS[arm].init_qpos
     mujoco.mj_forward(model, data)
-    arm_model = ArmModel(model, robot.geom_ids, robot.site_id, robot.dof_ids)
+    arm_model = ArmModel(model, robot.geom_ids, robot.site_id, robot.capsules)
     a, b = arm_model.capsule_segments(data)
     rng = np.random.default_rng(seed)
     position, velocity, radius = _spawn(rng, kinds, a, b, arm_model.capsule_radius, data.site_xpos[robot.site_id],

@@ -217,7 +217,7 @@ class SafetyController:
             joint_limits = JointLimits(q_lo, q_hi, config.joint_speed_fraction * robot.joint_speed_limit)
         self.joint_limits = joint_limits
         weight = config.weight
-        self.arm: ArmModel = ArmModel(model, robot.geom_ids, robot.site_id, robot.dof_ids) if arm is None else arm
+        self.arm: ArmModel = ArmModel(model, robot.geom_ids, robot.site_id, robot.capsules) if arm is None else arm
         if not np.array_equal(self.arm.capsule_ids, robot.geom_ids):
             raise ValueError(f"arm protects geoms {self.arm.capsule_ids.tolist()}, the robot {robot.geom_ids.tolist()}: "
                              "share an ArmModel built from this robot")  # fmt: skip

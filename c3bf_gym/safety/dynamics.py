@@ -27,13 +27,14 @@ matrix, bias and passive forces, ``cdof`` and ``cdof_dot`` of the state about to
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import NamedTuple
 
 import mujoco
 import numpy as np
 
 from c3bf_gym.safety import _kernels
-from c3bf_gym.safety.geometry import protected_capsule, world_segments
+from c3bf_gym.safety.geometry import Capsule, protected_capsule, world_segments
 
 __all__ = ["ArmModel", "PointDynamics", "segment_closest_points"]
 
@@ -102,9 +103,10 @@ class ArmModel:
             obstacle; the env leaves its fixed base to the scenario's keep-out zone).
         site_id: the tool site (``ee_site``), or -1 for none (then :meth:`site_dynamics` is
             unavailable).
-        arm_dofs: the dofs the filter drives (None: all of them); a geom that other dofs move
-            too (a gripper's finger) is protected by the capsule that holds it over their range,
-            on the last body the arm alone moves (:func:`~c3bf_gym.safety.geometry.protected_capsule`).
+        capsules: the capsule to protect for each of ``arm_geom_ids``, as
+            :attr:`~c3bf_gym.safety.RobotDescription.capsules` holds them (a gripper's fingers
+            swept over their range, :func:`~c3bf_gym.safety.geometry.protected_capsule`); None:
+            computed here, with every dof the arm's.
 
     Raises:
         ValueError: no geom on a moving body, or geoms on more than one kinematic tree.
@@ -113,17 +115,23 @@ class ArmModel:
     """
 
     def __init__(self, model: mujoco.MjModel, arm_geom_ids: np.ndarray, site_id: int,
-                 arm_dofs: np.ndarray | None = None) -> None:
+                 capsules: Sequence[Capsule] | None = None) -> None:
         self.model = model
         self.nv = model.nv
         self.site_id = int(site_id)
-        ids = [int(g) for g in arm_geom_ids if self._chain_mask(model, model.geom_bodyid[g]).any()]
-        if not ids:
+        if capsules is None:
+            capsules = [None] * len(arm_geom_ids)
+        elif len(capsules) != len(arm_geom_ids):
+            raise ValueError(f"{len(capsules)} capsules for {len(arm_geom_ids)} geoms: give one per geom")
+        kept = [(int(g), c) for g, c in zip(arm_geom_ids, capsules, strict=True)
+                if self._chain_mask(model, model.geom_bodyid[g]).any()]  # fmt: skip
+        if not kept:
             raise ValueError("the model has no protected geoms on moving arm bodies")
+        ids = [g for g, _ in kept]
         self.capsule_ids = np.array(ids)
-        arm_dofs = np.arange(model.nv) if arm_dofs is None else np.asarray(arm_dofs, dtype=int)
+        every_dof = np.arange(model.nv)
         #: the capsule protected for each geom (in the geom's frame, or its mount body's)
-        self.capsules = tuple(protected_capsule(model, g, arm_dofs) for g in ids)
+        self.capsules = tuple(protected_capsule(model, g, every_dof) if c is None else c for g, c in kept)
         self.capsule_radius = np.array([c.radius for c in self.capsules])
         #: (S, 2, 3) each capsule's axis end points a, b in its frame [m]
         self.capsule_local = np.ascontiguousarray([(c.a, c.b) for c in self.capsules], dtype=np.float64)

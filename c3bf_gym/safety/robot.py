@@ -45,6 +45,7 @@ __all__ = ["RobotDescription", "UnprotectedGeometryWarning", "UnsupportedModelEr
 _SURFACES = (int(mujoco.mjtGeom.mjGEOM_PLANE), int(mujoco.mjtGeom.mjGEOM_HFIELD), int(mujoco.mjtGeom.mjGEOM_SDF))
 _JOINT_TYPES = (int(mujoco.mjtJoint.mjJNT_HINGE), int(mujoco.mjtJoint.mjJNT_SLIDE))
 _DIRECT = (int(mujoco.mjtTrn.mjTRN_JOINT), int(mujoco.mjtTrn.mjTRN_JOINTINPARENT))
+_JOINT_DOFS = {int(mujoco.mjtJoint.mjJNT_FREE): 6, int(mujoco.mjtJoint.mjJNT_BALL): 3}  # hinges, slides: 1
 _OBJ = mujoco.mjtObj
 
 
@@ -284,7 +285,7 @@ class RobotDescription:
                                             "not the arm's, with no force bound: set its forcerange (or the joint's "
                                             "actuatorfrcrange), so the filter can allow for it")  # fmt: skip
             dof = int(model.jnt_dofadr[joint])
-            width = {int(mujoco.mjtJoint.mjJNT_FREE): 6, int(mujoco.mjtJoint.mjJNT_BALL): 3}.get(int(model.jnt_type[joint]), 1)
+            width = _JOINT_DOFS.get(int(model.jnt_type[joint]), 1)
             bound[dof : dof + width] += force
         return bound
 
