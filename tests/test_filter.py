@@ -21,6 +21,10 @@ from c3bf_gym.scenarios import ObstacleSample, ObstacleSpec
 
 import reference
 
+#: Several tests shrink the sensing radius or the joint speeds below what the scenarios' obstacles
+#: need; the filter says so (tests/test_envelope.py checks that it does), which is not their subject.
+pytestmark = pytest.mark.filterwarnings("ignore::c3bf_gym.safety.EnvelopeWarning")
+
 # ----------------------------------------------------------------------------- helpers
 
 
@@ -495,7 +499,7 @@ def test_relax_reports_and_does_not_return_nominal(env):
     tau_nom = u.data.qfrc_gravcomp.copy()
     hook.begin_step()
     tau = hook(tau_nom.copy())
-    assert hook.last.status == "relaxed" and not hook.last.feasible
+    assert hook.last.status == "relaxed" and not hook.last.feasible  # beyond the raised gain's allowance
     assert not hook.report.inside
     assert np.linalg.norm(tau - tau_nom) > 1.0  # the least-violating torque, not the nominal one
     assert np.all(np.abs(tau) <= u.torque_limit + 1e-12)
@@ -622,7 +626,8 @@ def test_relaxed_solve_keeps_rows_outside_the_conflict(make_env):
     refresh(u)
     hook = hook_for(u)
     tau = hook(np.asarray(state["tau_nom"]) * u.torque_limit)
-    assert hook.last.status == "relaxed" and not hook.last.feasible
+    # the cone rows gave way within their allowance: held with the C3BF's gain raised
+    assert hook.last.status == "gain raised" and hook.last.feasible and hook.last.slack > 0.0
     A, b, *_ = hook.rows()
     residual = (A @ tau - b) / np.linalg.norm(A, axis=1).clip(1e-12)
     n = u.model.nv
@@ -646,6 +651,10 @@ def _unfused_call(hook, tau_nom):
     tau = np.empty_like(tau_nom)
     qp, m = hook.qp.buffers, len(b)
     _kernels.hook_post(b, qp.norm[:m], qp.residual[:m], result.tau, hook._scale, tau_nom, hook._limit, tau)
+    n_obstacle = m - hook._n_floor_rows - hook._n_joint_rows
+    if result.status == "relaxed" and not _kernels.beyond_allowance(qp.residual[:m], qp.norm[:m], hook._tally.row_h,
+                                                                    hook._tally.gains, n_obstacle, hook._stride):
+        result = result._replace(feasible=True, status="gain raised")  # the barrier's rows held, gain raised
     return tau, result
 
 
@@ -683,11 +692,11 @@ def test_fused_step_replays_the_unfused_path(make_env, scenario, name):
         np.testing.assert_array_equal(tau_f, tau_p)
         assert res_f == res_p
     statuses = {res[2] for _, res in seen[0]}
-    assert "solved" in statuses and (scenario == "crossing" or "relaxed" in statuses)
+    assert "solved" in statuses and (scenario == "crossing" or statuses & {"relaxed", "gain raised"})
 
 
 @pytest.mark.parametrize(("scenario", "settings"), [("multi", {}), ("crossing", {"barrier": "c3bf", "guard": None}),
-                                                   ("head_on", {"on_infeasible": "raise"})])
+                                                   ("multi", {"on_infeasible": "raise"})])
 def test_the_compiled_policy_step_replays_the_hooks_loop(make_env, scenario, settings):
     """The filter's calls inside the env's compiled policy step (``filtered_steps``) give what the
     same calls through the hooks' Python loop give (``record_times`` sends every call through
@@ -718,7 +727,9 @@ def test_the_compiled_policy_step_replays_the_hooks_loop(make_env, scenario, set
             assert obs_a.tobytes() == obs_b.tobytes() and r_a == r_b and info_a == info_b
             assert np.array_equal(envs[0].unwrapped.data.qpos, envs[1].unwrapped.data.qpos)
             assert np.array_equal(envs[0].unwrapped.data.qvel, envs[1].unwrapped.data.qvel)
-    assert steps > 100 and raised[0] == raised[1] and (raised[0] > 0) == ("on_infeasible" in settings)
+    # (with "raise", most of multi's steps raise: fewer complete)
+    assert steps > (20 if "on_infeasible" in settings else 100)
+    assert raised[0] == raised[1] and (raised[0] > 0) == ("on_infeasible" in settings)
     assert envs[0].hook.last.status == envs[1].hook.last.status
     # the compiled calls are not timed (NaN), the recorded ones are
     assert np.isnan(envs[0].hook.report.solve_time) and envs[1].hook.report.solve_time > 0.0

@@ -426,3 +426,28 @@ def test_a_subclass_changing_only_gamma_is_honoured_on_the_fused_path(make_env):
     close(b1, b2, 0.0)
     base = SafetyHook(u, config.replace(barrier=C3BF()))  # gamma 5: other rows
     assert not np.allclose(base.rows()[1][:len(b1)], b1)
+
+
+def test_a_barrier_row_may_give_way_only_within_its_raised_gain():
+    """beyond_allowance: a barrier row at h > 0 may give way by (γ_max − γ) h (in ḣ's units:
+    violation × row norm); not at h <= 0, and no other row may give way at all."""
+    from c3bf_gym.safety._kernels import beyond_allowance
+
+    gains = np.array([5.0, 25.0])  # γ, γ_max: allowance 20 h
+    norm = np.array([2.0, 2.0, 3.0])  # barrier, guard (stride 2), floor
+    row_h = np.array([0.01, 9.9, 9.9])
+    held = np.array([0.0, 0.0, 0.0])
+
+    def beyond(residual, h=row_h):
+        return beyond_allowance(np.array(residual, dtype=float), norm, np.array(h, dtype=float), gains, 2, 2)
+
+    assert not beyond(held)
+    assert not beyond([-0.099, 0.0, 0.0])  # 0.099 * 2 = 0.198 <= 20 * 0.01 = 0.2
+    assert beyond([-0.101, 0.0, 0.0])  # 0.202 > 0.2
+    assert beyond([-0.001, 0.0, 0.0], h=[0.0, 9.9, 9.9])  # on the cone's surface: no allowance
+    assert beyond([-0.001, 0.0, 0.0], h=[-0.01, 9.9, 9.9])
+    assert beyond([0.0, -0.001, 0.0])  # the guard's row
+    assert beyond([0.0, 0.0, -0.001])  # the floor's row
+    assert not beyond([-5e-7, -5e-7, -5e-7])  # within the solver's tolerance
+    norm[0] = 0.0  # an unmovable row
+    assert beyond([-0.001, 0.0, 0.0])

@@ -84,9 +84,9 @@ def _ancestors(model, body):
 
 def test_kinova3_runs_with_its_continuous_joints(assets):
     """Kinova Gen3's joints 1, 3, 5 and 7 turn without limit: the default filter keeps their speed
-    rows and runs."""
-    why, _ = tp._check_arm(assets, "kinova3", tp.CONFIG)
-    assert why is None
+    rows and runs, and states an envelope covering the benchmark's spheres with its keep-out."""
+    why, _, envelope = tp._check_arm(assets, "kinova3", tp.CONFIG)
+    assert why is None and envelope.max_speed >= tp.SPEED[1]
     model, robot, _ = tp.build_scene(assets, "kinova3", 1)
     assert (~robot.joint_limited()).sum() == 4
 
@@ -102,7 +102,8 @@ def test_the_benchmark_runs_writes_its_json_and_the_unfiltered_adversary_collide
     assert [(r["arm"], r["scenario"], r["policy"]) for r in rows] == [
         (a, s, p) for a in ("iiwa", "kinova3") for s in ("static", "head_on") for p in ("random", "adversarial")]
     keys = {"arm", "scenario", "policy", "episodes", "collision_episodes", "lowest_clearance_m",
-            "infeasible_per_1000_steps", "hard_relaxed_per_1000_steps", "max_speed_ratio", "unfiltered_collision_episodes",
+            "infeasible_per_1000_steps", "gain_raised_per_1000_steps", "hard_relaxed_per_1000_steps", "max_speed_ratio",
+            "unfiltered_collision_episodes",
             "unfiltered_lowest_clearance_m", "unfiltered_max_speed_ratio"}  # fmt: skip
     assert all(set(r) == keys and r["episodes"] == 1 for r in rows)
     assert all(e["steps"] == 500 for e in written["episodes"])

@@ -27,6 +27,7 @@ SAFETY_TYPES = {
     "intervened": bool,
     "inside": bool,
     "infeasible_steps": int,
+    "gain_raised_steps": int,
     **{f"violation_{kind}": float for kind in ("barrier", "guard", "floor", "joint_limits", "unmovable")},
 }
 
@@ -175,8 +176,10 @@ def test_info_safety_keys_and_types(make_env):
         assert safety["slack"] >= 0.0 and safety["correction"] >= 0.0
         # timings stay off info; inside the env's compiled policy step the filter takes none
         assert "solve_time" not in safety and np.isnan(env.hook.report.solve_time)
-        assert safety["feasible"] == (safety["infeasible_steps"] == 0) == (safety["slack"] == 0.0)
-        if safety["feasible"]:  # every row held at the applied torque (A τ − b in the rows' units)
+        assert safety["feasible"] == (safety["infeasible_steps"] == 0)
+        held = safety["infeasible_steps"] == safety["gain_raised_steps"] == 0
+        assert held == (safety["slack"] == 0.0)  # a barrier row held with a raised gain used slack
+        if held:  # every row held as written at the applied torque (A τ − b in the rows' units)
             assert safety["min_constraint"] >= -1e-2  # (tolerance 1e-6 normalised; row norms < 1e4)
         # flat keys for SB3's Monitor(info_keywords=...)
         assert type(info["safety_intervened"]) is float and info["safety_intervened"] in (0.0, 1.0)

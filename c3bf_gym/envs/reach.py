@@ -97,9 +97,12 @@ class ReachRobot:
         joint_speed_limit: the joint speed limits [rad/s], one per joint.
         goal_low, goal_high: the goal region, an axis-aligned box in front of the robot [m].
         home_noise: the uniform joint noise around the ``home`` keyframe at reset [rad].
-        keep_out_radius: the radius of the :class:`~c3bf_gym.scenarios.Envelope`'s keep-out
-            cylinder around the base's vertical axis [m]: the base and the first links, which
-            cannot dodge, lie inside it.
+        keep_out_radius, keep_out_height: the radius and height of the
+            :class:`~c3bf_gym.scenarios.Envelope`'s keep-out cylinder around the base's vertical
+            axis [m]: the base and the links about that axis, which cannot sidestep an obstacle
+            (the pan joint turns them in place), lie inside it. The filter's envelope
+            (:func:`c3bf_gym.filter.scenario_envelope`) covers the task's obstacles only with
+            them out of reach.
     """
 
     name: str
@@ -110,6 +113,7 @@ class ReachRobot:
     goal_high: tuple[float, float, float] = (0.65, 0.4, 0.6)
     home_noise: float = 0.05
     keep_out_radius: float = 0.3
+    keep_out_height: float = 0.5
 
     def goal_corners(self) -> np.ndarray:
         """(8, 3) the goal box's corners (the farthest goal from any start is one of them)."""
@@ -120,12 +124,18 @@ class ReachRobot:
 #: The arms the task runs on. Both reach the same goal box: its farthest corner from the
 #: shoulder is 0.79 m for the Panda (reach 0.855 m, Franka's datasheet) and less for the UR5e.
 ROBOTS: dict[str, ReachRobot] = {
+    # Keep-out 0.5 m high: the upper arm stands on the base axis when the shoulder is upright, and
+    # its points up to about 0.45 m can only move along one horizontal line (the envelope, 8 cm
+    # spheres, 1 m sensing: 0.33 m/s with 0.45 m, 0.50 m/s with 0.5 m; docs/design-decisions.md).
     "ur5e": ReachRobot("ur5e", "scene.xml", 6, (UR5E_JOINT_SPEED,) * 6),
     # Franka FCI limits: 2.175 rad/s on joints 1-4, 2.61 rad/s on joints 5-7 (assets/panda.xml).
     # Keep-out 0.2 m: the base and links 1-2 (capsules of radius 0.06 m on the base axis) lie
     # within it; with the UR5e's 0.3 m, head-on and multi obstacles aimed at the Panda's tool
-    # (0.31 m from the axis at home) found no path outside it for some seeds.
-    "panda": ReachRobot("panda", "panda_scene.xml", 7, (2.175,) * 4 + (2.61,) * 3, keep_out_radius=0.2),
+    # (0.31 m from the axis at home) found no path outside it for some seeds. 0.7 m high: links
+    # 2-3 stand on the base axis up to 0.65 m with the shoulder upright (the envelope: 0.10 m/s
+    # with 0.45 m, 0.27 m/s with 0.65 m, 0.50 m/s with 0.7 m).
+    "panda": ReachRobot("panda", "panda_scene.xml", 7, (2.175,) * 4 + (2.61,) * 3, keep_out_radius=0.2,
+                        keep_out_height=0.7),
 }
 #: What ``step`` saves to undo itself: every part of MuJoCo's state that integration reads
 #: (time, qpos, qvel, act, history, warmstart, ctrl, applied forces, eq_active, mocap poses,
@@ -296,6 +306,7 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
         self.success_tolerance = number("success_tolerance", success_tolerance, low=0.0, low_open=True, unit="m")
         self.envelope = Envelope(
             keep_out_radius=self.task_robot.keep_out_radius,
+            keep_out_height=self.task_robot.keep_out_height,
             speed_range=number_range("obstacle_speed_range", obstacle_speed_range, low=0.0, unit="m/s"),
             radius_range=number_range("obstacle_radius_range", obstacle_radius_range, low=0.0, low_open=True, unit="m"),
         )

@@ -3,7 +3,9 @@
 The data flow, one module each: the robot (:mod:`.robot`: what the filter needs to know about
 an arm, read from its MuJoCo model; :mod:`.geometry`: the capsules that enclose its geoms;
 :mod:`.dynamics`: its dynamics at points on it) → the
-obstacles (:mod:`.obstacles`) → the settings (:mod:`.config`) → the constraint rows
+obstacles (:mod:`.obstacles`) → the settings (:mod:`.config`) → what they can guarantee
+(:mod:`.envelope`: the obstacle speeds and sensing range within which the arm can still get out
+of the way) → the constraint rows
 (:mod:`.barriers` for their math, :mod:`._kernels` compiled) → the QP (:mod:`.priority_qp`, DAQP
 through :mod:`._daqp`) → the controller (:mod:`.controller`: rows and QP, one physics step per
 call). ``c3bf_gym.filter.SafetyHook`` runs the controller inside ``C3BFReachEnv`` and
@@ -26,6 +28,7 @@ planes, height fields and SDFs, a mocap sphere ``ball``)::
 
 from c3bf_gym.safety.config import DEFAULT_FILTER, FILTERS, GUARD_GAMMA, FilterConfig
 from c3bf_gym.safety.controller import SafetyController, SafetyInfeasibleError, StepSafety
+from c3bf_gym.safety.envelope import EnvelopeWarning, FilterEnvelope, filter_envelope
 from c3bf_gym.safety.geometry import (
     Capsule,
     UnsupportedGeomError,
@@ -42,7 +45,9 @@ __all__ = [
     "FILTERS",
     "GUARD_GAMMA",
     "Capsule",
+    "EnvelopeWarning",
     "FilterConfig",
+    "FilterEnvelope",
     "MocapSpheres",
     "Obstacles",
     "RobotDescription",
@@ -53,6 +58,7 @@ __all__ = [
     "UnsupportedGeomError",
     "UnsupportedModelError",
     "enclosing_capsule",
+    "filter_envelope",
     "fit_capsule",
     "protected_capsule",
     "world_segments",

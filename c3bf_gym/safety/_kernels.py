@@ -41,7 +41,7 @@ from c3bf_gym._capi import unpack
 
 # hook_substep compiles _daqp.solve_rows into itself: _compile_cache keys the on-disk cache of both
 # files' functions on both files.
-from c3bf_gym.safety._daqp import ACTIVE_TOL, SOLVED, solve_rows
+from c3bf_gym.safety._daqp import ACTIVE_TOL, RELAXED, SOLVED, solve_rows
 
 #: barrier kinds of the fused kernel
 C3BF_KIND = 0
@@ -553,7 +553,7 @@ class RowParams(NamedTuple):
 
 
 @njit(**_opts)
-def hook_rows_whole_arm(stage, arm, obstacles, params, A, b):
+def hook_rows_whole_arm(stage, arm, obstacles, params, A, b, row_h):
     """All rows of the whole-arm filter (:meth:`~c3bf_gym.safety.SafetyController.rows`) in one call.
 
     1. ``stage`` 2: ``Minv``, ``qacc_free`` (:func:`step_inverse`), then (``stage`` ≥ 1) the
@@ -572,8 +572,9 @@ def hook_rows_whole_arm(stage, arm, obstacles, params, A, b):
     The rows are written for the generalised force on every dof of the model (``A`` (·, nv)); the
     QP reads the columns of the arm's dofs (``params.dofs``).
 
-    The rows go to ``A``, ``b``. Returns ``(rows, min h of the barrier's rows (not the guard's), any
-    inside, sensed count)``.
+    The rows go to ``A``, ``b``, and each barrier row's ``h`` to ``row_h`` at the row's index (the
+    guard's and the other rows' entries are left as they are). Returns ``(rows, min h of the
+    barrier's rows (not the guard's), any inside, sensed count)``.
     """
     s_count = arm.ends_ab.shape[0]
     n = params.dofs.shape[0]
@@ -612,6 +613,7 @@ def hook_rows_whole_arm(stage, arm, obstacles, params, A, b):
             else:
                 h, drift, inside, grad_v, grad_p = _hocbf_point(p, v, r, params.p1)
             b[m] = _sliding_rhs(grad_v, grad_p, slide, c, drift, h, gamma)
+            row_h[m] = h
             min_h = min(min_h, h)
             inside_any = inside_any or inside
             grad_w = grad_v
@@ -700,10 +702,17 @@ def violations_by_kind(residual, norm, n_obstacle, stride, n_floor, tol, out):
 #: over a policy step's calls; :data:`T_VIOLATION` starts the largest violation of each of the
 #: five row kinds.
 (T_SUBSTEPS, T_MIN_CONSTRAINT, T_MIN_H, T_INSIDE, T_SENSED, T_ACTIVE_ROWS, T_CORRECTION, T_INTERVENED,
- T_INFEASIBLE_STEPS, T_SLACK, T_VIOLATION) = range(11)
+ T_INFEASIBLE_STEPS, T_SLACK, T_GAIN_RAISED_STEPS, T_VIOLATION) = range(12)
 TALLY_SIZE = T_VIOLATION + 5
 #: Entries of :attr:`Tally.last`: the last recorded call's own values
 L_STATUS, L_ITERATIONS, L_ACTIVE, L_SLACK = range(4)
+#: Entries of :attr:`Tally.gains`: the barrier's gain γ and the largest gain γ_max its rows may
+#: rise to where they give way at ``h > 0`` [1/s]
+G_BARRIER, G_LIMIT = range(2)
+#: A call's outcome beside :func:`c3bf_gym.safety._daqp.solve_rows`' codes: only barrier rows gave
+#: way, each by no more than its allowance (:func:`beyond_allowance`), so every row held with the
+#: barrier's gain raised within ``[γ, γ_max]``.
+GAIN_RAISED = 3
 
 
 class Tally(NamedTuple):
@@ -713,15 +722,21 @@ class Tally(NamedTuple):
         values: (TALLY_SIZE,) float64, laid out by the ``T_*`` indices (counts and flags as
             exact floats); a new policy step starts them from :data:`TALLY_START`.
         tau_nominal, tau: (n,) the last call's nominal and filtered torques [N m].
-        last: (4,) float64, laid out by the ``L_*`` indices: the last recorded call's status,
-            DAQP iterations, active rows and slack. A new policy step keeps them: they describe
-            that call until the next one.
+        last: (4,) float64, laid out by the ``L_*`` indices: the last recorded call's status
+            (:data:`GAIN_RAISED` or a :func:`~c3bf_gym.safety._daqp.solve_rows` code), DAQP
+            iterations, active rows and slack. A new policy step keeps them: they describe that
+            call until the next one.
+        row_h: (rows,) the barrier value ``h`` of each barrier row of the last call, at the row's
+            index (written by the row kernels; other entries unused).
+        gains: (2,) laid out by the ``G_*`` indices, set once by the filter.
     """
 
     values: np.ndarray
     tau_nominal: np.ndarray
     tau: np.ndarray
     last: np.ndarray
+    row_h: np.ndarray
+    gains: np.ndarray
 
 
 #: :attr:`Tally.values` at the start of a policy step: no calls, the running minima at inf,
@@ -732,13 +747,44 @@ TALLY_START.flags.writeable = False
 
 
 @njit(**_opts)
+def beyond_allowance(residual, norm, row_h, gains, n_obstacle, stride):
+    """Whether some row of a call that gave way (``residual`` (m,), ``norm`` (m,): the QP's
+    normalised residuals and row norms) gave way beyond its allowance.
+
+    A barrier row (``k < n_obstacle`` and ``k % stride == 0``) is the condition
+    ``ḣ ≥ −γ h`` (:data:`G_BARRIER`). Where ``h > 0``, giving way by ``δ`` (in ``ḣ``'s units,
+    ``−residual·norm``) is that condition with the gain ``γ + δ/h``, which keeps ``h ≥ 0``
+    invariant as any positive gain does; the filter accepts gains up to
+    ``γ_max`` = :data:`~c3bf_gym.safety.controller.MAX_GAIN_STEP` / Δt (:data:`G_LIMIT`),
+    under which one physics step cannot take ``h`` below about 95 % of its value. So a barrier
+    row's allowance is ``(γ_max − γ) h`` for ``h > 0`` and none for ``h ≤ 0``; every other row
+    (the guard's, the floor's, the joint limits', an unmovable one) has none. Both are taken
+    beyond :data:`~c3bf_gym.safety._daqp.ACTIVE_TOL` (row-normalised)."""
+    raise_by = max(gains[G_LIMIT] - gains[G_BARRIER], 0.0)
+    for k in range(residual.shape[0]):
+        violation = -residual[k]
+        if violation <= ACTIVE_TOL:
+            continue
+        if norm[k] == 0.0 or k >= n_obstacle or k % stride != 0:
+            return True
+        if violation * norm[k] > raise_by * max(row_h[k], 0.0) + ACTIVE_TOL * norm[k]:
+            return True
+    return False
+
+
+@njit(**_opts)
 def record(tally, status, m, min_h, inside, n_sensed, iterations, n_active, slack, residual, correction, tau_nom,
            tau, qp, n_obstacle, stride, n_floor, intervention_tol):
     """Fold one solved call (``status`` ≥ 0, :func:`c3bf_gym.safety._daqp.solve_rows`' codes; its
     ``m`` rows, the first ``n_obstacle`` the obstacles', ``n_floor`` floor rows after them) into
     ``tally``: the running extremes and counts of :class:`~c3bf_gym.safety.StepSafety`, the last
     call's torques, status, iterations, active rows and slack, and, when rows gave way, the largest
-    violation of each kind (:func:`violations_by_kind` on the QP's residuals)."""
+    violation of each kind (:func:`violations_by_kind` on the QP's residuals) and whether the call
+    held every row with the barrier's gain raised (:func:`beyond_allowance`: counted in
+    ``T_GAIN_RAISED_STEPS``) or not (``T_INFEASIBLE_STEPS``).
+
+    Returns the call's outcome: ``status``, or :data:`GAIN_RAISED` for a relaxed call within the
+    allowance."""
     values = tally.values
     values[T_SUBSTEPS] += 1.0
     if residual < values[T_MIN_CONSTRAINT]:
@@ -758,15 +804,22 @@ def record(tally, status, m, min_h, inside, n_sensed, iterations, n_active, slac
         values[T_CORRECTION] = correction
     if correction > intervention_tol:
         values[T_INTERVENED] = 1.0
-    tally.last[L_STATUS] = status
-    tally.last[L_ITERATIONS] = iterations
-    tally.last[L_ACTIVE] = n_active
-    tally.last[L_SLACK] = slack
+    outcome = status
     if status != SOLVED:
-        values[T_INFEASIBLE_STEPS] += 1.0
         values[T_SLACK] = max(values[T_SLACK], slack)
         violations_by_kind(qp.residual[:m], qp.norm[:m], n_obstacle, stride, n_floor, ACTIVE_TOL,
                            values[T_VIOLATION:])
+        if status == RELAXED and not beyond_allowance(qp.residual[:m], qp.norm[:m], tally.row_h, tally.gains,
+                                                      n_obstacle, stride):
+            outcome = GAIN_RAISED
+            values[T_GAIN_RAISED_STEPS] += 1.0
+        else:
+            values[T_INFEASIBLE_STEPS] += 1.0
+    tally.last[L_STATUS] = outcome
+    tally.last[L_ITERATIONS] = iterations
+    tally.last[L_ACTIVE] = n_active
+    tally.last[L_SLACK] = slack
+    return outcome
 
 
 @njit(**_opts)
@@ -778,9 +831,11 @@ def hook_substep(stage, tau_nom, tau, arm, obstacles, params, A, b, scale, limit
     which writes the torque into ``tau``, and :func:`record` of the outcome into ``tally``.
 
     Returns the status, one of :func:`~c3bf_gym.safety._daqp.solve_rows`' codes (invalid input, < 0,
-    is not recorded).
+    is not recorded), with a relaxed call that held every row with the barrier's gain raised
+    (:func:`record`'s :data:`GAIN_RAISED`) returned as :data:`~c3bf_gym.safety._daqp.SOLVED`: the
+    callers (an environment's loop, ``on_infeasible="raise"``) stop on the others.
     """
-    m, min_h, inside, n_sensed = hook_rows_whole_arm(stage, arm, obstacles, params, A, b)
+    m, min_h, inside, n_sensed = hook_rows_whole_arm(stage, arm, obstacles, params, A, b, tally.row_h)
     n_floor = params.floor_ends.shape[0]
     n_fixed = n_floor + (4 * params.dofs.shape[0] if params.joint_rows else 0)
     guarded = params.guard_gamma2 > 0.0
@@ -790,9 +845,9 @@ def hook_substep(stage, tau_nom, tau, arm, obstacles, params, A, b, scale, limit
     if status < 0:
         return status
     residual, correction = hook_post(b[:m], qp.norm[:m], qp.residual[:m], qp.u, scale, tau_nom, limit, tau)
-    record(tally, status, m, min_h, inside, n_sensed, iterations, n_active, slack, residual, correction, tau_nom,
-           tau, qp, m - n_fixed, stride, n_floor, intervention_tol)
-    return status
+    outcome = record(tally, status, m, min_h, inside, n_sensed, iterations, n_active, slack, residual, correction,
+                     tau_nom, tau, qp, m - n_fixed, stride, n_floor, intervention_tol)
+    return SOLVED if outcome == GAIN_RAISED else outcome
 
 
 @njit(**_opts)

@@ -42,7 +42,9 @@ of these choices was made, with the measurements and the commands that repeat th
 
 from __future__ import annotations
 
+import math
 import time
+import warnings
 from dataclasses import dataclass, field
 
 import mujoco
@@ -53,12 +55,19 @@ from c3bf_gym._capi import pack
 from c3bf_gym.safety import _daqp, _kernels
 from c3bf_gym.safety.barriers import JointLimits, Rows
 from c3bf_gym.safety.dynamics import ArmModel, segment_closest_points
+from c3bf_gym.safety.envelope import EnvelopeWarning, FilterEnvelope, filter_envelope
 from c3bf_gym.safety.config import FilterConfig
 from c3bf_gym.safety.obstacles import Obstacles
 from c3bf_gym.safety.priority_qp import STATUS, PriorityQP, QPResult, raise_bad_input
-from c3bf_gym.safety.robot import RobotDescription, UnsupportedModelError
+from c3bf_gym.safety.robot import RobotDescription, UnsupportedModelError, floor_height
 
-__all__ = ["ROW_KINDS", "SafetyController", "SafetyInfeasibleError", "StepSafety"]
+__all__ = ["MAX_GAIN_STEP", "ROW_KINDS", "SafetyController", "SafetyInfeasibleError", "StepSafety"]
+
+#: The largest product of a row's gain [1/s] and the physics timestep [s] the filter accepts without
+#: an :class:`~c3bf_gym.safety.EnvelopeWarning`: a barrier condition ``ḣ ≥ −γ h`` held at the start of
+#: each step lets ``h`` fall by about ``γ Δt h`` within it, so ``γ Δt`` must stay small for the
+#: continuous-time argument to carry over (0.04 with the default gains at MuJoCo's 2 ms).
+MAX_GAIN_STEP = 0.05
 
 #: The kinds of safety rows, in :attr:`StepSafety.violation`: the barrier's (priority 2: they give
 #: way first), the guard's, the floor's and the joint limits' (priority 1), and rows no torque can
@@ -66,6 +75,9 @@ __all__ = ["ROW_KINDS", "SafetyController", "SafetyInfeasibleError", "StepSafety
 ROW_KINDS = ("barrier", "guard", "floor", "joint_limits", "unmovable")
 
 _perf_counter = time.perf_counter
+#: :attr:`SafetyController.last`'s status names: the QP's, and a relaxed call that held every row
+#: with the barrier's gain raised (:data:`~c3bf_gym.safety._kernels.GAIN_RAISED`)
+_STATUS = {**STATUS, _kernels.GAIN_RAISED: "gain raised"}
 
 
 class SafetyInfeasibleError(RuntimeError):
@@ -77,8 +89,10 @@ class StepSafety:
     """What the filter did over one policy step (all its physics steps).
 
     Attributes:
-        feasible: every physics step's QP was solved without slack.
-        slack: the largest slack used [N m, row-normalised]; 0.0 when feasible.
+        feasible: every physics step's rows held: each with no slack, or (only the barrier's)
+            with its gain raised within its allowance (``gain_raised_steps``).
+        slack: the largest slack used [N m, row-normalised], at steps that were infeasible or
+            held with a raised gain; 0.0 when every row held as written.
         min_h: the smallest barrier value over the barrier's rows (not the guard's) and physics
             steps (inf with no row).
         correction: the largest ``‖τ − τ_nom‖`` [N m] (``τ_nom`` clipped to the torque limits,
@@ -93,7 +107,14 @@ class StepSafety:
             would make ``info`` nondeterministic.
         intervened: some physics step changed the torque by more than ``intervention_tol``.
         inside: some protected point was already inside an obstacle's (margin-inflated) radius.
-        infeasible_steps: number of physics steps whose QP needed slack.
+        infeasible_steps: number of physics steps where rows gave way beyond their allowance:
+            a guard, floor, joint-limit or unmovable row gave way, or a barrier row at ``h <= 0``,
+            or one at ``h > 0`` by more than ``(γ_max − γ) h`` (the condition ``ḣ ≥ −γ' h`` failed
+            for every gain ``γ'`` up to ``γ_max`` = :data:`MAX_GAIN_STEP` / Δt;
+            :func:`~c3bf_gym.safety._kernels.beyond_allowance`). On these steps the guarantee does
+            not hold.
+        gain_raised_steps: number of physics steps where only barrier rows gave way, each within
+            that allowance: every row held, the barrier's with a gain between γ and ``γ_max``.
         min_constraint: the smallest row residual ``A τ − b`` at the applied torque (the QP
             constraint value: >= 0 when every row holds) [row units]; inf with no row. Taken
             from the QP's row-normalised residuals times the rows' norms
@@ -115,6 +136,7 @@ class StepSafety:
     intervened: bool = False
     inside: bool = False
     infeasible_steps: int = 0
+    gain_raised_steps: int = 0
     min_constraint: float = np.inf
     substeps: int = 0
     tau_nominal: np.ndarray | None = None
@@ -134,6 +156,7 @@ class StepSafety:
             "intervened": self.intervened,
             "inside": self.inside,
             "infeasible_steps": self.infeasible_steps,
+            "gain_raised_steps": self.gain_raised_steps,
             "min_constraint": self.min_constraint,
             **{f"violation_{kind}": value for kind, value in self.violation.items()},
         }
@@ -161,6 +184,9 @@ class SafetyController:
             (None: a new one).
         sensing_radius: the sensing radius [m] used when ``config.sensing_radius`` is None
             (default: inf, every active obstacle).
+        envelope: the :class:`~c3bf_gym.safety.FilterEnvelope` :meth:`filter` checks the
+            obstacles against (None: computed by :meth:`compute_envelope`, without a keep-out
+            region, when :meth:`filter` first sees an obstacle, if the sensing radius is finite).
 
     The torque passed in and returned is the total joint torque [N m] (n,), in dof order, with
     the limits ``robot.torque_limit``. The fused whole-arm kernel computes the C3BF's, the
@@ -168,12 +194,18 @@ class SafetyController:
     ``points="ee"``, take the per-class path (``Barrier.terms``). ``min_h`` in the report is the
     barrier's, not the guard's.
 
+    Warns:
+        :class:`~c3bf_gym.safety.EnvelopeWarning`: a timestep too coarse for the filter's gains
+            (:data:`MAX_GAIN_STEP`); from :meth:`filter`, once, obstacles outside :attr:`envelope`.
+
     Raises:
         ValueError / :class:`~c3bf_gym.safety.UnsupportedModelError`: a config that needs what
             the robot lacks (joint limits, a tool site for ``points="ee"``).
 
     Attributes:
         config: the settings it was built with.
+        envelope: the :class:`~c3bf_gym.safety.FilterEnvelope` the obstacles are checked against
+            (None until given, computed or first needed).
         report: the :class:`StepSafety` accumulated since :meth:`begin_step`.
         last: the last call's :class:`~c3bf_gym.safety.priority_qp.QPResult` (None before the first).
         solve_times: when a list (set ``record_times=True``), every call's wall time [s] is
@@ -182,7 +214,7 @@ class SafetyController:
 
     def __init__(self, model: mujoco.MjModel, data: mujoco.MjData, robot: RobotDescription, obstacles: Obstacles,
                  config: FilterConfig | None = None, *, arm: ArmModel | None = None,
-                 sensing_radius: float = np.inf) -> None:
+                 sensing_radius: float = np.inf, envelope: FilterEnvelope | None = None) -> None:
         config = FilterConfig() if config is None else config
         if not isinstance(config, FilterConfig):
             raise TypeError(f"config must be a FilterConfig, got {type(config).__name__}")
@@ -210,12 +242,18 @@ class SafetyController:
         self.on_infeasible = config.on_infeasible
         self.intervention_tol = config.intervention_tol
         self.floor_gamma = config.floor_gamma
+        if envelope is not None and not isinstance(envelope, FilterEnvelope):
+            raise TypeError(f"envelope must be a FilterEnvelope or None, got {type(envelope).__name__}")
+        self.envelope = envelope
+        self._envelope_seen = (0.0, 0.0)  # the largest obstacle speed and radius checked so far
+        self._envelope_warned = False
         joint_limits = None
         if config.joint_limits:
             robot.require_joint_limits(model)
             q_lo, q_hi = robot.joint_range.T
             joint_limits = JointLimits(q_lo, q_hi, config.joint_speed_fraction * robot.joint_speed_limit)
         self.joint_limits = joint_limits
+        self._check_timestep(model.opt.timestep)
         weight = config.weight
         self.arm: ArmModel = ArmModel(model, robot.geom_ids, robot.site_id, robot.capsules) if arm is None else arm
         if not np.array_equal(self.arm.capsule_ids, robot.geom_ids):
@@ -278,7 +316,13 @@ class SafetyController:
         self._obstacle_arrays = _kernels.ObstacleArrays(obstacles.active, self._distances, obstacles.position,
                                                         obstacles.velocity, obstacles.acceleration, obstacles.radius)
         # the report's running values, in compiled code (_kernels.record); solve_time beside them
-        self._tally = _kernels.Tally(np.zeros(_kernels.TALLY_SIZE), np.zeros(n), np.zeros(n), np.zeros(4))
+        # the barrier's gain and the largest it may rise to (_kernels.beyond_allowance); a barrier
+        # without a gain gets no allowance
+        gain = getattr(self.barrier, "gamma", None)
+        limit_gain = MAX_GAIN_STEP / model.opt.timestep
+        gains = np.array([gain if isinstance(gain, float) else limit_gain, limit_gain])
+        self._tally = _kernels.Tally(np.zeros(_kernels.TALLY_SIZE), np.zeros(n), np.zeros(n), np.zeros(4),
+                                     np.zeros(max_rows), gains)
         self._solve_time = 0.0
         self.begin_step()
         self._bound: tuple = ()  # hook_substep's arguments after the first three (_bind)
@@ -322,6 +366,11 @@ class SafetyController:
         ``data`` must hold the state's kinematics and dynamics (``mj_step1`` or ``mj_forward`` since
         the state was last set): the filter reads them, it does not compute them.
 
+        Warns:
+            :class:`~c3bf_gym.safety.EnvelopeWarning`, once per controller: an active obstacle
+            faster or larger than :attr:`envelope` covers (computed the first time an obstacle is
+            active when none was given; not with an infinite sensing radius).
+
         Raises:
             ValueError: ``tau_nom`` of the wrong shape, or with NaN or inf.
             RuntimeError: ``data`` has no mass matrix yet (a fresh or reset ``MjData`` before
@@ -333,7 +382,76 @@ class SafetyController:
             raise RuntimeError("data holds no dynamics yet (its mass matrix is zero): call mujoco.mj_forward(model, "
                                "data) or mujoco.mj_step1(model, data) before filter()")  # fmt: skip
         self.begin_step()
-        return self(tau_nom), self.report
+        tau = self(tau_nom)
+        if not self._envelope_warned:
+            self._check_envelope()
+        return tau, self.report
+
+    def compute_envelope(self, obstacle_radius: float | None = None, *, keep_out_radius: float = 0.0,
+                         keep_out_height: float = 0.0, configurations: int = 128, seed: int = 0) -> FilterEnvelope:
+        """The envelope this filter states for its robot (:func:`~c3bf_gym.safety.filter_envelope`
+        with this controller's model, robot, config and sensing radius, and ``data``'s
+        configuration among the sample), kept as :attr:`envelope`, which :meth:`filter` checks.
+
+        Args:
+            obstacle_radius: the largest obstacle radius [m] (None: the largest of the obstacles'
+                ``radius``).
+            keep_out_radius, keep_out_height, configurations, seed: as
+                :func:`~c3bf_gym.safety.filter_envelope`'s.
+
+        Raises:
+            ValueError: the sensing radius is infinite (every obstacle is sensed wherever it is:
+                an envelope needs a sensing radius), or as :func:`~c3bf_gym.safety.filter_envelope`.
+        """
+        radius = float(self.obstacles.radius.max(initial=0.0)) if obstacle_radius is None else obstacle_radius
+        qpos = self.data.qpos[self._qpos_ids]
+        self.envelope = filter_envelope(self.model, self.robot, self.config, obstacle_radius=radius,
+                                        sensing_radius=self.sensing_radius, keep_out_radius=keep_out_radius,
+                                        keep_out_height=keep_out_height, configurations=configurations,
+                                        qpos=qpos if np.isfinite(qpos).all() else None, seed=seed)  # fmt: skip
+        self._envelope_seen = (0.0, 0.0)
+        return self.envelope
+
+    def _check_envelope(self) -> None:
+        """Warn once (:class:`~c3bf_gym.safety.EnvelopeWarning`) when an active obstacle is faster
+        or larger than :attr:`envelope` covers at this sensing radius; the envelope is computed
+        (no keep-out region) the first time an obstacle is active, if none was given. A speed
+        and radius no larger than ones already checked are not checked again."""
+        obstacles = self.obstacles
+        active = np.flatnonzero(obstacles.active)
+        if not len(active) or not math.isfinite(self.sensing_radius):
+            return
+        speed = float(np.sqrt((obstacles.velocity[active] ** 2).sum(axis=1).max()))
+        radius = float(obstacles.radius[active].max())
+        if speed <= self._envelope_seen[0] and radius <= self._envelope_seen[1]:
+            return
+        if self.envelope is None:
+            self.compute_envelope(radius)
+        self._envelope_seen = (max(speed, self._envelope_seen[0]), max(radius, self._envelope_seen[1]))
+        problems = self.envelope.problems(speed, radius, self.sensing_radius)
+        if problems:
+            self._envelope_warned = True
+            warnings.warn(EnvelopeWarning("the obstacles are outside the filter's envelope, where it guarantees "
+                                          "nothing: " + "; ".join(problems)), stacklevel=3)  # fmt: skip
+
+    def _check_timestep(self, timestep: float) -> None:
+        """Warn when a row's gain times ``timestep`` exceeds :data:`MAX_GAIN_STEP`."""
+        gains = {"floor_gamma": self.floor_gamma}
+        for label, barrier in (("the barrier", self.barrier), ("the guard", self.guard)):
+            for attribute in ("gamma", "gamma1", "gamma2"):
+                value = getattr(barrier, attribute, None) if barrier is not None else None
+                if isinstance(value, float):
+                    gains[f"{label}'s {attribute}"] = value
+        if self.joint_limits is not None:
+            gains.update(zip(("the joint limits' gamma1", "the joint limits' gamma2", "the joint limits' gamma_v"),
+                             self.joint_limits.gains))
+        name, gain = max(gains.items(), key=lambda item: item[1])
+        if gain * timestep > MAX_GAIN_STEP:
+            warnings.warn(EnvelopeWarning(
+                f"the physics timestep {timestep:g} s is too coarse for the filter's gains: {name} = {gain:g} 1/s "
+                f"gives gain x timestep = {gain * timestep:.3g} > {MAX_GAIN_STEP} (MAX_GAIN_STEP); the rows hold at "
+                f"the start of each step and may give way within it. Use a timestep <= {MAX_GAIN_STEP / gain:.3g} s "
+                "or lower gains"), stacklevel=3)  # fmt: skip
 
     def record_times(self, enabled: bool = True) -> None:
         """Start (or stop) keeping every physics step's filter time in ``solve_times``. While on,
@@ -359,7 +477,7 @@ class SafetyController:
         if self._fused:
             m, min_h, inside, n_sensed = _kernels.hook_rows_whole_arm(
                 arm.claim(data, self._version()), arm.kernel_arrays(data), self._obstacle_arrays, self._params,
-                self._A, self._b)
+                self._A, self._b, self._tally.row_h)
             return self._A[:m], self._b[:m], min_h, inside, n_sensed
         arm.update(data, self._version())
         sensed = np.flatnonzero(obstacles.active & (self._clearance() <= self.sensing_radius))
@@ -396,6 +514,7 @@ class SafetyController:
                 self._A[i:len(barriers) * len(p):len(barriers)] = rows.A
                 self._b[i:len(barriers) * len(p):len(barriers)] = rows.b
                 if i == 0:
+                    self._tally.row_h[: len(barriers) * len(p) : len(barriers)] = terms.h
                     min_h = float(terms.h.min())
                     inside = bool(terms.inside.any())
             m = len(barriers) * len(p)
@@ -414,10 +533,8 @@ class SafetyController:
         only by hinges about vertical axes (link 1, on the base's pan joint) keep their height
         and get no row: theirs could only be a constant, possibly unsatisfiable, 0 ≥ b. A sphere
         (a capsule of length 0) gets one row."""
-        plane = mujoco.mjtGeom.mjGEOM_PLANE
-        floors = [g for g in range(model.ngeom) if model.geom_type[g] == plane and model.geom_bodyid[g] == 0]
-        floors = [g for g in floors if np.allclose(model.geom_quat[g], (1.0, 0.0, 0.0, 0.0))]
-        if not floors:
+        floor = floor_height(model)
+        if floor is None:
             return np.zeros(0, dtype=int), np.zeros(0)
         scratch = mujoco.MjData(model)
         mujoco.mj_kinematics(model, scratch)
@@ -431,7 +548,7 @@ class SafetyController:
         # both ends of a capsule; one of a sphere (its two ends coincide)
         ends = np.flatnonzero(np.concatenate([moving, moving & (self.arm._length2 > 0.0)]))
         radius = np.tile(self.arm.capsule_radius, 2)[ends]
-        return ends, model.geom_pos[floors[0], 2] + radius + self.margin
+        return ends, floor + radius + self.margin
 
     def _floor_rows(self, A: np.ndarray, b: np.ndarray) -> int:
         """Rows keeping every capsule end ``z ≥ z_min`` (floor + radius + margin): the
@@ -530,8 +647,8 @@ class SafetyController:
                 # τ = u s, the smallest row residual A τ − b and ‖τ − clip(τ_nom)‖ (the filter's change)
                 residual, correction = _kernels.hook_post(b, qp.norm[:m], qp.residual[:m], qp.u, self._scale, tau_nom,
                                                           self._limit, tau)
-                self._record(status, m, min_h, inside, n_sensed, iterations, active, slack, residual, correction,
-                             tau_nom, tau)
+                status = self._record(status, m, min_h, inside, n_sensed, iterations, active, slack, residual,
+                                      correction, tau_nom, tau)
         elapsed = _perf_counter() - start
         if status >= 0:
             self._solve_time += elapsed
@@ -541,13 +658,16 @@ class SafetyController:
         return tau
 
     def _record(self, status: int, m: int, min_h: float, inside: bool, n_sensed: int, iterations: int, active: int,
-                slack: float, residual: float, correction: float, tau_nom: np.ndarray, tau: np.ndarray) -> None:
+                slack: float, residual: float, correction: float, tau_nom: np.ndarray, tau: np.ndarray) -> int:
         """Fold one solved call of :meth:`rows`' ``m`` rows into the report
         (:func:`c3bf_gym.safety._kernels.record`, with this filter's row layout; the fused kernel
-        does the same in compiled code)."""
-        _kernels.record(self._tally, status, m, min_h, inside, n_sensed, iterations, active, slack, residual,
-                        correction, tau_nom, tau, self.qp.buffers, m - self._n_floor_rows - self._n_joint_rows,
-                        self._stride, self._n_floor_rows, self.intervention_tol)
+        does the same in compiled code). Returns the status as the fused kernel does: a call
+        that held every row with the barrier's gain raised as solved."""
+        outcome = _kernels.record(self._tally, status, m, min_h, inside, n_sensed, iterations, active, slack,
+                                  residual, correction, tau_nom, tau, self.qp.buffers,
+                                  m - self._n_floor_rows - self._n_joint_rows, self._stride, self._n_floor_rows,
+                                  self.intervention_tol)  # fmt: skip
+        return _daqp.SOLVED if outcome == _kernels.GAIN_RAISED else outcome
 
     def _settle(self, status: int, elapsed: float) -> None:
         """After a call (or compiled calls) with ``status``: raise on invalid input; keep the
@@ -576,7 +696,8 @@ class SafetyController:
             return None
         status, iterations, active, slack = self._tally.last.tolist()
         status = int(status)
-        return QPResult(self.qp.buffers.u, slack, status == _daqp.SOLVED, STATUS[status], int(iterations), int(active),
+        return QPResult(self.qp.buffers.u, slack, status in (_daqp.SOLVED, _kernels.GAIN_RAISED), _STATUS[status],
+                        int(iterations), int(active),
                         self._last_time)
 
     @property
@@ -591,7 +712,8 @@ class SafetyController:
             correction=values[_kernels.T_CORRECTION], active_rows=int(values[_kernels.T_ACTIVE_ROWS]),
             sensed=int(values[_kernels.T_SENSED]), solve_time=self._solve_time,
             intervened=bool(values[_kernels.T_INTERVENED]), inside=bool(values[_kernels.T_INSIDE]),
-            infeasible_steps=infeasible, min_constraint=values[_kernels.T_MIN_CONSTRAINT], substeps=substeps,
+            infeasible_steps=infeasible, gain_raised_steps=int(values[_kernels.T_GAIN_RAISED_STEPS]),
+            min_constraint=values[_kernels.T_MIN_CONSTRAINT], substeps=substeps,
             tau_nominal=self._tally.tau_nominal.copy() if substeps else None,
             tau=self._tally.tau.copy() if substeps else None,
             violation=dict(zip(ROW_KINDS, values[_kernels.T_VIOLATION:])),

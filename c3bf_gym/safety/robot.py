@@ -40,7 +40,7 @@ import numpy as np
 from c3bf_gym import validation
 from c3bf_gym.safety.geometry import Capsule, UnsupportedGeomError, protected_capsule, world_segments
 
-__all__ = ["RobotDescription", "UnprotectedGeometryWarning", "UnsupportedModelError"]
+__all__ = ["RobotDescription", "UnprotectedGeometryWarning", "UnsupportedModelError", "floor_height"]
 
 _SURFACES = (int(mujoco.mjtGeom.mjGEOM_PLANE), int(mujoco.mjtGeom.mjGEOM_HFIELD), int(mujoco.mjtGeom.mjGEOM_SDF))
 _JOINT_TYPES = (int(mujoco.mjtJoint.mjJNT_HINGE), int(mujoco.mjtJoint.mjJNT_SLIDE))
@@ -84,6 +84,16 @@ def _is_motor(model: mujoco.MjModel, a: int) -> bool:
     return (int(model.actuator_dyntype[a]) == int(mujoco.mjtDyn.mjDYN_NONE)
             and int(model.actuator_gaintype[a]) == int(mujoco.mjtGain.mjGAIN_FIXED)
             and int(model.actuator_biastype[a]) == int(mujoco.mjtBias.mjBIAS_NONE))  # fmt: skip
+
+
+def floor_height(model: mujoco.MjModel) -> float | None:
+    """The height [m] of the floor the filter keeps the arm above: the first plane geom of the
+    world body that stands upright (identity orientation); None without one."""
+    plane = int(mujoco.mjtGeom.mjGEOM_PLANE)
+    for g in range(model.ngeom):
+        if model.geom_type[g] == plane and model.geom_bodyid[g] == 0 and np.allclose(model.geom_quat[g], (1, 0, 0, 0)):
+            return float(model.geom_pos[g, 2])
+    return None
 
 
 def _chain(model: mujoco.MjModel, body: int) -> np.ndarray:
