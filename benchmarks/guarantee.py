@@ -11,7 +11,11 @@ Seeds are shared across configurations (episode ``i`` uses seed ``--seed + i`` e
 configurations are compared on the same episodes.
 
 Per configuration it prints: episodes, episodes with a collision, collision steps, the smallest
-clearance seen (m; negative = penetration), infeasible steps (the QP needed slack), the
+clearance seen (m; negative = penetration), infeasible steps (policy steps where rows gave way
+beyond their allowance: ``info["safety_infeasible"]``), the same per 1,000 physics steps
+(``infeas/1k``) and the physics steps per 1,000 where only the barrier's rows gave way, within
+their allowance (``raised/1k``: held with a raised gain, ``StepSafety.gain_raised_steps``), the
+largest joint speed over the filter's bound seen at the end of a policy step (``max qd``), the
 intervention rate (share of steps the filter changed the torque), and the largest per-step mean
 filter time. Per-episode rows go to ``episodes.csv`` and the table to ``summary.json`` in
 ``--out``. Episodes run in ``--workers`` processes, or as Ray tasks with ``--ray`` (the ``rllib``
@@ -63,6 +67,10 @@ class Episode:
     collision_steps: int = 0
     min_clearance: float = float("inf")
     infeasible_steps: int = 0
+    infeasible_physics_steps: int = 0
+    gain_raised_physics_steps: int = 0
+    physics_steps: int = 0
+    max_speed_ratio: float = 0.0
     interventions: int = 0
     max_filter_ms: float = 0.0
     wall_s: float = 0.0
@@ -133,8 +141,15 @@ def run_episode(task: tuple[str, str, str, str, int, int, float | None, float | 
         out.steps += 1
         out.collision_steps += int(info["cost"] > 0)
         out.min_clearance = min(out.min_clearance, float(info["min_distance"]))
+        out.physics_steps += u.frame_skip
         if filtered:
             out.infeasible_steps += int(info["safety_infeasible"])
+            out.infeasible_physics_steps += info["safety"]["infeasible_steps"]
+            out.gain_raised_physics_steps += info["safety"]["gain_raised_steps"]
+            bound = env.hook.joint_limits.qd_max if env.hook.joint_limits is not None else None
+            if bound is not None:
+                speed = np.abs(u.data.qvel[env.hook.robot.dof_ids]) / bound
+                out.max_speed_ratio = max(out.max_speed_ratio, float(speed.max()))
             out.interventions += int(info["safety_intervened"])
             if timed:
                 report = env.hook.report  # wall-clock time is kept off info (deterministic)
@@ -169,6 +184,11 @@ def summarise(episodes: list[Episode]) -> list[dict]:
             "collision_steps": sum(e.collision_steps for e in group),
             "min_clearance": min(e.min_clearance for e in group),
             "infeasible_steps": sum(e.infeasible_steps for e in group),
+            "infeasible_per_1000_physics_steps": 1e3 * sum(e.infeasible_physics_steps for e in group)
+            / max(sum(e.physics_steps for e in group), 1),
+            "gain_raised_per_1000_physics_steps": 1e3 * sum(e.gain_raised_physics_steps for e in group)
+            / max(sum(e.physics_steps for e in group), 1),
+            "max_speed_ratio": max(e.max_speed_ratio for e in group),
             "intervention_rate": sum(e.interventions for e in group) / max(steps, 1),
             "max_filter_ms": max(e.max_filter_ms for e in group),
             "steps": steps,
@@ -207,13 +227,16 @@ def run_tasks(tasks: list[tuple], workers: int, use_ray: bool = False, address: 
 
 def print_table(rows: list[dict]) -> None:
     header = (f"{'scenario':<9} {'policy':<11} {'filter':<21} | {'episodes':>8} {'coll.ep':>7} {'coll.steps':>10} "
-              f"{'min clear.':>10} {'infeas.steps':>12} {'interv.':>7} {'max ms':>8}")  # fmt: skip
+              f"{'min clear.':>10} {'infeas.steps':>12} {'infeas/1k':>9} {'raised/1k':>9} {'max qd':>6} "
+              f"{'interv.':>7} {'max ms':>8}")  # fmt: skip
     print(header)
     print("-" * len(header))
     for r in rows:
         name = "none" if r["filter"] == "none" else f"{r['filter']}/{r['points']}"
         print(f"{r['scenario']:<9} {r['policy']:<11} {name:<21} | {r['episodes']:>8} {r['collision_episodes']:>7} "
               f"{r['collision_steps']:>10} {r['min_clearance']:>10.4f} {r['infeasible_steps']:>12} "
+              f"{r['infeasible_per_1000_physics_steps']:>9.2f} {r['gain_raised_per_1000_physics_steps']:>9.2f} "
+              f"{r['max_speed_ratio']:>6.2f} "
               f"{100 * r['intervention_rate']:>6.1f}% {r['max_filter_ms']:>8.1f}")  # fmt: skip
 
 

@@ -15,18 +15,24 @@ file excludes no pair; its first link touches the base at the start): contact fo
 the filter's model, as in the project's own environment.
 
 Episodes of ``--seconds`` (5 s) at a 0.002 s physics step start from robosuite's initial joint
-configuration of the arm. Obstacle spheres (radius 5-8 cm, speed 0.1-0.4 m/s) are aimed at a random
-point of a random protected capsule or at the tool, as in the project's scenarios:
+configuration of the arm. Obstacle spheres (radius 5-8 cm, speed 0.1-0.4 m/s capped by the filter's
+envelope on the arm, :func:`speed_range`) are aimed at a random point of a random protected capsule
+or at the tool, as in the project's scenarios:
 
 * ``static``: one sphere at rest, its surface 0.1-0.3 m from the point it is aimed at;
-* ``head_on``: one sphere coming at the point along the horizontal line from the base's axis
-  through it, reaching it 0.8-2 s after the start;
+* ``head_on``: one sphere coming horizontally straight at the point, along the line from the
+  base's axis through it turned by up to 60 deg about the vertical (so that the path can stay
+  out of the keep-out cylinder), reaching it 0.8-2 s after the start, and leaving the scene
+  (deactivated) 0.3 m past it (so does every moving sphere);
 * ``crossing``: one sphere crossing that line at 50-90 deg, reaching the point 0.8-2 s in;
 * ``multi``: four at once (static, head_on and two crossing), each aimed independently.
 
 Every sphere spawns at least 0.1 m (surface to surface) from every protected capsule and keeps its
-whole 5 s path above the floor and outside a keep-out cylinder around the base's vertical axis
-(the base and shoulder cannot dodge, so no controller could). Policies (:data:`POLICIES`):
+path (5 s, or until it leaves) above the floor and outside the arm's keep-out cylinder around the
+base's vertical axis (:attr:`Arm.keep_out`: the base and the links the pan joint only turns in place
+cannot sidestep, so no controller could protect them). The speeds and the keep-out are those of
+the envelope the filter states (``c3bf_gym.safety.filter_envelope``), printed per arm;
+``--ignore-envelope`` sends every arm spheres at 0.1-0.4 m/s. Policies (:data:`POLICIES`):
 
 * ``random``: gravity and Coriolis compensation (``data.qfrc_bias``) plus torques drawn uniformly
   within ``robot.torque_limit``, the draw held for 10 physics steps (a 50 Hz policy at 500 Hz
@@ -39,10 +45,12 @@ Every episode runs twice on the same seed: filtered and unfiltered. Collisions a
 MuJoCo alone: ``mj_geomDistance`` between every sphere and every protected geom (the geom itself,
 e.g. the mesh, not its capsule) at the start and after every physics step; negative is
 penetration. Per arm x scenario x policy the table prints: episodes, filtered episodes with a
-collision, the lowest clearance [m], infeasible physics steps per 1,000 (the filter's QP needed
-slack), ``hard/1k`` those where rows of the last priority (the guard's, the floor's or the joint
-limits') gave way too, the largest ``|q̇_i| / q̇_max,i`` (the manufacturer's speed, :data:`ARMS`; the default
-filter holds ``joint_speed_fraction`` = 0.5 of it), and the same three without the filter. An arm
+collision, the lowest clearance [m], infeasible physics steps per 1,000 (rows gave way beyond
+their allowance, ``StepSafety.infeasible_steps``), ``raised/1k`` the steps where only the barrier's
+rows gave way, within it (held with a raised gain, ``StepSafety.gain_raised_steps``), ``hard/1k``
+those where rows of the last priority (the guard's, the floor's or the joint limits') gave way,
+the largest ``|q̇_i| / q̇_max,i`` (the manufacturer's speed, :data:`ARMS`; the default filter holds
+``joint_speed_fraction`` = 0.5 of it), and the same three without the filter. An arm
 the library refuses (``UnsupportedModelError``) is listed with the library's message instead.
 
 Usage::
@@ -72,7 +80,15 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
-from c3bf_gym.safety import FilterConfig, MocapSpheres, RobotDescription, SafetyController, UnsupportedModelError
+from c3bf_gym.safety import (
+    FilterConfig,
+    FilterEnvelope,
+    MocapSpheres,
+    RobotDescription,
+    SafetyController,
+    UnsupportedModelError,
+    filter_envelope,
+)
 from c3bf_gym.safety.dynamics import ArmModel, segment_closest_points
 
 ROBOSUITE_VERSION = "1.5.2"
@@ -142,6 +158,9 @@ class Arm:
             the arm (``robosuite/models/robots/manipulators/<arm>_robot.py``).
         joint_speed_limit: (n,) the manufacturer's joint speed limits [rad/s] (sources in
             :data:`ARMS`).
+        keep_out: (radius, height) of the cylinder about the base's vertical axis no sphere's
+            path enters [m]: the base and the links standing on that axis, which the pan joint
+            only turns in place, inside it (chosen with the filter's envelope, :data:`ARMS`).
         gripper: a gripper file of robosuite's ``grippers/`` to attach at the last link, as
             robosuite attaches its grippers (None: the bare arm).
     """
@@ -149,6 +168,7 @@ class Arm:
     folder: str
     init_qpos: tuple[float, ...]
     joint_speed_limit: tuple[float, ...]
+    keep_out: tuple[float, float]
     gripper: str | None = None
 
 
@@ -157,28 +177,34 @@ def _deg(*values: float) -> tuple[float, ...]:
 
 
 #: The arms, by name. Joint speed limits are not in the MJCF files; each comes with its source.
+#: The keep-out cylinders: the smallest of (0.2, 0.25, 0.3) m x (0.45 ... 1.1) m tried (ours
+#: after the project's 0.3 m x 0.5 m) beyond which the envelope
+#: (``filter_envelope``, 8 cm spheres, the default filter at 1 m sensing) stops growing or
+#: passes 0.4 m/s; the envelope with robosuite's own 0.2 m x 0.45 m is 0.03-0.09 m/s on every
+#: arm, limited by a shoulder point on the base's axis (docs/results/guarantee.md).
 ARMS = {
     # KUKA LBR iiwa 7 R800 (robosuite's "iiwa7"; its torque limits 176/176/110/110/110/40/40 N m
     # are this variant's): KUKA's LBR iiwa specification sheet, axis speeds A1-A7.
-    "iiwa": Arm("iiwa", (0.0, 0.65, 0.0, -1.89, 0.0, 0.6, 0.0), _deg(98, 98, 100, 130, 140, 180, 180)),
+    "iiwa": Arm("iiwa", (0.0, 0.65, 0.0, -1.89, 0.0, 0.6, 0.0), _deg(98, 98, 100, 130, 140, 180, 180), (0.2, 0.9)),
     # Rethink Robotics Sawyer: the velocity limits of Rethink's own model (sawyer_description's
     # URDF, right_j0-right_j6, as quoted in public code); Rethink's public datasheet gives no
     # per-joint speeds, so these are the manufacturer's model values, not a datasheet's (unsure).
     "sawyer": Arm("sawyer", (0.0, -1.18, 0.0, 2.18, 0.0, 0.57, -1.57),
-                  (1.74, 1.328, 1.957, 1.957, 3.485, 3.485, 4.545)),
+                  (1.74, 1.328, 1.957, 1.957, 3.485, 3.485, 4.545), (0.3, 0.6)),
     # Kinova Gen3 (7 dof): 80 deg/s (1.3963 rad/s) for the large actuators (joints 1-4) and
     # 70 deg/s (1.2218 rad/s) for the small ones (5-7), the velocity limits of Kinova's ros_kortex
     # model of the Gen3; the Gen3 user guide's own table was not checked here (unsure).
-    "kinova3": Arm("kinova3", (0.0, 0.65, 0.0, 1.89, 0.0, 0.6, -np.pi / 2), (1.3963,) * 4 + (1.2218,) * 3),
+    "kinova3": Arm("kinova3", (0.0, 0.65, 0.0, 1.89, 0.0, 0.6, -np.pi / 2), (1.3963,) * 4 + (1.2218,) * 3,
+                   (0.2, 0.8)),
     # Kinova Jaco 2 (j2s7s300): 36 deg/s (0.628 rad/s) for joints 1-4, the velocity limit of
     # Kinova's kinova-ros model (seen for joints 1 and 2); 48 deg/s for the KA-58 wrist actuators
     # (5-7) is the Jaco 2 specification as remembered, not checked against the actuator datasheet
     # robosuite cites for the torques (unsure).
-    "jaco": Arm("jaco", (3.192, 3.68, 0.0, 1.17, 0.05, 3.76, 3.142), _deg(36, 36, 36, 36, 48, 48, 48)),
+    "jaco": Arm("jaco", (3.192, 3.68, 0.0, 1.17, 0.05, 3.76, 3.142), _deg(36, 36, 36, 36, 48, 48, 48), (0.25, 0.8)),
     # the Sawyer with robosuite's default gripper for it (RethinkGripper: two slide fingers on
     # force-limited position servos), attached at "right_hand" as robosuite's add_gripper does
     "sawyer+gripper": Arm("sawyer", (0.0, -1.18, 0.0, 2.18, 0.0, 0.57, -1.57),
-                          (1.74, 1.328, 1.957, 1.957, 3.485, 3.485, 4.545), "rethink_gripper.xml"),
+                          (1.74, 1.328, 1.957, 1.957, 3.485, 3.485, 4.545), (0.3, 0.6), "rethink_gripper.xml"),
 }
 
 SCENARIOS = {"static": ("static",), "head_on": ("head_on",), "crossing": ("crossing",),
@@ -189,12 +215,13 @@ TIMESTEP = 0.002  # [s] physics step, set on every model (robosuite's files say 
 HOLD_STEPS = 10  # the random policy's draw is held 10 physics steps: 50 Hz at 500 Hz physics
 PULL_FORCE = 400.0  # [N] the adversary's pull
 RADIUS = (0.05, 0.08)  # [m] sphere radii
-SPEED = (0.1, 0.4)  # [m/s] sphere speeds
+SPEED = (0.1, 0.4)  # [m/s] sphere speeds, capped by the arm's envelope (speed_range)
 MEET_TIME = (0.8, 2.0)  # [s] when a moving sphere reaches its aim point
+PASS_DISTANCE = 0.3  # [m] a moving sphere leaves the scene this far past its aim point
+HEAD_ON_BEARING = 60.0  # [deg] a head-on line's largest turn from the line from the base's axis
 STATIC_GAP = (0.1, 0.3)  # [m] a static sphere's surface from its aim point
 CROSSING_ANGLE = (50.0, 90.0)  # [deg] a crossing sphere's heading from the head-on line
 SPAWN_CLEARANCE = 0.1  # [m] from every protected capsule at the start
-KEEP_OUT = (0.2, 0.45)  # [m] radius and height of the cylinder about the base's axis no path enters
 MIN_HEIGHT = 0.05  # [m] every sphere's surface stays this far above the floor
 EXTRA_MOTOR_TORQUE = 10.0  # [N m] bound of a motor added to a joint the file leaves without one
 CUTOFF = 1.0  # [m] distances beyond this are not resolved (the lowest clearance is capped here)
@@ -281,25 +308,30 @@ def build_scene(assets: Path, arm: str, spheres: int) -> tuple[mujoco.MjModel, R
 
 
 def _spawn(rng: np.random.Generator, kinds: tuple[str, ...], a: np.ndarray, b: np.ndarray, capsule_radius: np.ndarray,
-           tool: np.ndarray, horizon: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Positions (K, 3), velocities (K, 3) and radii (K,) of one sphere per kind, aimed at the
-    capsules ``a``-``b`` (S, 3) of ``capsule_radius`` (S,) or the ``tool`` (3,) [m] (module
-    docstring); RuntimeError when 1,000 attempts place none."""
-    out = np.zeros((len(kinds), 3)), np.zeros((len(kinds), 3)), np.zeros(len(kinds))
+           tool: np.ndarray, horizon: float, *, speed: tuple[float, float],
+           keep_out: tuple[float, float]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Positions (K, 3), velocities (K, 3), radii (K,) and leaving times (K,) of one sphere per
+    kind, aimed at the capsules ``a``-``b`` (S, 3) of ``capsule_radius`` (S,) or the ``tool`` (3,)
+    [m] (module docstring), moving at a speed drawn from ``speed`` [m/s] on paths out of the
+    ``keep_out`` cylinder (radius, height) [m] until they leave the scene, :data:`PASS_DISTANCE`
+    past their aim point (inf for a static sphere) [s]; RuntimeError when 1,000 attempts place none."""
+    out = np.zeros((len(kinds), 3)), np.zeros((len(kinds), 3)), np.zeros(len(kinds)), np.full(len(kinds), np.inf)
     for k, kind in enumerate(kinds):
         for _ in range(1000):
             s = int(rng.integers(len(a) + 1))
             aim = tool if s == len(a) else a[s] + rng.uniform() * (b[s] - a[s])
-            radius, speed = rng.uniform(*RADIUS), rng.uniform(*SPEED)
+            radius, pace = rng.uniform(*RADIUS), rng.uniform(*speed)
             outward = np.array([aim[0], aim[1], 0.0])
             outward = outward / np.linalg.norm(outward) if np.linalg.norm(outward) > 1e-6 else np.array([1.0, 0, 0])
             if kind == "static":
                 direction = rng.normal(size=3)
                 direction /= np.linalg.norm(direction)
                 reach = (0.0 if s == len(a) else capsule_radius[s]) + radius + rng.uniform(*STATIC_GAP)
-                position, velocity = aim + reach * direction, np.zeros(3)
+                position, velocity, leave = aim + reach * direction, np.zeros(3), np.inf
             else:
-                heading = -outward
+                turn = np.deg2rad(rng.uniform(-HEAD_ON_BEARING, HEAD_ON_BEARING))  # about the vertical
+                heading = -np.array([np.cos(turn) * outward[0] - np.sin(turn) * outward[1],
+                                     np.sin(turn) * outward[0] + np.cos(turn) * outward[1], 0.0])  # fmt: skip
                 if kind == "crossing":  # turned away from the head-on line, rolled about it
                     side = np.cross(heading, [0.0, 0.0, 1.0])
                     side /= np.linalg.norm(side)
@@ -307,10 +339,11 @@ def _spawn(rng: np.random.Generator, kinds: tuple[str, ...], a: np.ndarray, b: n
                     normal = np.cos(roll) * side + np.sin(roll) * np.cross(heading, side)
                     angle = np.deg2rad(rng.uniform(*CROSSING_ANGLE))
                     heading = np.cos(angle) * heading + np.sin(angle) * normal
-                velocity = speed * heading
-                position = aim - velocity * rng.uniform(*MEET_TIME)
-            if _placeable(position, velocity, radius, a, b, capsule_radius, horizon):
-                out[0][k], out[1][k], out[2][k] = position, velocity, radius
+                velocity = pace * heading
+                meet = rng.uniform(*MEET_TIME)
+                position, leave = aim - velocity * meet, meet + PASS_DISTANCE / pace
+            if _placeable(position, velocity, radius, a, b, capsule_radius, min(horizon, leave), keep_out):
+                out[0][k], out[1][k], out[2][k], out[3][k] = position, velocity, radius, leave
                 break
         else:
             raise RuntimeError(f"no {kind} sphere could be placed in 1,000 attempts")
@@ -318,17 +351,17 @@ def _spawn(rng: np.random.Generator, kinds: tuple[str, ...], a: np.ndarray, b: n
 
 
 def _placeable(position: np.ndarray, velocity: np.ndarray, radius: float, a: np.ndarray, b: np.ndarray,
-               capsule_radius: np.ndarray, horizon: float) -> bool:
+               capsule_radius: np.ndarray, horizon: float, keep_out: tuple[float, float]) -> bool:
     """Clear of every capsule by :data:`SPAWN_CLEARANCE`, and a path over ``horizon`` s that stays
-    :data:`MIN_HEIGHT` above the floor and out of the :data:`KEEP_OUT` cylinder."""
+    :data:`MIN_HEIGHT` above the floor and out of the ``keep_out`` cylinder (radius, height)."""
     closest = segment_closest_points(a, b, position[None])[0]
     if np.min(np.linalg.norm(closest - position, axis=1) - capsule_radius) - radius < SPAWN_CLEARANCE:
         return False
     path = position + np.linspace(0.0, horizon, 51)[:, None] * velocity
     if np.min(path[:, 2]) - radius < MIN_HEIGHT:
         return False
-    low = path[:, 2] < KEEP_OUT[1] + radius
-    return not np.any(np.linalg.norm(path[low, :2], axis=1) < KEEP_OUT[0] + radius)
+    low = path[:, 2] < keep_out[1] + radius
+    return not np.any(np.linalg.norm(path[low, :2], axis=1) < keep_out[0] + radius)
 
 
 # ----------------------------------------------------------------------------- one episode
@@ -348,16 +381,32 @@ class Episode:
     lowest_clearance: float = CUTOFF
     infeasible_steps: int = 0
     hard_relaxed_steps: int = 0
+    gain_raised_steps: int = 0
     max_speed_ratio: float = 0.0
 
 
 _SCENES: dict = {}  # (assets, arm, spheres) -> build_scene(...), per process
+_ENVELOPES: dict = {}  # (assets, arm, config) -> arm_envelope(...), per process
 
 
-def run_episode(task: tuple[str, str, str, str, FilterConfig | None, int, float]) -> Episode:
+def arm_envelope(model: mujoco.MjModel, robot: RobotDescription, arm: str, config: FilterConfig) -> FilterEnvelope:
+    """The envelope the filter ``config`` states on ``arm`` (``filter_envelope``: spheres up to
+    :data:`RADIUS`, the arm's keep-out cylinder, robosuite's initial configuration among the
+    sample)."""
+    radius, height = ARMS[arm].keep_out
+    return filter_envelope(model, robot, config, obstacle_radius=RADIUS[1], keep_out_radius=radius,
+                           keep_out_height=height, qpos=ARMS[arm].init_qpos)  # fmt: skip
+
+
+def speed_range(envelope: FilterEnvelope) -> tuple[float, float]:
+    """:data:`SPEED` capped by the envelope's speed: ``(min(low, v/2), min(high, v))`` [m/s]."""
+    return min(SPEED[0], envelope.max_speed / 2), min(SPEED[1], envelope.max_speed)
+
+
+def run_episode(task: tuple[str, str, str, str, FilterConfig | None, int, float, tuple[float, float]]) -> Episode:
     """One episode: ``task`` = (assets folder, arm, scenario, policy, the filter's configuration or
-    None for none, seed, seconds)."""
-    assets, arm, scenario, policy, config, seed, seconds = task
+    None for none, seed, seconds, the spheres' speed range [m/s])."""
+    assets, arm, scenario, policy, config, seed, seconds, speed = task
     filtered = config is not None
     kinds = SCENARIOS[scenario]
     key = (assets, arm, len(kinds))
@@ -371,15 +420,23 @@ def run_episode(task: tuple[str, str, str, str, FilterConfig | None, int, float]
     arm_model = ArmModel(model, robot.geom_ids, robot.site_id, robot.capsules)
     a, b = arm_model.capsule_segments(data)
     rng = np.random.default_rng(seed)
-    position, velocity, radius = _spawn(rng, kinds, a, b, arm_model.capsule_radius, data.site_xpos[robot.site_id],
-                                        seconds)  # fmt: skip
+    try:
+        position, velocity, radius, leave = _spawn(rng, kinds, a, b, arm_model.capsule_radius,
+                                                   data.site_xpos[robot.site_id], seconds, speed=speed,
+                                                   keep_out=ARMS[arm].keep_out)  # fmt: skip
+    except RuntimeError as error:
+        raise RuntimeError(f"{arm}, {scenario}, seed {seed}: {error}") from None
     balls = [model.geom(_BALL.format(k)).id for k in range(len(kinds))]
     mocap = [model.body(_BALL.format(k)).mocapid[0] for k in range(len(kinds))]
     model.geom_size[balls, 0] = radius
     data.mocap_pos[mocap] = position
     mujoco.mj_forward(model, data)
     spheres = MocapSpheres(model, [_BALL.format(k) for k in range(len(kinds))])
-    controller = SafetyController(model, data, robot, spheres, config) if filtered else None
+    controller = None
+    if filtered:
+        if (assets, arm, config) not in _ENVELOPES:
+            _ENVELOPES[assets, arm, config] = arm_envelope(model, robot, arm, config)
+        controller = SafetyController(model, data, robot, spheres, config, envelope=_ENVELOPES[assets, arm, config])
     if controller is not None:
         arm_model = controller.arm
     out = Episode(arm, scenario, policy, filtered, seed)
@@ -419,10 +476,15 @@ def run_episode(task: tuple[str, str, str, str, FilterConfig | None, int, float]
             tau, report = controller.filter(tau)
             out.infeasible_steps += report.infeasible_steps
             out.hard_relaxed_steps += any(report.violation[kind] > 0.0 for kind in HARD_ROWS)
+            out.gain_raised_steps += report.gain_raised_steps
         robot.write_ctrl(model, data, tau)
         mujoco.mj_step2(model, data)
         data.mocap_pos[mocap] += velocity * TIMESTEP
         out.steps += 1
+        for k in np.flatnonzero(leave <= out.steps * TIMESTEP):  # past its aim: out of the scene
+            leave[k], velocity[k] = np.inf, 0.0
+            spheres.clear(k)
+            data.mocap_pos[mocap[k]] = (10.0 + k, 0.0, 1.0)
     mujoco.mj_kinematics(model, data)
     measure()
     return out
@@ -438,9 +500,10 @@ def summarise(episodes: list[Episode]) -> list[dict]:
                                              POLICIES.index(e.policy), e.seed)):  # fmt: skip
         row = rows.setdefault((e.arm, e.scenario, e.policy), {
             "arm": e.arm, "scenario": e.scenario, "policy": e.policy, "episodes": 0, "collision_episodes": 0,
-            "lowest_clearance_m": CUTOFF, "infeasible_per_1000_steps": 0.0, "hard_relaxed_per_1000_steps": 0.0,
+            "lowest_clearance_m": CUTOFF, "infeasible_per_1000_steps": 0.0, "gain_raised_per_1000_steps": 0.0,
+            "hard_relaxed_per_1000_steps": 0.0,
             "max_speed_ratio": 0.0, "unfiltered_collision_episodes": 0, "unfiltered_lowest_clearance_m": CUTOFF,
-            "unfiltered_max_speed_ratio": 0.0, "_steps": 0, "_infeasible": 0, "_hard": 0})  # fmt: skip
+            "unfiltered_max_speed_ratio": 0.0, "_steps": 0, "_infeasible": 0, "_raised": 0, "_hard": 0})  # fmt: skip
         prefix = "" if e.filtered else "unfiltered_"
         row["episodes"] += e.filtered
         row[prefix + "collision_episodes"] += int(e.collided)
@@ -450,22 +513,25 @@ def summarise(episodes: list[Episode]) -> list[dict]:
             row["_steps"] += e.steps
             row["_infeasible"] += e.infeasible_steps
             row["_hard"] += e.hard_relaxed_steps
+            row["_raised"] += e.gain_raised_steps
     for row in rows.values():
         steps = max(row.pop("_steps"), 1)
         row["infeasible_per_1000_steps"] = 1e3 * row.pop("_infeasible") / steps
+        row["gain_raised_per_1000_steps"] = 1e3 * row.pop("_raised") / steps
         row["hard_relaxed_per_1000_steps"] = 1e3 * row.pop("_hard") / steps
     return list(rows.values())
 
 
 def print_table(rows: list[dict], unsupported: dict[str, str]) -> None:
     """The table (module docstring), then the arms the library refused with its message."""
-    print(f"{'':<31}{' filtered ':-^60}   {' unfiltered ':-^32}")
+    print(f"{'':<31}{' filtered ':-^70}   {' unfiltered ':-^32}")
     print(f"{'arm':<8} {'scenario':<9} {'policy':<11} {'episodes':>8} {'collisions':>10} {'lowest [m]':>10} "
-          f"{'infeas/1k':>9} {'hard/1k':>7} {'max|qd|/lim':>11}   "
+          f"{'infeas/1k':>9} {'raised/1k':>9} {'hard/1k':>7} {'max|qd|/lim':>11}   "
           f"{'collisions':>10} {'lowest [m]':>10} {'max|qd|/lim':>11}")  # fmt: skip
     for r in rows:
         filtered = (f"{r['episodes']:>8} {r['collision_episodes']:>10} {r['lowest_clearance_m']:>+10.4f} "
-                    f"{r['infeasible_per_1000_steps']:>9.2f} {r['hard_relaxed_per_1000_steps']:>7.2f} "
+                    f"{r['infeasible_per_1000_steps']:>9.2f} {r['gain_raised_per_1000_steps']:>9.2f} "
+                    f"{r['hard_relaxed_per_1000_steps']:>7.2f} "
                     f"{r['max_speed_ratio']:>11.2f}")  # fmt: skip
         unfiltered = (f"{r['unfiltered_collision_episodes']:>10} {r['unfiltered_lowest_clearance_m']:>+10.4f} "
                       f"{r['unfiltered_max_speed_ratio']:>11.2f}")  # fmt: skip
@@ -477,14 +543,15 @@ def print_table(rows: list[dict], unsupported: dict[str, str]) -> None:
 # ----------------------------------------------------------------------------- main
 
 
-def _check_arm(assets: Path, arm: str, config: FilterConfig) -> tuple[str | None, list[str]]:
-    """(None, notes) when the filter ``config`` runs on ``arm``, else (the library's refusal, notes)."""
+def _check_arm(assets: Path, arm: str, config: FilterConfig) -> tuple[str | None, list[str], FilterEnvelope | None]:
+    """(None, notes, the filter's envelope on the arm) when the filter ``config`` runs on ``arm``,
+    else (the library's refusal, notes, None)."""
     try:
         model, robot, notes = build_scene(assets, arm, 1)
         SafetyController(model, mujoco.MjData(model), robot, MocapSpheres(model, [_BALL.format(0)]), config)
     except UnsupportedModelError as error:
-        return str(error), []
-    return None, notes
+        return str(error), [], None
+    return None, notes, arm_envelope(model, robot, arm, config)
 
 
 def _setting(item: str) -> tuple[str, object]:
@@ -532,6 +599,8 @@ def main(argv: list[str] | None = None) -> dict:
                         help="change the filter's settings (FilterConfig fields; numbers, true/false, none or "
                              "names), e.g. --set joint_speed_fraction=1.0 guard_gamma=20")  # fmt: skip
     parser.add_argument("--no-unfiltered", action="store_true", help="skip the unfiltered twin of each episode")
+    parser.add_argument("--ignore-envelope", action="store_true", help=f"spheres at {SPEED[0]}-{SPEED[1]} m/s on "
+                        "every arm, not capped by the filter's envelope")  # fmt: skip
     args = parser.parse_args(argv)
     try:
         config = CONFIG.replace(**dict(_setting(item) for item in args.set))
@@ -547,14 +616,22 @@ def main(argv: list[str] | None = None) -> dict:
         parser.error("--episodes and --workers must be >= 1 and --seconds > 0")
     assets = robosuite_assets(args.cache)
 
-    unsupported, notes = {}, {}
+    unsupported, notes, envelopes, speeds = {}, {}, {}, {}
     for arm in arms:
-        why, notes[arm] = _check_arm(assets, arm, config)
+        why, notes[arm], envelope = _check_arm(assets, arm, config)
         if why is not None:
             unsupported[arm] = why
+            continue
+        envelopes[arm] = {"max_speed_m_s": envelope.max_speed, "keep_out_m": list(ARMS[arm].keep_out),
+                          "limiting_geom": envelope.limiting_geom,
+                          "limiting_point_m": envelope.limiting_point.tolist()}  # fmt: skip
+        speeds[arm] = SPEED if args.ignore_envelope else speed_range(envelope)
+        notes[arm].append(f"the filter's envelope: {envelope.max_speed:.3f} m/s for spheres up to {RADIUS[1]} m, "
+                          f"keep-out {ARMS[arm].keep_out[0]} m x {ARMS[arm].keep_out[1]} m (limited by "
+                          f"{envelope.limiting_geom}); spheres at {speeds[arm][0]:.3g}-{speeds[arm][1]:.3g} m/s")
     runnable = [arm for arm in arms if arm not in unsupported]
     twins = (config,) if args.no_unfiltered else (config, None)
-    tasks = [(str(assets), arm, scenario, policy, twin, args.seed + i, args.seconds)
+    tasks = [(str(assets), arm, scenario, policy, twin, args.seed + i, args.seconds, speeds[arm])
              for arm in runnable for scenario in scenarios for policy in policies
              for i in range(args.episodes) for twin in twins]  # fmt: skip
     print(f"robosuite {ROBOSUITE_VERSION} arms from {assets}: {len(tasks)} episodes of {args.seconds:g} s "
@@ -574,7 +651,9 @@ def main(argv: list[str] | None = None) -> dict:
     result = {"settings": {"robosuite": ROBOSUITE_VERSION, "episodes_per_configuration": args.episodes,
                            "seconds": args.seconds, "timestep": TIMESTEP, "seed": args.seed, "arms": arms,
                            "scenarios": scenarios, "policies": policies, "filter": repr(config),
-                           "joint_speed_limit_rad_s": {arm: list(ARMS[arm].joint_speed_limit) for arm in arms}},
+                           "joint_speed_limit_rad_s": {arm: list(ARMS[arm].joint_speed_limit) for arm in arms},
+                           "sphere_speed_m_s": {arm: list(speed) for arm, speed in speeds.items()},
+                           "envelopes": envelopes},
               "unsupported": unsupported, "notes": notes, "configurations": rows,
               "episodes": [asdict(e) for e in episodes]}  # fmt: skip
     if args.json is not None:
