@@ -16,6 +16,7 @@ from typing import Any, Callable
 import gymnasium as gym
 import numpy as np
 
+from c3bf_gym.controllers._kernels import ImpedanceWork, Target, ToolSite, impedance_substep
 from c3bf_gym.controllers.impedance import CartesianImpedance
 from c3bf_gym.envs.reach import C3BFReachEnv
 from c3bf_gym.filter import SafetyHook
@@ -145,14 +146,30 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs, gym.utils.EzPic
 class ImpedanceHook:
     """The ``nominal`` torque hook: a :class:`CartesianImpedance` law towards a tool target.
 
-    The target is either fixed by its owner (``set_target``) or, with ``trajectory``, evaluated
-    at the simulation time of every physics step. The commanded torque arriving at the hook is
-    replaced by the controller's.
+    The target is either fixed by its owner (``set_target``: position, velocity, acceleration,
+    held until the next call) or, with ``trajectory``, evaluated at the simulation time of every
+    physics step. The commanded torque arriving at the hook is replaced by the controller's.
+
+    The law is :func:`c3bf_gym.controllers._kernels.impedance_substep` on the environment's arm
+    (its ``Minv``, shared with the filter, and the tool site's Jacobian and ``J̇ q̇``), called
+    from Python through :meth:`__call__`, or, without a ``trajectory``, from the environment's
+    compiled policy step (:meth:`compiled_impedance`), the safety filter's calls beside it: the
+    same torques, to rounding. A ``trajectory`` is a Python function, so with one every physics step
+    comes back to Python.
+
+    Args:
+        env: the unwrapped :class:`~c3bf_gym.envs.C3BFReachEnv`.
+        controller: the law; its settings are read once, here (:meth:`CartesianImpedance.gains`):
+            later changes to its attributes do not reach this hook.
+        trajectory: ``t [s] -> (position, velocity, acceleration)`` (3,) each, or None.
+
+    Raises:
+        ValueError: the controller's posture (or posture gains) does not have one entry per dof.
     """
 
     def __init__(self, env: C3BFReachEnv, controller: CartesianImpedance, trajectory: Trajectory | None = None) -> None:
-        if controller.posture is not None and controller.posture.shape != (env.model.nv,):
-            raise ValueError(f"the controller's posture has {controller.posture.size} joint angles; the arm has {env.model.nv}")
+        n = env.model.nv
+        self.gains = controller.gains(n)
         self.env = env
         self.controller = controller
         self.trajectory = trajectory
@@ -160,25 +177,39 @@ class ImpedanceHook:
         self.target_pos = env.data.site_xpos[env.ee_site_id].copy()
         self.target_vel = np.zeros(3)
         self.target_acc = np.zeros(3)
+        self._target = Target(self.target_pos, self.target_vel, self.target_acc)  # views: set_target updates it
+        self._site = ToolSite.of(env.data.site_xpos[env.ee_site_id], self.arm.site_chain)
+        self._work = ImpedanceWork.of(n)
+        self._bound: tuple | None = None
 
     def set_target(self, pos: np.ndarray, vel: np.ndarray | None = None, acc: np.ndarray | None = None) -> None:
         self.target_pos[:] = pos
         self.target_vel[:] = 0.0 if vel is None else vel
         self.target_acc[:] = 0.0 if acc is None else acc
 
+    def _arguments(self) -> tuple:
+        """The arguments of :func:`~c3bf_gym.controllers._kernels.impedance_substep` after ``stage``
+        and before ``tau``: views of the environment's arrays, gathered once."""
+        if self._bound is None:
+            self._bound = (self.arm.kernel_arrays(self.env.data), self._site, self.gains, self._target, self._work)
+        return self._bound
+
+    def compiled_impedance(self) -> tuple | None:
+        """For the environment's compiled policy step
+        (:func:`c3bf_gym.envs._kernels.impedance_steps`): the arguments of
+        :func:`~c3bf_gym.controllers._kernels.impedance_substep` after ``stage`` and before
+        ``tau``; None with a ``trajectory``, which only Python can evaluate."""
+        return None if self.trajectory is not None else self._arguments()
+
     def __call__(self, tau: np.ndarray) -> np.ndarray:
-        env, arm = self.env, self.arm
-        d = env.data
+        """The controller's total torque (n,) [N m] for the current state (``tau`` is ignored)."""
+        env = self.env
         if self.trajectory is not None:
-            self.set_target(*self.trajectory(d.time))
-        arm.update(d, env.state_version)
-        site = arm.site_dynamics(d)
-        jac = site.jac[0]
-        jdot_qd = site.c[0] - jac @ arm.qacc_free
-        return self.controller.torque(
-            d.qpos, d.qvel, site.pos[0], site.vel[0], jac, jdot_qd, arm.Minv, d.qfrc_bias,
-            self.target_pos, self.target_vel, self.target_acc,
-        )  # fmt: skip
+            self.set_target(*self.trajectory(env.data.time))
+        self.arm.update(env.data, env.state_version)
+        out = np.empty(env.model.nv)
+        impedance_substep(0, *self._arguments(), out)
+        return out
 
 
 def default_impedance(env: C3BFReachEnv) -> CartesianImpedance:
