@@ -223,8 +223,9 @@ class CartesianImpedanceAction(gym.ActionWrapper, gym.utils.RecordConstructorArg
     The action ``a`` in ``Box(-1, 1, (3,))`` sets the target ``x_tool + max_offset * a`` (world
     frame, m) when the step begins; at every physics step the controller
     (:class:`~c3bf_gym.controllers.CartesianImpedance`, default 300 N/m, critically damped, with a
-    null-space pull to the ``home`` posture) computes the torque towards it. Out-of-range, wrongly
-    shaped or non-finite actions raise ``ValueError``.
+    null-space pull to the ``home`` posture) computes the torque towards it, inside the
+    environment's compiled policy step, with the :class:`SafetyFilter` behind it if there is one
+    (:class:`ImpedanceHook`). Out-of-range, wrongly shaped or non-finite actions raise ``ValueError``.
 
     With ``residual=True`` the action is a correction to a step straight for the goal: the target
     is ``x_tool + clip(goal - x_tool, ±max_offset) + max_offset * a`` (per axis, so up to
