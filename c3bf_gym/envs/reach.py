@@ -680,9 +680,8 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
         so do the controller's and the filter's calls
         (:func:`~c3bf_gym.envs._kernels.impedance_steps`, when the controller offers
         ``compiled_impedance``); otherwise the hooks run in Python between compiled single steps.
-        The compiled and the Python loops give the same steps, bit for bit without the impedance
-        controller, and to rounding with it (its Python call solves the same law with the arm's
-        cached ``Minv``, see :meth:`add_torque_hook`).
+        The compiled and the Python loops call the same kernels and give the same steps: bit for
+        bit without the impedance controller; with it the tests hold them to rounding.
         """
         np.multiply(self.obstacle_vel, self.model.opt.timestep, out=self._step_displacement)
         hooks, physics, steps = self._hook_chain, self._physics, self._physics_steps
