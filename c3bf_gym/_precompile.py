@@ -45,7 +45,7 @@ def main() -> None:
     law.torque(np.zeros(6), np.zeros(6), np.zeros(3), np.zeros(3), np.eye(3, 6), np.zeros(3), np.eye(6), np.zeros(6),
                np.ones(3))  # fmt: skip
     law.damping_for(np.eye(3))
-    print(f"c3bf_gym: compiled the filter's and the impedance controller's kernels in {time.perf_counter() - start:.0f} s")
+    print(f"c3bf_gym: compiled the filter's kernels and the impedance controller's in {time.perf_counter() - start:.0f} s")
 
 
 if __name__ == "__main__":
