@@ -19,6 +19,11 @@ from round to round, so that machine noise hits all alike), the median over roun
 * ``filtered``: the same under the default ``SafetyFilter``, with random actions and with the
   adversary of ``benchmarks/guarantee.py`` (the arm point nearest an obstacle driven at it; the
   adversary's own computation is not timed);
+* ``impedance``: the environment under the residual Cartesian impedance controller
+  (``CartesianImpedanceAction(residual=True)``), random residual actions;
+* ``recipe``: the training recipe's stack, ``SafetyFilter(CartesianImpedanceAction(residual=True))``
+  with random residual actions: its ratio to ``filtered random`` (the filtered torque env) is the
+  one the design targets (≤ 1.2), printed on its own line as the median of the rounds' ratios;
 * ``Pusher-v5``: Gymnasium's MuJoCo arm, for reference (5 physics steps of 10 ms per step,
   against our 10 of 2 ms, so its steps are not the same amount of physics).
 
@@ -51,14 +56,14 @@ import mujoco
 import numpy as np
 
 import c3bf_gym  # noqa: F401  (registers C3BFReach-v0)
-from c3bf_gym import SafetyFilter
+from c3bf_gym import CartesianImpedanceAction, SafetyFilter
 from c3bf_gym.scenarios import SCENARIOS
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from guarantee import adversarial_action  # noqa: E402  (the sweep's adversary)
 
 CONFIGS = ("bare", "bare, reset states", "bare, parked", "unfiltered", "filtered random", "filtered adversarial",
-           "Pusher-v5")
+           "impedance", "recipe", "Pusher-v5")
 
 
 def _policy_runner(env: gym.Env, steps: int, seed: int, adversarial: bool):
@@ -220,6 +225,8 @@ def main(argv: list[str] | None = None) -> dict:
         "unfiltered": gym.make(args.env, scenario=args.scenario),
         "filtered random": SafetyFilter(gym.make(args.env, scenario=args.scenario)),
         "filtered adversarial": SafetyFilter(gym.make(args.env, scenario=args.scenario)),
+        "impedance": CartesianImpedanceAction(gym.make(args.env, scenario=args.scenario), residual=True),
+        "recipe": SafetyFilter(CartesianImpedanceAction(gym.make(args.env, scenario=args.scenario), residual=True)),
         "Pusher-v5": gym.make("Pusher-v5"),
     }
     runs = {"bare": run_bare, "bare, reset states": run_reset, "bare, parked": run_parked}
@@ -240,6 +247,10 @@ def main(argv: list[str] | None = None) -> dict:
     for name in CONFIGS:
         t = per_step[name]
         print(f"{name:<22} | {statistics.median(t):>14.0f} {min(t):>8.0f} {max(t):>8.0f} | {statistics.median(ratios[name]):>26.2f}")
+    recipe = statistics.median(r / f for r, f in zip(per_step["recipe"], per_step["filtered random"]))
+    impedance = statistics.median(i / u for i, u in zip(per_step["impedance"], per_step["unfiltered"]))
+    print(f"\nthe recipe's stack (residual impedance + filter) ÷ the filtered torque env: {recipe:.2f} "
+          f"(target <= 1.2); the impedance controller alone ÷ the unfiltered env: {impedance:.2f} (medians of the rounds' ratios)")
     breakdown = _breakdown(per_step, frame_skip)
     print(f"\nbreakdown (medians of the rounds' differences): the bare physics {breakdown['physics_us']:.1f} µs per "
           f"physics step; the environment's own work {breakdown['env_us']:.0f} µs per policy step (unfiltered − bare); "
@@ -255,7 +266,7 @@ def main(argv: list[str] | None = None) -> dict:
     result = {
         "env": args.env, "scenario": args.scenario, "rounds": args.rounds, "steps": args.steps, "frame_skip": frame_skip,
         "us_per_step": per_step, "ratio_to_bare": {k: statistics.median(v) for k, v in ratios.items()}, "reset_ms": resets,
-        "breakdown": breakdown,
+        "breakdown": breakdown, "recipe_to_filtered": recipe, "impedance_to_unfiltered": impedance,
     }  # fmt: skip
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)

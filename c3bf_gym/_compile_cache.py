@@ -46,7 +46,7 @@ _PACKAGE = Path(__file__).resolve().parent
 #: compiled into them; and this one, whose options they are compiled with (numba's cache does not
 #: key on options).
 KERNEL_SOURCES = ("safety/_kernels.py", "safety/_daqp.py", "scenarios.py", "envs/_kernels.py", "_capi.py",
-                  "_compile_cache.py")
+                  "_compile_cache.py", "controllers/_kernels.py")
 _PATHS = tuple(str(_PACKAGE / name) for name in KERNEL_SOURCES)
 
 

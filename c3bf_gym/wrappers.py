@@ -16,8 +16,9 @@ from typing import Any, Callable
 import gymnasium as gym
 import numpy as np
 
+from c3bf_gym.controllers._kernels import ImpedanceWork, Target, ToolSite, impedance_substep
 from c3bf_gym.controllers.impedance import CartesianImpedance
-from c3bf_gym.envs.reach import C3BFReachEnv
+from c3bf_gym.envs.reach import _ACTION_BOUND, C3BFReachEnv
 from c3bf_gym.filter import SafetyHook
 from c3bf_gym.safety import FILTERS, FilterConfig, StepSafety
 from c3bf_gym.safety.dynamics import ArmModel
@@ -145,14 +146,30 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs, gym.utils.EzPic
 class ImpedanceHook:
     """The ``nominal`` torque hook: a :class:`CartesianImpedance` law towards a tool target.
 
-    The target is either fixed by its owner (``set_target``) or, with ``trajectory``, evaluated
-    at the simulation time of every physics step. The commanded torque arriving at the hook is
-    replaced by the controller's.
+    The target is either fixed by its owner (``set_target``: position, velocity, acceleration,
+    held until the next call) or, with ``trajectory``, evaluated at the simulation time of every
+    physics step. The commanded torque arriving at the hook is replaced by the controller's.
+
+    The law is :func:`c3bf_gym.controllers._kernels.impedance_substep` on the environment's arm
+    (its ``Minv``, shared with the filter, and the tool site's Jacobian and ``J̇ q̇``), called
+    from Python through :meth:`__call__`, or, without a ``trajectory``, from the environment's
+    compiled policy step (:meth:`compiled_impedance`), the safety filter's calls beside it: the
+    same torques, to rounding. A ``trajectory`` is a Python function, so with one every physics step
+    comes back to Python.
+
+    Args:
+        env: the unwrapped :class:`~c3bf_gym.envs.C3BFReachEnv`.
+        controller: the law; its settings are read once, here (:meth:`CartesianImpedance.gains`):
+            later changes to its attributes do not reach this hook.
+        trajectory: ``t [s] -> (position, velocity, acceleration)`` (3,) each, or None.
+
+    Raises:
+        ValueError: the controller's posture (or posture gains) does not have one entry per dof.
     """
 
     def __init__(self, env: C3BFReachEnv, controller: CartesianImpedance, trajectory: Trajectory | None = None) -> None:
-        if controller.posture is not None and controller.posture.shape != (env.model.nv,):
-            raise ValueError(f"the controller's posture has {controller.posture.size} joint angles; the arm has {env.model.nv}")
+        n = env.model.nv
+        self.gains = controller.gains(n)
         self.env = env
         self.controller = controller
         self.trajectory = trajectory
@@ -160,25 +177,39 @@ class ImpedanceHook:
         self.target_pos = env.data.site_xpos[env.ee_site_id].copy()
         self.target_vel = np.zeros(3)
         self.target_acc = np.zeros(3)
+        self._target = Target(self.target_pos, self.target_vel, self.target_acc)  # views: set_target updates it
+        self._site = ToolSite.of(env.data.site_xpos[env.ee_site_id], self.arm.site_chain)
+        self._work = ImpedanceWork.of(n)
+        self._bound: tuple | None = None
 
     def set_target(self, pos: np.ndarray, vel: np.ndarray | None = None, acc: np.ndarray | None = None) -> None:
         self.target_pos[:] = pos
         self.target_vel[:] = 0.0 if vel is None else vel
         self.target_acc[:] = 0.0 if acc is None else acc
 
+    def _arguments(self) -> tuple:
+        """The arguments of :func:`~c3bf_gym.controllers._kernels.impedance_substep` after ``stage``
+        and before ``tau``: views of the environment's arrays, gathered once."""
+        if self._bound is None:
+            self._bound = (self.arm.kernel_arrays(self.env.data), self._site, self.gains, self._target, self._work)
+        return self._bound
+
+    def compiled_impedance(self) -> tuple | None:
+        """For the environment's compiled policy step
+        (:func:`c3bf_gym.envs._kernels.impedance_steps`): the arguments of
+        :func:`~c3bf_gym.controllers._kernels.impedance_substep` after ``stage`` and before
+        ``tau``; None with a ``trajectory``, which only Python can evaluate."""
+        return None if self.trajectory is not None else self._arguments()
+
     def __call__(self, tau: np.ndarray) -> np.ndarray:
-        env, arm = self.env, self.arm
-        d = env.data
+        """The controller's total torque (n,) [N m] for the current state (``tau`` is ignored)."""
+        env = self.env
         if self.trajectory is not None:
-            self.set_target(*self.trajectory(d.time))
-        arm.update(d, env.state_version)
-        site = arm.site_dynamics(d)
-        jac = site.jac[0]
-        jdot_qd = site.c[0] - jac @ arm.qacc_free
-        return self.controller.torque(
-            d.qpos, d.qvel, site.pos[0], site.vel[0], jac, jdot_qd, arm.Minv, d.qfrc_bias,
-            self.target_pos, self.target_vel, self.target_acc,
-        )  # fmt: skip
+            self.set_target(*self.trajectory(env.data.time))
+        self.arm.update(env.data, env.state_version)
+        out = np.empty(env.model.nv)
+        impedance_substep(0, *self._arguments(), out)
+        return out
 
 
 def default_impedance(env: C3BFReachEnv) -> CartesianImpedance:
@@ -192,8 +223,9 @@ class CartesianImpedanceAction(gym.ActionWrapper, gym.utils.RecordConstructorArg
     The action ``a`` in ``Box(-1, 1, (3,))`` sets the target ``x_tool + max_offset * a`` (world
     frame, m) when the step begins; at every physics step the controller
     (:class:`~c3bf_gym.controllers.CartesianImpedance`, default 300 N/m, critically damped, with a
-    null-space pull to the ``home`` posture) computes the torque towards it. Out-of-range, wrongly
-    shaped or non-finite actions raise ``ValueError``.
+    null-space pull to the ``home`` posture) computes the torque towards it, inside the
+    environment's compiled policy step, with the :class:`SafetyFilter` behind it if there is one
+    (:class:`ImpedanceHook`). Out-of-range, wrongly shaped or non-finite actions raise ``ValueError``.
 
     With ``residual=True`` the action is a correction to a step straight for the goal: the target
     is ``x_tool + clip(goal - x_tool, ±max_offset) + max_offset * a`` (per axis, so up to
@@ -237,6 +269,9 @@ class CartesianImpedanceAction(gym.ActionWrapper, gym.utils.RecordConstructorArg
         self._base = base
         self.action_space = gym.spaces.Box(-1.0, 1.0, shape=(3,), dtype=np.float32)
         self._zero = np.zeros(base.action_space.shape, dtype=np.float32)
+        self._tool = base.data.site_xpos[base.ee_site_id]  # views, made once
+        self._goal = base.goal
+        self._straight = np.zeros(3)
 
     def action(self, action: np.ndarray) -> np.ndarray:
         a = np.asarray(action)
@@ -244,14 +279,19 @@ class CartesianImpedanceAction(gym.ActionWrapper, gym.utils.RecordConstructorArg
             raise ValueError(f"action must have shape (3,), got {a.shape}")
         if a.dtype.kind not in "fiu":
             raise ValueError(f"action must be a real (float) array, got dtype {a.dtype}")
-        if not (np.abs(a) <= 1.0 + 1e-6).all():
+        # on the entries as Python numbers: for three of them, cheaper than numpy's abs and all (the
+        # wrapper's Python is a sizeable part of a policy step once the controller is compiled)
+        if not all(-_ACTION_BOUND <= v <= _ACTION_BOUND for v in a.tolist()):  # also False for NaN
             if not np.isfinite(a).all():
                 raise ValueError(f"action contains NaN or inf: {a}")
             raise ValueError(f"action must lie in [-1, 1] (fraction of max_offset per axis), got {a}")
-        tool = self._base.data.site_xpos[self._base.ee_site_id]
+        tool = self._tool
         offset = self.max_offset * a
-        if self.residual:
-            offset = offset + np.clip(self._base.goal - tool, -self.max_offset, self.max_offset)
+        if self.residual:  # + clip(goal − tool, ±max_offset), per axis
+            m, straight = self.max_offset, self._straight
+            for i, (g, x) in enumerate(zip(self._goal.tolist(), tool.tolist())):
+                straight[i] = min(max(g - x, -m), m)
+            offset = offset + straight
         self.hook.set_target(tool + offset)
         return self._zero  # the torque action underneath is replaced by the controller's
 

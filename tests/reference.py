@@ -116,3 +116,34 @@ def sample_obstacle(envelope, spec, start, goal, rng, arm_a, arm_b, arm_radius, 
                 clearance >= envelope.spawn_clearance):
             return position, velocity, radius
     return None
+
+
+def impedance_torque(ctrl, q, qd, x, xd, J, Jdot_qd, Minv, bias, x_des, xd_des=None, xdd_des=None) -> np.ndarray:
+    """The Cartesian impedance law of :class:`~c3bf_gym.controllers.CartesianImpedance` ``ctrl`` in
+    plain numpy (its settings read from the object; the law's formula in the module docstring of
+    :mod:`c3bf_gym.controllers.impedance`): the oracle of the compiled law. The task inertia's
+    eigenvalues are clamped at 1e-9 as the law's; critical damping from ``numpy.linalg.eigh``."""
+    mu, V = np.linalg.eigh(J @ Minv @ J.T)
+    mu = np.maximum(mu, 1e-9)
+    Lambda = (V / mu) @ V.T
+    if ctrl.D is not None:
+        D = ctrl.D
+    else:
+        L = np.linalg.cholesky(Lambda)
+        Linv = np.linalg.inv(L)
+        omega2, U = np.linalg.eigh(Linv @ ctrl.K @ Linv.T)
+        LU = L @ U
+        D = 2.0 * ctrl.damping_ratio * (LU * np.sqrt(np.maximum(omega2, 0.0))) @ LU.T
+    accel = -Jdot_qd if xdd_des is None else xdd_des - Jdot_qd
+    vel_err = -xd if xd_des is None else xd_des - xd
+    F = Lambda @ accel + D @ vel_err + ctrl.K @ (x_des - x)
+    if ctrl.max_force is not None:
+        norm = float(np.linalg.norm(F))
+        if norm > ctrl.max_force:
+            F *= ctrl.max_force / norm
+    tau = J.T @ F + bias
+    if ctrl.posture is not None:
+        tau0 = ctrl.Kq * (ctrl.posture - q) - ctrl.Dq * qd
+        Jbar = Minv @ J.T @ Lambda
+        tau += tau0 - J.T @ (Jbar.T @ tau0)
+    return tau

@@ -1,8 +1,11 @@
-"""Tests for c3bf_gym/controllers/impedance.py (and its hook/wrapper in c3bf_gym/wrappers.py).
+"""Tests for c3bf_gym/controllers/impedance.py and its compiled law (controllers/_kernels.py),
+and its hook/wrapper in c3bf_gym/wrappers.py.
 
 The control law is checked algebraically on random inertias and Jacobians (the closed-loop task
-dynamics, critical damping, the null-space property) and in closed loop on the real arm (a
-0.15 m step is reached, without overshoot).
+dynamics, critical damping, the null-space property), against the numpy oracle of
+tests/reference.py (on random problems, and on both arms' states from MuJoCo's own Jacobians and
+mass matrix, inside the environment's compiled policy step and through the Python hook path), and in
+closed loop on the real arm (a 0.15 m step is reached, without overshoot).
 """
 
 from __future__ import annotations
@@ -11,8 +14,11 @@ import mujoco
 import numpy as np
 import pytest
 
-from c3bf_gym import CartesianImpedance, CartesianImpedanceAction
+from c3bf_gym import CartesianImpedance, CartesianImpedanceAction, SafetyFilter
+from c3bf_gym.envs.reach import C3BFReachEnv
+from c3bf_gym.experiments import MinimumJerk
 from c3bf_gym.wrappers import ImpedanceHook, default_impedance
+from reference import impedance_torque
 
 STEP = 0.15  # m
 
@@ -235,3 +241,201 @@ def test_fixed_target_reached_without_overshoot(make_env, direction, use_wrapper
     overshoot = progress.max() - STEP
     assert overshoot < 0.1 * STEP, f"overshoot {overshoot:.4f} m"
     assert error[times <= 0.2].max() > 0.1  # it was a real step
+
+
+# ----------------------------------------------------------------------------- the compiled law against the oracle
+
+SETTINGS = {
+    "default": dict(),
+    "anisotropic K": dict(stiffness=[100.0, 250.0, 400.0], damping_ratio=0.7),
+    "full K": "random K",
+    "fixed D, posture, max_force": dict(damping=[30.0, 40.0, 50.0], posture="random", max_force=20.0),
+    "posture gains per joint": dict(posture="random", posture_stiffness="random", posture_damping=3.0),
+}
+
+
+def _settings(name, rng, n=6):
+    kwargs = dict(stiffness=random_spd(rng)) if SETTINGS[name] == "random K" else dict(SETTINGS[name])
+    for key in ("posture", "posture_stiffness"):
+        if kwargs.get(key) == "random":
+            kwargs[key] = rng.uniform(-1.0, 1.0, n) if key == "posture" else rng.uniform(1.0, 30.0, n)
+    return kwargs
+
+
+@pytest.mark.parametrize("name", list(SETTINGS))
+@pytest.mark.parametrize("seed", range(5))
+def test_compiled_law_matches_the_numpy_oracle(name, seed):
+    rng = np.random.default_rng(seed)
+    p = random_problem(rng)
+    ctrl = CartesianImpedance(**_settings(name, rng))
+    expected = impedance_torque(ctrl, **p)
+    np.testing.assert_allclose(ctrl.torque(**p), expected, rtol=1e-10, atol=1e-10 * np.abs(expected).max())
+    # set-point regulation: the desired velocity and acceleration default to zero
+    p.pop("xd_des"), p.pop("xdd_des")
+    expected = impedance_torque(ctrl, **p)
+    np.testing.assert_allclose(ctrl.torque(**p), expected, rtol=1e-10, atol=1e-10 * np.abs(expected).max())
+
+
+def test_max_force_binds_in_the_compiled_law():
+    """With a bound far below the unbounded force, the torque is the oracle's (the force scaled
+    down), and differs from the unbounded law's."""
+    rng = np.random.default_rng(11)
+    p = random_problem(rng)
+    bounded, free = CartesianImpedance(max_force=1.0), CartesianImpedance()
+    np.testing.assert_allclose(bounded.torque(**p), impedance_torque(bounded, **p), rtol=1e-10, atol=1e-10)
+    assert np.abs(bounded.torque(**p) - free.torque(**p)).max() > 1.0
+
+
+def test_singular_jacobian_gives_finite_torques():
+    """A Jacobian of rank 2 (J M⁻¹ Jᵀ singular): the clamped eigenvalue keeps Λ finite."""
+    rng = np.random.default_rng(4)
+    p = random_problem(rng)
+    p["J"][2] = p["J"][0] + p["J"][1]
+    ctrl = CartesianImpedance(posture=np.zeros(6))
+    tau = ctrl.torque(**p)
+    assert np.all(np.isfinite(tau))
+    np.testing.assert_allclose(tau, impedance_torque(ctrl, **p), rtol=1e-6, atol=1e-6 * np.abs(tau).max())
+
+
+BAD_CALLS = [
+    (dict(J=np.zeros((2, 6))), r"J must have shape \(3, n\)"),
+    (dict(q=np.zeros(5)), r"q must have shape \(6,\)"),
+    (dict(Minv=np.eye(5)), r"Minv must have shape \(6, 6\)"),
+    (dict(x_des=np.zeros(2)), r"x_des must have shape \(3,\)"),
+]
+
+
+@pytest.mark.parametrize("change, message", BAD_CALLS, ids=[list(c)[0] for c, _ in BAD_CALLS])
+def test_bad_torque_arguments_rejected(change, message):
+    p = random_problem(np.random.default_rng(0))
+    p.update(change)
+    with pytest.raises(ValueError, match=message):
+        CartesianImpedance().torque(**p)
+
+
+def test_posture_of_another_length_rejected(make_env):
+    p = random_problem(np.random.default_rng(0))
+    with pytest.raises(ValueError, match="posture has 7 joint angles; the arm has 6"):
+        CartesianImpedance(posture=np.zeros(7)).torque(**p)
+    env = make_env(scenario="none")
+    with pytest.raises(ValueError, match="posture has 7 joint angles; the arm has 6"):
+        ImpedanceHook(env.unwrapped, CartesianImpedance(posture=np.zeros(7)))
+    with pytest.raises(ValueError, match=r"posture_stiffness must be a scalar or \(6,\)"):
+        ImpedanceHook(env.unwrapped, CartesianImpedance(posture=np.zeros(6), posture_stiffness=np.ones(4)))
+
+
+def oracle_at(env: C3BFReachEnv, ctrl: CartesianImpedance, target) -> np.ndarray:
+    """The oracle's total torque at ``env``'s current state, from MuJoCo's own site Jacobian,
+    ``mj_jacDot`` and mass matrix (with the integrator's implicit joint damping, as the env's arm)."""
+    m, d = env.model, env.data
+    jac, jac_dot = np.zeros((3, m.nv)), np.zeros((3, m.nv))
+    mujoco.mj_jacSite(m, d, jac, None, env.ee_site_id)
+    mujoco.mj_jacDot(m, d, jac_dot, None, d.site_xpos[env.ee_site_id], m.site_bodyid[env.ee_site_id])
+    M = np.zeros((m.nv, m.nv))
+    mujoco.mj_fullM(m, d, M)
+    Minv = np.linalg.inv(M + np.diag(m.opt.timestep * m.dof_damping))
+    return impedance_torque(ctrl, d.qpos.copy(), d.qvel.copy(), d.site_xpos[env.ee_site_id].copy(), jac @ d.qvel, jac,
+                            jac_dot @ d.qvel, Minv, d.qfrc_bias.copy(), *target)  # fmt: skip
+
+
+ROBOTS = ["ur5e", "panda"]
+
+
+@pytest.mark.parametrize("robot", ROBOTS)
+@pytest.mark.parametrize("residual", [False, True], ids=["target", "residual"])
+@pytest.mark.parametrize("filtered", [False, True], ids=["alone", "filtered"])
+def test_compiled_policy_step_applies_the_oracle_torque(robot, residual, filtered, monkeypatch):
+    """One physics step per policy step: the torque the compiled policy step applied (``ctrl`` plus
+    gravity compensation) is the oracle's at the state before the step, towards the wrapper's target
+    (residual or not); behind the filter, the filter's nominal torque is. No Python hook runs."""
+    monkeypatch.setattr(ImpedanceHook, "__call__", lambda self, tau: pytest.fail("the hook ran in Python"))
+    base = C3BFReachEnv(scenario="multi", robot=robot, frame_skip=1)
+    gains = dict(stiffness=[200.0, 300.0, 400.0], posture=base.model.key_qpos[0].copy())
+    impedance = CartesianImpedanceAction(base, residual=residual, controller=CartesianImpedance(**gains, max_force=40.0))
+    unbounded = CartesianImpedance(**gains)
+    env = SafetyFilter(impedance) if filtered else impedance
+    env.reset(seed=4)
+    rng = np.random.default_rng(4)
+    hook = impedance.hook
+    binding = 0
+    for _ in range(60):
+        action = rng.uniform(-1, 1, 3).astype(np.float32)
+        impedance.action(action)  # sets the target now, as step will from the same state
+        target = (hook.target_pos.copy(), hook.target_vel.copy(), hook.target_acc.copy())
+        expected = oracle_at(base, hook.controller, target)
+        binding += not np.allclose(expected, oracle_at(base, unbounded, target), rtol=1e-6, atol=1e-6)
+        gravity = base.data.qfrc_gravcomp.copy()
+        env.step(action)
+        applied = env.hook.report.tau_nominal if filtered else base.data.ctrl + gravity
+        np.testing.assert_allclose(applied, expected, rtol=1e-8, atol=1e-8 * np.abs(expected).max())
+    assert 0 < binding < 60  # max_force bound some steps, not all
+    env.close()
+
+
+@pytest.mark.parametrize("robot", ROBOTS)
+def test_compiled_and_python_paths_step_alike(robot):
+    """The recipe's stack through the compiled policy step and through the Python hooks (the filter
+    timing its calls sends every call through Python): the same states and reports, to rounding."""
+    runs = []
+    for python in (False, True):
+        env = SafetyFilter(CartesianImpedanceAction(C3BFReachEnv(scenario="multi", robot=robot), residual=True))
+        if python:
+            env.hook.record_times()
+        env.reset(seed=7)
+        rng = np.random.default_rng(7)
+        states, corrections = [], []
+        for _ in range(20):
+            _, _, _, _, info = env.step(rng.uniform(-1, 1, 3).astype(np.float32))
+            states.append(np.concatenate([env.unwrapped.data.qpos, env.unwrapped.data.qvel]))
+            corrections.append(info["safety"]["correction"])
+        assert (len(env.hook.solve_times) == 200) if python else env.hook.solve_times is None
+        runs.append((np.array(states), np.array(corrections)))
+        env.close()
+    np.testing.assert_allclose(runs[0][0], runs[1][0], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(runs[0][1], runs[1][1], rtol=1e-6, atol=1e-9)
+
+
+@pytest.mark.parametrize("robot", ROBOTS)
+def test_trajectory_and_user_hook_run_in_python(robot):
+    """A trajectory target (a Python function of time) and a user's Python ``filter`` hook behind the
+    controller: both run at every physics step, the hook receiving the oracle's torque towards the
+    trajectory's point at that time, on both arms."""
+    base = C3BFReachEnv(scenario="none", robot=robot)
+    base.reset(seed=1)
+    start = base.data.site_xpos[base.ee_site_id].copy()
+    path = MinimumJerk(start, start + [0.1, -0.1, 0.05], 0.3)
+    controller = default_impedance(base)
+    hook = ImpedanceHook(base, controller, path)
+    assert hook.compiled_impedance() is None
+    seen = []
+
+    def user_hook(tau):  # the extension point: any Python function of the total torque
+        expected = oracle_at(base, controller, path(base.data.time))
+        np.testing.assert_allclose(tau, expected, rtol=1e-8, atol=1e-8 * np.abs(expected).max())
+        seen.append(base.data.time)
+        return 0.5 * tau
+
+    base.add_torque_hook(hook, "nominal")
+    base.add_torque_hook(user_hook, "filter")
+    for _ in range(20):
+        base.step(np.zeros(base.action_space.shape, np.float32))
+    assert len(seen) == 20 * base.frame_skip
+    np.testing.assert_allclose(hook.target_pos, path(seen[-1])[0])
+
+
+def test_user_nominal_hook_behind_the_filter(make_env):
+    """A user's Python ``nominal`` hook in front of the compiled filter: called at every physics
+    step, its torque what the filter receives."""
+    env = SafetyFilter(make_env(scenario="multi"))
+    base = env.unwrapped
+    calls = []
+
+    def nominal(tau):
+        calls.append(tau.copy())
+        return tau + 1.0
+
+    base.add_torque_hook(nominal, "nominal")
+    env.reset(seed=2)
+    _, _, _, _, info = env.step(np.zeros(6, np.float32))
+    assert len(calls) == base.frame_skip and env.hook.report.substeps == base.frame_skip
+    np.testing.assert_allclose(env.hook.report.tau_nominal, calls[-1] + 1.0)

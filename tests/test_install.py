@@ -35,14 +35,19 @@ for _ in range(3):
     obs, reward, terminated, truncated, info = filtered.step(filtered.action_space.sample())
 assert info['safety']['sensed'] > 0, info  # the multi scenario's obstacles reach the filter's rows
 behind = SafetyFilter(c3bf_gym.CartesianImpedanceAction(gym.make('C3BFReach-v0', scenario='multi')))
-behind.reset(seed=0)  # the filter behind the impedance controller: called from Python
+behind.reset(seed=0)  # the filter behind the impedance controller: both in the compiled policy step
 behind.step(behind.action_space.sample())
+timed = SafetyFilter(gym.make('C3BFReach-v0', scenario='multi'))
+timed.hook.record_times()  # timing its calls: every call of the filter comes from Python
+timed.reset(seed=0)
+timed.step(timed.action_space.sample())
 from c3bf_gym.safety import _kernels  # the fused step came from the machine code the build compiled
 print('KERNEL_CACHE_HITS', sum(_kernels.hook_substep_at.stats.cache_hits.values()))
 from c3bf_gym import scenarios  # and the environment's own: its obstacle sampler, physics steps (with and without
-from c3bf_gym.envs import _kernels as env_kernels  # the filter's calls) and observation
+from c3bf_gym.envs import _kernels as env_kernels  # the filter's and the impedance controller's calls) and observation
 print('ENV_CACHE_HITS', *(sum(f.stats.cache_hits.values()) for f in (scenarios._sample, env_kernels.physics_steps,
-                                                                       env_kernels.filtered_steps, env_kernels.observe)))
+                                                                       env_kernels.filtered_steps,
+                                                                       env_kernels.impedance_steps, env_kernels.observe)))
 scene = resources.files('c3bf_gym.assets').joinpath('scene.xml')
 import mujoco  # the Panda scene compiles from the installed files too (its <include> resolves there)
 panda = mujoco.MjModel.from_xml_path(str(resources.files('c3bf_gym.assets').joinpath('panda_scene.xml')))

@@ -9,12 +9,22 @@ consistent null-space projector, so the posture term ``τ₀`` (pulling the redu
 towards ``q₀``) does not disturb the tool. With ``damping=None`` the damping is critical for the
 closed loop ``Λ ë + D ė + K e = 0``: ``D = 2 L U diag(ω) Uᵀ Lᵀ`` where ``Λ = L Lᵀ`` and
 ``L⁻¹ K L⁻ᵀ = U diag(ω²) Uᵀ`` (for ``K = k I`` this is ``2 √k Λ^{1/2}``).
+
+Near a kinematic singularity ``J M⁻¹ Jᵀ`` loses rank: its eigenvalues are clamped from below at
+:data:`~c3bf_gym.controllers._kernels.MIN_INVERSE_INERTIA` before it is inverted, so ``Λ`` stays
+finite. ``M⁻¹`` is whatever the caller passes; the environment's hook passes the integrator's
+``(M + h D)⁻¹`` (:class:`~c3bf_gym.safety.dynamics.ArmModel`).
+
+The per-step math exists once, compiled: :func:`c3bf_gym.controllers._kernels.impedance_law`.
+:meth:`CartesianImpedance.torque` calls it from Python; the environment calls it at every physics
+step from its own compiled policy step (:class:`~c3bf_gym.wrappers.ImpedanceHook`).
 """
 
 from __future__ import annotations
 
-import mujoco
 import numpy as np
+
+from c3bf_gym.controllers._kernels import ImpedanceGains, ImpedanceWork, Target, TaskState, critical_damping, impedance_law
 
 __all__ = ["CartesianImpedance"]
 
@@ -50,6 +60,11 @@ class CartesianImpedance:
             (scalar or (n,)); None gives 2 √K_q.
         max_force: bound on ‖F‖ [N] (the task force is scaled down, not clipped per axis, so its
             direction is kept); None for no bound.
+
+    Raises:
+        ValueError: a gain of the wrong shape, not finite, not symmetric positive definite (K,
+            D), negative (K_q, D_q) or not > 0 (ζ, max_force); a posture that is not a finite 1-D
+            array.
     """
 
     def __init__(
@@ -65,7 +80,6 @@ class CartesianImpedance:
         self.K = _spd("stiffness", stiffness, 3)
         # Isotropic K = k I (the common case) admits a cheaper critical damping: D = 2ζ√k Λ^{1/2}.
         self._k_iso = float(self.K[0, 0]) if np.allclose(self.K, self.K[0, 0] * np.eye(3)) else None
-        self._mu, self._V, self._quat = np.zeros(3), np.zeros((3, 3)), np.zeros(4)
         self.D = None if damping is None else _spd("damping", damping, 3)
         if not (np.isfinite(damping_ratio) and damping_ratio > 0):
             raise ValueError(f"damping_ratio must be a finite number > 0, got {damping_ratio!r}")
@@ -85,15 +99,42 @@ class CartesianImpedance:
             raise ValueError(f"max_force must be a finite number > 0 or None, got {max_force!r}")
         self.max_force = max_force
 
+    def gains(self, n: int) -> ImpedanceGains:
+        """The settings as the compiled law reads them, for an arm of ``n`` joints (new arrays:
+        later changes to this object's attributes do not reach them).
+
+        Raises:
+            ValueError: the posture, K_q or D_q do not have ``n`` entries (or one, for K_q, D_q).
+        """
+        with_posture = self.posture is not None
+        posture = self.posture if with_posture else np.zeros(n)
+        if posture.shape != (n,):
+            raise ValueError(f"the controller's posture has {posture.size} joint angles; the arm has {n}")
+        stiffness, damping = [], []
+        for name, value, out in (("posture_stiffness", self.Kq, stiffness), ("posture_damping", self.Dq, damping)):
+            if value.ndim > 1 or value.size not in (1, n):
+                raise ValueError(f"{name} must be a scalar or ({n},) for an arm of {n} joints, got shape {value.shape}")
+            out.append(np.ascontiguousarray(np.broadcast_to(value, (n,)), dtype=np.float64))
+        return ImpedanceGains(
+            np.ascontiguousarray(self.K), np.ascontiguousarray(self.D if self.D is not None else np.zeros((3, 3))),
+            self.D is not None, self._k_iso is not None, 0.0 if self._k_iso is None else self._k_iso,
+            self.damping_ratio, np.ascontiguousarray(posture, dtype=np.float64), stiffness[0], damping[0],
+            with_posture, np.inf if self.max_force is None else float(self.max_force),
+        )  # fmt: skip
+
     def damping_for(self, Lambda: np.ndarray) -> np.ndarray:
-        """The damping matrix used with task inertia ``Lambda`` (3, 3)."""
+        """The damping matrix (3, 3) [N s/m] used with task inertia ``Lambda`` (3, 3) [kg]: ``D``
+        when given, else critical (times ζ) for ``Λ ë + D ė + K e = 0``
+        (:func:`~c3bf_gym.controllers._kernels.critical_damping`; NaN for a ``Lambda`` that is not
+        positive definite)."""
         if self.D is not None:
             return self.D
-        L = np.linalg.cholesky(Lambda)
-        Linv = np.linalg.inv(L)
-        omega2, U = np.linalg.eigh(Linv @ self.K @ Linv.T)
-        LU = L @ U
-        return 2.0 * self.damping_ratio * (LU * np.sqrt(np.maximum(omega2, 0.0))) @ LU.T
+        Lambda = np.ascontiguousarray(Lambda, dtype=np.float64)
+        if Lambda.shape != (3, 3):
+            raise ValueError(f"Lambda must have shape (3, 3), got {Lambda.shape}")
+        D = np.empty((3, 3))
+        critical_damping(Lambda, self.K, self.damping_ratio, ImpedanceWork.of(1), D)
+        return D
 
     def torque(
         self,
@@ -109,7 +150,7 @@ class CartesianImpedance:
         xd_des: np.ndarray | None = None,
         xdd_des: np.ndarray | None = None,
     ) -> np.ndarray:
-        """Joint torque [N m], (n,).
+        """Joint torque [N m], (n,) (:func:`~c3bf_gym.controllers._kernels.impedance_law`).
 
         Args:
             q, qd: joint positions [rad] and velocities [rad/s], (n,).
@@ -118,26 +159,25 @@ class CartesianImpedance:
             Minv: (n, n) inverse joint-space inertia; bias: (n,) bias forces b [N m].
             x_des, xd_des, xdd_des: desired tool position, velocity, acceleration (3,)
                 (velocity and acceleration default to zero: set-point regulation).
+
+        Raises:
+            ValueError: an argument of the wrong shape, or a posture of another length than ``q``.
         """
-        Lambda_inv = J @ Minv @ J.T
-        mu, V = self._mu, self._V
-        mujoco.mju_eig3(mu, V.reshape(9), self._quat, Lambda_inv.ravel())  # eigenvectors in columns
-        mu = np.maximum(mu, 1e-9)  # regularised near kinematic singularities
-        Lambda = (V / mu) @ V.T
-        if self.D is None and self._k_iso is not None:
-            D = (2.0 * self.damping_ratio * np.sqrt(self._k_iso)) * ((V / np.sqrt(mu)) @ V.T)
-        else:
-            D = self.damping_for(Lambda)
-        accel = -Jdot_qd if xdd_des is None else xdd_des - Jdot_qd
-        vel_err = -xd if xd_des is None else xd_des - xd
-        F = Lambda @ accel + D @ vel_err + self.K @ (x_des - x)
-        if self.max_force is not None:
-            norm = float(np.linalg.norm(F))
-            if norm > self.max_force:
-                F *= self.max_force / norm
-        tau = J.T @ F + bias
-        if self.posture is not None:
-            tau0 = self.Kq * (self.posture - q) - self.Dq * qd
-            Jbar = Minv @ J.T @ Lambda  # (n, 3)
-            tau += tau0 - J.T @ (Jbar.T @ tau0)
+        f64 = np.ascontiguousarray
+        J = f64(J, dtype=np.float64)
+        if J.ndim != 2 or J.shape[0] != 3:
+            raise ValueError(f"J must have shape (3, n), got {J.shape}")
+        n = J.shape[1]
+        zero = np.zeros(3)
+        args = {"q": q, "qd": qd, "x": x, "xd": xd, "Jdot_qd": Jdot_qd, "Minv": Minv, "bias": bias, "x_des": x_des,
+                "xd_des": zero if xd_des is None else xd_des, "xdd_des": zero if xdd_des is None else xdd_des}
+        shapes = {"q": (n,), "qd": (n,), "Minv": (n, n), "bias": (n,)}
+        for name, value in args.items():
+            args[name] = value = f64(value, dtype=np.float64)
+            if value.shape != shapes.get(name, (3,)):
+                raise ValueError(f"{name} must have shape {shapes.get(name, (3,))}, got {value.shape}")
+        a = args
+        state = TaskState(a["q"], a["qd"], a["x"], a["xd"], J, a["Jdot_qd"], a["Minv"], a["bias"])
+        tau = np.empty(n)
+        impedance_law(self.gains(n), state, Target(a["x_des"], a["xd_des"], a["xdd_des"]), ImpedanceWork.of(n), tau)
         return tau

@@ -1,7 +1,9 @@
 """The reaching environment's per-step work in compiled code (numba): its physics steps
 (:func:`physics_steps`: MuJoCo's own ``mj_step2`` and ``mj_step1``, with the obstacles' motion
-and the distance sensors' minimum between them), its observation (:func:`observe`) and the
-check for obstacles that left the workspace (:func:`departed`).
+and the distance sensors' minimum between them; :func:`filtered_steps` under the safety filter;
+:func:`impedance_steps` under the Cartesian impedance controller, filtered or not), its
+observation (:func:`observe`) and the check for obstacles that left the workspace
+(:func:`departed`).
 
 A policy step is ``frame_skip`` physics steps; in Python each cost two calls into the bindings
 and two numpy operations on top of the physics, about as much again as the physics itself, and
@@ -28,9 +30,11 @@ from numba import njit
 
 from c3bf_gym._compile_cache import KERNEL_OPTIONS, STEP_KERNEL_OPTIONS  # (before any @njit: the cache keys)
 from c3bf_gym._capi import call_void
+from c3bf_gym.controllers._kernels import impedance_substep
 from c3bf_gym.safety._kernels import hook_substep
 
-__all__ = ["Observed", "Physics", "departed", "entry", "filtered_steps", "observe", "physics_steps"]
+__all__ = ["Drive", "Observed", "Physics", "departed", "entry", "filtered_steps", "impedance_steps", "observe",
+           "physics_steps"]  # fmt: skip
 
 
 def _libmujoco() -> ctypes.CDLL:
@@ -131,6 +135,60 @@ def filtered_steps(physics, n, torque, gravity, ctrl, inv_limit, tau_nom, tau, e
         for j in range(torque.shape[0]):
             ctrl[j] = tau[j] - gravity[j]
             effort_rows[s, j] = ctrl[j] * inv_limit[j]
+        lowest = _advance(physics, lowest)
+    return n, lowest, status
+
+
+class Drive(NamedTuple):
+    """The torque side of :func:`impedance_steps`: views of the environment's arrays, made once.
+
+    Attributes:
+        gravity: (n,) ``data.qfrc_gravcomp``, the gravity compensation MuJoCo adds [N m].
+        ctrl: (n,) ``data.ctrl``, written: the applied torque minus ``gravity`` [N m].
+        inv_limit: (n,) 1 / the torque limits [1/(N m)].
+        tau_nom, tau: (n,) scratch: the nominal and the filtered total torque [N m].
+        effort_rows: (frame_skip, n), written: row ``s`` is physics step ``s``'s ``ctrl * inv_limit``.
+    """
+
+    gravity: np.ndarray
+    ctrl: np.ndarray
+    inv_limit: np.ndarray
+    tau_nom: np.ndarray
+    tau: np.ndarray
+    effort_rows: np.ndarray
+
+
+@njit(**STEP_KERNEL_OPTIONS)
+def impedance_steps(physics, n, drive, nominal, stage, hook, halt):
+    """``n`` physics steps as :func:`physics_steps`, each under the Cartesian impedance controller
+    and, unless ``hook`` is None, the safety filter behind it: the nominal total torque is
+    :func:`c3bf_gym.controllers._kernels.impedance_substep` with the arguments ``nominal`` (its
+    ``stage`` at the first call, 2 on every later, new, state: it refreshes the arm's ``Minv``
+    itself), ``hook`` (the filter's arguments, as :func:`filtered_steps`) filters it, with stage at
+    most 1 (``Minv`` is current), and ``drive.ctrl`` becomes the (filtered) torque minus gravity
+    (:class:`Drive`).
+
+    Stops before integrating a filter call whose status is invalid input (< 0) or, with ``halt``,
+    infeasible (> 0). Returns ``(physics steps done, smallest distance reading, last status)``
+    (status 0 without a filter).
+    """
+    lowest = physics.cutoff
+    status = 0
+    tau_nom, tau, gravity, ctrl = drive.tau_nom, drive.tau, drive.gravity, drive.ctrl
+    for s in range(n):
+        first = stage if s == 0 else 2
+        impedance_substep(first, *nominal, tau_nom)
+        if hook is None:
+            for j in range(tau_nom.shape[0]):
+                ctrl[j] = tau_nom[j] - gravity[j]
+        else:
+            status = hook_substep(min(first, 1), tau_nom, tau, *hook)
+            if status < 0 or (halt and status > 0):
+                return s, lowest, status
+            for j in range(tau.shape[0]):
+                ctrl[j] = tau[j] - gravity[j]
+        for j in range(ctrl.shape[0]):
+            drive.effort_rows[s, j] = ctrl[j] * drive.inv_limit[j]
         lowest = _advance(physics, lowest)
     return n, lowest, status
 

@@ -14,7 +14,17 @@ import numpy as np
 from gymnasium import error, spaces, utils
 from gymnasium.envs.mujoco.mujoco_env import MujocoEnv
 
-from c3bf_gym.envs._kernels import Observed, Physics, departed, entry, filtered_steps, observe, physics_steps
+from c3bf_gym.envs._kernels import (
+    Drive,
+    Observed,
+    Physics,
+    departed,
+    entry,
+    filtered_steps,
+    impedance_steps,
+    observe,
+    physics_steps,
+)
 from c3bf_gym.safety.dynamics import ArmModel
 from c3bf_gym.safety.obstacles import Obstacles
 from c3bf_gym.safety.robot import RobotDescription, UnprotectedGeometryWarning
@@ -347,9 +357,12 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
         self._arm = None
         self._hook_chain: tuple[TorqueHook, ...] = ()
         self._compiled_filter = None
+        self._compiled_nominal = None
         self._filtered_steps: tuple | None = None  # (the filter's arguments, filtered_steps' entry point)
+        self._impedance_steps: tuple | None = None  # (nominal's and filter's arguments, impedance_steps' entry point)
         n = self.model.nv
         self._filter_scratch = (np.zeros(n), np.zeros(n), np.zeros((self.frame_skip, n)))  # tau_nom, tau, effort rows
+        self._drive = Drive(self._gravcomp, self._ctrl, self._inv_limit, *self._filter_scratch)
         self._sampler = ObstacleSampler(self.envelope)
         self._workspace = tuple(np.asarray(c, dtype=float) for c in self.envelope.workspace)
         self._departed = entry(departed, self.obstacle_pos, self.obstacle_active, *self._workspace)
@@ -531,7 +544,12 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
         A ``filter`` hook that offers ``compiled_substeps`` and ``compiled_substeps_done`` (the
         safety filter's :class:`~c3bf_gym.filter.SafetyHook` does; see
         :meth:`~c3bf_gym.safety.SafetyController.compiled_substeps`) is called from the compiled
-        policy step while it is the only hook, with the same results as through ``__call__``."""
+        policy step while it is the only hook, with the same results as through ``__call__``. A
+        ``nominal`` hook that offers ``compiled_impedance`` (the Cartesian impedance controller's
+        :class:`~c3bf_gym.wrappers.ImpedanceHook` does) runs in the compiled policy step too, alone
+        or in front of such a filter (:func:`~c3bf_gym.envs._kernels.impedance_steps`), with the
+        same torques as through ``__call__`` to rounding. Any other hook (a Python function) runs
+        in Python at every physics step, and so do the hooks beside it."""
         if stage not in HOOK_STAGES:
             raise ValueError(f"unknown hook stage {stage!r}; valid choices: {', '.join(map(repr, HOOK_STAGES))}")
         if not callable(hook):
@@ -550,6 +568,10 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
         # a filter alone that can run inside the compiled policy step (SafetyController.compiled_substeps)
         only = self._hook_chain[0] if len(self._hook_chain) == 1 and "filter" in self._hooks else None
         self._compiled_filter = only if hasattr(only, "compiled_substeps") else None
+        # a nominal impedance controller, alone or in front of such a filter (ImpedanceHook.compiled_impedance)
+        nominal, behind = self._hooks.get("nominal"), self._hooks.get("filter")
+        compiled = hasattr(nominal, "compiled_impedance") and (behind is None or hasattr(behind, "compiled_substeps"))
+        self._compiled_nominal = nominal if compiled else None
 
     def has_torque_hook(self, stage: str) -> bool:
         return stage in self._hooks
@@ -665,8 +687,12 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
         one compiled call (:func:`~c3bf_gym.envs._kernels.physics_steps`); with the safety filter
         alone, so do the filter's calls between them
         (:func:`~c3bf_gym.envs._kernels.filtered_steps`, when the filter offers
-        ``compiled_substeps``); otherwise the hooks run in Python between compiled single steps.
-        The three give the same steps, bit for bit.
+        ``compiled_substeps``); with the impedance controller, alone or in front of that filter,
+        so do the controller's and the filter's calls
+        (:func:`~c3bf_gym.envs._kernels.impedance_steps`, when the controller offers
+        ``compiled_impedance``); otherwise the hooks run in Python between compiled single steps.
+        The compiled and the Python loops call the same kernels and give the same steps: bit for
+        bit without the impedance controller; with it the tests hold them to rounding.
         """
         np.multiply(self.obstacle_vel, self.model.opt.timestep, out=self._step_displacement)
         hooks, physics, steps = self._hook_chain, self._physics, self._physics_steps
@@ -679,6 +705,14 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
         plan = None if self._compiled_filter is None else self._compiled_filter.compiled_substeps(self.state_version)
         if plan is not None:
             return self._simulate_filtered(torque, *plan)
+        nominal = None if self._compiled_nominal is None else self._compiled_nominal.compiled_impedance()
+        if nominal is not None:
+            behind = self._hooks.get("filter")
+            if behind is None:
+                return self._simulate_impedance(nominal, 2, None, False)
+            plan = behind.compiled_substeps(self.state_version)  # (after the nominal's check: it claims the arm)
+            if plan is not None:
+                return self._simulate_impedance(nominal, *plan)
         gravity, control, inv_limit = self._gravcomp, self._ctrl, self._inv_limit
         min_distance = DISTANCE_CUTOFF
         effort = 0.0
@@ -708,12 +742,31 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
         last = self.state_version + min(done, self.frame_skip - 1)  # the state of the last call
         self.state_version += done
         self._compiled_filter.compiled_substeps_done(status, last)  # raises as the hook would have
+        return float(min_distance), self._effort()
+
+    def _simulate_impedance(self, nominal: tuple, stage: int, hook: tuple | None, halt: bool) -> tuple[float, float]:
+        """:meth:`_simulate` with the impedance controller's calls (its arguments ``nominal``,
+        ``ImpedanceHook.compiled_impedance``), and the filter's behind them unless ``hook`` is None,
+        compiled in (``stage``, ``hook``, ``halt``: ``SafetyController.compiled_substeps``)."""
+        args = (self._physics, self.frame_skip, self._drive, nominal, stage, hook, halt)
+        run = self._impedance_steps
+        if run is None or run[0] is not nominal or run[1] is not hook:  # compiled for these argument types, once
+            run = self._impedance_steps = (nominal, hook, entry(impedance_steps, *args))
+        done, min_distance, status = run[2](*args)
+        last = self.state_version + min(done, self.frame_skip - 1)  # the state of the last call
+        self.state_version += done
+        if hook is not None:
+            self._hooks["filter"].compiled_substeps_done(status, last)  # raises as the hook would have
+        return float(min_distance), self._effort()
+
+    def _effort(self) -> float:
+        """The mean effort over the last policy step's physics steps, from the compiled steps' rows."""
         rows = self._filter_scratch[2]
         effort, count = 0.0, rows.shape[1] * self.frame_skip
         # np.vecdot takes each row's u @ u with numpy's own dot (the same bits), without a view per row
         for square in np.vecdot(rows, rows).tolist():
             effort += square / count
-        return float(min_distance), effort
+        return effort
 
     def obstacle_distances(self) -> np.ndarray:
         """Per obstacle slot, the smallest signed surface distance (m) to any arm geom, now
