@@ -755,8 +755,9 @@ def beyond_allowance(residual, norm, row_h, gains, n_obstacle, stride):
     ``ḣ ≥ −γ h`` (:data:`G_BARRIER`). Where ``h > 0``, giving way by ``δ`` (in ``ḣ``'s units,
     ``−residual·norm``) is that condition with the gain ``γ + δ/h``, which keeps ``h ≥ 0``
     invariant as any positive gain does; the filter accepts gains up to
-    ``γ_max`` = :data:`~c3bf_gym.safety.controller.MAX_GAIN_STEP` / Δt (:data:`G_LIMIT`),
-    under which one physics step cannot take ``h`` below about 95 % of its value. So a barrier
+    ``γ_max`` = :data:`~c3bf_gym.safety.controller.RAISED_GAIN_STEP` / Δt (:data:`G_LIMIT`),
+    under which one physics step can at most halve ``h`` (the discrete-time barrier condition
+    ``h(t + Δt) ≥ (1 − γ' Δt) h(t)``, ``γ' Δt ≤ 1/2``). So a barrier
     row's allowance is ``(γ_max − γ) h`` for ``h > 0`` and none for ``h ≤ 0``; every other row
     (the guard's, the floor's, the joint limits', an unmovable one) has none. Both are taken
     beyond :data:`~c3bf_gym.safety._daqp.ACTIVE_TOL` (row-normalised)."""

@@ -61,13 +61,19 @@ from c3bf_gym.safety.obstacles import Obstacles
 from c3bf_gym.safety.priority_qp import STATUS, PriorityQP, QPResult, raise_bad_input
 from c3bf_gym.safety.robot import RobotDescription, UnsupportedModelError, floor_height
 
-__all__ = ["MAX_GAIN_STEP", "ROW_KINDS", "SafetyController", "SafetyInfeasibleError", "StepSafety"]
+__all__ = ["MAX_GAIN_STEP", "RAISED_GAIN_STEP", "ROW_KINDS", "SafetyController", "SafetyInfeasibleError", "StepSafety"]
 
 #: The largest product of a row's gain [1/s] and the physics timestep [s] the filter accepts without
 #: an :class:`~c3bf_gym.safety.EnvelopeWarning`: a barrier condition ``ḣ ≥ −γ h`` held at the start of
 #: each step lets ``h`` fall by about ``γ Δt h`` within it, so ``γ Δt`` must stay small for the
 #: continuous-time argument to carry over (0.04 with the default gains at MuJoCo's 2 ms).
 MAX_GAIN_STEP = 0.05
+#: The largest product of a barrier row's raised gain γ' [1/s] and the physics timestep [s]: a row that
+#: gives way at ``h > 0`` still holds ``ḣ ≥ −γ' h`` for some ``γ' ≤ RAISED_GAIN_STEP / Δt`` (250/s at
+#: 2 ms) is counted as held with a raised gain, not as infeasible. It is the discrete-time barrier
+#: condition ``h(t + Δt) ≥ (1 − λ) h(t)`` with ``λ = γ' Δt ≤ 1/2``: one physics step may at most
+#: halve ``h``, and never takes it below zero.
+RAISED_GAIN_STEP = 0.5
 
 #: The kinds of safety rows, in :attr:`StepSafety.violation`: the barrier's (priority 2: they give
 #: way first), the guard's, the floor's and the joint limits' (priority 1), and rows no torque can
@@ -110,7 +116,7 @@ class StepSafety:
         infeasible_steps: number of physics steps where rows gave way beyond their allowance:
             a guard, floor, joint-limit or unmovable row gave way, or a barrier row at ``h <= 0``,
             or one at ``h > 0`` by more than ``(γ_max − γ) h`` (the condition ``ḣ ≥ −γ' h`` failed
-            for every gain ``γ'`` up to ``γ_max`` = :data:`MAX_GAIN_STEP` / Δt;
+            for every gain ``γ'`` up to ``γ_max`` = :data:`RAISED_GAIN_STEP` / Δt;
             :func:`~c3bf_gym.safety._kernels.beyond_allowance`). On these steps the guarantee does
             not hold.
         gain_raised_steps: number of physics steps where only barrier rows gave way, each within
@@ -319,7 +325,7 @@ class SafetyController:
         # the barrier's gain and the largest it may rise to (_kernels.beyond_allowance); a barrier
         # without a gain gets no allowance
         gain = getattr(self.barrier, "gamma", None)
-        limit_gain = MAX_GAIN_STEP / model.opt.timestep
+        limit_gain = RAISED_GAIN_STEP / model.opt.timestep
         gains = np.array([gain if isinstance(gain, float) else limit_gain, limit_gain])
         self._tally = _kernels.Tally(np.zeros(_kernels.TALLY_SIZE), np.zeros(n), np.zeros(n), np.zeros(4),
                                      np.zeros(max_rows), gains)
