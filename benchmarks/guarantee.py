@@ -15,6 +15,7 @@ clearance seen (m; negative = penetration), infeasible steps (policy steps where
 beyond their allowance: ``info["safety_infeasible"]``), the same per 1,000 physics steps
 (``infeas/1k``) and the physics steps per 1,000 where only the barrier's rows gave way, within
 their allowance (``raised/1k``: held with a raised gain, ``StepSafety.gain_raised_steps``), the
+policy steps where a row of the last priority (guard, floor, joint limits) gave way (``hard``), the
 largest joint speed over the filter's bound seen at the end of a policy step (``max qd``), the
 intervention rate (share of steps the filter changed the torque), and the largest per-step mean
 filter time. Per-episode rows go to ``episodes.csv`` and the table to ``summary.json`` in
@@ -47,6 +48,8 @@ import numpy as np
 from c3bf_gym.safety import GUARD_GAMMA, FilterConfig
 
 SCENARIOS = ("static", "head_on", "crossing", "multi")
+#: The rows that give way last (priority 1): ``hard`` counts policy steps where any of them did.
+HARD_ROWS = ("guard", "floor", "joint_limits", "unmovable")
 ENVS = ("C3BFReach-v0", "C3BFReachPanda-v0")
 POLICIES = ("random", "adversarial")
 #: (filter name, points) in table order; DEFAULT_FILTERS run unless --filters says otherwise.
@@ -68,6 +71,7 @@ class Episode:
     min_clearance: float = float("inf")
     infeasible_steps: int = 0
     infeasible_physics_steps: int = 0
+    hard_steps: int = 0
     gain_raised_physics_steps: int = 0
     physics_steps: int = 0
     max_speed_ratio: float = 0.0
@@ -145,6 +149,7 @@ def run_episode(task: tuple[str, str, str, str, int, int, float | None, float | 
         if filtered:
             out.infeasible_steps += int(info["safety_infeasible"])
             out.infeasible_physics_steps += info["safety"]["infeasible_steps"]
+            out.hard_steps += any(info["safety"][f"violation_{kind}"] > 0.0 for kind in HARD_ROWS)
             out.gain_raised_physics_steps += info["safety"]["gain_raised_steps"]
             bound = env.hook.joint_limits.qd_max if env.hook.joint_limits is not None else None
             if bound is not None:
@@ -188,6 +193,7 @@ def summarise(episodes: list[Episode]) -> list[dict]:
             / max(sum(e.physics_steps for e in group), 1),
             "gain_raised_per_1000_physics_steps": 1e3 * sum(e.gain_raised_physics_steps for e in group)
             / max(sum(e.physics_steps for e in group), 1),
+            "hard_steps": sum(e.hard_steps for e in group),
             "max_speed_ratio": max(e.max_speed_ratio for e in group),
             "intervention_rate": sum(e.interventions for e in group) / max(steps, 1),
             "max_filter_ms": max(e.max_filter_ms for e in group),
@@ -227,7 +233,7 @@ def run_tasks(tasks: list[tuple], workers: int, use_ray: bool = False, address: 
 
 def print_table(rows: list[dict]) -> None:
     header = (f"{'scenario':<9} {'policy':<11} {'filter':<21} | {'episodes':>8} {'coll.ep':>7} {'coll.steps':>10} "
-              f"{'min clear.':>10} {'infeas.steps':>12} {'infeas/1k':>9} {'raised/1k':>9} {'max qd':>6} "
+              f"{'min clear.':>10} {'infeas.steps':>12} {'infeas/1k':>9} {'raised/1k':>9} {'hard':>5} {'max qd':>6} "
               f"{'interv.':>7} {'max ms':>8}")  # fmt: skip
     print(header)
     print("-" * len(header))
@@ -236,6 +242,7 @@ def print_table(rows: list[dict]) -> None:
         print(f"{r['scenario']:<9} {r['policy']:<11} {name:<21} | {r['episodes']:>8} {r['collision_episodes']:>7} "
               f"{r['collision_steps']:>10} {r['min_clearance']:>10.4f} {r['infeasible_steps']:>12} "
               f"{r['infeasible_per_1000_physics_steps']:>9.2f} {r['gain_raised_per_1000_physics_steps']:>9.2f} "
+              f"{r['hard_steps']:>5} "
               f"{r['max_speed_ratio']:>6.2f} "
               f"{100 * r['intervention_rate']:>6.1f}% {r['max_filter_ms']:>8.1f}")  # fmt: skip
 

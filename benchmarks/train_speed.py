@@ -11,10 +11,9 @@ learner's updates together, as a training run spends them. Printed per configura
 over rounds of environment steps per second, and for each action mode the ratio unfiltered ÷
 filtered (how many times slower the filter makes training).
 
-The action modes differ in where the filter runs: with ``torque`` actions the filter is the
-environment's only torque hook, so its calls run inside the environment's compiled policy step;
-with ``residual`` (the recipe) or ``impedance`` actions the impedance controller is a Python hook
-at every physics step, and the filter's calls come from Python too.
+The action modes differ in what runs at every physics step: with ``torque`` actions the filter
+alone; with ``residual`` (the recipe) or ``impedance`` actions the compiled impedance controller in
+front of it. Both run inside the environment's compiled policy step.
 
 Usage::
 
