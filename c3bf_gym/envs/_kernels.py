@@ -31,7 +31,7 @@ from numba import njit
 from c3bf_gym._compile_cache import KERNEL_OPTIONS, STEP_KERNEL_OPTIONS  # (before any @njit: the cache keys)
 from c3bf_gym._capi import call_void
 from c3bf_gym.controllers._kernels import impedance_substep
-from c3bf_gym.safety._kernels import hook_substep
+from c3bf_gym.safety._step import hook_substep
 
 __all__ = ["Drive", "Observed", "Physics", "departed", "entry", "filtered_steps", "impedance_steps", "observe",
            "physics_steps"]  # fmt: skip
@@ -116,7 +116,7 @@ def filtered_steps(physics, n, torque, gravity, ctrl, inv_limit, tau_nom, tau, e
     """``n`` physics steps as :func:`physics_steps`, each under the safety filter: the nominal
     total torque ``torque + gravity`` (the gravity compensation ``data.qfrc_gravcomp``, current
     for the state about to be integrated) goes through
-    :func:`c3bf_gym.safety._kernels.hook_substep` with the filter's arguments ``hook`` (the first
+    :func:`c3bf_gym.safety._step.hook_substep` with the filter's arguments ``hook`` (the first
     call at ``stage``, every later one on a new state at 2), ``ctrl`` becomes the filtered torque
     minus gravity, and row ``s`` of ``effort_rows`` that control over the limits (``ctrl *
     inv_limit``). ``tau_nom`` and ``tau`` (n,) are scratch.

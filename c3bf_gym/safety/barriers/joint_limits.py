@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike
 
-from .. import _kernels
+from .. import _rows
 from .base import FloatArray, Rows, contiguous, require_positive, row_buffers
 
 __all__ = ["JointLimits"]
@@ -184,6 +184,6 @@ class JointLimits:
         qpos_ids = first if qpos_ids is None else qpos_ids
         A, b = row_buffers(out, m, Minv.shape[1])
         # compiled: A = [−Minv; Minv; −Minv; Minv], b from the expansions in __init__'s comment
-        _kernels.joint_limit_rows(q, qd, contiguous(Minv), c_q, dofs, qpos_ids, self._q_lo, self._q_hi, self._qd_max,
+        _rows.joint_limit_rows(q, qd, contiguous(Minv), c_q, dofs, qpos_ids, self._q_lo, self._q_hi, self._qd_max,
                                   self._g1, self._g2, self._gv, A, b)
         return Rows(A, b)
