@@ -20,7 +20,7 @@ import json, numpy as np
 from c3bf_gym.safety import _step
 out = np.empty(3)
 _step.hook_post(np.zeros(0), np.zeros(0), np.zeros(0), np.array([2.0, -2.0, 0.5]), np.full(3, 0.5), np.zeros(3),
-                   np.ones(3), out)
+                np.ones(3), out)
 stats = _step.hook_post.stats
 print(json.dumps({"hits": sum(stats.cache_hits.values()), "misses": sum(stats.cache_misses.values()),
                   "file": _step.__file__, "out": out.tolist()}))

@@ -147,7 +147,7 @@ def test_step_inverse_inverts_a_random_spd_matrix_in_mujoco_layout(make_env):
     passive, bias = rng.normal(size=nv), rng.normal(size=nv)
     Minv, free, work = np.zeros((nv, nv)), np.zeros(nv), np.zeros((nv, nv))
     _dynamics.step_inverse(csr, m.M_rowadr.astype(np.int64), m.M_rownnz.astype(np.int64), m.M_colind.astype(np.int64),
-                   damping, passive, bias, work, Minv, free)
+                           damping, passive, bias, work, Minv, free)
     want = np.linalg.inv(full + np.diag(damping))
     close(Minv, want, 1e-10)
     close(free, want @ (passive - bias), 1e-10)
@@ -325,7 +325,7 @@ def test_fused_obstacle_rows_are_their_pieces_bit_for_bit(make_env, guard):
     p, v, c, slide = (np.zeros((pairs, 3)) for _ in range(4))
     G, t = np.zeros((pairs, 3, nv)), np.zeros((len(sensed), s_count))
     _dynamics.closest_relative(arm.ends[:s_count], arm.ends_ab, arm.a_dot_ab, arm.length2, u.obstacle_pos[sensed],
-                       u.obstacle_vel[sensed], u.obstacle_acc[sensed], p, v, c, G, slide, t)
+                               u.obstacle_vel[sensed], u.obstacle_acc[sensed], p, v, c, G, slide, t)
     r = ((u.obstacle_radius[sensed][:, None] + arm.capsule_radius[None]) + params.margin).reshape(-1)
     barriers = [("c3bf", params.gamma)] + ([] if guard is None else [("guard", params.guard_gamma2)])
     for i, (kind, gain) in enumerate(barriers):

@@ -276,9 +276,9 @@ class RowParams(NamedTuple):
 def hook_rows_whole_arm(stage, arm, obstacles, params, A, b, row_h):
     """All rows of the whole-arm filter (:meth:`~c3bf_gym.safety.SafetyController.rows`) in one call.
 
-    1. ``stage`` 2: ``Minv``, ``qacc_free`` (:func:`~c3bf_gym.safety._dynamics.step_inverse`), then (``stage`` ≥ 1) the
-       capsule ends (:func:`~c3bf_gym.safety._dynamics.capsule_ends`), into ``arm``
-       (:class:`~c3bf_gym.safety._dynamics.ArmArrays`).
+    1. ``stage`` 2: ``Minv``, ``qacc_free`` (:func:`~c3bf_gym.safety._dynamics.step_inverse`),
+       then (``stage`` ≥ 1) the capsule ends (:func:`~c3bf_gym.safety._dynamics.capsule_ends`),
+       into ``arm`` (:class:`~c3bf_gym.safety._dynamics.ArmArrays`).
     2. For every sensed obstacle (:class:`ObstacleArrays`: active and ``distances[k].min() <=
        sensing_radius``, or with ``distances`` of shape (K, 0) its surface distance to the
        capsules), one row per capsule: closest point (:func:`~c3bf_gym.safety._dynamics.closest_terms`), barrier

@@ -230,9 +230,10 @@ def record(tally, status, m, min_h, inside, n_sensed, iterations, n_active, slac
 def hook_substep(stage, tau_nom, tau, arm, obstacles, params, A, b, scale, limit, qp, tally, intervention_tol):
     """One whole-arm filter step in one call (an environment's compiled policy step, and
     :meth:`~c3bf_gym.safety.SafetyController.__call__` through :func:`hook_substep_at`): the rows
-    (:func:`~c3bf_gym.safety._rows.hook_rows_whole_arm`, whose arguments ``stage`` … ``b`` are), the QP (:func:`c3bf_gym.safety._qp.solve_rows` on ``qp``,
-    priorities by :func:`low_priority_span`) in the scaled torque ``τ / scale``, :func:`hook_post`,
-    which writes the torque into ``tau``, and :func:`record` of the outcome into ``tally``.
+    (:func:`~c3bf_gym.safety._rows.hook_rows_whole_arm`, whose arguments ``stage`` … ``b`` are),
+    the QP (:func:`c3bf_gym.safety._qp.solve_rows` on ``qp``, priorities by
+    :func:`low_priority_span`) in the scaled torque ``τ / scale``, :func:`hook_post`, which writes
+    the torque into ``tau``, and :func:`record` of the outcome into ``tally``.
 
     Returns the status, one of :func:`~c3bf_gym.safety._qp.solve_rows`' codes (invalid input, < 0,
     is not recorded), with a relaxed call that held every row with the barrier's gain raised

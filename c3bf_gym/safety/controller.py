@@ -320,7 +320,7 @@ class SafetyController:
             *(np.ascontiguousarray(x, dtype=np.float64) for x in jl), self._dofs, self._qpos_ids, self._unmodelled,
         )
         self._obstacle_arrays = _rows.ObstacleArrays(obstacles.active, self._distances, obstacles.position,
-                                                        obstacles.velocity, obstacles.acceleration, obstacles.radius)
+                                                     obstacles.velocity, obstacles.acceleration, obstacles.radius)
         # the report's running values, in compiled code (_step.record); solve_time beside them
         # the barrier's gain and the largest it may rise to (_step.beyond_allowance); a barrier
         # without a gain gets no allowance
@@ -328,7 +328,7 @@ class SafetyController:
         limit_gain = RAISED_GAIN_STEP / model.opt.timestep
         gains = np.array([gain if isinstance(gain, float) else limit_gain, limit_gain])
         self._tally = _step.Tally(np.zeros(_step.TALLY_SIZE), np.zeros(n), np.zeros(n), np.zeros(4),
-                                     np.zeros(max_rows), gains)
+                                  np.zeros(max_rows), gains)
         self._solve_time = 0.0
         self.begin_step()
         self._bound: tuple = ()  # hook_substep's arguments after the first three (_bind)
@@ -652,7 +652,7 @@ class SafetyController:
             if status >= 0:
                 # τ = u s, the smallest row residual A τ − b and ‖τ − clip(τ_nom)‖ (the filter's change)
                 residual, correction = _step.hook_post(b, qp.norm[:m], qp.residual[:m], qp.u, self._scale, tau_nom,
-                                                          self._limit, tau)
+                                                       self._limit, tau)
                 status = self._record(status, m, min_h, inside, n_sensed, iterations, active, slack, residual,
                                       correction, tau_nom, tau)
         elapsed = _perf_counter() - start
@@ -670,9 +670,9 @@ class SafetyController:
         does the same in compiled code). Returns the status as the fused kernel does: a call
         that held every row with the barrier's gain raised as solved."""
         outcome = _step.record(self._tally, status, m, min_h, inside, n_sensed, iterations, active, slack,
-                                  residual, correction, tau_nom, tau, self.qp.buffers,
-                                  m - self._n_floor_rows - self._n_joint_rows, self._stride, self._n_floor_rows,
-                                  self.intervention_tol)  # fmt: skip
+                               residual, correction, tau_nom, tau, self.qp.buffers,
+                               m - self._n_floor_rows - self._n_joint_rows, self._stride, self._n_floor_rows,
+                               self.intervention_tol)  # fmt: skip
         return _qp.SOLVED if outcome == _step.GAIN_RAISED else outcome
 
     def _settle(self, status: int, elapsed: float) -> None:

@@ -216,7 +216,7 @@ class ArmModel:
         self._data = data
         v = self.views(data)
         _dynamics.step_inverse(v.M, self._M_rowadr, self._M_rownnz, self._M_colind, self.implicit_damping,
-                              v.qfrc_passive, v.qfrc_bias, self._factor, self.Minv, self.qacc_free)
+                               v.qfrc_passive, v.qfrc_bias, self._factor, self.Minv, self.qacc_free)
 
     def views(self, data: mujoco.MjData) -> _DataViews:
         """The arrays of ``data`` the kernels read, fetched once per ``MjData`` (MuJoCo never
@@ -323,8 +323,8 @@ class ArmModel:
         p, v, c, slide_p = np.empty((4, k * s, 3))
         G = np.empty((k * s, 3, nv))
         _dynamics.closest_relative(self._ends_a, self._ends_ab, self._a_dot_ab, self._length2,
-                                  as_f64(centres, dtype=np.float64), as_f64(velocities, dtype=np.float64),
-                                  as_f64(accelerations, dtype=np.float64), p, v, c, G, slide_p, np.empty((k, s)))
+                                   as_f64(centres, dtype=np.float64), as_f64(velocities, dtype=np.float64),
+                                   as_f64(accelerations, dtype=np.float64), p, v, c, G, slide_p, np.empty((k, s)))
         return PointDynamics(p, v, None, G, c), slide_p
 
     def site_dynamics(self, data: mujoco.MjData) -> PointDynamics:

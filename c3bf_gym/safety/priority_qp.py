@@ -72,9 +72,9 @@ class PriorityQP:
         self._hier = _daqp.DaqpWorkspace(n, rows, self.tau_min, self.tau_max, break_points=points)
         self.max_rows = rows
         self.buffers = _qp.QPBuffers(self._plain.buffers, self._hier.buffers,
-                                       np.array([level1_rows, level2_rows], np.int64), self.tau_min, self.tau_max,
-                                       np.zeros(n), np.zeros(max(rows, 1)), np.zeros(max(rows, 1)),
-                                       np.ones(2, np.int64), np.zeros(1, np.int64))
+                                     np.array([level1_rows, level2_rows], np.int64), self.tau_min, self.tau_max,
+                                     np.zeros(n), np.zeros(max(rows, 1)), np.zeros(max(rows, 1)),
+                                     np.ones(2, np.int64), np.zeros(1, np.int64))
 
     def reset(self) -> None:
         """Forget the warm start: the next solve starts from an empty working set, so a sequence
@@ -114,7 +114,7 @@ class PriorityQP:
         if n_obstacle_rows is None:
             n_obstacle_rows = m
         code, iterations, active, slack = _qp.solve_rows(tau_nom, A, b, scale, self._cols, int(n_obstacle_rows),
-                                                           int(stride), self.buffers)
+                                                         int(stride), self.buffers)
         raise_bad_input(code)
         return QPResult(self.buffers.u, slack, code == _qp.SOLVED, STATUS[code], iterations, active,
                         time.perf_counter() - start)

@@ -232,5 +232,5 @@ class Barrier(abc.ABC):
         A, b = row_buffers(out, n_pts, n)
         # compiled: A_k = grad_v_k G_k, b_k = −(⟨grad_v_k, c_k⟩ + drift_k + γ h_k)
         _rows.rows_from_terms(contiguous(grad_v), contiguous(drift), contiguous(h), float(self.gamma),
-                                 contiguous(G), contiguous(c), A, b)
+                              contiguous(G), contiguous(c), A, b)
         return Rows(A, b)

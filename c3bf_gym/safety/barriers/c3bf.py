@@ -94,7 +94,7 @@ class C3BF(Barrier):
         h, drift, inside = np.empty(n_pts), np.empty(n_pts), np.empty(n_pts, dtype=bool)
         grad_v, grad_p = np.empty((n_pts, 3)), np.empty((n_pts, 3))
         _rows.c3bf_terms(contiguous(p), contiguous(v), radii(r, n_pts), float(self.gamma), float(self.eps), self.delta,
-                            h, grad_v, drift, inside, grad_p)
+                         h, grad_v, drift, inside, grad_p)
         return BarrierTerms(h, grad_v, drift, inside, grad_p)
 
     def fused_spec(self) -> tuple[int, np.ndarray] | None:

@@ -185,5 +185,5 @@ class JointLimits:
         A, b = row_buffers(out, m, Minv.shape[1])
         # compiled: A = [−Minv; Minv; −Minv; Minv], b from the expansions in __init__'s comment
         _rows.joint_limit_rows(q, qd, contiguous(Minv), c_q, dofs, qpos_ids, self._q_lo, self._q_hi, self._qd_max,
-                                  self._g1, self._g2, self._gv, A, b)
+                               self._g1, self._g2, self._gv, A, b)
         return Rows(A, b)
