@@ -170,7 +170,7 @@ def _timed_substep(stage, tau_nom, tau, buffers):
     """One compiled filter call, as an environment's compiled policy step makes it between two
     physics steps; returns ``(status, time-stamp counter ticks)``."""
     start = _cycles()
-    status = _step.hook_substep(stage, tau_nom, tau, *buffers)
+    status = _step.hook_substep(stage, tau_nom, tau, buffers)
     return status, _cycles() - start
 
 

@@ -116,7 +116,8 @@ def filtered_steps(physics, n, torque, gravity, ctrl, inv_limit, tau_nom, tau, e
     """``n`` physics steps as :func:`physics_steps`, each under the safety filter: the nominal
     total torque ``torque + gravity`` (the gravity compensation ``data.qfrc_gravcomp``, current
     for the state about to be integrated) goes through
-    :func:`c3bf_gym.safety._step.hook_substep` with the filter's arguments ``hook`` (the first
+    :func:`c3bf_gym.safety._step.hook_substep` with the filter's buffers ``hook``
+    (:class:`~c3bf_gym.safety._step.StepBuffers`; the first
     call at ``stage``, every later one on a new state at 2), ``ctrl`` becomes the filtered torque
     minus gravity, and row ``s`` of ``effort_rows`` that control over the limits (``ctrl *
     inv_limit``). ``tau_nom`` and ``tau`` (n,) are scratch.
@@ -129,7 +130,7 @@ def filtered_steps(physics, n, torque, gravity, ctrl, inv_limit, tau_nom, tau, e
     for s in range(n):
         for j in range(torque.shape[0]):
             tau_nom[j] = torque[j] + gravity[j]
-        status = hook_substep(stage if s == 0 else 2, tau_nom, tau, *hook)
+        status = hook_substep(stage if s == 0 else 2, tau_nom, tau, hook)
         if status < 0 or (halt and status > 0):
             return s, lowest, status
         for j in range(torque.shape[0]):
@@ -164,7 +165,7 @@ def impedance_steps(physics, n, drive, nominal, stage, hook, halt):
     and, unless ``hook`` is None, the safety filter behind it: the nominal total torque is
     :func:`c3bf_gym.controllers._kernels.impedance_substep` with the arguments ``nominal`` (its
     ``stage`` at the first call, 2 on every later, new, state: it refreshes the arm's ``Minv``
-    itself), ``hook`` (the filter's arguments, as :func:`filtered_steps`) filters it, with stage at
+    itself), ``hook`` (the filter's buffers, as :func:`filtered_steps`) filters it, with stage at
     most 1 (``Minv`` is current), and ``drive.ctrl`` becomes the (filtered) torque minus gravity
     (:class:`Drive`).
 
@@ -182,7 +183,7 @@ def impedance_steps(physics, n, drive, nominal, stage, hook, halt):
             for j in range(tau_nom.shape[0]):
                 ctrl[j] = tau_nom[j] - gravity[j]
         else:
-            status = hook_substep(min(first, 1), tau_nom, tau, *hook)
+            status = hook_substep(min(first, 1), tau_nom, tau, hook)
             if status < 0 or (halt and status > 0):
                 return s, lowest, status
             for j in range(tau.shape[0]):

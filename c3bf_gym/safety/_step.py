@@ -176,19 +176,58 @@ def beyond_allowance(residual, norm, row_h, gains, n_obstacle, stride):
     return False
 
 
+class CallSummary(NamedTuple):
+    """One solved call of the filter, as :func:`record` folds it into the tally.
+
+    Attributes:
+        status: :func:`~c3bf_gym.safety._qp.solve_rows`' code (≥ 0: invalid input is not recorded).
+        m: the call's rows.
+        min_h, inside, n_sensed: the smallest ``h`` of the barrier's rows, whether a point was
+            inside its margin, and the obstacles sensed
+            (:func:`~c3bf_gym.safety._rows.hook_rows_whole_arm`).
+        iterations, n_active, slack: DAQP's iterations, the active rows and the slack
+            (:func:`~c3bf_gym.safety._qp.solve_rows`).
+        residual, correction: the smallest row residual and the filter's change of the torque
+            (:func:`hook_post`).
+    """
+
+    status: int
+    m: int
+    min_h: float
+    inside: bool
+    n_sensed: int
+    iterations: int
+    n_active: int
+    slack: float
+    residual: float
+    correction: float
+
+
+class RowLayout(NamedTuple):
+    """Where each kind of row sits among a call's rows, as the filter builds them: the first
+    ``n_obstacle`` are the obstacles' (the barrier's at ``k % stride == 0``, else the guard's),
+    then ``n_floor`` floor rows, then the joint limits'."""
+
+    n_obstacle: int
+    stride: int
+    n_floor: int
+
+
 @njit(**_opts)
-def record(tally, status, m, min_h, inside, n_sensed, iterations, n_active, slack, residual, correction, tau_nom,
-           tau, qp, n_obstacle, stride, n_floor, intervention_tol):
-    """Fold one solved call (``status`` ≥ 0, :func:`c3bf_gym.safety._qp.solve_rows`' codes; its
-    ``m`` rows, the first ``n_obstacle`` the obstacles', ``n_floor`` floor rows after them) into
-    ``tally``: the running extremes and counts of :class:`~c3bf_gym.safety.StepSafety`, the last
-    call's torques, status, iterations, active rows and slack, and, when rows gave way, the largest
-    violation of each kind (:func:`violations_by_kind` on the QP's residuals) and whether the call
-    held every row with the barrier's gain raised (:func:`beyond_allowance`: counted in
+def record(tally, call, tau_nom, tau, qp, layout, intervention_tol):
+    """Fold one solved call (:class:`CallSummary`; its rows laid out as ``layout`` says,
+    :class:`RowLayout`) into ``tally``: the running extremes and counts of
+    :class:`~c3bf_gym.safety.StepSafety`, the last call's torques ``tau_nom`` and ``tau``, status,
+    iterations, active rows and slack, whether it changed the torque by more than
+    ``intervention_tol``, and, when rows gave way, the largest violation of each kind
+    (:func:`violations_by_kind` on the QP's residuals in ``qp``) and whether the call held every
+    row with the barrier's gain raised (:func:`beyond_allowance`: counted in
     ``T_GAIN_RAISED_STEPS``) or not (``T_INFEASIBLE_STEPS``).
 
-    Returns the call's outcome: ``status``, or :data:`GAIN_RAISED` for a relaxed call within the
-    allowance."""
+    Returns the call's outcome: ``call.status``, or :data:`GAIN_RAISED` for a relaxed call within
+    the allowance."""
+    status, m, min_h, inside, n_sensed, iterations, n_active, slack, residual, correction = call
+    n_obstacle, stride, n_floor = layout
     values = tally.values
     values[T_SUBSTEPS] += 1.0
     if residual < values[T_MIN_CONSTRAINT]:
@@ -226,10 +265,38 @@ def record(tally, status, m, min_h, inside, n_sensed, iterations, n_active, slac
     return outcome
 
 
+class StepBuffers(NamedTuple):
+    """What :func:`hook_substep` works in besides a call's torques, gathered once by the filter
+    (:class:`~c3bf_gym.safety.SafetyController`; all allocated once and updated in place).
+
+    Attributes:
+        arm, obstacles, params: :class:`~c3bf_gym.safety._dynamics.ArmArrays`,
+            :class:`~c3bf_gym.safety._rows.ObstacleArrays`, :class:`~c3bf_gym.safety._rows.RowParams`.
+        A, b: the rows' buffers (rows, nv), (rows,).
+        scale, limit: (n,) the torque's scale and limits [N m].
+        qp: :class:`~c3bf_gym.safety._qp.QPBuffers`.
+        tally: :class:`Tally`.
+        intervention_tol: the change of the torque [N m] above which a call counts as an
+            intervention.
+    """
+
+    arm: tuple
+    obstacles: tuple
+    params: tuple
+    A: np.ndarray
+    b: np.ndarray
+    scale: np.ndarray
+    limit: np.ndarray
+    qp: tuple
+    tally: Tally
+    intervention_tol: float
+
+
 @njit(**_opts)
-def hook_substep(stage, tau_nom, tau, arm, obstacles, params, A, b, scale, limit, qp, tally, intervention_tol):
-    """One whole-arm filter step in one call (an environment's compiled policy step, and
-    :meth:`~c3bf_gym.safety.SafetyController.__call__` through :func:`hook_substep_at`): the rows
+def hook_substep(stage, tau_nom, tau, buffers):
+    """One whole-arm filter step in one call, in ``buffers`` (:class:`StepBuffers`; an
+    environment's compiled policy step, and :meth:`~c3bf_gym.safety.SafetyController.__call__`
+    through :func:`hook_substep_at`): the rows
     (:func:`~c3bf_gym.safety._rows.hook_rows_whole_arm`, whose arguments ``stage`` … ``b`` are),
     the QP (:func:`c3bf_gym.safety._qp.solve_rows` on ``qp``, priorities by
     :func:`low_priority_span`) in the scaled torque ``τ / scale``, :func:`hook_post`, which writes
@@ -240,6 +307,7 @@ def hook_substep(stage, tau_nom, tau, arm, obstacles, params, A, b, scale, limit
     (:func:`record`'s :data:`GAIN_RAISED`) returned as :data:`~c3bf_gym.safety._qp.SOLVED`: the
     callers (an environment's loop, ``on_infeasible="raise"``) stop on the others.
     """
+    arm, obstacles, params, A, b, scale, limit, qp, tally, intervention_tol = buffers
     m, min_h, inside, n_sensed = hook_rows_whole_arm(stage, arm, obstacles, params, A, b, tally.row_h)
     n_floor = params.floor_ends.shape[0]
     n_fixed = n_floor + (4 * params.dofs.shape[0] if params.joint_rows else 0)
@@ -250,14 +318,14 @@ def hook_substep(stage, tau_nom, tau, arm, obstacles, params, A, b, scale, limit
     if status < 0:
         return status
     residual, correction = hook_post(b[:m], qp.norm[:m], qp.residual[:m], qp.u, scale, tau_nom, limit, tau)
-    outcome = record(tally, status, m, min_h, inside, n_sensed, iterations, n_active, slack, residual, correction,
-                     tau_nom, tau, qp, m - n_fixed, stride, n_floor, intervention_tol)
+    call = CallSummary(status, m, min_h, inside, n_sensed, iterations, n_active, slack, residual, correction)
+    outcome = record(tally, call, tau_nom, tau, qp, RowLayout(m - n_fixed, stride, n_floor), intervention_tol)
     return SOLVED if outcome == GAIN_RAISED else outcome
 
 
 @njit(**_opts)
 def hook_substep_at(stage, tau_nom, tau, handle, bound):
-    """:func:`hook_substep` with its arguments after the first three by address: ``handle`` is
+    """:func:`hook_substep` with its :class:`StepBuffers` by address: ``handle`` is
     :func:`c3bf_gym._capi.pack` of them and ``bound`` their numba type. From Python, one array
     crosses into compiled code instead of the ~80 buffers, which numba would convert one by one."""
-    return hook_substep(stage, tau_nom, tau, *unpack(handle, bound))
+    return hook_substep(stage, tau_nom, tau, unpack(handle, bound))

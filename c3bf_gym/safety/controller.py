@@ -570,8 +570,9 @@ class SafetyController:
         tally; all allocated once by their constructors and updated in place) and the intervention
         tolerance, gathered once: fetching them attribute by attribute on every call cost more than
         the kernel's dispatch."""
-        self._bound = (self.arm.kernel_arrays(self.data), self._obstacle_arrays, self._params, self._A, self._b,
-                       self._scale, self._limit, self.qp.buffers, self._tally, float(self.intervention_tol))
+        self._bound = _step.StepBuffers(self.arm.kernel_arrays(self.data), self._obstacle_arrays, self._params,
+                                        self._A, self._b, self._scale, self._limit, self.qp.buffers, self._tally,
+                                        float(self.intervention_tol))
         self._hook_substep = None  # its entry point and handle, if any, were for the buffers before
         return self._bound
 
@@ -597,14 +598,14 @@ class SafetyController:
             arguments = (pack(bound), numba.typeof(bound))
             kernel = _step.hook_substep_at
         except ValueError:  # an array pack() cannot describe
-            arguments, kernel = bound, _step.hook_substep
+            arguments, kernel = (bound,), _step.hook_substep
         entry = kernel.compile(tuple(numba.typeof(a) for a in (0, vec, vec, *arguments)))
         self._hook_substep = (entry, arguments, bound)
         return self._hook_substep
 
     def compiled_substeps(self, version: int) -> tuple[int, tuple, bool] | None:
         """For a caller that runs a whole policy step in compiled code (``C3BFReachEnv``): the
-        arguments of :func:`c3bf_gym.safety._step.hook_substep` after its first three, the
+        buffers of :func:`c3bf_gym.safety._step.hook_substep` (its last argument), the
         ``stage`` of the first call (the arm's dynamics for state ``version``; every later call
         is on a new state, stage 2), and whether an infeasible call must stop the step
         (``on_infeasible="raise"``). None when every call must come through :meth:`__call__`:
@@ -669,10 +670,9 @@ class SafetyController:
         (:func:`c3bf_gym.safety._step.record`, with this filter's row layout; the fused kernel
         does the same in compiled code). Returns the status as the fused kernel does: a call
         that held every row with the barrier's gain raised as solved."""
-        outcome = _step.record(self._tally, status, m, min_h, inside, n_sensed, iterations, active, slack,
-                               residual, correction, tau_nom, tau, self.qp.buffers,
-                               m - self._n_floor_rows - self._n_joint_rows, self._stride, self._n_floor_rows,
-                               self.intervention_tol)  # fmt: skip
+        call = _step.CallSummary(status, m, min_h, inside, n_sensed, iterations, active, slack, residual, correction)
+        layout = _step.RowLayout(m - self._n_floor_rows - self._n_joint_rows, self._stride, self._n_floor_rows)
+        outcome = _step.record(self._tally, call, tau_nom, tau, self.qp.buffers, layout, self.intervention_tol)
         return _qp.SOLVED if outcome == _step.GAIN_RAISED else outcome
 
     def _settle(self, status: int, elapsed: float) -> None:
