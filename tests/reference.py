@@ -56,8 +56,8 @@ def point_dynamics(arm: ArmModel, data, points: np.ndarray, chain: np.ndarray) -
     packed[:, :, 0] = points
     jac = np.empty((n, 3, arm.nv))
     view = arm.views(data)
-    _dynamics.point_dynamics(np.ascontiguousarray(chain, dtype=np.float64), view.cdof, view.cdof_dot, view.com,
-                             view.qvel, arm.Minv, arm.qacc_free, packed, jac)  # fmt: skip
+    motion = _dynamics.ArmMotion(view.cdof, view.cdof_dot, view.com, view.qvel, arm.Minv, arm.qacc_free)
+    _dynamics.point_dynamics(np.ascontiguousarray(chain, dtype=np.float64), motion, packed, jac)
     return PointDynamics(points, packed[:, :, 1], jac, packed[:, :, 3:], packed[:, :, 2])
 
 

@@ -15,7 +15,7 @@ import pytest
 from numba.core.caching import NullCache
 
 from c3bf_gym.safety import _dynamics, _qp, _rows, _step
-from c3bf_gym.safety.barriers import C3BF, DistanceHOCBF, JointLimits
+from c3bf_gym.safety.barriers import C3BF, BarrierTerms, DistanceHOCBF, JointLimits
 from c3bf_gym.filter import SafetyHook
 from c3bf_gym.safety import FilterConfig
 from c3bf_gym.safety.dynamics import ArmModel
@@ -146,8 +146,9 @@ def test_step_inverse_inverts_a_random_spd_matrix_in_mujoco_layout(make_env):
     damping = rng.uniform(0, 0.5, nv)
     passive, bias = rng.normal(size=nv), rng.normal(size=nv)
     Minv, free, work = np.zeros((nv, nv)), np.zeros(nv), np.zeros((nv, nv))
-    _dynamics.step_inverse(csr, m.M_rowadr.astype(np.int64), m.M_rownnz.astype(np.int64), m.M_colind.astype(np.int64),
-                           damping, passive, bias, work, Minv, free)
+    mass = _dynamics.SparseMass(csr, m.M_rowadr.astype(np.int64), m.M_rownnz.astype(np.int64),
+                                m.M_colind.astype(np.int64))
+    _dynamics.step_inverse(mass, damping, passive, bias, work, Minv, free)
     want = np.linalg.inv(full + np.diag(damping))
     close(Minv, want, 1e-10)
     close(free, want @ (passive - bias), 1e-10)
@@ -324,17 +325,19 @@ def test_fused_obstacle_rows_are_their_pieces_bit_for_bit(make_env, guard):
     pairs = len(sensed) * s_count
     p, v, c, slide = (np.zeros((pairs, 3)) for _ in range(4))
     G, t = np.zeros((pairs, 3, nv)), np.zeros((len(sensed), s_count))
-    _dynamics.closest_relative(arm.ends[:s_count], arm.ends_ab, arm.a_dot_ab, arm.length2, u.obstacle_pos[sensed],
-                               u.obstacle_vel[sensed], u.obstacle_acc[sensed], p, v, c, G, slide, t)
+    axes = _dynamics.CapsuleAxes(arm.ends[:s_count], arm.ends_ab, arm.a_dot_ab, arm.length2)
+    _dynamics.closest_relative(axes, u.obstacle_pos[sensed], u.obstacle_vel[sensed], u.obstacle_acc[sensed],
+                               _dynamics.ClosestPoints(p, v, c, G, slide, t))
     r = ((u.obstacle_radius[sensed][:, None] + arm.capsule_radius[None]) + params.margin).reshape(-1)
     barriers = [("c3bf", params.gamma)] + ([] if guard is None else [("guard", params.guard_gamma2)])
     for i, (kind, gain) in enumerate(barriers):
         h, drift, grad_v, grad_p = np.zeros(pairs), np.zeros(pairs), np.zeros((pairs, 3)), np.zeros((pairs, 3))
         inside = np.zeros(pairs, bool)
         if kind == "c3bf":
-            _rows.c3bf_terms(p, v, r, params.gamma, params.p1, params.p2, h, grad_v, drift, inside, grad_p)
+            terms = BarrierTerms(h, grad_v, drift, inside, grad_p)
+            _rows.c3bf_terms(p, v, r, params.gamma, params.p1, params.p2, terms)
         else:
-            _rows.hocbf_terms(p, v, r, params.guard_gamma1, h, grad_v, drift, inside, grad_p)
+            _rows.hocbf_terms(p, v, r, params.guard_gamma1, BarrierTerms(h, grad_v, drift, inside, grad_p))
         A_ref, b_ref = np.zeros((pairs, nv)), np.zeros(pairs)
         _rows.rows_from_terms(grad_v, drift, h, gain, G, c, A_ref, b_ref)
         b_ref = [bk - (gp[0] * sl[0] + gp[1] * sl[1] + gp[2] * sl[2])

@@ -1,5 +1,5 @@
-"""The filter's QP (c3bf_gym/safety/priority_qp.py, c3bf_gym/safety/_qp.py on DAQP through c3bf_gym/safety/_daqp.py): against proxsuite
-(the independent oracle) on random feasible problems, by priority on infeasible ones, and in closed
+"""The filter's QP (c3bf_gym/safety/priority_qp.py and _qp.py, DAQP through _daqp.py): against
+proxsuite (the independent oracle) on random feasible problems, by priority on infeasible ones, and in closed
 loop the joint-speed bound that the former weighted relaxation let go (the safety-core issue's
 defect 3)."""
 

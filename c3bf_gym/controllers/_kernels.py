@@ -27,7 +27,7 @@ import numpy as np
 from numba import njit
 
 from c3bf_gym._compile_cache import STEP_KERNEL_OPTIONS  # (before any @njit(cache=True): the cache keys)
-from c3bf_gym.safety._dynamics import point_dynamics, step_inverse
+from c3bf_gym.safety._dynamics import ArmMotion, SparseMass, point_dynamics, step_inverse
 
 __all__ = ["ImpedanceGains", "ImpedanceWork", "TaskState", "Target", "ToolSite", "critical_damping",
            "impedance_law", "impedance_substep"]  # fmt: skip
@@ -331,12 +331,13 @@ def impedance_substep(stage, arm, site, gains, target, work, tau):
     (bias forces included), the law's ``M⁻¹`` the integrator's ``(M + h D)⁻¹``.
     """
     if stage >= 2:
-        step_inverse(arm.M, arm.M_rowadr, arm.M_rownnz, arm.M_colind, arm.damping, arm.qfrc_passive, arm.qfrc_bias,
-                     arm.factor, arm.Minv, arm.qacc_free)
+        step_inverse(SparseMass(arm.M, arm.M_rowadr, arm.M_rownnz, arm.M_colind), arm.damping, arm.qfrc_passive,
+                     arm.qfrc_bias, arm.factor, arm.Minv, arm.qacc_free)
     packed = site.packed
     for i in range(3):
         packed[0, i, 0] = site.pos[i]
-    point_dynamics(site.chain, arm.cdof, arm.cdof_dot, arm.com, arm.qvel, arm.Minv, site.zero, packed, site.jac)
+    point_dynamics(site.chain, ArmMotion(arm.cdof, arm.cdof_dot, arm.com, arm.qvel, arm.Minv, site.zero), packed,
+                   site.jac)
     state = TaskState(arm.qpos, arm.qvel, packed[0, :, 0], packed[0, :, 1], site.jac[0], packed[0, :, 2], arm.Minv,
                       arm.qfrc_bias)
     impedance_law(gains, state, target, work, tau)

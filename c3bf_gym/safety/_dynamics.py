@@ -87,16 +87,64 @@ class ArmArrays(NamedTuple):
     a_dot_ab: np.ndarray
 
 
+class SparseMass(NamedTuple):
+    """MuJoCo's lower-triangular CSR mass matrix: ``values`` (``data.M``) and the model's
+    ``M_rowadr``, ``M_rownnz``, ``M_colind`` (``rowadr``, ``rownnz``, ``colind``; the diagonal is
+    the last entry of each row)."""
+
+    values: np.ndarray
+    rowadr: np.ndarray
+    rownnz: np.ndarray
+    colind: np.ndarray
+
+
+class ArmMotion(NamedTuple):
+    """What the dynamics of a point on the arm are computed from (:func:`point_dynamics`):
+    MuJoCo's ``cdof`` and ``cdof_dot`` (nv, 6), ``com`` (3,) the arm's root subtree centre of mass
+    (their reference point) [m], ``qvel`` (nv,), ``Minv`` (nv, nv) and ``qacc_free`` (nv,) (the joint
+    acceleration at zero torque; zeros give the point's ``J̇ q̇`` as its ``c``)."""
+
+    cdof: np.ndarray
+    cdof_dot: np.ndarray
+    com: np.ndarray
+    qvel: np.ndarray
+    Minv: np.ndarray
+    qacc_free: np.ndarray
+
+
+class CapsuleAxes(NamedTuple):
+    """The capsule axes as :func:`closest_relative` reads them: ``ends_a`` (S, 3, 3 + nv) the
+    packed ``a`` ends, ``ends_ab`` (S, 3, 3 + nv) ``b − a``, ``a_dot_ab`` (S,) ``⟨a, b − a⟩`` and
+    ``length2`` (S,) ``‖b − a‖²`` (:func:`capsule_ends`)."""
+
+    ends_a: np.ndarray
+    ends_ab: np.ndarray
+    a_dot_ab: np.ndarray
+    length2: np.ndarray
+
+
+class ClosestPoints(NamedTuple):
+    """:func:`closest_relative`'s outputs for K obstacles and S capsules, obstacle-major (row
+    ``k S + s``): ``p``, ``v``, ``c``, ``slide`` (K S, 3), ``G`` (K S, 3, nv), ``t`` (K, S)."""
+
+    p: np.ndarray
+    v: np.ndarray
+    c: np.ndarray
+    G: np.ndarray
+    slide: np.ndarray
+    t: np.ndarray
+
+
 @njit(**_opts)
-def step_inverse(M, rowadr, rownnz, colind, damping, qfrc_passive, qfrc_bias, work, Minv, qacc_free):
+def step_inverse(mass, damping, qfrc_passive, qfrc_bias, work, Minv, qacc_free):
     """``Minv = (M + h D)⁻¹`` and ``qacc_free = Minv (τ_passive − b)``.
 
-    ``M`` is MuJoCo's lower-triangular CSR mass matrix (``data.M`` with ``M_rowadr``,
-    ``M_rownnz``, ``M_colind``; the diagonal is the last entry of each row) and ``damping`` the
-    (nv,) ``h D`` added to its diagonal. The matrix is factored as ``Lᵀ D L`` from the last dof
-    up (MuJoCo's ``mj_factorM`` order; no fill-in for a kinematic tree) in the (nv, nv) scratch
-    ``work``, then solved for the identity.
+    ``mass`` is ``M`` (:class:`SparseMass`) and ``damping`` the (nv,) ``h D`` added to its
+    diagonal. The matrix is factored as ``Lᵀ D L`` from the last dof up (MuJoCo's ``mj_factorM``
+    order; no fill-in for a kinematic tree) in the (nv, nv) scratch ``work``, then solved for the
+    identity.
     """
+    M, rowadr, rownnz, colind = mass
     nv = Minv.shape[0]
     for i in range(nv):
         for j in range(nv):
@@ -140,10 +188,12 @@ def step_inverse(M, rowadr, rownnz, colind, damping, qfrc_passive, qfrc_bias, wo
 
 
 @njit(**_opts)
-def _one_point(p, x, chain, cdof, cdof_dot, com, qvel, Minv, qacc_free, packed, jac):
+def _one_point(p, x, chain, motion, packed, jac):
     """Fill ``packed[p, :, 1:]`` (velocity, ``c``, ``G``) and ``jac[p]`` of the point ``x`` (a 3-tuple)
-    moving with the dofs where ``chain`` (nv,) is nonzero (:mod:`c3bf_gym.safety.dynamics`'s formulas:
+    moving with the dofs where ``chain`` (nv,) is nonzero, the arm moving as ``motion`` says
+    (:class:`ArmMotion`; :mod:`c3bf_gym.safety.dynamics`'s formulas:
     ``J_j = chain_j (v_j + ω_j × r)``, ``J̇q̇ = Σ q̇_j v̇_j + (Σ q̇_j ω̇_j) × r + ω × ẋ``)."""
+    cdof, cdof_dot, com, qvel, Minv, qacc_free = motion
     nv = qvel.shape[0]
     r0 = x[0] - com[0]
     r1 = x[1] - com[1]
@@ -186,12 +236,13 @@ def _one_point(p, x, chain, cdof, cdof_dot, com, qvel, Minv, qacc_free, packed, 
 
 
 @njit(**_opts)
-def point_dynamics(chain, cdof, cdof_dot, com, qvel, Minv, qacc_free, packed, jac):
+def point_dynamics(chain, motion, packed, jac):
     """Velocity, ``c``, ``G`` (``packed[:, :, 1:]``, (P, 3, 3 + nv)) and Jacobians ``jac``
-    (P, 3, nv) of the points ``packed[:, :, 0]`` with dof masks ``chain`` (P, nv)."""
+    (P, 3, nv) of the points ``packed[:, :, 0]`` with dof masks ``chain`` (P, nv), the arm moving
+    as ``motion`` says (:class:`ArmMotion`)."""
     for p in range(packed.shape[0]):
         x = (packed[p, 0, 0], packed[p, 1, 0], packed[p, 2, 0])
-        _one_point(p, x, chain[p], cdof, cdof_dot, com, qvel, Minv, qacc_free, packed, jac)
+        _one_point(p, x, chain[p], motion, packed, jac)
 
 
 @njit(**_opts)
@@ -212,10 +263,10 @@ def capsule_ends(arm):
             la0, la1, la2 = local[s, e, 0], local[s, e, 1], local[s, e, 2]
             for i in range(3):
                 ends[e * s_count + s, i, 0] = pos[i] + (mat[3 * i] * la0 + mat[3 * i + 1] * la1 + mat[3 * i + 2] * la2)
+    motion = ArmMotion(arm.cdof, arm.cdof_dot, arm.com, arm.qvel, arm.Minv, arm.qacc_free)
     for p in range(2 * s_count):
         x = (ends[p, 0, 0], ends[p, 1, 0], ends[p, 2, 0])
-        _one_point(p, x, arm.chain[p % s_count], arm.cdof, arm.cdof_dot, arm.com, arm.qvel, arm.Minv, arm.qacc_free,
-                   ends, arm.end_jac)
+        _one_point(p, x, arm.chain[p % s_count], motion, ends, arm.end_jac)
     for s in range(s_count):
         dot = 0.0
         for i in range(3):
@@ -279,9 +330,10 @@ def closest_terms(ends_a, ends_ab, a_dot_ab, length2, s, o, vo, ao):
 
 
 @njit(**_opts)
-def _closest_pair(ends_a, ends_ab, a_dot_ab, length2, s, o, vo, ao, G):
-    """:func:`closest_terms`, with the point's ``G`` (3, nv) written out: returns
-    ``(t, p, v, c, slide)``."""
+def _closest_pair(axes, s, o, vo, ao, G):
+    """:func:`closest_terms` on the capsule axes ``axes`` (:class:`CapsuleAxes`), with the point's
+    ``G`` (3, nv) written out: returns ``(t, p, v, c, slide)``."""
+    ends_a, ends_ab, a_dot_ab, length2 = axes
     t, tc, p, v, c, slide = closest_terms(ends_a, ends_ab, a_dot_ab, length2, s, o, vo, ao)
     for i in range(3):
         for j in range(G.shape[1]):
@@ -290,13 +342,14 @@ def _closest_pair(ends_a, ends_ab, a_dot_ab, length2, s, o, vo, ao, G):
 
 
 @njit(**_opts)
-def closest_relative(ends_a, ends_ab, a_dot_ab, length2, centres, velocities, accelerations,
-                     p, v, c, G, slide, t):
-    """:func:`_closest_pair` for every (obstacle k, capsule s), obstacle-major (row k S + s):
-    ``p, v, c, slide`` (K S, 3), ``G`` (K S, 3, nv), ``t`` (K, S)."""
-    s_count = ends_a.shape[0]
+def closest_relative(axes, centres, velocities, accelerations, out):
+    """:func:`_closest_pair` for every (obstacle k, capsule s) of the capsule axes ``axes``
+    (:class:`CapsuleAxes`) and the obstacles' ``centres``, ``velocities``, ``accelerations`` (K, 3),
+    into ``out`` (:class:`ClosestPoints`)."""
+    s_count = axes.ends_a.shape[0]
+    p, v, c, G, slide, t = out
     for k in range(centres.shape[0]):
         for s in range(s_count):
             row = k * s_count + s
-            t[k, s], p[row], v[row], c[row], slide[row] = _closest_pair(
-                ends_a, ends_ab, a_dot_ab, length2, s, centres[k], velocities[k], accelerations[k], G[row])
+            t[k, s], p[row], v[row], c[row], slide[row] = _closest_pair(axes, s, centres[k], velocities[k],
+                                                                        accelerations[k], G[row])

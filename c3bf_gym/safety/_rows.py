@@ -31,7 +31,7 @@ import numpy as np
 from numba import njit
 
 from c3bf_gym._compile_cache import STEP_KERNEL_OPTIONS  # (before any @njit(cache=True): the cache keys)
-from c3bf_gym.safety._dynamics import capsule_ends, closest_terms, step_inverse, surface_gap
+from c3bf_gym.safety._dynamics import SparseMass, capsule_ends, closest_terms, step_inverse, surface_gap
 
 #: barrier kinds of the fused kernel
 C3BF_KIND = 0
@@ -88,16 +88,20 @@ def _vec3(x):
 
 
 @njit(**_opts)
-def c3bf_terms(p, v, r, gamma, eps, delta, h, grad_v, drift, inside, grad_p):
-    """:func:`_c3bf_point` for P points: ``p, v`` (P, 3), ``r`` (P,) into the outputs."""
+def c3bf_terms(p, v, r, gamma, eps, delta, out):
+    """:func:`_c3bf_point` for P points: ``p, v`` (P, 3), ``r`` (P,) into ``out``
+    (:class:`~c3bf_gym.safety.barriers.BarrierTerms` of (P,) and (P, 3) arrays)."""
+    h, grad_v, drift, inside, grad_p = out
     for k in range(p.shape[0]):
         h[k], drift[k], inside[k], grad_v[k], grad_p[k] = _c3bf_point(_vec3(p[k]), _vec3(v[k]), r[k], gamma, eps,
                                                                        delta)
 
 
 @njit(**_opts)
-def hocbf_terms(p, v, r, gamma1, h, grad_v, drift, inside, grad_p):
-    """:func:`_hocbf_point` for P points: ``p, v`` (P, 3), ``r`` (P,) into the outputs."""
+def hocbf_terms(p, v, r, gamma1, out):
+    """:func:`_hocbf_point` for P points: ``p, v`` (P, 3), ``r`` (P,) into ``out``
+    (:class:`~c3bf_gym.safety.barriers.BarrierTerms` of (P,) and (P, 3) arrays)."""
+    h, grad_v, drift, inside, grad_p = out
     for k in range(p.shape[0]):
         h[k], drift[k], inside[k], grad_v[k], grad_p[k] = _hocbf_point(_vec3(p[k]), _vec3(v[k]), r[k], gamma1)
 
@@ -125,11 +129,13 @@ def _sliding_rhs(grad_v, grad_p, slide, c, drift, h, gamma):
 
 
 @njit(**_opts)
-def _pair_rows(ends_a, ends_ab, s, tc, grad_v, grad_w, A, m, both):
-    """The coefficients ``A[m] = grad_vᵀ G`` (and, with ``both``, ``A[m + 1] = grad_wᵀ G``) of the
-    rows at the point ``tc`` of capsule ``s``'s axis, ``G = G_a + tc (G_b − G_a)`` taken column by
-    column as the rows need it (the same arithmetic as :func:`~c3bf_gym.safety._dynamics._closest_pair`'s ``G`` and
-    :func:`_row`, without writing ``G`` out and reading it back)."""
+def _pair_rows(ends_a, ends_ab, s, tc, grads, A, m, both):
+    """The coefficients ``A[m] = grad_vᵀ G`` (and, with ``both``, ``A[m + 1] = grad_wᵀ G``;
+    ``grads`` is ``(grad_v, grad_w)``, 3-tuples) of the rows at the point ``tc`` of capsule
+    ``s``'s axis, ``G = G_a + tc (G_b − G_a)`` taken column by column as the rows need it (the
+    same arithmetic as :func:`~c3bf_gym.safety._dynamics._closest_pair`'s ``G`` and :func:`_row`,
+    without writing ``G`` out and reading it back)."""
+    grad_v, grad_w = grads
     for j in range(A.shape[1]):
         g0 = tc * ends_ab[s, 0, 3 + j] + ends_a[s, 0, 3 + j]
         g1 = tc * ends_ab[s, 1, 3 + j] + ends_a[s, 1, 3 + j]
@@ -147,11 +153,15 @@ def rows_from_terms(grad_v, drift, h, gamma, G, c, A, b):
 
 
 @njit(**_opts)
-def joint_limit_rows(q, qd, Minv, c_q, dofs, qpos_ids, q_lo, q_hi, qd_max, g1, g2, gv, A, b):
+def joint_limit_rows(q, qd, Minv, c_q, limits, A, b):
     """The ``4n`` rows of :class:`~c3bf_gym.safety.barriers.JointLimits` into ``A`` (4n, k), ``b`` (4n,)
-    (row blocks: position upper, position lower, speed upper, speed lower) for the ``n`` joints at
-    dofs ``dofs`` (rows of ``Minv`` (·, k), entries of ``qd``, ``c_q``) and ``qpos`` addresses
-    ``qpos_ids`` (entries of ``q``). An infinite limit's position row is ``0 τ ≥ −1``."""
+    (row blocks: position upper, position lower, speed upper, speed lower) for the ``n`` joints of
+    ``limits`` (:class:`JointLimitParams`, or :class:`RowParams`, which has the same fields) at
+    dofs ``limits.dofs`` (rows of ``Minv`` (·, k), entries of ``qd``, ``c_q``) and ``qpos``
+    addresses ``limits.qpos_ids`` (entries of ``q``). An infinite limit's position row is
+    ``0 τ ≥ −1``."""
+    dofs, qpos_ids, q_lo, q_hi, qd_max = limits.dofs, limits.qpos_ids, limits.q_lo, limits.q_hi, limits.qd_max
+    g1, g2, gv = limits.joint_gains[0], limits.joint_gains[1], limits.joint_gains[2]
     n = dofs.shape[0]
     ncol = Minv.shape[1]
     g12 = g1 * g2
@@ -173,6 +183,20 @@ def joint_limit_rows(q, qd, Minv, c_q, dofs, qpos_ids, q_lo, q_hi, qd_max, g1, g
                 b[k] = -1.0
         b[2 * n + i] = (gv * qdi + ci) + (-gv * qd_max[i])
         b[3 * n + i] = (-gv * qdi + -ci) + (-gv * qd_max[i])
+
+
+class JointLimitParams(NamedTuple):
+    """The joint limits as :func:`joint_limit_rows` reads them (the fields of :class:`RowParams`
+    it uses): ``dofs``, ``qpos_ids`` (n,) int64, the arm's dofs and their ``qpos`` addresses;
+    ``q_lo``, ``q_hi`` (n,) [rad] (±inf: none), ``qd_max`` (n,) [rad/s]; ``joint_gains`` (3,)
+    γ₁, γ₂, γ_v [1/s]."""
+
+    dofs: np.ndarray
+    qpos_ids: np.ndarray
+    q_lo: np.ndarray
+    q_hi: np.ndarray
+    qd_max: np.ndarray
+    joint_gains: np.ndarray
 
 
 @njit(**_opts)
@@ -300,8 +324,8 @@ def hook_rows_whole_arm(stage, arm, obstacles, params, A, b, row_h):
     s_count = arm.ends_ab.shape[0]
     n = params.dofs.shape[0]
     if stage >= 2:
-        step_inverse(arm.M, arm.M_rowadr, arm.M_rownnz, arm.M_colind, arm.damping, arm.qfrc_passive, arm.qfrc_bias,
-                     arm.factor, arm.Minv, arm.qacc_free)
+        step_inverse(SparseMass(arm.M, arm.M_rowadr, arm.M_rownnz, arm.M_colind), arm.damping, arm.qfrc_passive,
+                     arm.qfrc_bias, arm.factor, arm.Minv, arm.qacc_free)
     if stage >= 1:
         capsule_ends(arm)
     ends_a = arm.ends[:s_count]
@@ -341,16 +365,13 @@ def hook_rows_whole_arm(stage, arm, obstacles, params, A, b, row_h):
             if guard:
                 h, drift, _, grad_w, grad_q = _hocbf_point(p, v, r, params.guard_gamma1)
                 b[m + 1] = _sliding_rhs(grad_w, grad_q, slide, c, drift, h, params.guard_gamma2)
-            _pair_rows(ends_a, ends_ab, s, tc, grad_v, grad_w, A, m, guard)
+            _pair_rows(ends_a, ends_ab, s, tc, (grad_v, grad_w), A, m, guard)
             m += 2 if guard else 1
     n_floor = params.floor_ends.shape[0]
     floor_rows(arm.ends, params.floor_ends, params.floor_min, params.floor_gamma, A[m:m + n_floor], b[m:m + n_floor])
     m += n_floor
     unmodelled_margin(A[:m], b[:m], params.unmodelled_force)
     if params.joint_rows:
-        gains = params.joint_gains
-        joint_limit_rows(arm.qpos, arm.qvel, arm.Minv, arm.qacc_free, params.dofs, params.qpos_ids, params.q_lo,
-                         params.q_hi, params.qd_max,
-                         gains[0], gains[1], gains[2], A[m:m + 4 * n], b[m:m + 4 * n])
+        joint_limit_rows(arm.qpos, arm.qvel, arm.Minv, arm.qacc_free, params, A[m:m + 4 * n], b[m:m + 4 * n])
         m += 4 * n
     return m, min_h, inside_any, n_sensed

@@ -215,8 +215,9 @@ class ArmModel:
         self._ends_current = False
         self._data = data
         v = self.views(data)
-        _dynamics.step_inverse(v.M, self._M_rowadr, self._M_rownnz, self._M_colind, self.implicit_damping,
-                               v.qfrc_passive, v.qfrc_bias, self._factor, self.Minv, self.qacc_free)
+        mass = _dynamics.SparseMass(v.M, self._M_rowadr, self._M_rownnz, self._M_colind)
+        _dynamics.step_inverse(mass, self.implicit_damping, v.qfrc_passive, v.qfrc_bias, self._factor, self.Minv,
+                               self.qacc_free)
 
     def views(self, data: mujoco.MjData) -> _DataViews:
         """The arrays of ``data`` the kernels read, fetched once per ``MjData`` (MuJoCo never
@@ -322,9 +323,10 @@ class ArmModel:
         as_f64 = np.ascontiguousarray
         p, v, c, slide_p = np.empty((4, k * s, 3))
         G = np.empty((k * s, 3, nv))
-        _dynamics.closest_relative(self._ends_a, self._ends_ab, self._a_dot_ab, self._length2,
-                                   as_f64(centres, dtype=np.float64), as_f64(velocities, dtype=np.float64),
-                                   as_f64(accelerations, dtype=np.float64), p, v, c, G, slide_p, np.empty((k, s)))
+        axes = _dynamics.CapsuleAxes(self._ends_a, self._ends_ab, self._a_dot_ab, self._length2)
+        _dynamics.closest_relative(axes, as_f64(centres, dtype=np.float64), as_f64(velocities, dtype=np.float64),
+                                   as_f64(accelerations, dtype=np.float64),
+                                   _dynamics.ClosestPoints(p, v, c, G, slide_p, np.empty((k, s))))
         return PointDynamics(p, v, None, G, c), slide_p
 
     def site_dynamics(self, data: mujoco.MjData) -> PointDynamics:

@@ -93,9 +93,10 @@ class C3BF(Barrier):
         n_pts = p.shape[0]
         h, drift, inside = np.empty(n_pts), np.empty(n_pts), np.empty(n_pts, dtype=bool)
         grad_v, grad_p = np.empty((n_pts, 3)), np.empty((n_pts, 3))
+        terms = BarrierTerms(h, grad_v, drift, inside, grad_p)
         _rows.c3bf_terms(contiguous(p), contiguous(v), radii(r, n_pts), float(self.gamma), float(self.eps), self.delta,
-                         h, grad_v, drift, inside, grad_p)
-        return BarrierTerms(h, grad_v, drift, inside, grad_p)
+                         terms)
+        return terms
 
     def fused_spec(self) -> tuple[int, np.ndarray] | None:
         """``(kind, params)`` of the filter's fused kernel (:mod:`c3bf_gym.safety._rows`), or None

@@ -91,9 +91,9 @@ class DistanceHOCBF(Barrier):
         n_pts = p.shape[0]
         h, drift, inside = np.empty(n_pts), np.empty(n_pts), np.empty(n_pts, dtype=bool)
         grad_v, grad_p = np.empty((n_pts, 3)), np.empty((n_pts, 3))
-        _rows.hocbf_terms(contiguous(p), contiguous(v), radii(r, n_pts), float(self.gamma1),
-                          h, grad_v, drift, inside, grad_p)
-        return BarrierTerms(h, grad_v, drift, inside, grad_p)
+        terms = BarrierTerms(h, grad_v, drift, inside, grad_p)
+        _rows.hocbf_terms(contiguous(p), contiguous(v), radii(r, n_pts), float(self.gamma1), terms)
+        return terms
 
     def fused_spec(self) -> tuple[int, np.ndarray] | None:
         """``(kind, params)`` of the filter's fused kernel (:mod:`c3bf_gym.safety._rows`), or None
