@@ -52,3 +52,20 @@ def test_every_exported_name_resolves(package):
     assert set(package.__all__) <= set(dir(package))
     with pytest.raises(AttributeError, match="no attribute 'not_a_name'"):
         package.not_a_name  # noqa: B018
+
+
+def test_no_kernel_takes_more_than_eight_positional_arguments():
+    """The compiled functions take named structures: a reordering of a long positional list is a
+    silent bug (issue 33)."""
+    import inspect
+    from importlib import import_module
+
+    from numba.core.registry import CPUDispatcher
+
+    names = ("c3bf_gym.safety._dynamics", "c3bf_gym.safety._rows", "c3bf_gym.safety._qp", "c3bf_gym.safety._step",
+             "c3bf_gym.safety._daqp", "c3bf_gym.controllers._kernels", "c3bf_gym.envs._kernels")  # fmt: skip
+    kernels = {f"{name}.{key}": f for name in names for key, f in vars(import_module(name)).items()
+               if isinstance(f, CPUDispatcher) and f.py_func.__module__ == name}  # fmt: skip
+    assert len(kernels) >= 30
+    wide = {key: len(inspect.signature(f.py_func).parameters) for key, f in kernels.items()}
+    assert {key: count for key, count in wide.items() if count > 8} == {}

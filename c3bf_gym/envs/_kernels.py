@@ -111,37 +111,9 @@ def physics_steps(physics, n):
     return lowest
 
 
-@njit(**STEP_KERNEL_OPTIONS)
-def filtered_steps(physics, n, torque, gravity, ctrl, inv_limit, tau_nom, tau, effort_rows, stage, hook, halt):
-    """``n`` physics steps as :func:`physics_steps`, each under the safety filter: the nominal
-    total torque ``torque + gravity`` (the gravity compensation ``data.qfrc_gravcomp``, current
-    for the state about to be integrated) goes through
-    :func:`c3bf_gym.safety._step.hook_substep` with the filter's buffers ``hook``
-    (:class:`~c3bf_gym.safety._step.StepBuffers`; the first
-    call at ``stage``, every later one on a new state at 2), ``ctrl`` becomes the filtered torque
-    minus gravity, and row ``s`` of ``effort_rows`` that control over the limits (``ctrl *
-    inv_limit``). ``tau_nom`` and ``tau`` (n,) are scratch.
-
-    Stops before integrating a call whose status is invalid input (< 0) or, with ``halt``,
-    infeasible (> 0). Returns ``(physics steps done, smallest distance reading, last status)``.
-    """
-    lowest = physics.cutoff
-    status = 0
-    for s in range(n):
-        for j in range(torque.shape[0]):
-            tau_nom[j] = torque[j] + gravity[j]
-        status = hook_substep(stage if s == 0 else 2, tau_nom, tau, hook)
-        if status < 0 or (halt and status > 0):
-            return s, lowest, status
-        for j in range(torque.shape[0]):
-            ctrl[j] = tau[j] - gravity[j]
-            effort_rows[s, j] = ctrl[j] * inv_limit[j]
-        lowest = _advance(physics, lowest)
-    return n, lowest, status
-
-
 class Drive(NamedTuple):
-    """The torque side of :func:`impedance_steps`: views of the environment's arrays, made once.
+    """The torque side of :func:`filtered_steps` and :func:`impedance_steps`: views of the
+    environment's arrays, made once.
 
     Attributes:
         gravity: (n,) ``data.qfrc_gravcomp``, the gravity compensation MuJoCo adds [N m].
@@ -157,6 +129,35 @@ class Drive(NamedTuple):
     tau_nom: np.ndarray
     tau: np.ndarray
     effort_rows: np.ndarray
+
+
+@njit(**STEP_KERNEL_OPTIONS)
+def filtered_steps(physics, n, torque, drive, stage, hook, halt):
+    """``n`` physics steps as :func:`physics_steps`, each under the safety filter: the nominal
+    total torque ``torque + drive.gravity`` (the gravity compensation ``data.qfrc_gravcomp``,
+    current for the state about to be integrated; :class:`Drive`) goes through
+    :func:`c3bf_gym.safety._step.hook_substep` with the filter's buffers ``hook``
+    (:class:`~c3bf_gym.safety._step.StepBuffers`; the first call at ``stage``, every later one on
+    a new state at 2), ``drive.ctrl`` becomes the filtered torque minus gravity, and row ``s`` of
+    ``drive.effort_rows`` that control over the limits (``ctrl * inv_limit``).
+
+    Stops before integrating a call whose status is invalid input (< 0) or, with ``halt``,
+    infeasible (> 0). Returns ``(physics steps done, smallest distance reading, last status)``.
+    """
+    lowest = physics.cutoff
+    status = 0
+    gravity, ctrl, inv_limit, tau_nom, tau, effort_rows = drive
+    for s in range(n):
+        for j in range(torque.shape[0]):
+            tau_nom[j] = torque[j] + gravity[j]
+        status = hook_substep(stage if s == 0 else 2, tau_nom, tau, hook)
+        if status < 0 or (halt and status > 0):
+            return s, lowest, status
+        for j in range(torque.shape[0]):
+            ctrl[j] = tau[j] - gravity[j]
+            effort_rows[s, j] = ctrl[j] * inv_limit[j]
+        lowest = _advance(physics, lowest)
+    return n, lowest, status
 
 
 @njit(**STEP_KERNEL_OPTIONS)
