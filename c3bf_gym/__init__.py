@@ -51,7 +51,27 @@ _EXPORTS = {
     "Scenario": "c3bf_gym.scenarios",
     "UnsupportedModelError": "c3bf_gym.safety",
 }
-__all__ = list(_EXPORTS)
+#: spelt out, not ``list(_EXPORTS)``, for tools that read the source (griffe, for the API page)
+__all__ = [
+    "ActionPenalty",
+    "C3BFReachEnv",
+    "CartesianImpedance",
+    "CartesianImpedanceAction",
+    "DEFAULT_FILTER",
+    "Envelope",
+    "FILTERS",
+    "FilterConfig",
+    "MocapSpheres",
+    "ObstacleSpec",
+    "Obstacles",
+    "RobotDescription",
+    "SCENARIOS",
+    "SafetyController",
+    "SafetyFilter",
+    "SafetyInfeasibleError",
+    "Scenario",
+    "UnsupportedModelError",
+]
 __version__ = "0.1.0"
 
 if "C3BFReach-v0" not in registry:

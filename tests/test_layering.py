@@ -47,6 +47,7 @@ def test_the_probe_sees_the_qp_where_it_is_loaded():
 def test_every_exported_name_resolves(package):
     """The packages import their exports when first read: each name in ``__all__`` is there, and
     an unknown one is an ``AttributeError``."""
+    assert sorted(package.__all__) == sorted(package._EXPORTS)
     for name in package.__all__:
         assert getattr(package, name) is not None, name
     assert set(package.__all__) <= set(dir(package))

@@ -76,7 +76,30 @@ _EXPORTS = {
     "protected_capsule": "c3bf_gym.safety.geometry",
     "world_segments": "c3bf_gym.safety.geometry",
 }
-__all__ = list(_EXPORTS)
+#: spelt out, not ``list(_EXPORTS)``, for tools that read the source (griffe, for the API page)
+__all__ = [
+    "DEFAULT_FILTER",
+    "FILTERS",
+    "GUARD_GAMMA",
+    "Capsule",
+    "EnvelopeWarning",
+    "FilterConfig",
+    "FilterEnvelope",
+    "MocapSpheres",
+    "Obstacles",
+    "RobotDescription",
+    "SafetyController",
+    "SafetyInfeasibleError",
+    "StepSafety",
+    "UnprotectedGeometryWarning",
+    "UnsupportedGeomError",
+    "UnsupportedModelError",
+    "enclosing_capsule",
+    "filter_envelope",
+    "fit_capsule",
+    "protected_capsule",
+    "world_segments",
+]
 
 
 def __getattr__(name: str):
