@@ -2,7 +2,7 @@
 faster QP, or any faster rows, leaves under the filtered step.
 
 The script copies the ``c3bf_gym`` package it imports into a temporary folder once per variant
-and edits the copy's :func:`c3bf_gym.safety._kernels.hook_substep`, the filter's call at every
+and edits the copy's :func:`c3bf_gym.safety._step.hook_substep`, the filter's call at every
 physics step (the package itself is not touched):
 
 * ``no QP``: the QP (``solve_rows``) is replaced by the nominal torque clipped to the torque
@@ -46,9 +46,9 @@ import tempfile
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
-KERNELS = Path("safety") / "_kernels.py"
+KERNELS = Path("safety") / "_step.py"
 #: the text of hook_substep each edit replaces, and its replacement
-_ROWS = "    m, min_h, inside, n_sensed = hook_rows_whole_arm(stage, arm, obstacles, params, A, b)\n"
+_ROWS = "    m, min_h, inside, n_sensed = hook_rows_whole_arm(stage, arm, obstacles, params, A, b, tally.row_h)\n"
 _NO_ROWS = "    m, min_h, inside, n_sensed = 0, np.inf, False, 0\n"
 _QP = ("    status, iterations, n_active, slack = solve_rows(tau_nom, A[:m], b[:m], scale, params.dofs,\n"
        "                                                     low_priority_span(m, n_fixed, guarded), stride, qp)\n")

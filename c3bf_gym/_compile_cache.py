@@ -1,8 +1,8 @@
 """numba's on-disk cache for the package's compiled kernels, keyed on every kernel source file.
 
 numba keys a cached function on a hash of the one file that defines it. The filter's kernels call
-each other across files (``_kernels.hook_substep`` compiles ``_daqp.solve_rows`` into itself), so an
-edit to ``_daqp.py`` alone would leave the old solver inside the cached ``hook_substep``. Here
+each other across files (``safety/_step.hook_substep`` compiles ``_rows.hook_rows_whole_arm`` and ``_qp.solve_rows`` into
+itself), so an edit to ``_qp.py`` alone would leave the old solver inside the cached ``hook_substep``. Here
 the cache stamp of every function defined in :data:`KERNEL_SOURCES` (the filter's kernels, the
 scenarios' obstacle sampler and the environment's own) is the hash of all those files together:
 changing any of them recompiles every kernel on its next use.
@@ -45,8 +45,8 @@ _PACKAGE = Path(__file__).resolve().parent
 #: filter's, compiled into each other, the obstacle sampler's and the environment's, and the C calls
 #: compiled into them; and this one, whose options they are compiled with (numba's cache does not
 #: key on options).
-KERNEL_SOURCES = ("safety/_kernels.py", "safety/_daqp.py", "scenarios.py", "envs/_kernels.py", "_capi.py",
-                  "_compile_cache.py", "controllers/_kernels.py")
+KERNEL_SOURCES = ("safety/_dynamics.py", "safety/_rows.py", "safety/_qp.py", "safety/_step.py", "safety/_daqp.py",
+                  "scenarios.py", "envs/_kernels.py", "_capi.py", "_compile_cache.py", "controllers/_kernels.py")
 _PATHS = tuple(str(_PACKAGE / name) for name in KERNEL_SOURCES)
 
 

@@ -49,15 +49,15 @@ def closest_sliding(arm: ArmModel, centres: np.ndarray, p: np.ndarray, v: np.nda
 def point_dynamics(arm: ArmModel, data, points: np.ndarray, chain: np.ndarray) -> PointDynamics:
     """:class:`PointDynamics` of ``points`` (P, 3) moving with bodies whose dof masks are
     ``chain`` (P, nv), through the compiled per-point kernel (``arm.update`` first)."""
-    from c3bf_gym.safety import _kernels
+    from c3bf_gym.safety import _dynamics
 
     n = len(points)
     packed = np.empty((n, 3, 3 + arm.nv))
     packed[:, :, 0] = points
     jac = np.empty((n, 3, arm.nv))
     view = arm.views(data)
-    _kernels.point_dynamics(np.ascontiguousarray(chain, dtype=np.float64), view.cdof, view.cdof_dot, view.com,
-                            view.qvel, arm.Minv, arm.qacc_free, packed, jac)  # fmt: skip
+    motion = _dynamics.ArmMotion(view.cdof, view.cdof_dot, view.com, view.qvel, arm.Minv, arm.qacc_free)
+    _dynamics.point_dynamics(np.ascontiguousarray(chain, dtype=np.float64), motion, packed, jac)
     return PointDynamics(points, packed[:, :, 1], jac, packed[:, :, 3:], packed[:, :, 2])
 
 

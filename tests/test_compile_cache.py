@@ -17,13 +17,13 @@ import c3bf_gym
 
 PROBE = """
 import json, numpy as np
-from c3bf_gym.safety import _kernels
+from c3bf_gym.safety import _step
 out = np.empty(3)
-_kernels.hook_post(np.zeros(0), np.zeros(0), np.zeros(0), np.array([2.0, -2.0, 0.5]), np.full(3, 0.5), np.zeros(3),
-                   np.ones(3), out)
-stats = _kernels.hook_post.stats
+_step.hook_post(np.zeros(0), np.zeros(0), np.zeros(0), np.array([2.0, -2.0, 0.5]), np.full(3, 0.5), np.zeros(3),
+                np.ones(3), out)
+stats = _step.hook_post.stats
 print(json.dumps({"hits": sum(stats.cache_hits.values()), "misses": sum(stats.cache_misses.values()),
-                  "file": _kernels.__file__, "out": out.tolist()}))
+                  "file": _step.__file__, "out": out.tolist()}))
 """
 
 
@@ -41,7 +41,7 @@ def test_an_edit_to_any_kernel_source_recompiles(tmp_path):
     assert first["file"].startswith(str(tmp_path)) and first["out"] == [1.0, -1.0, 0.25]
     assert first["misses"] == 1 and first["hits"] == 0  # compiled, then saved
     assert _probe(tmp_path)["hits"] == 1  # unchanged sources: loaded from the cache
-    # an edit to _daqp.py alone (the probed kernel is defined in _kernels.py) must invalidate the cache
+    # an edit to _daqp.py alone (the probed kernel is defined in _step.py) must invalidate the cache
     with open(tmp_path / "c3bf_gym" / "safety" / "_daqp.py", "a") as fh:
         fh.write("\n# edited\n")
     edited = _probe(tmp_path)

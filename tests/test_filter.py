@@ -642,18 +642,18 @@ def test_relaxed_solve_keeps_rows_outside_the_conflict(make_env):
 
 def _unfused_call(hook, tau_nom):
     """The hook's step as separate calls (rows, the QP, ``hook_post``): the path
-    :func:`c3bf_gym.safety._kernels.hook_substep` fuses."""
-    from c3bf_gym.safety import _kernels
+    :func:`c3bf_gym.safety._step.hook_substep` fuses."""
+    from c3bf_gym.safety import _step
 
     A, b, *_ = hook.rows()
     tau_nom = np.ascontiguousarray(tau_nom, dtype=np.float64)
     result = hook.qp.solve_scaled(tau_nom, A, b, hook._scale, hook._low_priority_span(len(b)), hook._stride)
     tau = np.empty_like(tau_nom)
     qp, m = hook.qp.buffers, len(b)
-    _kernels.hook_post(b, qp.norm[:m], qp.residual[:m], result.tau, hook._scale, tau_nom, hook._limit, tau)
+    _step.hook_post(b, qp.norm[:m], qp.residual[:m], result.tau, hook._scale, tau_nom, hook._limit, tau)
     n_obstacle = m - hook._n_floor_rows - hook._n_joint_rows
-    if result.status == "relaxed" and not _kernels.beyond_allowance(qp.residual[:m], qp.norm[:m], hook._tally.row_h,
-                                                                    hook._tally.gains, n_obstacle, hook._stride):
+    if result.status == "relaxed" and not _step.beyond_allowance(qp.residual[:m], qp.norm[:m], hook._tally.row_h,
+                                                                 hook._tally.gains, n_obstacle, hook._stride):
         result = result._replace(feasible=True, status="gain raised")  # the barrier's rows held, gain raised
     return tau, result
 

@@ -41,8 +41,8 @@ timed = SafetyFilter(gym.make('C3BFReach-v0', scenario='multi'))
 timed.hook.record_times()  # timing its calls: every call of the filter comes from Python
 timed.reset(seed=0)
 timed.step(timed.action_space.sample())
-from c3bf_gym.safety import _kernels  # the fused step came from the machine code the build compiled
-print('KERNEL_CACHE_HITS', sum(_kernels.hook_substep_at.stats.cache_hits.values()))
+from c3bf_gym.safety import _step  # the fused step came from the machine code the build compiled
+print('KERNEL_CACHE_HITS', sum(_step.hook_substep_at.stats.cache_hits.values()))
 from c3bf_gym import scenarios  # and the environment's own: its obstacle sampler, physics steps (with and without
 from c3bf_gym.envs import _kernels as env_kernels  # the filter's and the impedance controller's calls) and observation
 print('ENV_CACHE_HITS', *(sum(f.stats.cache_hits.values()) for f in (scenarios._sample, env_kernels.physics_steps,

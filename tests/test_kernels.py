@@ -1,4 +1,4 @@
-"""Tests for c3bf_gym/safety/_kernels.py: the compiled kernels against plain numpy reference math.
+"""Tests for the compiled kernels (c3bf_gym/safety/_dynamics.py, _rows.py, _qp.py, _step.py): the compiled kernels against plain numpy reference math.
 
 The references here are written independently of the kernels (vectorised numpy, the formulas of
 the barrier and robot docstrings, the numpy code the kernels replaced), so a wrong index, sign or
@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 from numba.core.caching import NullCache
 
-from c3bf_gym.safety import _kernels as K
-from c3bf_gym.safety.barriers import C3BF, DistanceHOCBF, JointLimits
+from c3bf_gym.safety import _dynamics, _qp, _rows, _step
+from c3bf_gym.safety.barriers import C3BF, BarrierTerms, DistanceHOCBF, JointLimits
 from c3bf_gym.filter import SafetyHook
 from c3bf_gym.safety import FilterConfig
 from c3bf_gym.safety.dynamics import ArmModel
@@ -146,8 +146,9 @@ def test_step_inverse_inverts_a_random_spd_matrix_in_mujoco_layout(make_env):
     damping = rng.uniform(0, 0.5, nv)
     passive, bias = rng.normal(size=nv), rng.normal(size=nv)
     Minv, free, work = np.zeros((nv, nv)), np.zeros(nv), np.zeros((nv, nv))
-    K.step_inverse(csr, m.M_rowadr.astype(np.int64), m.M_rownnz.astype(np.int64), m.M_colind.astype(np.int64),
-                   damping, passive, bias, work, Minv, free)
+    mass = _dynamics.SparseMass(csr, m.M_rowadr.astype(np.int64), m.M_rownnz.astype(np.int64),
+                                m.M_colind.astype(np.int64))
+    _dynamics.step_inverse(mass, damping, passive, bias, work, Minv, free)
     want = np.linalg.inv(full + np.diag(damping))
     close(Minv, want, 1e-10)
     close(free, want @ (passive - bias), 1e-10)
@@ -324,19 +325,21 @@ def test_fused_obstacle_rows_are_their_pieces_bit_for_bit(make_env, guard):
     pairs = len(sensed) * s_count
     p, v, c, slide = (np.zeros((pairs, 3)) for _ in range(4))
     G, t = np.zeros((pairs, 3, nv)), np.zeros((len(sensed), s_count))
-    K.closest_relative(arm.ends[:s_count], arm.ends_ab, arm.a_dot_ab, arm.length2, u.obstacle_pos[sensed],
-                       u.obstacle_vel[sensed], u.obstacle_acc[sensed], p, v, c, G, slide, t)
+    axes = _dynamics.CapsuleAxes(arm.ends[:s_count], arm.ends_ab, arm.a_dot_ab, arm.length2)
+    _dynamics.closest_relative(axes, u.obstacle_pos[sensed], u.obstacle_vel[sensed], u.obstacle_acc[sensed],
+                               _dynamics.ClosestPoints(p, v, c, G, slide, t))
     r = ((u.obstacle_radius[sensed][:, None] + arm.capsule_radius[None]) + params.margin).reshape(-1)
     barriers = [("c3bf", params.gamma)] + ([] if guard is None else [("guard", params.guard_gamma2)])
     for i, (kind, gain) in enumerate(barriers):
         h, drift, grad_v, grad_p = np.zeros(pairs), np.zeros(pairs), np.zeros((pairs, 3)), np.zeros((pairs, 3))
         inside = np.zeros(pairs, bool)
         if kind == "c3bf":
-            K.c3bf_terms(p, v, r, params.gamma, params.p1, params.p2, h, grad_v, drift, inside, grad_p)
+            terms = BarrierTerms(h, grad_v, drift, inside, grad_p)
+            _rows.c3bf_terms(p, v, r, params.gamma, params.p1, params.p2, terms)
         else:
-            K.hocbf_terms(p, v, r, params.guard_gamma1, h, grad_v, drift, inside, grad_p)
+            _rows.hocbf_terms(p, v, r, params.guard_gamma1, BarrierTerms(h, grad_v, drift, inside, grad_p))
         A_ref, b_ref = np.zeros((pairs, nv)), np.zeros(pairs)
-        K.rows_from_terms(grad_v, drift, h, gain, G, c, A_ref, b_ref)
+        _rows.rows_from_terms(grad_v, drift, h, gain, G, c, A_ref, b_ref)
         b_ref = [bk - (gp[0] * sl[0] + gp[1] * sl[1] + gp[2] * sl[2])
                  for bk, gp, sl in zip(b_ref.tolist(), grad_p.tolist(), slide.tolist())]
         np.testing.assert_array_equal(A[i:len(barriers) * pairs:len(barriers)], A_ref)
@@ -379,15 +382,15 @@ def test_hook_post():
     residual_hat = ((A * scale) @ u - b) / norm  # what solve_rows leaves in qp.residual
     tau_nom = np.array([3.0, -0.5, -2.0])
     tau = np.zeros(3)
-    residual, correction = K.hook_post(b, norm, residual_hat, u, scale, tau_nom, limit, tau)
+    residual, correction = _step.hook_post(b, norm, residual_hat, u, scale, tau_nom, limit, tau)
     close(tau, u * scale)
     assert residual == pytest.approx((A @ (u * scale) - b).min(), rel=1e-12)
     assert correction == pytest.approx(np.linalg.norm(u * scale - np.clip(tau_nom, -limit, limit)), rel=1e-14)
     # a row no torque can change (norm 0) counts -b_k, whatever its residual entry holds
     lowest = int(np.argmin(A @ (u * scale) - b))
     norm[lowest], b[lowest] = 0.0, 1e3
-    assert K.hook_post(b, norm, residual_hat, u, scale, tau_nom, limit, tau)[0] == -1e3
-    assert K.hook_post(np.zeros(0), np.zeros(0), np.zeros(0), u, scale, tau_nom, limit, tau)[0] == np.inf
+    assert _step.hook_post(b, norm, residual_hat, u, scale, tau_nom, limit, tau)[0] == -1e3
+    assert _step.hook_post(np.zeros(0), np.zeros(0), np.zeros(0), u, scale, tau_nom, limit, tau)[0] == np.inf
 
 
 def test_kernels_are_cached_on_disk():
@@ -397,8 +400,9 @@ def test_kernels_are_cached_on_disk():
 
     from c3bf_gym.safety import _daqp
 
-    dispatchers = [f for module in (K, _daqp) for f in vars(module).values() if isinstance(f, CPUDispatcher)]
-    assert len(dispatchers) >= 15 and _daqp.solve_rows in dispatchers
+    modules = (_dynamics, _rows, _qp, _step, _daqp)
+    dispatchers = [f for module in modules for f in vars(module).values() if isinstance(f, CPUDispatcher)]
+    assert len(dispatchers) >= 15 and _qp.solve_rows in dispatchers
     assert all(not isinstance(f._cache, NullCache) for f in dispatchers)
 
 
@@ -431,7 +435,7 @@ def test_a_subclass_changing_only_gamma_is_honoured_on_the_fused_path(make_env):
 def test_a_barrier_row_may_give_way_only_within_its_raised_gain():
     """beyond_allowance: a barrier row at h > 0 may give way by (γ_max − γ) h (in ḣ's units:
     violation × row norm); not at h <= 0, and no other row may give way at all."""
-    from c3bf_gym.safety._kernels import beyond_allowance
+    from c3bf_gym.safety._step import beyond_allowance
 
     gains = np.array([5.0, 25.0])  # γ, γ_max: allowance 20 h
     norm = np.array([2.0, 2.0, 3.0])  # barrier, guard (stride 2), floor

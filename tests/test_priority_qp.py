@@ -1,5 +1,5 @@
-"""The filter's QP (c3bf_gym/safety/priority_qp.py, DAQP through c3bf_gym/safety/_daqp.py): against proxsuite
-(the independent oracle) on random feasible problems, by priority on infeasible ones, and in closed
+"""The filter's QP (c3bf_gym/safety/priority_qp.py and _qp.py, DAQP through _daqp.py): against
+proxsuite (the independent oracle) on random feasible problems, by priority on infeasible ones, and in closed
 loop the joint-speed bound that the former weighted relaxation let go (the safety-core issue's
 defect 3)."""
 
@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from c3bf_gym import SafetyFilter
-from c3bf_gym.safety import _kernels
-from c3bf_gym.safety._daqp import RELAXED
+from c3bf_gym.safety import _step
+from c3bf_gym.safety._qp import RELAXED
 from c3bf_gym.safety.controller import ROW_KINDS
 from c3bf_gym.safety.priority_qp import PriorityQP
 
@@ -290,6 +290,6 @@ def test_violations_are_folded_by_the_kind_row_kinds_names(name):
         return hook.report.violation
 
     assert fold() == want
-    floor = _kernels.T_VIOLATION + ROW_KINDS.index("floor")
+    floor = _step.T_VIOLATION + ROW_KINDS.index("floor")
     hook._tally.values[floor] = held = want["floor"] + 1.0  # an earlier physics step of the step gave way more
     assert fold() == {**want, "floor": held}

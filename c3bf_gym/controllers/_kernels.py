@@ -5,8 +5,8 @@
   forces (the module docstring of :mod:`c3bf_gym.controllers.impedance` has the math);
   :func:`critical_damping`: its damping matrix for a given task inertia.
 * :func:`impedance_substep`: the same law on an arm's ``MjData`` between ``mj_step1`` and
-  ``mj_step2``: ``(M + h D)⁻¹`` (:func:`c3bf_gym.safety._kernels.step_inverse`, on a new state),
-  the tool site's Jacobian, velocity and ``J̇ q̇`` (:func:`c3bf_gym.safety._kernels.point_dynamics`),
+  ``mj_step2``: ``(M + h D)⁻¹`` (:func:`c3bf_gym.safety._dynamics.step_inverse`, on a new state),
+  the tool site's Jacobian, velocity and ``J̇ q̇`` (:func:`c3bf_gym.safety._dynamics.point_dynamics`),
   then :func:`impedance_law`. The environment's compiled policy step calls it at every physics
   step (:func:`c3bf_gym.envs._kernels.impedance_steps`), and so does
   :class:`~c3bf_gym.wrappers.ImpedanceHook` from Python.
@@ -27,7 +27,7 @@ import numpy as np
 from numba import njit
 
 from c3bf_gym._compile_cache import STEP_KERNEL_OPTIONS  # (before any @njit(cache=True): the cache keys)
-from c3bf_gym.safety._kernels import point_dynamics, step_inverse
+from c3bf_gym.safety._dynamics import ArmMotion, SparseMass, point_dynamics, step_inverse
 
 __all__ = ["ImpedanceGains", "ImpedanceWork", "TaskState", "Target", "ToolSite", "critical_damping",
            "impedance_law", "impedance_substep"]  # fmt: skip
@@ -115,7 +115,7 @@ class ToolSite(NamedTuple):
         pos: (3,) the site's position, a view of ``data.site_xpos`` [m].
         chain: (1, nv) 1.0 for the dofs that move the site's body, else 0.0.
         zero: (nv,) zeros: with them in place of the free joint acceleration,
-            :func:`~c3bf_gym.safety._kernels.point_dynamics` gives ``J̇ q̇`` itself.
+            :func:`~c3bf_gym.safety._dynamics.point_dynamics` gives ``J̇ q̇`` itself.
         packed: (1, 3, 3 + nv) and ``jac`` (1, 3, nv): scratch of ``point_dynamics``.
     """
 
@@ -321,22 +321,23 @@ def impedance_substep(stage, arm, site, gains, target, work, tau):
     """:func:`impedance_law` on the arm's current ``MjData`` (after ``mj_step1``), into ``tau``
     (n,) [N m].
 
-    ``arm``: the filter's :class:`~c3bf_gym.safety._kernels.ArmArrays` (views of the ``MjData``
+    ``arm``: the filter's :class:`~c3bf_gym.safety._dynamics.ArmArrays` (views of the ``MjData``
     and the arm's ``Minv``, ``qacc_free``); with ``stage`` 2 (a state whose dynamics are not yet
     computed) ``Minv = (M + h D)⁻¹`` and ``qacc_free`` are refreshed first
-    (:func:`~c3bf_gym.safety._kernels.step_inverse`), otherwise they are read as they are.
+    (:func:`~c3bf_gym.safety._dynamics.step_inverse`), otherwise they are read as they are.
     ``site``: :class:`ToolSite`; its Jacobian ``J``, velocity ``J q̇`` and ``J̇ q̇`` come from
-    :func:`~c3bf_gym.safety._kernels.point_dynamics` (MuJoCo's ``cdof`` and ``cdof_dot``: the
+    :func:`~c3bf_gym.safety._dynamics.point_dynamics` (MuJoCo's ``cdof`` and ``cdof_dot``: the
     values of ``mj_jacSite`` and ``mj_jacDot``, to rounding). The torque is the total joint torque
     (bias forces included), the law's ``M⁻¹`` the integrator's ``(M + h D)⁻¹``.
     """
     if stage >= 2:
-        step_inverse(arm.M, arm.M_rowadr, arm.M_rownnz, arm.M_colind, arm.damping, arm.qfrc_passive, arm.qfrc_bias,
-                     arm.factor, arm.Minv, arm.qacc_free)
+        step_inverse(SparseMass(arm.M, arm.M_rowadr, arm.M_rownnz, arm.M_colind), arm.damping, arm.qfrc_passive,
+                     arm.qfrc_bias, arm.factor, arm.Minv, arm.qacc_free)
     packed = site.packed
     for i in range(3):
         packed[0, i, 0] = site.pos[i]
-    point_dynamics(site.chain, arm.cdof, arm.cdof_dot, arm.com, arm.qvel, arm.Minv, site.zero, packed, site.jac)
+    point_dynamics(site.chain, ArmMotion(arm.cdof, arm.cdof_dot, arm.com, arm.qvel, arm.Minv, site.zero), packed,
+                   site.jac)
     state = TaskState(arm.qpos, arm.qvel, packed[0, :, 0], packed[0, :, 1], site.jac[0], packed[0, :, 2], arm.Minv,
                       arm.qfrc_bias)
     impedance_law(gains, state, target, work, tau)

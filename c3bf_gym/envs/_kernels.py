@@ -31,7 +31,7 @@ from numba import njit
 from c3bf_gym._compile_cache import KERNEL_OPTIONS, STEP_KERNEL_OPTIONS  # (before any @njit: the cache keys)
 from c3bf_gym._capi import call_void
 from c3bf_gym.controllers._kernels import impedance_substep
-from c3bf_gym.safety._kernels import hook_substep
+from c3bf_gym.safety._step import hook_substep
 
 __all__ = ["Drive", "Observed", "Physics", "departed", "entry", "filtered_steps", "impedance_steps", "observe",
            "physics_steps"]  # fmt: skip
@@ -111,36 +111,9 @@ def physics_steps(physics, n):
     return lowest
 
 
-@njit(**STEP_KERNEL_OPTIONS)
-def filtered_steps(physics, n, torque, gravity, ctrl, inv_limit, tau_nom, tau, effort_rows, stage, hook, halt):
-    """``n`` physics steps as :func:`physics_steps`, each under the safety filter: the nominal
-    total torque ``torque + gravity`` (the gravity compensation ``data.qfrc_gravcomp``, current
-    for the state about to be integrated) goes through
-    :func:`c3bf_gym.safety._kernels.hook_substep` with the filter's arguments ``hook`` (the first
-    call at ``stage``, every later one on a new state at 2), ``ctrl`` becomes the filtered torque
-    minus gravity, and row ``s`` of ``effort_rows`` that control over the limits (``ctrl *
-    inv_limit``). ``tau_nom`` and ``tau`` (n,) are scratch.
-
-    Stops before integrating a call whose status is invalid input (< 0) or, with ``halt``,
-    infeasible (> 0). Returns ``(physics steps done, smallest distance reading, last status)``.
-    """
-    lowest = physics.cutoff
-    status = 0
-    for s in range(n):
-        for j in range(torque.shape[0]):
-            tau_nom[j] = torque[j] + gravity[j]
-        status = hook_substep(stage if s == 0 else 2, tau_nom, tau, *hook)
-        if status < 0 or (halt and status > 0):
-            return s, lowest, status
-        for j in range(torque.shape[0]):
-            ctrl[j] = tau[j] - gravity[j]
-            effort_rows[s, j] = ctrl[j] * inv_limit[j]
-        lowest = _advance(physics, lowest)
-    return n, lowest, status
-
-
 class Drive(NamedTuple):
-    """The torque side of :func:`impedance_steps`: views of the environment's arrays, made once.
+    """The torque side of :func:`filtered_steps` and :func:`impedance_steps`: views of the
+    environment's arrays, made once.
 
     Attributes:
         gravity: (n,) ``data.qfrc_gravcomp``, the gravity compensation MuJoCo adds [N m].
@@ -159,12 +132,41 @@ class Drive(NamedTuple):
 
 
 @njit(**STEP_KERNEL_OPTIONS)
+def filtered_steps(physics, n, torque, drive, stage, hook, halt):
+    """``n`` physics steps as :func:`physics_steps`, each under the safety filter: the nominal
+    total torque ``torque + drive.gravity`` (the gravity compensation ``data.qfrc_gravcomp``,
+    current for the state about to be integrated; :class:`Drive`) goes through
+    :func:`c3bf_gym.safety._step.hook_substep` with the filter's buffers ``hook``
+    (:class:`~c3bf_gym.safety._step.StepBuffers`; the first call at ``stage``, every later one on
+    a new state at 2), ``drive.ctrl`` becomes the filtered torque minus gravity, and row ``s`` of
+    ``drive.effort_rows`` that control over the limits (``ctrl * inv_limit``).
+
+    Stops before integrating a call whose status is invalid input (< 0) or, with ``halt``,
+    infeasible (> 0). Returns ``(physics steps done, smallest distance reading, last status)``.
+    """
+    lowest = physics.cutoff
+    status = 0
+    gravity, ctrl, inv_limit, tau_nom, tau, effort_rows = drive
+    for s in range(n):
+        for j in range(torque.shape[0]):
+            tau_nom[j] = torque[j] + gravity[j]
+        status = hook_substep(stage if s == 0 else 2, tau_nom, tau, hook)
+        if status < 0 or (halt and status > 0):
+            return s, lowest, status
+        for j in range(torque.shape[0]):
+            ctrl[j] = tau[j] - gravity[j]
+            effort_rows[s, j] = ctrl[j] * inv_limit[j]
+        lowest = _advance(physics, lowest)
+    return n, lowest, status
+
+
+@njit(**STEP_KERNEL_OPTIONS)
 def impedance_steps(physics, n, drive, nominal, stage, hook, halt):
     """``n`` physics steps as :func:`physics_steps`, each under the Cartesian impedance controller
     and, unless ``hook`` is None, the safety filter behind it: the nominal total torque is
     :func:`c3bf_gym.controllers._kernels.impedance_substep` with the arguments ``nominal`` (its
     ``stage`` at the first call, 2 on every later, new, state: it refreshes the arm's ``Minv``
-    itself), ``hook`` (the filter's arguments, as :func:`filtered_steps`) filters it, with stage at
+    itself), ``hook`` (the filter's buffers, as :func:`filtered_steps`) filters it, with stage at
     most 1 (``Minv`` is current), and ``drive.ctrl`` becomes the (filtered) torque minus gravity
     (:class:`Drive`).
 
@@ -182,7 +184,7 @@ def impedance_steps(physics, n, drive, nominal, stage, hook, halt):
             for j in range(tau_nom.shape[0]):
                 ctrl[j] = tau_nom[j] - gravity[j]
         else:
-            status = hook_substep(min(first, 1), tau_nom, tau, *hook)
+            status = hook_substep(min(first, 1), tau_nom, tau, hook)
             if status < 0 or (halt and status > 0):
                 return s, lowest, status
             for j in range(tau.shape[0]):

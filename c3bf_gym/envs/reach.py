@@ -733,8 +733,7 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
     def _simulate_filtered(self, torque: np.ndarray, stage: int, hook: tuple, halt: bool) -> tuple[float, float]:
         """:meth:`_simulate` with the filter's calls compiled in (``SafetyController.compiled_substeps``
         gave ``stage``, ``hook`` and ``halt``); the effort is summed here, as in the hooks' loop."""
-        args = (self._physics, self.frame_skip, torque, self._gravcomp, self._ctrl, self._inv_limit,
-                *self._filter_scratch, stage, hook, halt)
+        args = (self._physics, self.frame_skip, torque, self._drive, stage, hook, halt)
         run = self._filtered_steps
         if run is None or run[0] is not hook:  # compiled for this filter's argument types, once
             run = self._filtered_steps = (hook, entry(filtered_steps, *args))

@@ -1,16 +1,11 @@
-"""DAQP, the filter's QP solver, called from compiled (numba) code through its C API.
+"""DAQP, the filter's QP solver, as compiled (numba) code reaches it: the binding to its C API and
+the workspaces' setup, nothing of the filter's problem (which :mod:`c3bf_gym.safety._qp` states
+and solves through :func:`daqp_call`).
 
 DAQP (Arnström, Bemporad, Axehill, IEEE TAC 2022; ``pip install daqp``, MIT licence) is a dual
-active-set solver for small dense QPs. The filter solves, at every physics step, in the scaled
-torque ``u = τ / s``::
-
-    minimise    ½ ‖u − u_nom‖²
-    subject to  u_min ≤ u ≤ u_max            (the torque limits: always hard)
-                â_k u ≥ b̂_k,  k = 1 … m     (the safety rows, each normalised: ‖â_k‖ = 1)
-
-and, when no ``u`` in the box satisfies every row, the same rows *by priority*
-(:func:`solve_rows`): DAQP's hierarchical mode satisfies each priority level as well as the
-levels above it allow (least squares of its rows' violations), then minimises the cost.
+active-set solver for small dense QPs ``min ½ xᵀ H x + fᵀ x`` subject to bounds and general rows,
+optionally in levels of priority (its hierarchical mode: each level is satisfied as well as the
+levels above it allow).
 
 How the C API is reached. The ``daqp`` wheel ships no separate library: its extension module
 exports the C API's symbols (``setup_daqp``, ``daqp_update_ldp``, ``daqp_solve``, ...). ctypes
@@ -30,7 +25,6 @@ ABI DAQP promises: importing this module with another daqp version raises ``Impo
 from __future__ import annotations
 
 import ctypes as ct
-import math
 import weakref
 from importlib.metadata import PackageNotFoundError, version
 from typing import NamedTuple
@@ -43,7 +37,7 @@ from numba.extending import intrinsic
 from c3bf_gym._compile_cache import STEP_KERNEL_OPTIONS  # (before any @njit(cache=True): the cache keys)
 from c3bf_gym._capi import call_void
 
-__all__ = ["DAQP_VERSION", "DaqpBuffers", "DaqpWorkspace", "EXIT_FLAGS"]
+__all__ = ["DAQP_VERSION", "DaqpBuffers", "DaqpWorkspace", "EXIT_FLAGS", "daqp_call"]
 
 #: the daqp release whose struct layouts are declared here
 DAQP_VERSION = "0.11.0"
@@ -260,255 +254,3 @@ def daqp_call(buffers, mask):
         return flag, 0
     call_void(addr[ADDR_SOLVE], addr[ADDR_RESULT], addr[ADDR_WORK])  # daqp_solve(result, work)
     return buffers.result[RESULT_EXITFLAG], buffers.result[RESULT_ITER]
-
-
-# ----------------------------------------------------------------------------- the filter's QP, compiled
-
-#: :func:`solve_rows` outcomes: every row held; rows gave way by priority; DAQP found no torque even
-#: by priority (the box projection of the nominal torque is applied and reported); invalid input
-SOLVED, RELAXED, FAILED = 0, 1, 2
-BAD_NOMINAL, BAD_ROWS = -1, -2
-#: rows whose coefficients (times the scale) are shorter than this cannot change with the torque
-ROW_NORM_MIN = 1e-12
-#: [row-normalised] a row counts as held (and, at the bound, as active) within this
-ACTIVE_TOL = 1e-6
-#: [row-normalised] a prioritised answer that violates a row by more than this proves that no
-#: torque satisfies every row. DAQP's soft levels leave a feasible level's rows violated by
-#: ``rho_soft · λ`` (1e-6 times the row's multiplier), far below it.
-INFEASIBLE_TOL = 1e-3
-
-
-class QPBuffers(NamedTuple):
-    """Everything :func:`solve_rows` works in, allocated once by
-    :class:`~c3bf_gym.safety.priority_qp.PriorityQP`.
-
-    Attributes:
-        plain: the one-level workspace (every row hard), warm-started call to call.
-        hier: the prioritised workspace, solved when ``plain`` is infeasible, warm-started from
-            its own previous solve's working set: level 1's rows first, then level 2's (the
-            barrier's), its problem and break points sized to the rows in use at every solve.
-        capacity: int64 (2,) the row capacity of the two levels (0: the workspace has no such
-            level).
-        lo, hi: (n,) the box of ``u``.
-        u: (n,) the solution.
-        norm: (rows,) each row's norm ``‖A_k s‖`` (0: left out).
-        residual: (rows,) each row's normalised residual ``â_k u − b̂_k`` at the solution (> −tol:
-            held); for a zero row, ``−b_k``.
-        cold: int64 (2,) 1: the next solve of ``plain`` (``cold[0]``) or ``hier`` (``cold[1]``)
-            starts from an empty working set (then 0).
-        last: int64 (1,) the previous call's status (:data:`SOLVED`, :data:`RELAXED`, ...).
-    """
-
-    plain: DaqpBuffers
-    hier: DaqpBuffers
-    capacity: np.ndarray
-    lo: np.ndarray
-    hi: np.ndarray
-    u: np.ndarray
-    norm: np.ndarray
-    residual: np.ndarray
-    cold: np.ndarray
-    last: np.ndarray
-
-
-@njit(**STEP_KERNEL_OPTIONS)
-def _clear(buffers, start, stop):
-    """Rows ``start`` … ``stop`` of a workspace become unused (zero, no bound)."""
-    n = buffers.x.shape[0]
-    for k in range(start, stop):
-        for j in range(n):
-            buffers.A[k, j] = 0.0
-        buffers.lower[n + k] = -INF
-
-
-@njit(**STEP_KERNEL_OPTIONS)
-def solve_rows(tau_nom, A, b, scale, cols, n_obstacle_rows, stride, qp):
-    """The filter's QP (module docstring) for the rows ``A[:, cols] τ ≥ b`` (``A`` (m, k), ``cols``
-    (n,): the columns of the torque's dofs among ``A``'s ``k``) and nominal torque ``tau_nom``
-    (n,), in ``u = τ / scale``; the solution goes to ``qp.u`` (:class:`QPBuffers`).
-
-    1. Rows are scaled (``A_k s``) and normalised; a row shorter than :data:`ROW_NORM_MIN` cannot
-       change with the torque: with ``b_k ≤ 0`` it holds, with ``b_k > 0`` it can never hold
-       (``impossible``, its ``b_k``). Both are left out of the solves.
-    2. All rows hard (``qp.plain``, its problem sized to the ``m`` rows: DAQP reads none past
-       them), warm-started from its previous solve's working set. If DAQP finds the optimum and
-       every row holds within :data:`ACTIVE_TOL`, that is the answer (:data:`SOLVED`).
-    3. Otherwise, by priority (:data:`RELAXED`, ``qp.hier``): level 1 holds the rows that are not
-       the barrier's (the guard's, the floor's, the joint limits'), level 2 the barrier's: rows
-       ``k < n_obstacle_rows`` with ``k % stride == 0``; its problem too is sized to the rows in
-       use. Warm-started from its own previous solve's working set, and once more from an empty
-       one if that fails. If it fails too, ``u`` is the box projection of ``u_nom``
-       (:data:`FAILED`).
-
-    Right after a call that was not solved, step 3 comes first: if its answer violates some row
-    by more than :data:`INFEASIBLE_TOL`, no torque satisfies every row (else both levels would
-    hold up to DAQP's soft tolerance), so that answer stands without step 2. Otherwise step 2
-    runs as usual. The answer is the same either way; a run of calls with no safe torque just
-    does not prove infeasibility again at every call.
-
-    After ``qp.cold[:] = 1`` (a reset), both solves start from an empty working set and the
-    first call takes step 2 first, so a sequence of calls after a reset depends on nothing
-    before it.
-
-    Returns ``(status, iterations, active rows, slack)``: slack the largest normalised violation
-    (or impossible ``b_k``), 0 when solved.
-    """
-    n = tau_nom.shape[0]
-    m = b.shape[0]
-    plain = qp.plain
-    for j in range(n):
-        u_nom = tau_nom[j] / scale[j]
-        if not math.isfinite(u_nom):
-            return BAD_NOMINAL, 0, 0, 0.0
-        plain.f[j] = -u_nom
-    impossible = 0.0
-    for k in range(m):
-        sq = 0.0
-        for j in range(n):
-            a = A[k, cols[j]] * scale[j]
-            plain.A[k, j] = a
-            sq += a * a
-        norm = math.sqrt(sq)
-        if not (math.isfinite(norm) and math.isfinite(b[k])):
-            return BAD_ROWS, 0, 0, 0.0
-        if norm < ROW_NORM_MIN:
-            qp.norm[k] = 0.0
-            for j in range(n):
-                plain.A[k, j] = 0.0
-            plain.lower[n + k] = -INF
-            impossible = max(impossible, b[k])
-            continue
-        qp.norm[k] = norm
-        for j in range(n):
-            plain.A[k, j] /= norm
-        plain.lower[n + k] = b[k] / norm
-    plain.problem[PROBLEM_M] = n + m
-    status = SOLVED
-    iterations = 0
-    by_priority = -1  # the prioritised solve's exit flag (-1: not run)
-    if qp.last[0] != SOLVED and not qp.cold[0]:
-        by_priority, iterations = _solve_by_priority(qp, m, n_obstacle_rows, stride)
-        if by_priority >= 1 and _residuals(plain, qp, m) < -INFEASIBLE_TOL:
-            status = RELAXED
-    if status == SOLVED:
-        mask = UPDATE_M | UPDATE_V | UPDATE_D
-        if qp.cold[0]:
-            qp.cold[0] = 0
-            for i in range(plain.sense.shape[0]):
-                plain.sense[i] = 0
-            mask |= UPDATE_SENSE
-        flag, more = daqp_call(plain, mask)
-        iterations += more
-        if flag >= 1:
-            for j in range(n):
-                qp.u[j] = min(max(plain.x[j], qp.lo[j]), qp.hi[j])
-            if _residuals(plain, qp, m) < -ACTIVE_TOL:
-                flag = -1  # DAQP's answer does not hold every row: solve by priority
-        if flag < 1:
-            status = RELAXED
-            if by_priority < 0:
-                by_priority, more = _solve_by_priority(qp, m, n_obstacle_rows, stride)
-                iterations += more
-            if by_priority >= 1:
-                for j in range(n):
-                    qp.u[j] = min(max(qp.hier.x[j], qp.lo[j]), qp.hi[j])
-            else:
-                status = FAILED
-                for j in range(n):
-                    qp.u[j] = min(max(-plain.f[j], qp.lo[j]), qp.hi[j])
-            _residuals(plain, qp, m)
-        elif impossible > 0.0:
-            status = RELAXED
-    qp.last[0] = status
-    n_active = 0
-    slack = impossible
-    for k in range(m):
-        if qp.norm[k] == 0.0:
-            qp.residual[k] = -b[k] if b[k] > 0.0 else 0.0
-            continue
-        if qp.residual[k] <= ACTIVE_TOL:
-            n_active += 1
-        if status != SOLVED:
-            slack = max(slack, -qp.residual[k])
-    return status, iterations, n_active, slack
-
-
-@njit(**STEP_KERNEL_OPTIONS)
-def _barrier_row(k, n_obstacle_rows, stride):
-    """Whether row ``k`` is the barrier's, of priority 2 (:func:`solve_rows`, step 3)."""
-    return k < n_obstacle_rows and k % stride == 0
-
-
-@njit(**STEP_KERNEL_OPTIONS)
-def _solve_by_priority(qp, m, n_obstacle_rows, stride):
-    """Step 3 of :func:`solve_rows` on the rows ``qp.plain`` holds (scaled and normalised):
-    returns ``(exit flag, iterations)``; on success (flag ≥ 1) ``qp.u`` is the answer, clipped
-    to the box."""
-    plain, hier = qp.plain, qp.hier
-    n = plain.x.shape[0]
-    # The problem is sized to the rows in use, level by level (DAQP reads its break_points, hier.levels,
-    # at every solve): level 1's rows first, then level 2's. A level the workspace has keeps at least
-    # one row, a zero one (which DAQP ignores) when it has none this call.
-    count1 = count2 = 0
-    for k in range(m):
-        if qp.norm[k] != 0.0:
-            if _barrier_row(k, n_obstacle_rows, stride):
-                count2 += 1
-            else:
-                count1 += 1
-    size1 = max(count1, 1) if qp.capacity[0] > 0 else 0
-    size2 = max(count2, 1) if qp.capacity[1] > 0 else 0
-    _clear(hier, count1, size1)
-    _clear(hier, size1 + count2, size1 + size2)
-    level, end = 1, n
-    for size in (size1, size2):
-        if size > 0:
-            end += size
-            hier.levels[level] = end
-            level += 1
-    hier.problem[PROBLEM_M] = end
-    i1, i2 = 0, size1
-    for k in range(m):
-        if qp.norm[k] == 0.0:
-            continue
-        if _barrier_row(k, n_obstacle_rows, stride):
-            i = i2
-            i2 += 1
-        else:
-            i = i1
-            i1 += 1
-        for j in range(n):
-            hier.A[i, j] = plain.A[k, j]
-        hier.lower[n + i] = plain.lower[n + k]
-    for j in range(n):
-        hier.f[j] = plain.f[j]
-    flag, iterations = 0, 0
-    if not qp.cold[1]:
-        flag, iterations = daqp_call(hier, UPDATE_M | UPDATE_V | UPDATE_D)
-    if flag < 1:  # cold, or the warm start failed: again from an empty working set
-        qp.cold[1] = 0
-        for i in range(hier.sense.shape[0]):
-            hier.sense[i] = 0
-        flag, more = daqp_call(hier, UPDATE_M | UPDATE_V | UPDATE_D | UPDATE_SENSE)
-        iterations += more
-    if flag >= 1:
-        for j in range(n):
-            qp.u[j] = min(max(hier.x[j], qp.lo[j]), qp.hi[j])
-    return flag, iterations
-
-
-@njit(**STEP_KERNEL_OPTIONS)
-def _residuals(plain, qp, m):
-    """``qp.residual[k] = â_k u − b̂_k`` for the first ``m`` (normalised) rows; returns their minimum
-    over the rows that are not left out (inf without one)."""
-    n = qp.u.shape[0]
-    low = np.inf
-    for k in range(m):
-        if qp.norm[k] == 0.0:
-            continue
-        acc = 0.0
-        for j in range(n):
-            acc += plain.A[k, j] * qp.u[j]
-        qp.residual[k] = acc - plain.lower[n + k]
-        low = min(low, qp.residual[k])
-    return low

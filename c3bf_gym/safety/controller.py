@@ -20,7 +20,7 @@ configurations the project compares. At every physics step (between ``mj_step1``
    (:class:`~c3bf_gym.safety.barriers.JointLimits`). The obstacle and floor rows are tightened for
    the forces the filter cannot predict, each bounded
    (:attr:`~c3bf_gym.safety.RobotDescription.unmodelled_force`: joint dry friction, the actuators of
-   dofs that are not the arm's, such as a gripper's): :func:`~c3bf_gym.safety._kernels.unmodelled_margin`;
+   dofs that are not the arm's, such as a gripper's): :func:`~c3bf_gym.safety._rows.unmodelled_margin`;
 5. :class:`~c3bf_gym.safety.priority_qp.PriorityQP` (DAQP) returns the torque closest to the
    nominal one (in the metric ``weight``) that satisfies every row within the actuator limits.
    When none does, the rows give way by priority: the barrier's rows first, while the joint
@@ -30,11 +30,11 @@ configurations the project compares. At every physics step (between ``mj_step1``
 
 Steps 1–4 for ``whole_arm`` with the built-in barriers (:class:`~c3bf_gym.safety.barriers.C3BF`,
 :class:`~c3bf_gym.safety.barriers.DistanceHOCBF`, and a distance-HOCBF guard) are one compiled kernel,
-:func:`c3bf_gym.safety._kernels.hook_rows_whole_arm`, built from the same per-point functions the
+:func:`c3bf_gym.safety._rows.hook_rows_whole_arm`, built from the same per-point functions the
 barrier classes and :class:`~c3bf_gym.safety.dynamics.ArmModel` call; other barriers (or ``points="ee"``)
 go through ``Barrier.terms`` and ``rows_from_terms`` and give the same rows. On the fused path the
 rows, the QP and the report's bookkeeping are one compiled call
-(:func:`c3bf_gym.safety._kernels.hook_substep`), which an environment may also call from its own
+(:func:`c3bf_gym.safety._step.hook_substep`), which an environment may also call from its own
 compiled policy step (:meth:`SafetyController.compiled_substeps`; ``C3BFReachEnv`` does). Why each
 of these choices was made, with the measurements and the commands that repeat them:
 ``docs/design-decisions.md``.
@@ -52,7 +52,7 @@ import numba
 import numpy as np
 
 from c3bf_gym._capi import pack
-from c3bf_gym.safety import _daqp, _kernels
+from c3bf_gym.safety import _qp, _rows, _step
 from c3bf_gym.safety.barriers import JointLimits, Rows
 from c3bf_gym.safety.dynamics import ArmModel, segment_closest_points
 from c3bf_gym.safety.envelope import EnvelopeWarning, FilterEnvelope, filter_envelope
@@ -82,8 +82,8 @@ ROW_KINDS = ("barrier", "guard", "floor", "joint_limits", "unmovable")
 
 _perf_counter = time.perf_counter
 #: :attr:`SafetyController.last`'s status names: the QP's, and a relaxed call that held every row
-#: with the barrier's gain raised (:data:`~c3bf_gym.safety._kernels.GAIN_RAISED`)
-_STATUS = {**STATUS, _kernels.GAIN_RAISED: "gain raised"}
+#: with the barrier's gain raised (:data:`~c3bf_gym.safety._step.GAIN_RAISED`)
+_STATUS = {**STATUS, _step.GAIN_RAISED: "gain raised"}
 
 
 class SafetyInfeasibleError(RuntimeError):
@@ -117,14 +117,14 @@ class StepSafety:
             a guard, floor, joint-limit or unmovable row gave way, or a barrier row at ``h <= 0``,
             or one at ``h > 0`` by more than ``(γ_max − γ) h`` (the condition ``ḣ ≥ −γ' h`` failed
             for every gain ``γ'`` up to ``γ_max`` = :data:`RAISED_GAIN_STEP` / Δt;
-            :func:`~c3bf_gym.safety._kernels.beyond_allowance`). On these steps the guarantee does
+            :func:`~c3bf_gym.safety._step.beyond_allowance`). On these steps the guarantee does
             not hold.
         gain_raised_steps: number of physics steps where only barrier rows gave way, each within
             that allowance: every row held, the barrier's with a gain between γ and ``γ_max``.
         min_constraint: the smallest row residual ``A τ − b`` at the applied torque (the QP
             constraint value: >= 0 when every row holds) [row units]; inf with no row. Taken
             from the QP's row-normalised residuals times the rows' norms
-            (:func:`~c3bf_gym.safety._kernels.hook_post`).
+            (:func:`~c3bf_gym.safety._step.hook_post`).
         violation: what gave way: for each of :data:`ROW_KINDS`, the largest row-normalised
             violation ``(b_k − A_k τ) / ‖A_k s‖`` over the step's infeasible physics steps [N m
             in the scaled torque], 0.0 where none (for "unmovable", the violated ``b_k``). In
@@ -293,7 +293,7 @@ class SafetyController:
         self._unmodelled = np.ascontiguousarray(robot.unmodelled_force, dtype=np.float64)
         self._capsule_radius = self.arm.capsule_radius
         # The whole-arm rows of the built-in barriers come from one compiled kernel
-        # (c3bf_gym.safety._kernels.hook_rows_whole_arm, sharing the barrier classes' per-point code);
+        # (c3bf_gym.safety._rows.hook_rows_whole_arm, sharing the barrier classes' per-point code);
         # any other barrier or points="ee" goes through Barrier.terms / rows_from_terms.
         spec = getattr(barrier, "fused_spec", None)
         spec = spec() if spec is not None and points == "whole_arm" else None
@@ -301,7 +301,7 @@ class SafetyController:
         guard_gains = (0.0, 0.0)
         if guard is not None:
             guard_spec = guard.fused_spec() if hasattr(guard, "fused_spec") else None
-            if guard_spec is not None and guard_spec[0] == _kernels.HOCBF_KIND:
+            if guard_spec is not None and guard_spec[0] == _rows.HOCBF_KIND:
                 guard_gains = (float(guard_spec[1][1]), float(guard_spec[1][0]))
             else:
                 spec = None
@@ -313,22 +313,22 @@ class SafetyController:
         else:
             jl = [np.ones(3), np.zeros(n), np.ones(n), np.ones(n)]
         self._floor_idx = self._floor_ends.astype(np.int64)
-        # the fused kernel's settings and obstacles (c3bf_gym.safety._kernels.hook_rows_whole_arm)
-        self._params = _kernels.RowParams(
+        # the fused kernel's settings and obstacles (c3bf_gym.safety._rows.hook_rows_whole_arm)
+        self._params = _rows.RowParams(
             int(kind), *map(float, params), *guard_gains, float(self.sensing_radius), float(self.margin),
             float(self.floor_gamma), self._floor_idx, self._floor_min, joint_limits is not None,
             *(np.ascontiguousarray(x, dtype=np.float64) for x in jl), self._dofs, self._qpos_ids, self._unmodelled,
         )
-        self._obstacle_arrays = _kernels.ObstacleArrays(obstacles.active, self._distances, obstacles.position,
-                                                        obstacles.velocity, obstacles.acceleration, obstacles.radius)
-        # the report's running values, in compiled code (_kernels.record); solve_time beside them
-        # the barrier's gain and the largest it may rise to (_kernels.beyond_allowance); a barrier
+        self._obstacle_arrays = _rows.ObstacleArrays(obstacles.active, self._distances, obstacles.position,
+                                                     obstacles.velocity, obstacles.acceleration, obstacles.radius)
+        # the report's running values, in compiled code (_step.record); solve_time beside them
+        # the barrier's gain and the largest it may rise to (_step.beyond_allowance); a barrier
         # without a gain gets no allowance
         gain = getattr(self.barrier, "gamma", None)
         limit_gain = RAISED_GAIN_STEP / model.opt.timestep
         gains = np.array([gain if isinstance(gain, float) else limit_gain, limit_gain])
-        self._tally = _kernels.Tally(np.zeros(_kernels.TALLY_SIZE), np.zeros(n), np.zeros(n), np.zeros(4),
-                                     np.zeros(max_rows), gains)
+        self._tally = _step.Tally(np.zeros(_step.TALLY_SIZE), np.zeros(n), np.zeros(n), np.zeros(4),
+                                  np.zeros(max_rows), gains)
         self._solve_time = 0.0
         self.begin_step()
         self._bound: tuple = ()  # hook_substep's arguments after the first three (_bind)
@@ -472,7 +472,7 @@ class SafetyController:
 
     def begin_step(self) -> None:
         """Start a new policy step's report."""
-        np.copyto(self._tally.values, _kernels.TALLY_START)
+        np.copyto(self._tally.values, _step.TALLY_START)
         self._solve_time = 0.0
 
     def rows(self) -> tuple[np.ndarray, np.ndarray, float, bool, int]:
@@ -481,7 +481,7 @@ class SafetyController:
         if self._refresh:
             obstacles.refresh(data)
         if self._fused:
-            m, min_h, inside, n_sensed = _kernels.hook_rows_whole_arm(
+            m, min_h, inside, n_sensed = _rows.hook_rows_whole_arm(
                 arm.claim(data, self._version()), arm.kernel_arrays(data), self._obstacle_arrays, self._params,
                 self._A, self._b, self._tally.row_h)
             return self._A[:m], self._b[:m], min_h, inside, n_sensed
@@ -526,7 +526,7 @@ class SafetyController:
             m = len(barriers) * len(p)
         if self._n_floor_rows:
             m += self._floor_rows(self._A[m:], self._b[m:])
-        _kernels.unmodelled_margin(self._A[:m], self._b[:m], self._unmodelled)
+        _rows.unmodelled_margin(self._A[:m], self._b[:m], self._unmodelled)
         if self.joint_limits is not None:
             self.joint_limits.rows(data.qpos, data.qvel, arm.Minv, arm.qacc_free, out=Rows(self._A[m:], self._b[m:]),
                                    dofs=self._dofs, qpos_ids=self._qpos_ids)
@@ -559,19 +559,20 @@ class SafetyController:
     def _floor_rows(self, A: np.ndarray, b: np.ndarray) -> int:
         """Rows keeping every capsule end ``z ≥ z_min`` (floor + radius + margin): the
         second-order barrier ``z̈ + 2γ ż + γ² (z − z_min) ≥ 0`` with ``z̈ = G_z τ + c_z``.
-        (The fused kernel's :func:`c3bf_gym.safety._kernels.floor_rows`.)"""
+        (The fused kernel's :func:`c3bf_gym.safety._rows.floor_rows`.)"""
         self.arm.end_dynamics()  # refreshes the packed capsule ends (arm._ends) if stale
         k = self._n_floor_rows
-        _kernels.floor_rows(self.arm._ends, self._floor_idx, self._floor_min, self.floor_gamma, A[:k], b[:k])
+        _rows.floor_rows(self.arm._ends, self._floor_idx, self._floor_min, self.floor_gamma, A[:k], b[:k])
         return k
 
     def _bind(self) -> tuple:
-        """The buffers :func:`c3bf_gym.safety._kernels.hook_substep` works in (env, arm, hook, QP and
+        """The buffers :func:`c3bf_gym.safety._step.hook_substep` works in (env, arm, hook, QP and
         tally; all allocated once by their constructors and updated in place) and the intervention
         tolerance, gathered once: fetching them attribute by attribute on every call cost more than
         the kernel's dispatch."""
-        self._bound = (self.arm.kernel_arrays(self.data), self._obstacle_arrays, self._params, self._A, self._b,
-                       self._scale, self._limit, self.qp.buffers, self._tally, float(self.intervention_tol))
+        self._bound = _step.StepBuffers(self.arm.kernel_arrays(self.data), self._obstacle_arrays, self._params,
+                                        self._A, self._b, self._scale, self._limit, self.qp.buffers, self._tally,
+                                        float(self.intervention_tol))
         self._hook_substep = None  # its entry point and handle, if any, were for the buffers before
         return self._bound
 
@@ -579,12 +580,12 @@ class SafetyController:
         """What :meth:`__call__` calls: a compiled entry point and its arguments after the first three,
         and the structure they point into (kept with them: the handle borrows its memory).
 
-        Normally the entry point of :func:`~c3bf_gym.safety._kernels.hook_substep_at` for exactly
+        Normally the entry point of :func:`~c3bf_gym.safety._step.hook_substep_at` for exactly
         :meth:`_bind`'s buffers, with their handle (:func:`c3bf_gym._capi.pack`) and numba type:
         one array crosses into compiled code instead of every buffer, which numba would convert
         one by one (the speed page). When the buffers include an array ``pack`` cannot describe
         (obstacle arrays given as strided views of a simulator's state), the entry point of
-        :func:`~c3bf_gym.safety._kernels.hook_substep` itself, with the buffers: the same torques.
+        :func:`~c3bf_gym.safety._step.hook_substep` itself, with the buffers: the same torques.
         Called directly, an entry point skips the dispatcher's type resolution. The types are
         fixed: fresh C-contiguous float64 (n,) arrays tau_nom and tau (:meth:`__call__` checks the
         shape: the entry point takes any array as the type it was compiled for) and a Python int
@@ -595,16 +596,16 @@ class SafetyController:
         bound = self._bound or self._bind()
         try:
             arguments = (pack(bound), numba.typeof(bound))
-            kernel = _kernels.hook_substep_at
+            kernel = _step.hook_substep_at
         except ValueError:  # an array pack() cannot describe
-            arguments, kernel = bound, _kernels.hook_substep
+            arguments, kernel = (bound,), _step.hook_substep
         entry = kernel.compile(tuple(numba.typeof(a) for a in (0, vec, vec, *arguments)))
         self._hook_substep = (entry, arguments, bound)
         return self._hook_substep
 
     def compiled_substeps(self, version: int) -> tuple[int, tuple, bool] | None:
         """For a caller that runs a whole policy step in compiled code (``C3BFReachEnv``): the
-        arguments of :func:`c3bf_gym.safety._kernels.hook_substep` after its first three, the
+        buffers of :func:`c3bf_gym.safety._step.hook_substep` (its last argument), the
         ``stage`` of the first call (the arm's dynamics for state ``version``; every later call
         is on a new state, stage 2), and whether an infeasible call must stop the step
         (``on_infeasible="raise"``). None when every call must come through :meth:`__call__`:
@@ -616,7 +617,7 @@ class SafetyController:
         return self.arm.claim(self.data, version), bound, self.on_infeasible == "raise"
 
     def compiled_substeps_done(self, status: int, version: int) -> None:
-        """After compiled calls of :func:`c3bf_gym.safety._kernels.hook_substep` (see
+        """After compiled calls of :func:`c3bf_gym.safety._step.hook_substep` (see
         :meth:`compiled_substeps`), the last on state ``version`` with ``status``: the arm's
         dynamics are marked current for that state, :attr:`last` describes that call (its
         ``solve_time`` NaN: the calls were not timed, nor is :attr:`report`'s ``solve_time``),
@@ -647,12 +648,12 @@ class SafetyController:
             A, b, min_h, inside, n_sensed = self.rows()
             m = len(b)
             qp = self.qp.buffers
-            status, iterations, active, slack = _daqp.solve_rows(
+            status, iterations, active, slack = _qp.solve_rows(
                 tau_nom, A, b, self._scale, self._dofs, self._low_priority_span(m), self._stride, qp)
             if status >= 0:
                 # τ = u s, the smallest row residual A τ − b and ‖τ − clip(τ_nom)‖ (the filter's change)
-                residual, correction = _kernels.hook_post(b, qp.norm[:m], qp.residual[:m], qp.u, self._scale, tau_nom,
-                                                          self._limit, tau)
+                residual, correction = _step.hook_post(b, qp.norm[:m], qp.residual[:m], qp.u, self._scale, tau_nom,
+                                                       self._limit, tau)
                 status = self._record(status, m, min_h, inside, n_sensed, iterations, active, slack, residual,
                                       correction, tau_nom, tau)
         elapsed = _perf_counter() - start
@@ -666,14 +667,13 @@ class SafetyController:
     def _record(self, status: int, m: int, min_h: float, inside: bool, n_sensed: int, iterations: int, active: int,
                 slack: float, residual: float, correction: float, tau_nom: np.ndarray, tau: np.ndarray) -> int:
         """Fold one solved call of :meth:`rows`' ``m`` rows into the report
-        (:func:`c3bf_gym.safety._kernels.record`, with this filter's row layout; the fused kernel
+        (:func:`c3bf_gym.safety._step.record`, with this filter's row layout; the fused kernel
         does the same in compiled code). Returns the status as the fused kernel does: a call
         that held every row with the barrier's gain raised as solved."""
-        outcome = _kernels.record(self._tally, status, m, min_h, inside, n_sensed, iterations, active, slack,
-                                  residual, correction, tau_nom, tau, self.qp.buffers,
-                                  m - self._n_floor_rows - self._n_joint_rows, self._stride, self._n_floor_rows,
-                                  self.intervention_tol)  # fmt: skip
-        return _daqp.SOLVED if outcome == _kernels.GAIN_RAISED else outcome
+        call = _step.CallSummary(status, m, min_h, inside, n_sensed, iterations, active, slack, residual, correction)
+        layout = _step.RowLayout(m - self._n_floor_rows - self._n_joint_rows, self._stride, self._n_floor_rows)
+        outcome = _step.record(self._tally, call, tau_nom, tau, self.qp.buffers, layout, self.intervention_tol)
+        return _qp.SOLVED if outcome == _step.GAIN_RAISED else outcome
 
     def _settle(self, status: int, elapsed: float) -> None:
         """After a call (or compiled calls) with ``status``: raise on invalid input; keep the
@@ -682,12 +682,12 @@ class SafetyController:
         report recorded first)."""
         raise_bad_input(status)
         self._last_time = elapsed
-        if status != _daqp.SOLVED and self.on_infeasible == "raise":
+        if status != _qp.SOLVED and self.on_infeasible == "raise":
             values = self._tally.values
-            violation = dict(zip(ROW_KINDS, values[_kernels.T_VIOLATION:].tolist()))
+            violation = dict(zip(ROW_KINDS, values[_step.T_VIOLATION:].tolist()))
             raise SafetyInfeasibleError(
                 f"no torque within the limits satisfies the safety rows (status {STATUS[status]!r}, largest "
-                f"violation by kind {self._violation_text(violation)}, min h {values[_kernels.T_MIN_H]:.3g}); pass "
+                f"violation by kind {self._violation_text(violation)}, min h {values[_step.T_MIN_H]:.3g}); pass "
                 "on_infeasible='relax' to let the rows give way by priority instead"
             )
 
@@ -702,7 +702,7 @@ class SafetyController:
             return None
         status, iterations, active, slack = self._tally.last.tolist()
         status = int(status)
-        return QPResult(self.qp.buffers.u, slack, status in (_daqp.SOLVED, _kernels.GAIN_RAISED), _STATUS[status],
+        return QPResult(self.qp.buffers.u, slack, status in (_qp.SOLVED, _step.GAIN_RAISED), _STATUS[status],
                         int(iterations), int(active),
                         self._last_time)
 
@@ -711,23 +711,23 @@ class SafetyController:
         """The :class:`StepSafety` of the calls since :meth:`begin_step` (a new object at every
         read: keep it, it does not follow later calls)."""
         values = self._tally.values.tolist()  # Python floats: one conversion, not one per entry
-        substeps = int(values[_kernels.T_SUBSTEPS])
-        infeasible = int(values[_kernels.T_INFEASIBLE_STEPS])
+        substeps = int(values[_step.T_SUBSTEPS])
+        infeasible = int(values[_step.T_INFEASIBLE_STEPS])
         return StepSafety(
-            feasible=infeasible == 0, slack=values[_kernels.T_SLACK], min_h=values[_kernels.T_MIN_H],
-            correction=values[_kernels.T_CORRECTION], active_rows=int(values[_kernels.T_ACTIVE_ROWS]),
-            sensed=int(values[_kernels.T_SENSED]), solve_time=self._solve_time,
-            intervened=bool(values[_kernels.T_INTERVENED]), inside=bool(values[_kernels.T_INSIDE]),
-            infeasible_steps=infeasible, gain_raised_steps=int(values[_kernels.T_GAIN_RAISED_STEPS]),
-            min_constraint=values[_kernels.T_MIN_CONSTRAINT], substeps=substeps,
+            feasible=infeasible == 0, slack=values[_step.T_SLACK], min_h=values[_step.T_MIN_H],
+            correction=values[_step.T_CORRECTION], active_rows=int(values[_step.T_ACTIVE_ROWS]),
+            sensed=int(values[_step.T_SENSED]), solve_time=self._solve_time,
+            intervened=bool(values[_step.T_INTERVENED]), inside=bool(values[_step.T_INSIDE]),
+            infeasible_steps=infeasible, gain_raised_steps=int(values[_step.T_GAIN_RAISED_STEPS]),
+            min_constraint=values[_step.T_MIN_CONSTRAINT], substeps=substeps,
             tau_nominal=self._tally.tau_nominal.copy() if substeps else None,
             tau=self._tally.tau.copy() if substeps else None,
-            violation=dict(zip(ROW_KINDS, values[_kernels.T_VIOLATION:])),
+            violation=dict(zip(ROW_KINDS, values[_step.T_VIOLATION:])),
         )
 
     def _low_priority_span(self, m: int) -> int:
-        """:func:`~c3bf_gym.safety._kernels.low_priority_span` of :meth:`rows`' ``m`` rows."""
-        return _kernels.low_priority_span(m, self._n_floor_rows + self._n_joint_rows, self.guard is not None)
+        """:func:`~c3bf_gym.safety._step.low_priority_span` of :meth:`rows`' ``m`` rows."""
+        return _step.low_priority_span(m, self._n_floor_rows + self._n_joint_rows, self.guard is not None)
 
     def row_kinds(self, m: int) -> list[str]:
         """The kind (:data:`ROW_KINDS`, "unmovable" aside) of each of :meth:`rows`' ``m`` rows."""

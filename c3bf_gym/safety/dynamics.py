@@ -10,7 +10,7 @@ gives the translational Jacobian column of dof ``j`` on the body's chain as
 
 (the same expressions as ``mj_jac`` and ``mj_jacDot``, which the tests compare against). The
 per-step work (these sums, the factorisation of ``M + h D``, the closest points) runs in compiled
-kernels (:mod:`c3bf_gym.safety._kernels`): at this size the cost of numpy is its per-call overhead.
+kernels (:mod:`c3bf_gym.safety._dynamics`): at this size the cost of numpy is its per-call overhead.
 
 The joint acceleration is the one the next physics step integrates, not the continuous-time
 ``M⁻¹ f``. MuJoCo's Euler integrator treats joint damping ``D`` implicitly (unless
@@ -33,7 +33,7 @@ from typing import NamedTuple
 import mujoco
 import numpy as np
 
-from c3bf_gym.safety import _kernels
+from c3bf_gym.safety import _dynamics
 from c3bf_gym.safety.geometry import Capsule, protected_capsule, world_segments
 
 __all__ = ["ArmModel", "PointDynamics", "segment_closest_points"]
@@ -215,8 +215,9 @@ class ArmModel:
         self._ends_current = False
         self._data = data
         v = self.views(data)
-        _kernels.step_inverse(v.M, self._M_rowadr, self._M_rownnz, self._M_colind, self.implicit_damping,
-                              v.qfrc_passive, v.qfrc_bias, self._factor, self.Minv, self.qacc_free)
+        mass = _dynamics.SparseMass(v.M, self._M_rowadr, self._M_rownnz, self._M_colind)
+        _dynamics.step_inverse(mass, self.implicit_damping, v.qfrc_passive, v.qfrc_bias, self._factor, self.Minv,
+                               self.qacc_free)
 
     def views(self, data: mujoco.MjData) -> _DataViews:
         """The arrays of ``data`` the kernels read, fetched once per ``MjData`` (MuJoCo never
@@ -229,11 +230,11 @@ class ArmModel:
             self._views_of = data
         return self._views
 
-    def kernel_arrays(self, data: mujoco.MjData) -> _kernels.ArmArrays:
+    def kernel_arrays(self, data: mujoco.MjData) -> _dynamics.ArmArrays:
         """The arrays of this arm and of ``data`` that the fused filter kernels read and write
-        (:class:`~c3bf_gym.safety._kernels.ArmArrays`; views, valid while both live)."""
+        (:class:`~c3bf_gym.safety._dynamics.ArmArrays`; views, valid while both live)."""
         v = self.views(data)
-        return _kernels.ArmArrays(
+        return _dynamics.ArmArrays(
             v.M, v.qfrc_passive, v.qfrc_bias, v.geom_xpos, v.geom_xmat, v.xpos, v.xmat, v.cdof, v.cdof_dot, v.com,
             v.qpos, v.qvel, self._capsule_ids, self.capsule_body, self._M_rowadr, self._M_rownnz, self._M_colind,
             self.implicit_damping,
@@ -253,7 +254,7 @@ class ArmModel:
         if self._ends_current:
             return
         self._ends_current = True
-        _kernels.capsule_ends(self.kernel_arrays(self._data))
+        _dynamics.capsule_ends(self.kernel_arrays(self._data))
 
     def end_dynamics(self) -> PointDynamics:
         """:class:`PointDynamics` (views) of both ends of every capsule axis: rows ``0 … S-1``
@@ -264,7 +265,7 @@ class ArmModel:
         return self._unpack(self._ends[None])
 
     def claim(self, data: mujoco.MjData, version: int | None = None) -> int:
-        """For a fused kernel (:func:`c3bf_gym.safety._kernels.hook_rows_whole_arm`) that refreshes the
+        """For a fused kernel (:func:`c3bf_gym.safety._rows.hook_rows_whole_arm`) that refreshes the
         dynamics itself, in this object's arrays: which parts are stale, 2 (``Minv``,
         ``qacc_free`` and the capsule ends), 1 (the ends) or 0 (none), with :meth:`update`'s
         caching on ``version``. Marks them current: the caller must compute them now."""
@@ -322,9 +323,10 @@ class ArmModel:
         as_f64 = np.ascontiguousarray
         p, v, c, slide_p = np.empty((4, k * s, 3))
         G = np.empty((k * s, 3, nv))
-        _kernels.closest_relative(self._ends_a, self._ends_ab, self._a_dot_ab, self._length2,
-                                  as_f64(centres, dtype=np.float64), as_f64(velocities, dtype=np.float64),
-                                  as_f64(accelerations, dtype=np.float64), p, v, c, G, slide_p, np.empty((k, s)))
+        axes = _dynamics.CapsuleAxes(self._ends_a, self._ends_ab, self._a_dot_ab, self._length2)
+        _dynamics.closest_relative(axes, as_f64(centres, dtype=np.float64), as_f64(velocities, dtype=np.float64),
+                                   as_f64(accelerations, dtype=np.float64),
+                                   _dynamics.ClosestPoints(p, v, c, G, slide_p, np.empty((k, s))))
         return PointDynamics(p, v, None, G, c), slide_p
 
     def site_dynamics(self, data: mujoco.MjData) -> PointDynamics:

@@ -1,28 +1,8 @@
-"""The filter's QP: the torque closest to the nominal one that keeps every safety row, by priority.
-
-In the scaled torque ``u = τ / s`` (``s`` the controller's scale, so the box is
-``u_min ≤ u ≤ u_max``)::
-
-    minimise    ½ ‖u − u_nom‖²
-    subject to  â_k u ≥ b̂_k   (the rows A_k s u ≥ b_k divided by ‖A_k s‖: residuals in N·m)
-                u_min ≤ u ≤ u_max
-
-solved by DAQP (:mod:`c3bf_gym.safety._daqp`), a dual active-set solver for small dense QPs, from
-compiled code. When no ``u`` in the box satisfies every row, the rows give way **by priority,
-not by weights**: DAQP's hierarchical mode satisfies each level as well as the levels above it
-allow (least squares of the level's violations), and only then minimises the cost. The levels:
-
-0. the torque box: hard;
-1. the joint position and speed limits, the floor and the distance guard;
-2. the barrier's rows beside a guard (the C3BF's in the default filter), which give way first.
-
-So with a guard the joint-speed bound holds whenever some torque within the limits can hold it
-together with the floor and the guard. A filter without a guard has no level 2: its barrier's
-rows are the only ones keeping obstacles off, so they share level 1 with the joint limits and the
-floor, and a conflict spreads over all of them (least squares of the normalised violations). Rows whose scaled coefficients are all (numerically) zero cannot change
-with the torque: with ``b_k ≤ 0`` they hold; with ``b_k > 0`` (a link the joints cannot move,
-headed for by an obstacle) they can never hold, and are left out of the solve with their ``b_k``
-counted in ``slack``.
+"""The filter's QP as a Python object: :class:`PriorityQP` sets up the two DAQP workspaces once
+(:mod:`c3bf_gym.safety._daqp`) and solves with the compiled priority algorithm
+:func:`c3bf_gym.safety._qp.solve_rows`, whose module states the problem: the torque closest to the
+nominal one within the torque box that keeps every safety row, the rows giving way by priority
+(joint limits, floor and guard before the barrier's rows) when no torque keeps them all.
 """
 
 from __future__ import annotations
@@ -32,12 +12,12 @@ from typing import NamedTuple
 
 import numpy as np
 
-from c3bf_gym.safety import _daqp
+from c3bf_gym.safety import _daqp, _qp
 
 __all__ = ["PriorityQP", "QPResult"]
 
-#: :attr:`QPResult.status` by :func:`c3bf_gym.safety._daqp.solve_rows` outcome
-STATUS = {_daqp.SOLVED: "solved", _daqp.RELAXED: "relaxed", _daqp.FAILED: "failed"}
+#: :attr:`QPResult.status` by :func:`c3bf_gym.safety._qp.solve_rows` outcome
+STATUS = {_qp.SOLVED: "solved", _qp.RELAXED: "relaxed", _qp.FAILED: "failed"}
 
 
 class QPResult(NamedTuple):
@@ -67,7 +47,7 @@ class QPResult(NamedTuple):
 
 
 class PriorityQP:
-    """The filter's QP (module docstring) on DAQP, with workspaces set up once.
+    """The filter's QP (:mod:`c3bf_gym.safety._qp`) on DAQP, with workspaces set up once.
 
     Args:
         n: number of joints.
@@ -91,16 +71,16 @@ class PriorityQP:
         self._plain = _daqp.DaqpWorkspace(n, rows, self.tau_min, self.tau_max)
         self._hier = _daqp.DaqpWorkspace(n, rows, self.tau_min, self.tau_max, break_points=points)
         self.max_rows = rows
-        self.buffers = _daqp.QPBuffers(self._plain.buffers, self._hier.buffers,
-                                       np.array([level1_rows, level2_rows], np.int64), self.tau_min, self.tau_max,
-                                       np.zeros(n), np.zeros(max(rows, 1)), np.zeros(max(rows, 1)),
-                                       np.ones(2, np.int64), np.zeros(1, np.int64))
+        self.buffers = _qp.QPBuffers(self._plain.buffers, self._hier.buffers,
+                                     np.array([level1_rows, level2_rows], np.int64), self.tau_min, self.tau_max,
+                                     np.zeros(n), np.zeros(max(rows, 1)), np.zeros(max(rows, 1)),
+                                     np.ones(2, np.int64), np.zeros(1, np.int64))
 
     def reset(self) -> None:
         """Forget the warm start: the next solve starts from an empty working set, so a sequence
         of solves after a reset gives the same answers, bit for bit, whatever came before."""
         self.buffers.cold[:] = 1
-        self.buffers.last[0] = _daqp.SOLVED
+        self.buffers.last[0] = _qp.SOLVED
 
     def __reduce__(self):
         """Pickled as its arguments: the copy sets up its own DAQP workspaces (cold)."""
@@ -133,16 +113,16 @@ class PriorityQP:
             raise ValueError(f"{m} rows exceed the {self.max_rows} this QP was built for")
         if n_obstacle_rows is None:
             n_obstacle_rows = m
-        code, iterations, active, slack = _daqp.solve_rows(tau_nom, A, b, scale, self._cols, int(n_obstacle_rows),
-                                                           int(stride), self.buffers)
+        code, iterations, active, slack = _qp.solve_rows(tau_nom, A, b, scale, self._cols, int(n_obstacle_rows),
+                                                         int(stride), self.buffers)
         raise_bad_input(code)
-        return QPResult(self.buffers.u, slack, code == _daqp.SOLVED, STATUS[code], iterations, active,
+        return QPResult(self.buffers.u, slack, code == _qp.SOLVED, STATUS[code], iterations, active,
                         time.perf_counter() - start)
 
 
 def raise_bad_input(code: int) -> None:
-    """Turn :func:`c3bf_gym.safety._daqp.solve_rows`' invalid-input codes into ``ValueError``."""
-    if code == _daqp.BAD_NOMINAL:
+    """Turn :func:`c3bf_gym.safety._qp.solve_rows`' invalid-input codes into ``ValueError``."""
+    if code == _qp.BAD_NOMINAL:
         raise ValueError("tau_nom contains NaN or inf")
-    if code == _daqp.BAD_ROWS:
+    if code == _qp.BAD_ROWS:
         raise ValueError("the safety rows contain NaN or inf (the state or the obstacles are not finite)")

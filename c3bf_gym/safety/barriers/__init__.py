@@ -7,7 +7,7 @@ Obstacle barriers (per arm point, see :mod:`.base`):
 
 and :class:`JointLimits` for joint position/velocity boxes. All produce
 :class:`Rows` ``A @ tau >= b``. The arithmetic runs in compiled kernels
-(:mod:`c3bf_gym.safety._kernels`).
+(:mod:`c3bf_gym.safety._rows`).
 """
 
 from __future__ import annotations

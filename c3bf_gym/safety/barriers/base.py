@@ -16,7 +16,7 @@ assembly lives once, vectorised, in :meth:`Barrier.rows`.
 
 Units: positions in m, velocities in m/s, accelerations in m/s², torques in N·m
 (or whatever unit ``G`` maps from). The per-point arithmetic runs in compiled kernels
-(:mod:`c3bf_gym.safety._kernels`), which the filter's fused kernel shares.
+(:mod:`c3bf_gym.safety._rows`), which the filter's fused kernel shares.
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ from typing import ClassVar, NamedTuple
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .. import _kernels
+from .. import _rows
 
 __all__ = [
     "Barrier",
@@ -231,6 +231,6 @@ class Barrier(abc.ABC):
 
         A, b = row_buffers(out, n_pts, n)
         # compiled: A_k = grad_v_k G_k, b_k = −(⟨grad_v_k, c_k⟩ + drift_k + γ h_k)
-        _kernels.rows_from_terms(contiguous(grad_v), contiguous(drift), contiguous(h), float(self.gamma),
-                                 contiguous(G), contiguous(c), A, b)
+        _rows.rows_from_terms(contiguous(grad_v), contiguous(drift), contiguous(h), float(self.gamma),
+                              contiguous(G), contiguous(c), A, b)
         return Rows(A, b)

@@ -7,7 +7,7 @@ from typing import ClassVar
 import numpy as np
 from numpy.typing import ArrayLike
 
-from .. import _kernels
+from .. import _rows
 from .base import Barrier, BarrierTerms, check_points, contiguous, radii, require_positive
 
 __all__ = ["C3BF"]
@@ -93,16 +93,17 @@ class C3BF(Barrier):
         n_pts = p.shape[0]
         h, drift, inside = np.empty(n_pts), np.empty(n_pts), np.empty(n_pts, dtype=bool)
         grad_v, grad_p = np.empty((n_pts, 3)), np.empty((n_pts, 3))
-        _kernels.c3bf_terms(contiguous(p), contiguous(v), radii(r, n_pts), float(self.gamma), float(self.eps), self.delta,
-                            h, grad_v, drift, inside, grad_p)
-        return BarrierTerms(h, grad_v, drift, inside, grad_p)
+        terms = BarrierTerms(h, grad_v, drift, inside, grad_p)
+        _rows.c3bf_terms(contiguous(p), contiguous(v), radii(r, n_pts), float(self.gamma), float(self.eps), self.delta,
+                         terms)
+        return terms
 
     def fused_spec(self) -> tuple[int, np.ndarray] | None:
-        """``(kind, params)`` of the filter's fused kernel (:mod:`c3bf_gym.safety._kernels`), or None
+        """``(kind, params)`` of the filter's fused kernel (:mod:`c3bf_gym.safety._rows`), or None
         for a subclass that changes :meth:`terms`. The parameters are read through the public
         properties (:attr:`gamma`, :attr:`eps`, :attr:`delta`), as :meth:`terms` and
         :meth:`rows_from_terms` read them, so a subclass that overrides one is honoured on both
         paths."""
         if type(self).terms is not C3BF.terms:
             return None
-        return _kernels.C3BF_KIND, np.array([float(self.gamma), float(self.eps), float(self.delta)])
+        return _rows.C3BF_KIND, np.array([float(self.gamma), float(self.eps), float(self.delta)])

@@ -7,7 +7,7 @@ from typing import ClassVar
 import numpy as np
 from numpy.typing import ArrayLike
 
-from .. import _kernels
+from .. import _rows
 from .base import (
     Barrier,
     BarrierTerms,
@@ -91,16 +91,16 @@ class DistanceHOCBF(Barrier):
         n_pts = p.shape[0]
         h, drift, inside = np.empty(n_pts), np.empty(n_pts), np.empty(n_pts, dtype=bool)
         grad_v, grad_p = np.empty((n_pts, 3)), np.empty((n_pts, 3))
-        _kernels.hocbf_terms(contiguous(p), contiguous(v), radii(r, n_pts), float(self.gamma1),
-                             h, grad_v, drift, inside, grad_p)
-        return BarrierTerms(h, grad_v, drift, inside, grad_p)
+        terms = BarrierTerms(h, grad_v, drift, inside, grad_p)
+        _rows.hocbf_terms(contiguous(p), contiguous(v), radii(r, n_pts), float(self.gamma1), terms)
+        return terms
 
     def fused_spec(self) -> tuple[int, np.ndarray] | None:
-        """``(kind, params)`` of the filter's fused kernel (:mod:`c3bf_gym.safety._kernels`), or None
+        """``(kind, params)`` of the filter's fused kernel (:mod:`c3bf_gym.safety._rows`), or None
         for a subclass that changes :meth:`terms`. The gains are read through the public
         properties (:attr:`gamma`, the row's γ₂, and :attr:`gamma1`), as :meth:`terms` and
         :meth:`rows_from_terms` read them, so a subclass that overrides one is honoured on both
         paths."""
         if type(self).terms is not DistanceHOCBF.terms:
             return None
-        return _kernels.HOCBF_KIND, np.array([float(self.gamma), float(self.gamma1), 0.0])
+        return _rows.HOCBF_KIND, np.array([float(self.gamma), float(self.gamma1), 0.0])

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike
 
-from .. import _kernels
+from .. import _rows
 from .base import FloatArray, Rows, contiguous, require_positive, row_buffers
 
 __all__ = ["JointLimits"]
@@ -81,6 +81,7 @@ class JointLimits:
         self._g1 = require_positive("gamma1", gamma1)
         self._g2 = require_positive("gamma2", gamma2)
         self._gv = require_positive("gamma_v", gamma_v)
+        self._gains = np.array([self._g1, self._g2, self._gv])
         for arr in (q_lo, q_hi, qd_arr):
             arr.flags.writeable = False
         self._q_lo, self._q_hi, self._qd_max = q_lo, q_hi, qd_arr
@@ -184,6 +185,6 @@ class JointLimits:
         qpos_ids = first if qpos_ids is None else qpos_ids
         A, b = row_buffers(out, m, Minv.shape[1])
         # compiled: A = [−Minv; Minv; −Minv; Minv], b from the expansions in __init__'s comment
-        _kernels.joint_limit_rows(q, qd, contiguous(Minv), c_q, dofs, qpos_ids, self._q_lo, self._q_hi, self._qd_max,
-                                  self._g1, self._g2, self._gv, A, b)
+        limits = _rows.JointLimitParams(dofs, qpos_ids, self._q_lo, self._q_hi, self._qd_max, self._gains)
+        _rows.joint_limit_rows(q, qd, contiguous(Minv), c_q, limits, A, b)
         return Rows(A, b)

@@ -1,0 +1,377 @@
+"""Compiled (numba) kernels of the safety rows ``A τ ≥ b``: the barriers' math at one point and
+the whole-arm filter's rows in one call. Imports the dynamics kernels (:mod:`c3bf_gym.safety._dynamics`)
+and nothing of the QP, so computing ``h`` or a row loads no solver.
+
+The filter runs at every physics step (500 Hz); at the arm's size (6 joints, 7 capsules: tens of
+numbers an array) numpy would spend its time in per-call overhead, so the kernels do the arithmetic
+in plain loops, compiled once by numba with :data:`~c3bf_gym._compile_cache.STEP_KERNEL_OPTIONS`
+(cached on disk, keyed on every kernel source by :mod:`c3bf_gym._compile_cache`; no allocation,
+no reference counting).
+
+Each piece of math lives once, in an inner ``@njit`` function that works on one point or one row;
+the classes of :mod:`c3bf_gym.safety.barriers` call it through small vectorised kernels, and the
+fused :func:`hook_rows_whole_arm` calls the same inner functions directly:
+
+* :func:`c3bf_terms`, :func:`hocbf_terms`, :func:`rows_from_terms`, :func:`joint_limit_rows`: the
+  barriers of :mod:`c3bf_gym.safety.barriers`; :func:`floor_rows`, :func:`unmodelled_margin`:
+  the controller's floor rows and the margin for forces it cannot predict.
+* :func:`hook_rows_whole_arm`: every row of the whole-arm filter in one call, reading
+  :class:`~c3bf_gym.safety._dynamics.ArmArrays`, :class:`ObstacleArrays` and :class:`RowParams`.
+
+The floating-point operations follow the numpy code they replace (same formulas, same order where
+it matters), so results agree with it to rounding (~1e-15 relative).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import numpy as np
+from numba import njit
+
+from c3bf_gym._compile_cache import STEP_KERNEL_OPTIONS  # (before any @njit(cache=True): the cache keys)
+from c3bf_gym.safety._dynamics import SparseMass, capsule_ends, closest_terms, step_inverse, surface_gap
+
+#: barrier kinds of the fused kernel
+C3BF_KIND = 0
+HOCBF_KIND = 1
+
+_opts = STEP_KERNEL_OPTIONS
+
+
+# ----------------------------------------------------------------------------- barriers at a point
+
+
+@njit(**_opts)
+def _c3bf_point(p, v, r, gamma, eps, delta):
+    """C3BF at one point (:class:`~c3bf_gym.safety.barriers.C3BF`), ``p``, ``v`` 3-tuples: returns
+    ``(h, drift, inside, grad_v, grad_p)``, the gradients 3-tuples."""
+    h0 = (p[0] * p[0] + p[1] * p[1] + p[2] * p[2]) - r * r
+    inside = h0 <= 0.0
+    pv = p[0] * v[0] + p[1] * v[1] + p[2] * v[2]
+    if inside:
+        h = pv + 0.5 * gamma * h0
+        grad_v = p
+        grad_p = (v[0] + gamma * p[0], v[1] + gamma * p[1], v[2] + gamma * p[2])
+    else:
+        s = math.sqrt(max(h0, delta * delta))
+        vv = v[0] * v[0] + v[1] * v[1] + v[2] * v[2]
+        vn = math.sqrt(vv + eps * eps)
+        h = vn * s + pv
+        sv = s / vn
+        vs = vn / s
+        grad_v = (v[0] * sv + p[0], v[1] * sv + p[1], v[2] * sv + p[2])
+        grad_p = (p[0] * vs + v[0], p[1] * vs + v[1], p[2] * vs + v[2])
+    drift = grad_p[0] * v[0] + grad_p[1] * v[1] + grad_p[2] * v[2]
+    return h, drift, inside, grad_v, grad_p
+
+
+@njit(**_opts)
+def _hocbf_point(p, v, r, gamma1):
+    """Distance HOCBF at one point (:class:`~c3bf_gym.safety.barriers.DistanceHOCBF`), ``p``, ``v``
+    3-tuples: returns ``(ψ₁, drift, inside, grad_v, grad_p)``, the gradients 3-tuples."""
+    h0 = (p[0] * p[0] + p[1] * p[1] + p[2] * p[2]) - r * r
+    pv2 = (p[0] * v[0] + p[1] * v[1] + p[2] * v[2]) * 2.0
+    h = h0 * gamma1 + pv2
+    drift = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]) * 2.0 + pv2 * gamma1
+    g2 = 2.0 * gamma1
+    grad_v = (2.0 * p[0], 2.0 * p[1], 2.0 * p[2])
+    grad_p = (p[0] * g2 + 2.0 * v[0], p[1] * g2 + 2.0 * v[1], p[2] * g2 + 2.0 * v[2])
+    return h, drift, h0 <= 0.0, grad_v, grad_p
+
+
+@njit(**_opts)
+def _vec3(x):
+    """The 3-tuple of a (3,) array's entries."""
+    return x[0], x[1], x[2]
+
+
+@njit(**_opts)
+def c3bf_terms(p, v, r, gamma, eps, delta, out):
+    """:func:`_c3bf_point` for P points: ``p, v`` (P, 3), ``r`` (P,) into ``out``
+    (:class:`~c3bf_gym.safety.barriers.BarrierTerms` of (P,) and (P, 3) arrays)."""
+    h, grad_v, drift, inside, grad_p = out
+    for k in range(p.shape[0]):
+        h[k], drift[k], inside[k], grad_v[k], grad_p[k] = _c3bf_point(_vec3(p[k]), _vec3(v[k]), r[k], gamma, eps,
+                                                                       delta)
+
+
+@njit(**_opts)
+def hocbf_terms(p, v, r, gamma1, out):
+    """:func:`_hocbf_point` for P points: ``p, v`` (P, 3), ``r`` (P,) into ``out``
+    (:class:`~c3bf_gym.safety.barriers.BarrierTerms` of (P,) and (P, 3) arrays)."""
+    h, grad_v, drift, inside, grad_p = out
+    for k in range(p.shape[0]):
+        h[k], drift[k], inside[k], grad_v[k], grad_p[k] = _hocbf_point(_vec3(p[k]), _vec3(v[k]), r[k], gamma1)
+
+
+@njit(**_opts)
+def _row_rhs(grad_v, c, drift, h, gamma):
+    """A torque row's ``b = −(⟨grad_v, c⟩ + drift + γ h)`` (``grad_v``, ``c`` 3-tuples)."""
+    return -(((grad_v[0] * c[0] + grad_v[1] * c[1] + grad_v[2] * c[2]) + drift) + gamma * h)
+
+
+@njit(**_opts)
+def _row(grad_v, G, c, drift, h, gamma, A_row):
+    """One torque row: ``A_row = grad_vᵀ G`` and returns its ``b`` (:func:`_row_rhs`)."""
+    for j in range(G.shape[1]):
+        A_row[j] = grad_v[0] * G[0, j] + grad_v[1] * G[1, j] + grad_v[2] * G[2, j]
+    return _row_rhs(grad_v, c, drift, h, gamma)
+
+
+@njit(**_opts)
+def _sliding_rhs(grad_v, grad_p, slide, c, drift, h, gamma):
+    """:func:`_row_rhs` for a closest point sliding by ``slide`` along its link: less the sliding
+    term ``⟨grad_p, slide⟩`` (3-tuples)."""
+    bk = _row_rhs(grad_v, c, drift, h, gamma)
+    return bk - (grad_p[0] * slide[0] + grad_p[1] * slide[1] + grad_p[2] * slide[2])
+
+
+@njit(**_opts)
+def _pair_rows(ends_a, ends_ab, s, tc, grads, A, m, both):
+    """The coefficients ``A[m] = grad_vᵀ G`` (and, with ``both``, ``A[m + 1] = grad_wᵀ G``;
+    ``grads`` is ``(grad_v, grad_w)``, 3-tuples) of the rows at the point ``tc`` of capsule
+    ``s``'s axis, ``G = G_a + tc (G_b − G_a)`` taken column by column as the rows need it (the
+    same arithmetic as :func:`~c3bf_gym.safety._dynamics._closest_pair`'s ``G`` and :func:`_row`,
+    without writing ``G`` out and reading it back)."""
+    grad_v, grad_w = grads
+    for j in range(A.shape[1]):
+        g0 = tc * ends_ab[s, 0, 3 + j] + ends_a[s, 0, 3 + j]
+        g1 = tc * ends_ab[s, 1, 3 + j] + ends_a[s, 1, 3 + j]
+        g2 = tc * ends_ab[s, 2, 3 + j] + ends_a[s, 2, 3 + j]
+        A[m, j] = grad_v[0] * g0 + grad_v[1] * g1 + grad_v[2] * g2
+        if both:
+            A[m + 1, j] = grad_w[0] * g0 + grad_w[1] * g1 + grad_w[2] * g2
+
+
+@njit(**_opts)
+def rows_from_terms(grad_v, drift, h, gamma, G, c, A, b):
+    """:func:`_row` for P points: ``G`` (P, 3, n), ``c`` (P, 3) into ``A`` (P, n), ``b`` (P,)."""
+    for k in range(h.shape[0]):
+        b[k] = _row(_vec3(grad_v[k]), G[k], _vec3(c[k]), drift[k], h[k], gamma, A[k])
+
+
+@njit(**_opts)
+def joint_limit_rows(q, qd, Minv, c_q, limits, A, b):
+    """The ``4n`` rows of :class:`~c3bf_gym.safety.barriers.JointLimits` into ``A`` (4n, k), ``b`` (4n,)
+    (row blocks: position upper, position lower, speed upper, speed lower) for the ``n`` joints of
+    ``limits`` (:class:`JointLimitParams`, or :class:`RowParams`, which has the same fields) at
+    dofs ``limits.dofs`` (rows of ``Minv`` (·, k), entries of ``qd``, ``c_q``) and ``qpos``
+    addresses ``limits.qpos_ids`` (entries of ``q``). An infinite limit's position row is
+    ``0 τ ≥ −1``."""
+    dofs, qpos_ids, q_lo, q_hi, qd_max = limits.dofs, limits.qpos_ids, limits.q_lo, limits.q_hi, limits.qd_max
+    g1, g2, gv = limits.joint_gains[0], limits.joint_gains[1], limits.joint_gains[2]
+    n = dofs.shape[0]
+    ncol = Minv.shape[1]
+    g12 = g1 * g2
+    g1p2 = g1 + g2
+    for i in range(n):
+        d = dofs[i]
+        for j in range(ncol):
+            mij = Minv[d, j]
+            A[i, j] = -mij
+            A[n + i, j] = mij
+            A[2 * n + i, j] = -mij
+            A[3 * n + i, j] = mij
+        qi, qdi, ci = q[qpos_ids[i]], qd[d], c_q[d]
+        b[i] = ((g12 * qi + g1p2 * qdi) + ci) + (-g12 * q_hi[i])
+        b[n + i] = ((-g12 * qi + -g1p2 * qdi) + -ci) + g12 * q_lo[i]
+        for k, limit in ((i, q_hi[i]), (n + i, q_lo[i])):  # none on that side (a continuous joint): 0 τ ≥ −1
+            if math.isinf(limit):
+                A[k, :ncol] = 0.0
+                b[k] = -1.0
+        b[2 * n + i] = (gv * qdi + ci) + (-gv * qd_max[i])
+        b[3 * n + i] = (-gv * qdi + -ci) + (-gv * qd_max[i])
+
+
+class JointLimitParams(NamedTuple):
+    """The joint limits as :func:`joint_limit_rows` reads them (the fields of :class:`RowParams`
+    it uses): ``dofs``, ``qpos_ids`` (n,) int64, the arm's dofs and their ``qpos`` addresses;
+    ``q_lo``, ``q_hi`` (n,) [rad] (±inf: none), ``qd_max`` (n,) [rad/s]; ``joint_gains`` (3,)
+    γ₁, γ₂, γ_v [1/s]."""
+
+    dofs: np.ndarray
+    qpos_ids: np.ndarray
+    q_lo: np.ndarray
+    q_hi: np.ndarray
+    qd_max: np.ndarray
+    joint_gains: np.ndarray
+
+
+@njit(**_opts)
+def floor_rows(ends, idx, z_min, gamma, A, b):
+    """Floor rows of :class:`~c3bf_gym.safety.SafetyController`: capsule end ``idx[k]`` of the packed
+    ``ends`` (2S, 3, 3 + nv) stays at ``z ≥ z_min[k]``, as the second-order barrier
+    ``z̈ + 2γ ż + γ² (z − z_min) ≥ 0`` with ``z̈ = G_z τ + c_z``: ``A_k = G_z``,
+    ``b_k = −γ² (z − z_min) − 2γ ż − c_z``."""
+    nv = A.shape[1]
+    for k in range(idx.shape[0]):
+        e = idx[k]
+        for j in range(nv):
+            A[k, j] = ends[e, 2, 3 + j]
+        b[k] = ((ends[e, 2, 0] - z_min[k]) * (-gamma * gamma) - 2.0 * gamma * ends[e, 2, 1]) - ends[e, 2, 2]
+
+
+@njit(**_opts)
+def unmodelled_margin(A, b, bound):
+    """Tighten rows ``A f ≥ b`` (m, nv), written for the generalised force ``f`` on every dof, for
+    forces the filter cannot predict: ``b_k += Σ_j |A_kj| bound_j``.
+
+    A force ``φ_j`` with ``|φ_j| ≤ bound_j`` (:attr:`~c3bf_gym.safety.RobotDescription.unmodelled_force`:
+    joint dry friction, the actuators of dofs that are not the arm's) enters every row as the
+    torque does, so ``A (τ + φ) ≥ b`` for every admissible ``φ`` exactly when the tightened row
+    holds at ``τ``. A no-op when every bound is 0.
+
+    The filter tightens the obstacle and floor rows, not the joint-limit rows: a joint's own
+    friction opposes its motion, so it never drives the joint towards a position or speed limit,
+    and the worst case over ``|φ_j| ≤ bound_j`` (a friction that accelerates a joint at rest) would
+    leave a light arm no torque for them (robosuite's Jaco at rest). The other dofs' forces reach
+    those rows only through the coupling of ``M⁻¹``, which they leave out."""
+    nv = bound.shape[0]
+    largest = 0.0
+    for j in range(nv):
+        largest = max(largest, bound[j])
+    if largest <= 0.0:
+        return
+    for k in range(b.shape[0]):
+        extra = 0.0
+        for j in range(nv):
+            extra += abs(A[k, j]) * bound[j]
+        b[k] += extra
+
+
+
+# ----------------------------------------------------------------------------- the whole arm's rows
+
+
+class ObstacleArrays(NamedTuple):
+    """The obstacles as the fused kernels read them (:class:`~c3bf_gym.safety.Obstacles`' arrays):
+    ``active`` (K,) bool; ``distances`` (K, G) their surface distances to the arm's geoms [m]
+    ((K, 0): none kept, the kernel measures them); ``position``, ``velocity``, ``acceleration``
+    (K, 3) [m, m/s, m/s²]; ``radius`` (K,) [m]."""
+
+    active: np.ndarray
+    distances: np.ndarray
+    position: np.ndarray
+    velocity: np.ndarray
+    acceleration: np.ndarray
+    radius: np.ndarray
+
+
+class RowParams(NamedTuple):
+    """The fused rows' settings (:class:`~c3bf_gym.safety.SafetyController` builds them once).
+
+    Attributes:
+        kind: :data:`C3BF_KIND` or :data:`HOCBF_KIND`, the barrier.
+        gamma, p1, p2: the barrier's gains (its ``fused_spec``): C3BF γ, ε, δ; HOCBF γ₂, γ₁, unused.
+        guard_gamma1, guard_gamma2: a distance-HOCBF guard's gains (0: no guard).
+        sensing_radius, margin: [m].
+        floor_gamma: the floor rows' gain [1/s]; ``floor_ends`` (F,) the capsule ends that get
+            one, ``floor_min`` (F,) their lowest allowed heights [m].
+        joint_rows: add the ``4 n`` joint-limit rows, with ``joint_gains`` (γ₁, γ₂, γ_v) and the
+            limits ``q_lo``, ``q_hi``, ``qd_max`` (n,).
+        dofs, qpos_ids: (n,) the arm's dofs and their ``qpos`` addresses.
+        unmodelled_force: (nv,) bounds of the forces the filter cannot predict (:func:`unmodelled_margin`).
+    """
+
+    kind: int
+    gamma: float
+    p1: float
+    p2: float
+    guard_gamma1: float
+    guard_gamma2: float
+    sensing_radius: float
+    margin: float
+    floor_gamma: float
+    floor_ends: np.ndarray
+    floor_min: np.ndarray
+    joint_rows: bool
+    joint_gains: np.ndarray
+    q_lo: np.ndarray
+    q_hi: np.ndarray
+    qd_max: np.ndarray
+    dofs: np.ndarray
+    qpos_ids: np.ndarray
+    unmodelled_force: np.ndarray
+
+
+@njit(**_opts)
+def hook_rows_whole_arm(stage, arm, obstacles, params, A, b, row_h):
+    """All rows of the whole-arm filter (:meth:`~c3bf_gym.safety.SafetyController.rows`) in one call.
+
+    1. ``stage`` 2: ``Minv``, ``qacc_free`` (:func:`~c3bf_gym.safety._dynamics.step_inverse`),
+       then (``stage`` ≥ 1) the capsule ends (:func:`~c3bf_gym.safety._dynamics.capsule_ends`),
+       into ``arm`` (:class:`~c3bf_gym.safety._dynamics.ArmArrays`).
+    2. For every sensed obstacle (:class:`ObstacleArrays`: active and ``distances[k].min() <=
+       sensing_radius``, or with ``distances`` of shape (K, 0) its surface distance to the
+       capsules), one row per capsule: closest point (:func:`~c3bf_gym.safety._dynamics.closest_terms`), barrier
+       ``params.kind`` (:func:`_c3bf_point` or :func:`_hocbf_point`), row (:func:`_sliding_rhs`,
+       with the sliding term ``−⟨grad_p, ṫ (b − a)⟩``, and :func:`_pair_rows`); with a guard
+       (``params.guard_gamma2 > 0``), the guard's row for the same point right after it.
+    3. The floor rows of the capsule ends ``params.floor_ends`` (:func:`floor_rows`).
+    4. With ``params.joint_rows``, the ``4 nv`` joint-limit rows (:func:`joint_limit_rows`).
+    Before the joint-limit rows, the obstacle and floor rows are tightened for the forces the
+    filter cannot predict (:func:`unmodelled_margin`).
+
+    The rows are written for the generalised force on every dof of the model (``A`` (·, nv)); the
+    QP reads the columns of the arm's dofs (``params.dofs``).
+
+    The rows go to ``A``, ``b``, and each barrier row's ``h`` to ``row_h`` at the row's index (the
+    guard's and the other rows' entries are left as they are). Returns ``(rows, min h of the
+    barrier's rows (not the guard's), any inside, sensed count)``.
+    """
+    s_count = arm.ends_ab.shape[0]
+    n = params.dofs.shape[0]
+    if stage >= 2:
+        step_inverse(SparseMass(arm.M, arm.M_rowadr, arm.M_rownnz, arm.M_colind), arm.damping, arm.qfrc_passive,
+                     arm.qfrc_bias, arm.factor, arm.Minv, arm.qacc_free)
+    if stage >= 1:
+        capsule_ends(arm)
+    ends_a = arm.ends[:s_count]
+    ends_ab, a_dot_ab, length2, capsule_radius = arm.ends_ab, arm.a_dot_ab, arm.length2, arm.capsule_radius
+    gamma = params.gamma
+    guard = params.guard_gamma2 > 0.0
+    distances = obstacles.distances
+    m = 0
+    n_sensed = 0
+    min_h = np.inf
+    inside_any = False
+    for k in range(obstacles.active.shape[0]):
+        if not obstacles.active[k]:
+            continue
+        dmin = np.inf
+        for g in range(distances.shape[1]):
+            dmin = min(dmin, distances[k, g])
+        if distances.shape[1] == 0:  # no distances kept by the obstacles' owner: to the capsules
+            dmin = surface_gap(ends_a, ends_ab, a_dot_ab, length2, capsule_radius, obstacles.position[k],
+                                obstacles.radius[k])
+        if not dmin <= params.sensing_radius:
+            continue
+        n_sensed += 1
+        o, vo, ao = obstacles.position[k], obstacles.velocity[k], obstacles.acceleration[k]
+        for s in range(s_count):
+            _, tc, p, v, c, slide = closest_terms(ends_a, ends_ab, a_dot_ab, length2, s, o, vo, ao)
+            r = (obstacles.radius[k] + capsule_radius[s]) + params.margin
+            if params.kind == C3BF_KIND:
+                h, drift, inside, grad_v, grad_p = _c3bf_point(p, v, r, gamma, params.p1, params.p2)
+            else:
+                h, drift, inside, grad_v, grad_p = _hocbf_point(p, v, r, params.p1)
+            b[m] = _sliding_rhs(grad_v, grad_p, slide, c, drift, h, gamma)
+            row_h[m] = h
+            min_h = min(min_h, h)
+            inside_any = inside_any or inside
+            grad_w = grad_v
+            if guard:
+                h, drift, _, grad_w, grad_q = _hocbf_point(p, v, r, params.guard_gamma1)
+                b[m + 1] = _sliding_rhs(grad_w, grad_q, slide, c, drift, h, params.guard_gamma2)
+            _pair_rows(ends_a, ends_ab, s, tc, (grad_v, grad_w), A, m, guard)
+            m += 2 if guard else 1
+    n_floor = params.floor_ends.shape[0]
+    floor_rows(arm.ends, params.floor_ends, params.floor_min, params.floor_gamma, A[m:m + n_floor], b[m:m + n_floor])
+    m += n_floor
+    unmodelled_margin(A[:m], b[:m], params.unmodelled_force)
+    if params.joint_rows:
+        joint_limit_rows(arm.qpos, arm.qvel, arm.Minv, arm.qacc_free, params, A[m:m + 4 * n], b[m:m + 4 * n])
+        m += 4 * n
+    return m, min_h, inside_any, n_sensed
