@@ -4,6 +4,7 @@ them on first use. Skipped for editable installs, and with C3BF_GYM_PRECOMPILE=0
 is reported and does not fail the build (the kernels then compile on first use)."""
 
 import os
+import shutil
 import subprocess
 import sys
 
@@ -13,6 +14,9 @@ from setuptools.command.build_py import build_py
 
 class BuildWithKernels(build_py):
     def run(self) -> None:
+        # the wheel carries build_lib's whole tree (the cache included): a module deleted from the
+        # sources, or a cache compiled from old ones, left there by an earlier build would ship too
+        shutil.rmtree(os.path.join(self.build_lib, "c3bf_gym"), ignore_errors=True)
         super().run()
         if getattr(self, "editable_mode", False) or os.environ.get("C3BF_GYM_PRECOMPILE", "1") == "0":
             return

@@ -9,7 +9,8 @@ changing any of them recompiles every kernel on its next use.
 
 Importing this module installs cache locators in front of numba's own, for the places numba
 would use (``NUMBA_CACHE_DIR`` when set, else beside the sources (in :data:`CACHE_FOLDER`), else
-the user-wide cache when that folder is not writable);
+the user-wide cache when that folder is not writable), each in a subfolder named after that
+hash, so that a cache written by other sources is never read;
 functions defined anywhere else keep numba's behaviour. It must be imported before the kernel
 modules define their functions, which they do by importing it first.
 """
@@ -80,6 +81,12 @@ class _KernelStamp:
 
     def get_source_stamp(self):
         return sources_digest()
+
+    def get_cache_path(self):
+        # one folder per version of the sources: numba unpickles a cached function's index before
+        # it compares stamps, and an index written by other sources can name types of modules that
+        # no longer exist (an import error, not a cache miss)
+        return os.path.join(super().get_cache_path(), sources_digest().hex()[:16])
 
 
 class _UserProvidedKernelLocator(_KernelStamp, caching.UserProvidedCacheLocator):

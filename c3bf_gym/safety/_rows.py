@@ -227,7 +227,9 @@ def unmodelled_margin(A, b, bound):
     friction opposes its motion, so it never drives the joint towards a position or speed limit,
     and the worst case over ``|φ_j| ≤ bound_j`` (a friction that accelerates a joint at rest) would
     leave a light arm no torque for them (robosuite's Jaco at rest). The other dofs' forces reach
-    those rows only through the coupling of ``M⁻¹``, which they leave out."""
+    those rows only through the coupling of ``M⁻¹``, which they leave out: charging their worst
+    case too left the Jaco's joint rows infeasible at 11–17 % of its physics steps
+    (docs/design-decisions.md)."""
     nv = bound.shape[0]
     largest = 0.0
     for j in range(nv):
@@ -310,9 +312,9 @@ def hook_rows_whole_arm(stage, arm, obstacles, params, A, b, row_h):
        with the sliding term ``−⟨grad_p, ṫ (b − a)⟩``, and :func:`_pair_rows`); with a guard
        (``params.guard_gamma2 > 0``), the guard's row for the same point right after it.
     3. The floor rows of the capsule ends ``params.floor_ends`` (:func:`floor_rows`).
-    4. With ``params.joint_rows``, the ``4 nv`` joint-limit rows (:func:`joint_limit_rows`).
-    Before the joint-limit rows, the obstacle and floor rows are tightened for the forces the
-    filter cannot predict (:func:`unmodelled_margin`).
+    4. With ``params.joint_rows``, the ``4 n`` joint-limit rows (:func:`joint_limit_rows`).
+    The obstacle and floor rows are tightened for the forces the filter cannot predict
+    (:func:`unmodelled_margin`); the joint-limit rows are not.
 
     The rows are written for the generalised force on every dof of the model (``A`` (·, nv)); the
     QP reads the columns of the arm's dofs (``params.dofs``).

@@ -373,9 +373,9 @@ class SafetyController:
         the state was last set): the filter reads them, it does not compute them.
 
         Warns:
-            :class:`~c3bf_gym.safety.EnvelopeWarning`, once per controller: an active obstacle
-            faster or larger than :attr:`envelope` covers (computed the first time an obstacle is
-            active when none was given; not with an infinite sensing radius).
+            EnvelopeWarning: once per controller, an active obstacle faster or larger than
+                :attr:`envelope` covers (computed the first time an obstacle is active when none
+                was given; not with an infinite sensing radius).
 
         Raises:
             ValueError: ``tau_nom`` of the wrong shape, or with NaN or inf.
