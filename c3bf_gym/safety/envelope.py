@@ -42,7 +42,7 @@ close in from opposite sides, where no sidestep serves both. It assumes the arm 
 obstacle is sensed (a policy driving the arm at the obstacle adds its own speed to ``V``). It
 samples: configurations (uniform in the joint ranges, with every capsule above the floor, and the
 one given), five points along each capsule axis (ends and quarters), :data:`APPROACHES`
-approach directions and :data:`SIDESTEPS` sidestep directions around each. And it says a safe
+approach directions and twice :data:`SIDESTEPS` sidestep directions around each. And it says a safe
 escape *exists*; that the filter's rows find it is measured, by the guarantee sweeps
 (``docs/results/guarantee.md``). Points no obstacle can touch, because the scenario keeps
 obstacles out of a cylinder about the base's vertical axis (``keep_out_radius``,
@@ -67,7 +67,8 @@ __all__ = ["APPROACHES", "SIDESTEPS", "EnvelopeWarning", "FilterEnvelope", "filt
 
 #: Approach directions sampled (a Fibonacci sphere).
 APPROACHES = 64
-#: Sidestep directions sampled around each approach (evenly on the circle ``⊥ w``).
+#: Sidestep directions sampled around each approach: evenly over half the circle ``⊥ w``, each with
+#: its opposite (``2 SIDESTEPS`` in all; their speed supports agree, their accelerations do not).
 SIDESTEPS = 12
 _LAMBDAS = np.array([0.0, 0.25, 0.5, 0.75, 1.0])  # points along each capsule axis
 
