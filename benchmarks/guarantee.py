@@ -134,6 +134,7 @@ def run_episode(task: tuple[str, str, str, str, int, int, float | None, float | 
             env.hook.record_times()  # env's compiled policy step, bit for bit (tests/test_filter.py)
     u = env.unwrapped
     out = Episode(scenario, policy, name, points, seed)
+    speed_bound = env.hook.joint_limits.qd_max if filtered and env.hook.joint_limits is not None else None
     if filtered and not timed:
         out.max_filter_ms = np.nan  # the compiled policy step does not time the filter
     env.reset(seed=seed)
@@ -151,9 +152,8 @@ def run_episode(task: tuple[str, str, str, str, int, int, float | None, float | 
             out.infeasible_physics_steps += info["safety"]["infeasible_steps"]
             out.hard_steps += any(info["safety"][f"violation_{kind}"] > 0.0 for kind in HARD_ROWS)
             out.gain_raised_physics_steps += info["safety"]["gain_raised_steps"]
-            bound = env.hook.joint_limits.qd_max if env.hook.joint_limits is not None else None
-            if bound is not None:
-                speed = np.abs(u.data.qvel[env.hook.robot.dof_ids]) / bound
+            if speed_bound is not None:
+                speed = np.abs(u.data.qvel[env.hook.robot.dof_ids]) / speed_bound
                 out.max_speed_ratio = max(out.max_speed_ratio, float(speed.max()))
             out.interventions += int(info["safety_intervened"])
             if timed:

@@ -551,7 +551,8 @@ def _check_arm(assets: Path, arm: str, config: FilterConfig) -> tuple[str | None
         SafetyController(model, mujoco.MjData(model), robot, MocapSpheres(model, [_BALL.format(0)]), config)
     except UnsupportedModelError as error:
         return str(error), [], None
-    return None, notes, arm_envelope(model, robot, arm, config)
+    envelope = _ENVELOPES[str(assets), arm, config] = arm_envelope(model, robot, arm, config)  # run_episode's too
+    return None, notes, envelope
 
 
 def _setting(item: str) -> tuple[str, object]:

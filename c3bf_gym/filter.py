@@ -34,12 +34,11 @@ class SafetyHook(SafetyController):
 
     def __init__(self, env, config: FilterConfig) -> None:
         self.env = env
-        sensing = env.sensing_radius if config.sensing_radius is None else config.sensing_radius
         envelope = scenario_envelope(env, config)
         super().__init__(env.model, env.data, env.robot, env.obstacles, config, arm=env.arm,
                          sensing_radius=env.sensing_radius, envelope=envelope)  # fmt: skip
         speed, radius = env.envelope.speed_range[1], env.envelope.radius_range[1]
-        problems = envelope.problems(speed, radius, sensing)
+        problems = envelope.problems(speed, radius)  # at the filter's sensing radius, as computed
         if problems:
             warnings.warn(EnvelopeWarning(f"the {env.task_robot.name}'s obstacles (up to {speed:g} m/s, radius up to "
                                           f"{radius:g} m) are outside the filter's envelope, where it guarantees "
