@@ -212,9 +212,13 @@ class ImpedanceHook:
         return out
 
 
-def default_impedance(env: C3BFReachEnv) -> CartesianImpedance:
-    """The impedance law used by default: 300 N/m, critically damped, posture at ``home``."""
-    return CartesianImpedance(stiffness=300.0, posture=env.model.key_qpos[0].copy(), max_force=150.0)
+def default_impedance(env: C3BFReachEnv, posture_stiffness: float | None = None) -> CartesianImpedance:
+    """The impedance law used by default: 300 N/m, critically damped, a null-space pull to the
+    ``home`` keyframe of ``posture_stiffness`` [N m/rad] (None: the arm's own,
+    :attr:`~c3bf_gym.envs.reach.ReachRobot.posture_stiffness`: 20 on the UR5e, 2 on the Panda)."""
+    stiffness = env.task_robot.posture_stiffness if posture_stiffness is None else posture_stiffness
+    return CartesianImpedance(stiffness=300.0, posture=env.model.key_qpos[0].copy(), posture_stiffness=stiffness,
+                              max_force=150.0)
 
 
 class CartesianImpedanceAction(gym.ActionWrapper, gym.utils.RecordConstructorArgs, gym.utils.EzPickle):

@@ -176,6 +176,19 @@ def test_posture_term_on_the_real_arm(make_env):
         np.testing.assert_allclose(J @ joint_acc, 0.0, atol=1e-7 * np.linalg.norm(joint_acc))
 
 
+@pytest.mark.parametrize(("robot", "stiffness"), [("ur5e", 20.0), ("panda", 2.0)])
+def test_default_controller_pulls_to_home_with_the_arms_own_posture_stiffness(robot, stiffness):
+    """The Panda's null-space pull is 2 N m/rad, not the UR5e's 20 (its wrist has 12 N m: at 20 the
+    pull fought the filter's evasions); ``posture_stiffness`` overrides it, damped critically."""
+    env = C3BFReachEnv(robot=robot)
+    controller = default_impedance(env)
+    np.testing.assert_array_equal(controller.posture, env.model.key_qpos[0])
+    np.testing.assert_allclose(controller.Kq, stiffness)
+    stronger = default_impedance(env, posture_stiffness=10 * stiffness)
+    np.testing.assert_allclose((stronger.Kq, stronger.Dq), (10 * stiffness, 2 * np.sqrt(10 * stiffness)))
+    env.close()
+
+
 def test_max_force_keeps_the_force_direction():
     rng = np.random.default_rng(3)
     p = random_problem(rng)

@@ -46,6 +46,8 @@ def main() -> int:
     parser.add_argument("--hyperparams", default=None, help="JSON overriding the defaults (passed to every run)")
     parser.add_argument("--n-envs", type=int, default=d.n_envs,
                         help="environments per run (more than 1: SB3's SubprocVecEnv; default %(default)s)")
+    parser.add_argument("--final-eval-episodes", type=int, default=d.final_eval_episodes,
+                        help="episodes of each final model's evaluation (default %(default)s; the README's tables: 200)")
     parser.add_argument("--jobs", type=int, default=2)
     parser.add_argument("--out", default="runs")
     args = parser.parse_args()
@@ -73,6 +75,7 @@ def main() -> int:
             "--timesteps", str(args.timesteps), "--out", str(out), "--no-progress", "--policy-hz", str(args.policy_hz),
             "--distance-weight", str(args.distance_weight), "--action-weight", str(args.action_weight),
             "--obstacle-encoder", args.obstacle_encoder, "--n-envs", str(args.n_envs),
+            "--final-eval-episodes", str(args.final_eval_episodes),
         ] + (["--normalize-obs"] if args.normalize_obs else []) + (["--hyperparams", args.hyperparams] if args.hyperparams else [])  # fmt: skip
         jobs.append((name, command))
 

@@ -5,26 +5,33 @@ tool, +-0.1 m)), i.e. the prior the residual agents start from.
 It tells what the learned agents are compared with: how often a policy that only ever heads
 for the goal ends an episode at it (is_success at the last step), and how often it collides,
 on the same environment, wrappers, policy rate and evaluation seeds as `c3bf-gym evaluate`.
+`--posture-stiffness` replaces the impedance controller's null-space pull (the arm's own by
+default, `ReachRobot.posture_stiffness`) with each value given in turn: how the Panda's was chosen.
 
     python train/scripted_reference.py --episodes 50
+    python train/scripted_reference.py --robot panda --episodes 200 --filters none c3bf+hocbf --posture-stiffness 20 5 2
 """
 
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 
+import gymnasium as gym
 import numpy as np
 
+from c3bf_gym.envs.reach import ROBOTS
 from c3bf_gym.training import (
     DEFAULT_TRAIN_HZ,
-    FILTERS,
+    TRAIN_FILTERS,
     FINAL_EVAL_SEED,
     POLICY_RATES,
     by_scenario,
-    make_env,
-    policy_rate_kwargs,
+    env_kwargs,
+    filter_config,
 )
+from c3bf_gym.wrappers import CartesianImpedanceAction, SafetyFilter, default_impedance
 
 
 def main() -> None:
@@ -33,10 +40,16 @@ def main() -> None:
     parser.add_argument("--scenario", default="random")
     parser.add_argument("--seed", type=int, default=FINAL_EVAL_SEED, help="seed of episode 0 (as c3bf-gym evaluate)")
     parser.add_argument("--policy-hz", type=int, choices=POLICY_RATES, default=DEFAULT_TRAIN_HZ)
-    parser.add_argument("--filters", nargs="+", choices=FILTERS, default=list(FILTERS))
+    parser.add_argument("--filters", nargs="+", choices=TRAIN_FILTERS, default=list(TRAIN_FILTERS))
+    parser.add_argument("--robot", choices=list(ROBOTS), default="ur5e")
+    parser.add_argument("--posture-stiffness", nargs="+", type=float, default=[None], metavar="K_Q",
+                        help="the impedance controller's null-space stiffness [N m/rad] (default: the arm's own)")
     args = parser.parse_args()
-    for filter_name in args.filters:
-        env = make_env(args.scenario, filter_name, "residual", seed=args.seed, **policy_rate_kwargs(args.policy_hz))()
+    for stiffness, filter_name in itertools.product(args.posture_stiffness, args.filters):
+        base = gym.make("C3BFReach-v0", scenario=args.scenario, **env_kwargs(args.policy_hz, robot=args.robot))
+        env = CartesianImpedanceAction(base, residual=True, controller=default_impedance(base.unwrapped, stiffness))
+        if filter_config(filter_name) is not None:  # as training.build_env stacks them
+            env = SafetyFilter(env, filter_config(filter_name))
         straight = np.zeros(env.action_space.shape, dtype=np.float32)  # no correction: straight for the goal
         success, collided, kinds = [], [], []
         for episode in range(args.episodes):
@@ -50,6 +63,7 @@ def main() -> None:
             collided.append(float(info["episode_cost"] > 0))
         env.close()
         result = {
+            "robot": args.robot, "posture_stiffness": env.unwrapped.task_robot.posture_stiffness if stiffness is None else stiffness,
             "filter": filter_name, "policy_hz": args.policy_hz, "episodes": args.episodes,
             "success_rate": float(np.mean(success)), "collision_episodes": int(sum(collided)),
             "by_scenario": by_scenario(kinds, success, collided),

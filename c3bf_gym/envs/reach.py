@@ -113,6 +113,12 @@ class ReachRobot:
             (the pan joint turns them in place), lie inside it. The filter's envelope
             (:func:`c3bf_gym.filter.scenario_envelope`) covers the task's obstacles only with
             them out of reach.
+        posture_stiffness: the default impedance controller's null-space pull towards the
+            ``home`` keyframe, ``K_q`` [N m/rad] on every joint
+            (:func:`c3bf_gym.wrappers.default_impedance`). The pull works against the filter
+            whenever the filter moves a link out of an obstacle's way, so it is kept small where
+            the wrist's torque limits are small (``train/scripted_reference.py --robot ...
+            --posture-stiffness ...``; the docs' RL results page).
     """
 
     name: str
@@ -124,6 +130,7 @@ class ReachRobot:
     home_noise: float = 0.05
     keep_out_radius: float = 0.3
     keep_out_height: float = 0.5
+    posture_stiffness: float = 20.0
 
     def goal_corners(self) -> np.ndarray:
         """(8, 3) the goal box's corners (the farthest goal from any start is one of them)."""
@@ -143,9 +150,12 @@ ROBOTS: dict[str, ReachRobot] = {
     # within it; with the UR5e's 0.3 m, head-on and multi obstacles aimed at the Panda's tool
     # (0.31 m from the axis at home) found no path outside it for some seeds. 0.7 m high: links
     # 2-3 stand on the base axis up to 0.65 m with the shoulder upright (the envelope: 0.10 m/s
-    # with 0.45 m, 0.27 m/s with 0.65 m, 0.50 m/s with 0.7 m).
+    # with 0.45 m, 0.27 m/s with 0.65 m, 0.50 m/s with 0.7 m). Posture stiffness 2 N m/rad, not
+    # the UR5e's 20: at 20 the pull to home (20 N m at 1 rad, beyond the wrist's 12 N m) fought the
+    # filter's evasions, and the zero-action policy under the default filter reached the goal in
+    # 0.30 of `multi` episodes (0.94 unfiltered); at 2 in 0.88 (docs/results/rl.md).
     "panda": ReachRobot("panda", "panda_scene.xml", 7, (2.175,) * 4 + (2.61,) * 3, keep_out_radius=0.2,
-                        keep_out_height=0.7),
+                        keep_out_height=0.7, posture_stiffness=2.0),
 }
 #: What ``step`` saves to undo itself: every part of MuJoCo's state that integration reads
 #: (time, qpos, qvel, act, history, warmstart, ctrl, applied forces, eq_active, mocap poses,
