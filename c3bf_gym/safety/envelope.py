@@ -238,37 +238,87 @@ def filter_envelope(
     first = model.qpos0[qpos_ids] if qpos is None else np.asarray(qpos, dtype=np.float64)
     if first.shape != (robot.n,) or not np.isfinite(first).all():
         raise ValueError(f"qpos must be {robot.n} finite joint positions, got {qpos!r}")
-
-    speed_bound = None
-    if config.joint_limits and robot.joint_speed_limit is not None:
-        speed_bound = config.joint_speed_fraction * robot.joint_speed_limit
-    standoff = 0.0
-    for barrier in (config.guard_object(), config.barrier_object()):
-        if isinstance(barrier, DistanceHOCBF):
-            standoff = barrier.gamma1
-            break
     low, high = robot.joint_range.T.copy()
     low[~np.isfinite(low)], high[~np.isfinite(high)] = -np.pi, np.pi
     rng = np.random.default_rng(seed)
     samples = [first] + [rng.uniform(low, high) for _ in range(int(configurations))]
 
-    arm = ArmModel(model, robot.geom_ids, robot.site_id, robot.capsules)
-    data = mujoco.MjData(model)
-    floor = floor_height(model)
-    approach = _directions(APPROACHES)
-    sidestep = _sidesteps(approach, SIDESTEPS).reshape(-1, 3)
-    radius = arm.capsule_radius
-    clearance = np.repeat(obstacle_radius + radius + config.margin, len(_LAMBDAS))
-    dense = np.zeros((model.nv, model.nv))
-    parts, kept = [], []
-    for index, q in enumerate(samples):
+    escapes = _Escapes(model, robot, config, float(obstacle_radius), float(keep_out_radius), float(keep_out_height))
+    found = [escapes.at(q, qpos_ids, drop_below_floor=index > 0) for index, q in enumerate(samples)]
+    parts = [part for part, _ in filter(None, found)]
+    kept = [where for _, where in filter(None, found)]
+    if parts:
+        radius_all, t_all, speed_all, accel_all = (np.concatenate([p[i].reshape(-1) for p in parts]) for i in range(4))
+    else:
+        radius_all = t_all = speed_all = accel_all = np.zeros(0)
+    envelope = FilterEnvelope(float(obstacle_radius), float(sensing), 0.0, float(keep_out_radius),
+                              float(keep_out_height), len(kept), "", np.zeros(3), np.zeros(3), first.copy(),
+                              escapes.standoff, radius_all, t_all, speed_all, accel_all)  # fmt: skip
+    if not parts:
+        return envelope
+    max_speed, just_above = _largest_speed(envelope, float(sensing))
+    worst = int(np.argmax(envelope._needed(just_above)))  # the sample that sets the limit
+    sizes = [p[1].size for p in parts]
+    which = int(np.searchsorted(np.cumsum(sizes), worst, side="right"))
+    point, direction = divmod(worst - sum(sizes[:which]), APPROACHES)
+    q, pos, geoms = kept[which]
+    return FilterEnvelope(float(obstacle_radius), float(sensing), max_speed,
+                          float(keep_out_radius), float(keep_out_height), len(kept),
+                          mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_GEOM, int(geoms[point])) or
+                          f"geom {int(geoms[point])}", pos[point].copy(), escapes.approach[direction].copy(),
+                          np.array(q), escapes.standoff, radius_all, t_all, speed_all, accel_all)  # fmt: skip
+
+
+def _largest_speed(envelope: FilterEnvelope, sensing: float) -> tuple[float, float]:
+    """The bracket ``(low, high)`` of the largest obstacle speed whose needed range is within
+    ``sensing`` at every sample, by bisection (the needed range grows with the speed everywhere)."""
+    low_v, high_v = 0.0, 1.0
+    while envelope._needed(high_v).max() <= sensing and high_v < 1e3:
+        low_v, high_v = high_v, 2.0 * high_v
+    for _ in range(50):
+        mid = 0.5 * (low_v + high_v)
+        low_v, high_v = (mid, high_v) if envelope._needed(mid).max() <= sensing else (low_v, mid)
+    return low_v, high_v
+
+
+class _Escapes:
+    """The escape argument at one configuration after another, for one robot, filter and obstacle
+    size: per protected point an obstacle can reach, the sidestep time per approach direction and
+    the outrun speed and acceleration along it."""
+
+    def __init__(self, model: mujoco.MjModel, robot: RobotDescription, config: FilterConfig, obstacle_radius: float,
+                 keep_out_radius: float, keep_out_height: float) -> None:  # fmt: skip
+        self.model, self.robot, self.config = model, robot, config
+        self.keep_out = (keep_out_radius, keep_out_height)
+        self.speed_bound = None
+        if config.joint_limits and robot.joint_speed_limit is not None:
+            self.speed_bound = config.joint_speed_fraction * robot.joint_speed_limit
+        self.standoff = 0.0
+        for barrier in (config.guard_object(), config.barrier_object()):
+            if isinstance(barrier, DistanceHOCBF):
+                self.standoff = barrier.gamma1
+                break
+        self.arm = ArmModel(model, robot.geom_ids, robot.site_id, robot.capsules)
+        self.data = mujoco.MjData(model)
+        self.floor = floor_height(model)
+        self.approach = _directions(APPROACHES)
+        self.sidestep = _sidesteps(self.approach, SIDESTEPS).reshape(-1, 3)
+        self.clearance = np.repeat(obstacle_radius + self.arm.capsule_radius + config.margin, len(_LAMBDAS))
+        self.dense = np.zeros((model.nv, model.nv))
+
+    def at(self, q: np.ndarray, qpos_ids: np.ndarray, drop_below_floor: bool):
+        """``((clearance, sidestep time, outrun speed, outrun acceleration), (q, points, geoms))``
+        at the joint positions ``q`` (at rest), or None when ``drop_below_floor`` and a capsule
+        is below the floor, or when no protected point is outside the keep-out cylinder."""
+        model, data, arm, robot, margin = self.model, self.data, self.arm, self.robot, self.config.margin
         data.qpos[:] = model.qpos0
         data.qpos[qpos_ids] = q
         data.qvel[:] = 0.0
         mujoco.mj_forward(model, data)
+        radius = arm.capsule_radius
         a, b = arm.capsule_segments(data)
-        if index > 0 and floor is not None and min(a[:, 2].min(), b[:, 2].min()) - radius.max() < floor:
-            continue
+        if drop_below_floor and self.floor is not None and min(a[:, 2].min(), b[:, 2].min()) - radius.max() < self.floor:
+            return None
         arm.update(data)
         ends = arm.end_dynamics()
         s = len(radius)
@@ -277,14 +327,14 @@ def filter_envelope(
         pos = (ends.pos[:s, None] * (1 - lam) + ends.pos[s:, None] * lam).reshape(-1, 3)
         G = (ends.G[:s, None] * (1 - lam[..., None]) + ends.G[s:, None] * lam[..., None]).reshape(-1, 3, model.nv)
         c = (ends.c[:s, None] * (1 - lam) + ends.c[s:, None] * lam).reshape(-1, 3)
-        mujoco.mj_fullM(model, data, dense)
-        J = G @ (dense + np.diag(arm.implicit_damping))  # G = J (M + h D)⁻¹
+        mujoco.mj_fullM(model, data, self.dense)
+        J = G @ (self.dense + np.diag(arm.implicit_damping))  # G = J (M + h D)⁻¹
         # points an obstacle can touch: not deep inside the keep-out cylinder
-        rp = np.repeat(radius, len(_LAMBDAS)) + config.margin
-        hidden = (np.hypot(pos[:, 0], pos[:, 1]) + rp < keep_out_radius) & (pos[:, 2] + rp < keep_out_height)
+        rp = np.repeat(radius, len(_LAMBDAS)) + margin
+        hidden = (np.hypot(pos[:, 0], pos[:, 1]) + rp < self.keep_out[0]) & (pos[:, 2] + rp < self.keep_out[1])
         reach = ~hidden
         if not reach.any():
-            continue
+            return None
         G, c, J = G[reach], c[reach], J[reach]
 
         def supports(u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -292,39 +342,13 @@ def filter_envelope(
             accel = np.abs(uG[:, :, robot.dof_ids]) @ robot.torque_limit
             accel -= np.abs(uG) @ robot.unmodelled_force
             accel += c @ u.T
-            if speed_bound is None:
+            if self.speed_bound is None:
                 return np.full(accel.shape, np.inf), accel
-            return np.abs(np.einsum("dk,pkj->pdj", u, J[:, :, robot.dof_ids])) @ speed_bound, accel
+            return np.abs(np.einsum("dk,pkj->pdj", u, J[:, :, robot.dof_ids])) @ self.speed_bound, accel
 
-        side_speed, side_accel = supports(sidestep)
-        r = clearance[reach][:, None]
+        side_speed, side_accel = supports(self.sidestep)
+        r = self.clearance[reach][:, None]
         t_side = _escape_time(r, side_speed, side_accel).reshape(len(r), APPROACHES, -1).min(axis=2)
-        out_speed, out_accel = supports(approach)
-        parts.append((np.broadcast_to(r, t_side.shape), t_side, out_speed, out_accel))
+        out_speed, out_accel = supports(self.approach)
         geoms = np.repeat(robot.geom_ids, len(_LAMBDAS))[reach]
-        kept.append((q, pos[reach], geoms))
-    if parts:
-        radius_all, t_all, speed_all, accel_all = (np.concatenate([p[i].reshape(-1) for p in parts]) for i in range(4))
-    else:
-        radius_all = t_all = speed_all = accel_all = np.zeros(0)
-    envelope = FilterEnvelope(float(obstacle_radius), float(sensing), 0.0, float(keep_out_radius),
-                              float(keep_out_height), len(kept), "", np.zeros(3), np.zeros(3), first.copy(),
-                              standoff, radius_all, t_all, speed_all, accel_all)  # fmt: skip
-    if not parts:
-        return envelope
-    # the largest V with every sample's D(V) <= sensing: bisection (D grows with V at every sample)
-    low_v, high_v = 0.0, 1.0
-    while envelope._needed(high_v).max() <= sensing and high_v < 1e3:
-        low_v, high_v = high_v, 2.0 * high_v
-    for _ in range(50):
-        mid = 0.5 * (low_v + high_v)
-        low_v, high_v = (mid, high_v) if envelope._needed(mid).max() <= sensing else (low_v, mid)
-    worst = int(np.argmax(envelope._needed(high_v)))
-    sizes = [p[1].size for p in parts]
-    which = int(np.searchsorted(np.cumsum(sizes), worst, side="right"))
-    point, direction = divmod(worst - sum(sizes[:which]), APPROACHES)
-    q, pos, geoms = kept[which]
-    return FilterEnvelope(float(obstacle_radius), float(sensing), low_v, float(keep_out_radius), float(keep_out_height),
-                          len(kept), mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_GEOM, int(geoms[point])) or
-                          f"geom {int(geoms[point])}", pos[point].copy(), approach[direction].copy(), np.array(q),
-                          standoff, radius_all, t_all, speed_all, accel_all)  # fmt: skip
+        return (np.broadcast_to(r, t_side.shape), t_side, out_speed, out_accel), (q, pos[reach], geoms)
