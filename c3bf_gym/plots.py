@@ -308,7 +308,7 @@ ACTION_STYLES = {"impedance": "-", "residual": "--", "torque": ":"}
 #: run was written), with the value a run's config.json means when it predates the option.
 _RECIPE = {
     "scenario": "random", "timesteps": None, "n_envs": 1, "policy_hz": None, "normalize_obs": False,
-    "distance_weight": 0.0, "action_weight": 0.0, "obstacle_encoder": "flat", "hyperparams": {},
+    "distance_weight": 0.0, "action_weight": 0.0, "obstacle_encoder": "flat", "hyperparams": {}, "robot": "ur5e",
 }  # fmt: skip
 
 
@@ -322,20 +322,11 @@ def _check_recipe(key: tuple[str, str, str], entries: list[tuple[dict, dict]]) -
         )
 
 
-def plot_training(runs: Sequence[Path], path: Path, window: int = 20, evaluation: str = FINAL_EVAL_FILE) -> str:
-    """Learning curves grouped by (algorithm, action mode, filter): mean and min-max over seeds.
-
-    Returns a markdown table, one row per group: training collision steps and training episodes
-    with an infeasible step (total and per seed), and the final models' success rate and return
-    (per seed and mean) with the number of evaluation episodes per model; then, when the
-    evaluations recorded it, a second table of the final success per concrete scenario (the
-    components of ``random``). The final models' numbers come from each run's ``evaluation``
-    file: ``final_eval.json`` (written by the run) by default, or a longer evaluation written by
-    ``c3bf-gym evaluate --json`` into the run directory (``FileNotFoundError`` if a run lacks
-    it). Runs of one group must share their training options but the seed (``ValueError``
-    otherwise).
-    """
-    plt = _pyplot()
+def _run_groups(runs: Sequence[Path], evaluation: str) -> dict[tuple[str, str, str], list[tuple[dict, dict[str, np.ndarray]]]]:
+    """The runs with a finished training episode, as ``(config, episodes)`` grouped by (algorithm,
+    action mode, filter label), each config holding its summary, final evaluation and path;
+    FileNotFoundError for a folder that is not a run, ValueError when no run has an episode or
+    the runs of a group were trained differently."""
     groups: dict[tuple[str, str, str], list[tuple[dict, dict[str, np.ndarray]]]] = {}
     for run in runs:
         config_file = run / "config.json"
@@ -356,6 +347,41 @@ def plot_training(runs: Sequence[Path], path: Path, window: int = 20, evaluation
         raise ValueError("no run has a finished training episode to plot")
     for key, entries in groups.items():
         _check_recipe(key, entries)
+    return groups
+
+
+def _table_row(key: tuple[str, str, str], entries: list[tuple[dict, dict[str, np.ndarray]]], horizon: float) -> str:
+    """One group's row of :func:`plot_training`'s table."""
+    algo, action, name = key
+    costs = [int(c["_summary"].get("training_cost", d["cumulative_cost"][-1])) for c, d in entries]
+    finals = [c["_final"] for c, _ in entries if c["_final"] is not None]
+    head = f"| {algo} | {action} | {name} | {len(entries)} | {int(horizon)} | {sum(costs)} ({', '.join(map(str, costs))}) |"
+    # episodes where the QP had no solution (the filter applied its least-violating torque);
+    # runs from before episodes.csv recorded it count as n/a
+    infeasible = [int(np.count_nonzero(d["infeasible"])) if "infeasible" in d else None for _, d in entries]
+    head += (f" {sum(infeasible)} ({', '.join(map(str, infeasible))}) |" if None not in infeasible else " n/a |")
+    if not finals:
+        return f"{head} n/a | n/a | n/a |"
+    succ, ret, episodes = zip(*finals)
+    per_seed = ", ".join(f"{x:.2f}" for x in succ)
+    return f"{head} {np.mean(succ):.2f} ({per_seed}) | {np.mean(ret):.1f} | {', '.join(sorted(set(map(str, episodes))))} |"
+
+
+def plot_training(runs: Sequence[Path], path: Path, window: int = 20, evaluation: str = FINAL_EVAL_FILE) -> str:
+    """Learning curves grouped by (algorithm, action mode, filter): mean and min-max over seeds.
+
+    Returns a markdown table, one row per group: training collision steps and training episodes
+    with an infeasible step (total and per seed), and the final models' success rate and return
+    (per seed and mean) with the number of evaluation episodes per model; then, when the
+    evaluations recorded it, a second table of the final success per concrete scenario (the
+    components of ``random``). The final models' numbers come from each run's ``evaluation``
+    file: ``final_eval.json`` (written by the run) by default, or a longer evaluation written by
+    ``c3bf-gym evaluate --json`` into the run directory (``FileNotFoundError`` if a run lacks
+    it). Runs of one group must share their training options but the seed (``ValueError``
+    otherwise).
+    """
+    plt = _pyplot()
+    groups = _run_groups(runs, evaluation)
     keys = sorted(groups, key=lambda k: (k[0], k[1], *_order(k[2])))
     several_modes = len({k[:2] for k in keys}) > 1
     fig, axes = plt.subplots(1, 3, figsize=(15, 4))
@@ -385,19 +411,7 @@ def plot_training(runs: Sequence[Path], path: Path, window: int = 20, evaluation
             ax.set_title(title)
             ax.set_xlabel("timesteps")
             ax.grid(alpha=0.3)
-        costs = [int(c["_summary"].get("training_cost", d["cumulative_cost"][-1])) for c, d in entries]
-        finals = [c["_final"] for c, _ in entries if c["_final"] is not None]
-        head = f"| {algo} | {action} | {name} | {len(entries)} | {int(horizon)} | {sum(costs)} ({', '.join(map(str, costs))}) |"
-        # episodes where the QP had no solution (the filter applied its least-violating torque);
-        # runs from before episodes.csv recorded it count as n/a
-        infeasible = [int(np.count_nonzero(d["infeasible"])) if "infeasible" in d else None for _, d in entries]
-        head += (f" {sum(infeasible)} ({', '.join(map(str, infeasible))}) |" if None not in infeasible else " n/a |")
-        if finals:
-            succ, ret, episodes = zip(*finals)
-            per_seed = ", ".join(f"{x:.2f}" for x in succ)
-            lines.append(f"{head} {np.mean(succ):.2f} ({per_seed}) | {np.mean(ret):.1f} | {', '.join(sorted(set(map(str, episodes))))} |")
-        else:
-            lines.append(f"{head} n/a | n/a | n/a |")
+        lines.append(_table_row(key, entries, horizon))
     axes[0].legend(fontsize=8)
     fig.suptitle(f"Training curves (moving average over {window} episodes; band: min-max over seeds)")
     _save(fig, path)
