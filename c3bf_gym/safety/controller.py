@@ -168,6 +168,37 @@ class StepSafety:
         }
 
 
+def _checked_arguments(model: mujoco.MjModel, robot: RobotDescription, obstacles: Obstacles,
+                       config: FilterConfig | None, envelope: FilterEnvelope | None) -> FilterConfig:
+    """:class:`SafetyController`'s arguments checked (its Raises), and the config (None: the default)."""
+    config = FilterConfig() if config is None else config
+    if not isinstance(config, FilterConfig):
+        raise TypeError(f"config must be a FilterConfig, got {type(config).__name__}")
+    if not isinstance(robot, RobotDescription):
+        raise TypeError(f"robot must be a RobotDescription, got {type(robot).__name__}")
+    if not isinstance(obstacles, Obstacles):
+        raise TypeError(f"obstacles must be an Obstacles, got {type(obstacles).__name__}")
+    if robot.nv != model.nv:
+        raise ValueError(f"robot was described from a model of {robot.nv} dofs, this one has {model.nv}: describe "
+                         "this model")  # fmt: skip
+    if config.points == "ee" and robot.site_id < 0:
+        raise UnsupportedModelError("points='ee' protects the tool site, and the robot has none: pass site= to "
+                                    "RobotDescription.from_model")  # fmt: skip
+    if envelope is not None and not isinstance(envelope, FilterEnvelope):
+        raise TypeError(f"envelope must be a FilterEnvelope or None, got {type(envelope).__name__}")
+    return config
+
+
+def _new_tally(barrier, n: int, max_rows: int, timestep: float) -> _step.Tally:
+    """The report's running values, in compiled code (:func:`_step.record`): with the barrier's
+    gain and the largest it may rise to (:func:`_step.beyond_allowance`; a barrier without a gain
+    gets no allowance)."""
+    gain = getattr(barrier, "gamma", None)
+    limit_gain = RAISED_GAIN_STEP / timestep
+    gains = np.array([gain if isinstance(gain, float) else limit_gain, limit_gain])
+    return _step.Tally(np.zeros(_step.TALLY_SIZE), np.zeros(n), np.zeros(n), np.zeros(4), np.zeros(max_rows), gains)
+
+
 class SafetyController:
     """The safety filter on any MuJoCo arm, without Gymnasium: nominal torque in, safe torque out.
 
@@ -221,19 +252,7 @@ class SafetyController:
     def __init__(self, model: mujoco.MjModel, data: mujoco.MjData, robot: RobotDescription, obstacles: Obstacles,
                  config: FilterConfig | None = None, *, arm: ArmModel | None = None,
                  sensing_radius: float = np.inf, envelope: FilterEnvelope | None = None) -> None:
-        config = FilterConfig() if config is None else config
-        if not isinstance(config, FilterConfig):
-            raise TypeError(f"config must be a FilterConfig, got {type(config).__name__}")
-        if not isinstance(robot, RobotDescription):
-            raise TypeError(f"robot must be a RobotDescription, got {type(robot).__name__}")
-        if not isinstance(obstacles, Obstacles):
-            raise TypeError(f"obstacles must be an Obstacles, got {type(obstacles).__name__}")
-        if robot.nv != model.nv:
-            raise ValueError(f"robot was described from a model of {robot.nv} dofs, this one has {model.nv}: describe "
-                             "this model")  # fmt: skip
-        if config.points == "ee" and robot.site_id < 0:
-            raise UnsupportedModelError("points='ee' protects the tool site, and the robot has none: pass site= to "
-                                        "RobotDescription.from_model")  # fmt: skip
+        config = _checked_arguments(model, robot, obstacles, config, envelope)
         self.model, self.data, self.robot, self.obstacles = model, data, robot, obstacles
         self._M_diagonal = int(model.M_rowadr[0] + model.M_rownnz[0] - 1)  # M[0, 0] in data.M's CSR layout
         self._refresh = type(obstacles).refresh is not Obstacles.refresh
@@ -248,8 +267,6 @@ class SafetyController:
         self.on_infeasible = config.on_infeasible
         self.intervention_tol = config.intervention_tol
         self.floor_gamma = config.floor_gamma
-        if envelope is not None and not isinstance(envelope, FilterEnvelope):
-            raise TypeError(f"envelope must be a FilterEnvelope or None, got {type(envelope).__name__}")
         self.envelope = envelope
         self._envelope_seen = (0.0, 0.0)  # the largest obstacle speed and radius checked so far
         self._envelope_warned = False
@@ -292,49 +309,46 @@ class SafetyController:
         self._qpos_ids = np.asarray(model.jnt_qposadr[model.dof_jntid[robot.dof_ids]], dtype=np.int64)
         self._unmodelled = np.ascontiguousarray(robot.unmodelled_force, dtype=np.float64)
         self._capsule_radius = self.arm.capsule_radius
-        # The whole-arm rows of the built-in barriers come from one compiled kernel
-        # (c3bf_gym.safety._rows.hook_rows_whole_arm, sharing the barrier classes' per-point code);
-        # any other barrier or points="ee" goes through Barrier.terms / rows_from_terms.
-        spec = getattr(barrier, "fused_spec", None)
-        spec = spec() if spec is not None and points == "whole_arm" else None
-        # the kernel's guard gains (γ₁, γ₂) of a distance HOCBF (0: no guard)
-        guard_gains = (0.0, 0.0)
-        if guard is not None:
-            guard_spec = guard.fused_spec() if hasattr(guard, "fused_spec") else None
-            if guard_spec is not None and guard_spec[0] == _rows.HOCBF_KIND:
-                guard_gains = (float(guard_spec[1][1]), float(guard_spec[1][0]))
-            else:
-                spec = None
-        self._fused = spec is not None
-        kind, params = spec if spec is not None else (-1, np.zeros(3))
-        if joint_limits is not None:
-            jl = [np.array(joint_limits.gains, dtype=np.float64), joint_limits.q_lo, joint_limits.q_hi,
-                  joint_limits.qd_max]
-        else:
-            jl = [np.ones(3), np.zeros(n), np.ones(n), np.ones(n)]
         self._floor_idx = self._floor_ends.astype(np.int64)
-        # the fused kernel's settings and obstacles (c3bf_gym.safety._rows.hook_rows_whole_arm)
-        self._params = _rows.RowParams(
-            int(kind), *map(float, params), *guard_gains, float(self.sensing_radius), float(self.margin),
-            float(self.floor_gamma), self._floor_idx, self._floor_min, joint_limits is not None,
-            *(np.ascontiguousarray(x, dtype=np.float64) for x in jl), self._dofs, self._qpos_ids, self._unmodelled,
-        )
-        self._obstacle_arrays = _rows.ObstacleArrays(obstacles.active, self._distances, obstacles.position,
-                                                     obstacles.velocity, obstacles.acceleration, obstacles.radius)
-        # the report's running values, in compiled code (_step.record); solve_time beside them
-        # the barrier's gain and the largest it may rise to (_step.beyond_allowance); a barrier
-        # without a gain gets no allowance
-        gain = getattr(self.barrier, "gamma", None)
-        limit_gain = RAISED_GAIN_STEP / model.opt.timestep
-        gains = np.array([gain if isinstance(gain, float) else limit_gain, limit_gain])
-        self._tally = _step.Tally(np.zeros(_step.TALLY_SIZE), np.zeros(n), np.zeros(n), np.zeros(4),
-                                  np.zeros(max_rows), gains)
+        self._fused, self._params, self._obstacle_arrays = self._kernel_settings(barrier, guard, joint_limits)
+        self._tally = _new_tally(self.barrier, n, max_rows, model.opt.timestep)
         self._solve_time = 0.0
         self.begin_step()
         self._bound: tuple = ()  # hook_substep's arguments after the first three (_bind)
         self._hook_substep: tuple | None = None  # what __call__ calls (_substep_entry)
         self._last_time: float | None = None  # the last recorded call's wall time [s] (None: no call yet)
         self.solve_times: list[float] | None = None
+
+    def _kernel_settings(self, barrier, guard, joint_limits: JointLimits | None) -> tuple[bool, _rows.RowParams, _rows.ObstacleArrays]:
+        """Whether the fused whole-arm kernel computes the rows, and its settings and obstacles
+        (:func:`c3bf_gym.safety._rows.hook_rows_whole_arm`, sharing the barrier classes' per-point
+        code). It does for the built-in barriers with ``points="whole_arm"`` and a distance-HOCBF
+        guard or none; any other barrier, guard or ``points="ee"`` goes through
+        ``Barrier.terms`` / ``rows_from_terms``."""
+        n, obstacles = self.robot.n, self.obstacles
+        spec = getattr(barrier, "fused_spec", None)
+        spec = spec() if spec is not None and self.points == "whole_arm" else None
+        guard_gains = (0.0, 0.0)  # the kernel's guard gains (γ₁, γ₂) of a distance HOCBF (0: no guard)
+        if guard is not None:
+            guard_spec = guard.fused_spec() if hasattr(guard, "fused_spec") else None
+            if guard_spec is not None and guard_spec[0] == _rows.HOCBF_KIND:
+                guard_gains = (float(guard_spec[1][1]), float(guard_spec[1][0]))
+            else:
+                spec = None
+        kind, params = spec if spec is not None else (-1, np.zeros(3))
+        if joint_limits is not None:
+            jl = [np.array(joint_limits.gains, dtype=np.float64), joint_limits.q_lo, joint_limits.q_hi,
+                  joint_limits.qd_max]
+        else:
+            jl = [np.ones(3), np.zeros(n), np.ones(n), np.ones(n)]
+        row_params = _rows.RowParams(
+            int(kind), *map(float, params), *guard_gains, float(self.sensing_radius), float(self.margin),
+            float(self.floor_gamma), self._floor_idx, self._floor_min, joint_limits is not None,
+            *(np.ascontiguousarray(x, dtype=np.float64) for x in jl), self._dofs, self._qpos_ids, self._unmodelled,
+        )
+        obstacle_arrays = _rows.ObstacleArrays(obstacles.active, self._distances, obstacles.position,
+                                               obstacles.velocity, obstacles.acceleration, obstacles.radius)
+        return spec is not None, row_params, obstacle_arrays
 
     def __getstate__(self) -> dict:
         """Pickled without what :meth:`_bind` gathered (views of this process's arrays, a compiled
