@@ -290,6 +290,7 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
 
     def __init__(
         self,
+        *,
         scenario: str | Scenario = "random",
         frame_skip: int = 10,
         gravity_compensation: bool = True,
@@ -308,10 +309,13 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
         camera_name: str = "overview",
         robot: str = "ur5e",
     ) -> None:
-        utils.EzPickle.__init__(
-            self, scenario, frame_skip, gravity_compensation, sensing_radius, terminate_on_collision,
-            success_tolerance, obstacle_speed_range, obstacle_radius_range, progress_weight,
-            success_bonus, effort_weight, distance_weight, render_mode, width, height, camera_name, robot,
+        utils.EzPickle.__init__(  # by keyword: a copy is built as this one was
+            self, scenario=scenario, frame_skip=frame_skip, gravity_compensation=gravity_compensation,
+            sensing_radius=sensing_radius, terminate_on_collision=terminate_on_collision,
+            success_tolerance=success_tolerance, obstacle_speed_range=obstacle_speed_range,
+            obstacle_radius_range=obstacle_radius_range, progress_weight=progress_weight, success_bonus=success_bonus,
+            effort_weight=effort_weight, distance_weight=distance_weight, render_mode=render_mode, width=width,
+            height=height, camera_name=camera_name, robot=robot,
         )  # fmt: skip
         #: The arm's task numbers (:data:`ROBOTS`).
         self.task_robot: ReachRobot = ROBOTS[choice("robot", robot, ROBOTS)]
@@ -330,15 +334,9 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
             speed_range=number_range("obstacle_speed_range", obstacle_speed_range, low=0.0, unit="m/s"),
             radius_range=number_range("obstacle_radius_range", obstacle_radius_range, low=0.0, low_open=True, unit="m"),
         )
-        self._weights = tuple(
-            number(name, value, low=0.0)
-            for name, value in (
-                ("progress_weight", progress_weight),
-                ("success_bonus", success_bonus),
-                ("effort_weight", effort_weight),
-                ("distance_weight", distance_weight),
-            )
-        )
+        self._weights = tuple(number(name, value, low=0.0) for name, value in (
+            ("progress_weight", progress_weight), ("success_bonus", success_bonus), ("effort_weight", effort_weight),
+            ("distance_weight", distance_weight)))  # fmt: skip
         render_mode = choice("render_mode", render_mode, (None, *self.metadata["render_modes"]))
         width, height = integer("width", width, low=1), integer("height", height, low=1)
 
@@ -359,6 +357,12 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
         )
         self._setup_model()
         self._check_scenario(self.scenario)
+        self._init_bookkeeping()
+
+    def _init_bookkeeping(self) -> None:
+        """The state :meth:`step` and :meth:`reset` keep besides MuJoCo's: the torque hooks and the
+        compiled paths they select, the state version, the drive's buffers, the obstacle sampler,
+        the episode's tallies and the step's undo record."""
         self._hooks: dict[str, TorqueHook] = {}
         #: Incremented whenever ``data`` moves to a new state (each physics step, reset,
         #: respawn, a failed step's roll-back): consumers key their per-state caches on it. It
