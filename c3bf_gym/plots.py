@@ -367,6 +367,34 @@ def _table_row(key: tuple[str, str, str], entries: list[tuple[dict, dict[str, np
     return f"{head} {np.mean(succ):.2f} ({per_seed}) | {np.mean(ret):.1f} | {', '.join(sorted(set(map(str, episodes))))} |"
 
 
+#: :func:`plot_training`'s time to competence: the training success rate, a trailing mean over
+#: :data:`COMPETENCE_WINDOW` episodes, first at or above :data:`COMPETENCE`.
+COMPETENCE = 0.9
+COMPETENCE_WINDOW = 50
+
+
+def _competence_table(keys: Sequence[tuple[str, str, str]], groups: Mapping[tuple[str, str, str], list]) -> list[str]:
+    """Per group: the training steps (and minutes, the run's wall time pro rata) at which each
+    seed's training success first reached :data:`COMPETENCE` over the last
+    :data:`COMPETENCE_WINDOW` episodes (the stochastic policy's own episodes, exploration
+    included); "-" for a seed that never did."""
+    lines = [f"| algo | action | filter | training steps to {COMPETENCE:g} success (per seed) "
+             f"| minutes, pro rata of the run's wall time (per seed) | seeds that reached it |",
+             "|---|---|---|---|---|---|"]  # fmt: skip
+    for key in keys:
+        steps, minutes = [], []
+        for config, data in groups[key]:
+            reached = np.flatnonzero(_trailing_mean(data["success"], COMPETENCE_WINDOW) >= COMPETENCE)
+            reached = reached[reached >= COMPETENCE_WINDOW - 1]  # a full window
+            step = int(data["timesteps"][reached[0]]) if reached.size else None
+            wall = config["_summary"].get("wall_time_s")
+            steps.append("-" if step is None else str(step))
+            minutes.append("-" if step is None or wall is None else f"{wall * step / data['timesteps'][-1] / 60:.1f}")
+        done = sum(x != "-" for x in steps)
+        lines.append(f"| {' | '.join(key)} | {', '.join(steps)} | {', '.join(minutes)} | {done} of {len(steps)} |")
+    return lines
+
+
 def plot_training(runs: Sequence[Path], path: Path, window: int = 20, evaluation: str = FINAL_EVAL_FILE) -> str:
     """Learning curves grouped by (algorithm, action mode, filter): mean and min-max over seeds.
 
@@ -374,9 +402,10 @@ def plot_training(runs: Sequence[Path], path: Path, window: int = 20, evaluation
     with an infeasible step (total and per seed), and the final models' success rate and return
     (per seed and mean) with the number of evaluation episodes per model; then, when the
     evaluations recorded it, a second table of the final success per concrete scenario (the
-    components of ``random``). The final models' numbers come from each run's ``evaluation``
-    file: ``final_eval.json`` (written by the run) by default, or a longer evaluation written by
-    ``c3bf-gym evaluate --json`` into the run directory (``FileNotFoundError`` if a run lacks
+    components of ``random``); last, the time to competence (:func:`_competence_table`). The
+    final models' numbers come from each run's ``evaluation`` file: ``final_eval.json``
+    (written by the run) by default, or a longer evaluation written by ``c3bf-gym evaluate
+    --json`` into the run directory (``FileNotFoundError`` if a run lacks
     it). Runs of one group must share their training options but the seed (``ValueError``
     otherwise).
     """
@@ -416,4 +445,4 @@ def plot_training(runs: Sequence[Path], path: Path, window: int = 20, evaluation
     fig.suptitle(f"Training curves (moving average over {window} episodes; band: min-max over seeds)")
     _save(fig, path)
     by_scenario = _scenario_table(keys, groups)
-    return "\n".join(lines + ([""] + by_scenario if by_scenario else []))
+    return "\n".join(lines + ([""] + by_scenario if by_scenario else []) + [""] + _competence_table(keys, groups))

@@ -429,6 +429,33 @@ def test_plot_training_refuses_to_average_different_recipes(tmp_path):
         plot_training(runs, tmp_path / "mixed.png")
 
 
+def test_plot_training_refuses_to_average_two_arms(tmp_path):
+    runs = [_fake_run(tmp_path, "u", "c3bf", "residual", [0, 0], final=0.8),  # predates robot: the UR5e
+            _fake_run(tmp_path, "p", "c3bf", "residual", [0, 0], final=0.9, robot="panda")]  # fmt: skip
+    with pytest.raises(ValueError, match="runs grouped as sac residual c3bf differ in robot"):
+        plot_training(runs, tmp_path / "mixed.png")
+
+
+def test_plot_training_reports_the_steps_to_competence(tmp_path):
+    """The first training step at which the success over the last 50 episodes reached 0.9 (a full
+    window), and the minutes the run's wall time gives it pro rata; "-" for a seed that never did."""
+    runs = [_fake_run(tmp_path, name, "c3bf", "residual", [0] * 120, final=0.9) for name in "ab"]
+    wins = np.r_[np.zeros(20), np.ones(100)]  # from episode 20 on every episode succeeds
+    for run, success in zip(runs, (wins, np.tile([0.0, 1.0], 60))):  # the second: 0.5 throughout
+        with open(run / "episodes.csv", newline="") as fh:
+            rows = list(csv.DictReader(fh))
+        for row, value in zip(rows, success):
+            row["success"] = value
+        with open(run / "episodes.csv", "w", newline="") as fh:
+            writer = csv.DictWriter(fh, fieldnames=list(rows[0]))
+            writer.writeheader()
+            writer.writerows(rows)
+        (run / "summary.json").write_text(json.dumps({"training_cost": 0.0, "wall_time_s": 600.0}))
+    table = plot_training(runs, tmp_path / "c.png").splitlines()
+    # 45 successes of 50 first at episode 65 (index 64): step 250 * 65, 16,250 of 30,000 steps
+    assert "| sac | residual | c3bf | 16250, - | 5.4, - | 1 of 2 |" in table
+
+
 def test_plot_training_rejects_a_non_run(tmp_path, capsys):
     with pytest.raises(SystemExit):
         main(["plot-training", str(tmp_path), "--out", str(tmp_path / "x.png")])
