@@ -15,18 +15,32 @@ compiled code, rebuilds the same structure from it, typed as the structure's num
 array crosses from Python instead of eighty. The rebuilt arrays borrow the memory of the packed
 ones, so whoever calls with a handle keeps the packed structure alive, and the kernels that take
 them must not keep them (the filter's, compiled without reference counting, cannot).
+
+Only numba's documented interface is used: each array is :func:`numba.carray` of a typed pointer
+that an intrinsic makes from its address (llvmlite IR), and the rebuild is generated per
+structure type as Python source and compiled through :func:`numba.extending.overload`.
+:func:`numba.carray` cannot be compiled without numba's reference counting (numba refuses a
+function that returns an array it did not receive when ``_nrt=False``), so the kernel that calls
+:func:`unpack` is compiled with it; the arrays it makes carry no reference count.
 """
 
 from __future__ import annotations
 
+import functools
 import numbers
 
 import numpy as np
 from llvmlite import ir
-from numba import types
+from numba import carray, types
 from numba.core.errors import TypingError
-from numba.extending import intrinsic
-from numba.np.arrayobj import make_array, populate_array
+from numba.extending import intrinsic, overload
+
+from c3bf_gym._compile_cache import KERNEL_OPTIONS  # (before any @njit(cache=True): the cache keys)
+
+#: how the rebuild compiles: as the kernels, without a disk cache of its own (it is generated per
+#: structure type; the kernels that call it cache it inside them). With numba's reference counting:
+#: :func:`numba.carray` cannot be compiled without it (see :func:`unpack`).
+_REBUILD_OPTIONS = {key: value for key, value in KERNEL_OPTIONS.items() if key != "cache"}
 
 __all__ = ["call_void", "pack", "unpack"]
 
@@ -81,32 +95,71 @@ def pack(value) -> np.ndarray:
     return np.array(words, np.uint64)
 
 
-def _rebuild(context, builder, typ, word, at: list[int]):
-    """The LLVM value of numba type ``typ`` read from the handle's words from ``at[0]`` on (advanced
-    past them): ``word(i)`` loads word ``i`` as an i64."""
-    i64 = ir.IntType(64)
-    if isinstance(typ, types.BaseTuple):
-        return context.make_tuple(builder, typ, [_rebuild(context, builder, t, word, at) for t in typ.types])
-    start = at[0]
-    if isinstance(typ, types.Array):
-        at[0] += 1 + typ.ndim
-        item = context.get_data_type(typ.dtype)
-        itemsize = context.get_abi_sizeof(item)
-        shape = [word(start + 1 + d) for d in range(typ.ndim)]
-        strides, stride = [], ir.Constant(i64, itemsize)
-        for extent in reversed(shape):  # C order: the last axis is contiguous
-            strides.insert(0, stride)
-            stride = builder.mul(stride, extent)
-        array = make_array(typ)(context, builder)
-        populate_array(array, data=builder.inttoptr(word(start), item.as_pointer()), shape=shape, strides=strides,
-                       itemsize=ir.Constant(i64, itemsize), meminfo=None)
-        return array._getvalue()
-    at[0] += 1
-    if isinstance(typ, types.Boolean):
-        return builder.icmp_unsigned("!=", word(start), ir.Constant(i64, 0))
-    if isinstance(typ, types.Integer):
-        return builder.trunc(word(start), ir.IntType(typ.bitwidth)) if typ.bitwidth < 64 else word(start)
-    return builder.bitcast(word(start), ir.DoubleType())  # float64 (unpack's typing checked)
+def _pointer_word(dtype):
+    """An intrinsic ``(uint64) -> CPointer(dtype)``: an address as a typed pointer, which
+    :func:`numba.carray` takes (one per dtype)."""
+    return _POINTERS.setdefault(dtype, _make_pointer_word(dtype))
+
+
+def _make_pointer_word(dtype):
+    @intrinsic
+    def pointer_word(typingctx, word):
+        def codegen(context, builder, signature, args):
+            return builder.inttoptr(args[0], context.get_value_type(signature.return_type))
+
+        return types.CPointer(dtype)(types.uint64), codegen
+
+    return pointer_word
+
+
+def _scalar_word(typ):
+    """An intrinsic ``(uint64) -> typ`` for the numbers :func:`pack` writes: a bool (nonzero), an
+    integer (its low ``bitwidth`` bits, two's complement) or a float64 (its bits)."""
+    return _SCALARS.setdefault(typ, _make_scalar_word(typ))
+
+
+def _make_scalar_word(typ):
+    @intrinsic
+    def scalar_word(typingctx, word):
+        def codegen(context, builder, signature, args):
+            (value,) = args
+            if isinstance(typ, types.Boolean):
+                return builder.icmp_unsigned("!=", value, ir.Constant(ir.IntType(64), 0))
+            if isinstance(typ, types.Integer):
+                return builder.trunc(value, ir.IntType(typ.bitwidth)) if typ.bitwidth < 64 else value
+            return builder.bitcast(value, ir.DoubleType())  # float64 (unpack's typing checked)
+
+        return typ(types.uint64), codegen
+
+    return scalar_word
+
+
+@intrinsic
+def _read_only(typingctx, array):
+    """``array`` typed read-only: :func:`numba.carray` builds writable arrays, and numba converts a
+    writable array to its read-only type (the same data) as it does for any argument."""
+    target = array.copy(readonly=True)
+
+    def codegen(context, builder, signature, args):
+        return context.cast(builder, args[0], array, target)
+
+    return target(array), codegen
+
+
+@intrinsic
+def _exactly(typingctx, value, like):
+    """``value``, which must be of the type ``like`` refers to (the rebuild's last check)."""
+    if value != like.instance_type:
+        raise TypingError(f"unpack() rebuilt {value}, not {like.instance_type}")
+
+    def codegen(context, builder, signature, args):
+        return args[0]
+
+    return value(value, like), codegen
+
+
+_POINTERS: dict = {}
+_SCALARS: dict = {}
 
 
 def _packable(typ) -> bool:
@@ -117,27 +170,63 @@ def _packable(typ) -> bool:
     return isinstance(typ, (types.Boolean, types.Integer)) or typ == types.float64
 
 
-@intrinsic
-def unpack(typingctx, handle, like):
+@functools.lru_cache(maxsize=None)
+def _rebuild_source(typ) -> tuple[str, dict]:
+    """Python source of ``impl(handle, like)``, which rebuilds a structure of numba type ``typ``
+    from a handle in compiled code, and the globals it names: each array ``numba.carray`` of its
+    address (a typed pointer) and shape, each number decoded from its word, each named tuple built
+    by its class, in :func:`pack`'s order."""
+    names: dict = {"carray": carray, "read_only": _read_only, "exactly": _exactly}
+    at = [0]
+
+    def name(value, prefix: str) -> str:
+        key = f"{prefix}{len(names)}"
+        names[key] = value
+        return key
+
+    def build(t) -> str:
+        if isinstance(t, types.BaseTuple):
+            items = [build(item) for item in t.types]
+            if isinstance(t, types.BaseNamedTuple):
+                return f"{name(t.instance_class, 'cls')}({', '.join(items)})"
+            return f"({''.join(item + ', ' for item in items)})"
+        start = at[0]
+        if isinstance(t, types.Array):
+            at[0] += 1 + t.ndim
+            shape = "".join(f"handle[{start + 1 + d}], " for d in range(t.ndim))
+            array = f"carray({name(_pointer_word(t.dtype), 'ptr')}(handle[{start}]), ({shape}))"
+            return array if t.mutable else f"read_only({array})"
+        at[0] += 1
+        return f"{name(_scalar_word(t), 'num')}(handle[{start}])"
+
+    body = build(typ)
+    return f"def impl(handle, like):\n    return exactly({body}, like)\n", names
+
+
+def unpack(handle, like):
     """In compiled code: the structure :func:`pack` wrote into ``handle`` (uint64 (w,)), of the numba
     type ``like`` (a type reference: pass ``numba.typeof(structure)`` from Python). The arrays are
-    views of the packed arrays' memory, without reference counts: the caller must neither keep them
-    nor return them to Python. Nothing is checked at run time, so the handle must come from
-    :func:`pack` of a structure of exactly that type, still alive."""
+    views of the packed arrays' memory (:func:`numba.carray` of each address), without reference
+    counts: the caller must neither keep them nor return them to Python. Read-only arrays in
+    ``like`` come back read-only. Nothing is checked at run time, so the handle must come from
+    :func:`pack` of a structure of exactly that type, still alive.
+
+    Raises:
+        numba.core.errors.TypingError: when compiled, for a handle that is not a C-contiguous uint64
+            vector or a type :func:`pack` does not write.
+        TypeError: called from Python (there is nothing to rebuild the arrays into).
+    """
+    raise TypeError("unpack() runs in compiled code only (pass the structure itself from Python)")
+
+
+@overload(unpack, jit_options=_REBUILD_OPTIONS)
+def _unpack_compiled(handle, like):
     handle_ok = (isinstance(handle, types.Array) and handle.dtype == types.uint64 and handle.ndim == 1
                  and handle.layout == "C")
     if not (handle_ok and isinstance(like, types.TypeRef) and _packable(like.instance_type)):
         raise TypingError(
             f"unpack() takes a uint64 handle and the type of a structure pack() takes, got {handle}, {like}")
-    typ = like.instance_type
-
-    def codegen(context, builder, signature, args):
-        words = builder.bitcast(make_array(signature.args[0])(context, builder, args[0]).data,
-                                ir.IntType(64).as_pointer())
-
-        def word(i):
-            return builder.load(builder.gep(words, [ir.Constant(ir.IntType(64), i)]))
-
-        return _rebuild(context, builder, typ, word, [0])
-
-    return typ(handle, like), codegen
+    source, names = _rebuild_source(like.instance_type)
+    scope = dict(names)
+    exec(compile(source, "<c3bf_gym._capi.unpack>", "exec"), scope)
+    return scope["impl"]

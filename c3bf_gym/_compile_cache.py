@@ -32,10 +32,12 @@ KERNEL_OPTIONS = {"cache": True, "nogil": True, "error_model": "numpy", "boundsc
 #: :data:`KERNEL_OPTIONS` for the kernels that run at every physics step (the filter, its QP and the
 #: environment's physics steps), which allocate nothing and only borrow their callers' arrays:
 #: compiled without numba's reference counting (NRT, ``_nrt=False``). With it, every array argument
-#: and every view taken in a loop costs an atomic increment and decrement, hundreds per physics step.
+#: and every view taken in a loop costs an atomic increment and decrement, hundreds per physics
+#: step (measured: docs/design-decisions.md, "No reference counting in the step kernels").
 #: A kernel that allocates fails to compile with these options (numba: "NRT required but not
-#: enabled"), so none can slip in unnoticed. ``_nrt`` is an option numba keeps for its own use; a
-#: numba without it compiles the same kernels with the counting.
+#: enabled"), so none can slip in unnoticed. ``_nrt`` is not one of numba's documented options but
+#: one it keeps for its own use: a numba without it compiles the same kernels with the counting,
+#: and ``tests/test_compile_cache.py`` fails to say so.
 STEP_KERNEL_OPTIONS = {**KERNEL_OPTIONS, "_nrt": False} if hasattr(options.DefaultOptions, "_nrt") else KERNEL_OPTIONS
 
 #: The folder beside the kernel sources that holds their cache (unless ``NUMBA_CACHE_DIR`` is set).
@@ -107,6 +109,9 @@ class _UserWideKernelLocator(_KernelStamp, caching.UserWideCacheLocator):
     """numba's user-wide cache, for a package installed read-only."""
 
 
+# numba documents neither its locators nor this list (only NUMBA_CACHE_DIR, process-wide, and a cache
+# keyed on the defining file): docs/design-decisions.md, "The compiled kernels' disk cache", says why
+# it is used anyway, and tests/test_compile_cache.py fails when numba changes it.
 if _InTreeKernelLocator not in caching.CacheImpl._locator_classes:
     caching.CacheImpl._locator_classes[:0] = [_UserProvidedKernelLocator, _InTreeKernelLocator,
                                                _UserWideKernelLocator]

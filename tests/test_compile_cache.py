@@ -47,3 +47,22 @@ def test_an_edit_to_any_kernel_source_recompiles(tmp_path):
     edited = _probe(tmp_path)
     assert edited["misses"] == 1 and edited["hits"] == 0
     assert _probe(tmp_path)["hits"] == 1
+
+
+def test_the_numba_internals_the_package_relies_on_are_still_there():
+    """Two things the package takes from numba are not its documented interface (the design
+    decisions say why each is kept): the cache locators' list, where _compile_cache puts its own
+    first, and the ``_nrt`` option that compiles the step kernels without reference counting."""
+    from numba.core import caching, options
+
+    from c3bf_gym import _compile_cache
+
+    locators = getattr(caching.CacheImpl, "_locator_classes", None)
+    assert isinstance(locators, list) and locators[0] is _compile_cache._UserProvidedKernelLocator, (
+        "numba no longer keeps its cache locators in caching.CacheImpl._locator_classes: c3bf_gym/_compile_cache.py "
+        "must find another way to key the kernels' cache on all of KERNEL_SOURCES (docs/design-decisions.md, "
+        "'The compiled kernels' disk cache')")
+    assert hasattr(options.DefaultOptions, "_nrt") and _compile_cache.STEP_KERNEL_OPTIONS.get("_nrt") is False, (
+        "numba no longer has the _nrt option: the step kernels now compile with reference counting, which costs "
+        "the filtered step time (docs/design-decisions.md, 'No reference counting in the step kernels'); find "
+        "numba's replacement or accept the cost and drop STEP_KERNEL_OPTIONS")

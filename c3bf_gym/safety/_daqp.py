@@ -15,11 +15,26 @@ workspace's ``addr`` array, and calls them through :func:`_call_update_ldp` and
 :func:`c3bf_gym._capi.call_void` (numba intrinsics that emit an indirect call). No address is compiled in, so numba caches the
 calling code on disk like every other kernel.
 
-The structs are declared after ``csrc/include/types.h`` and ``api.h`` of the daqp **0.11.0**
-sources (field order and C types; ctypes computes the x86-64 padding); their memory is numpy
-buffers, so compiled code reads the result's exit flag through an int32 view. The layout is not an
-ABI DAQP promises: importing this module with another daqp version raises ``ImportError``, and
-:class:`DaqpWorkspace` checks the workspace fields it can see after setup.
+What it relies on is what DAQP documents as its C interface: the structs ``DAQPProblem`` (the
+problem, ``types.h``) and ``DAQPResult`` (``api.h``), declared here field for field (ctypes computes
+the x86-64 padding; their memory is numpy buffers, so compiled code reads the result's exit flag
+through an int32 view and writes the problem's constraint count through one), and the functions
+of its workspace interface as its C documentation uses them: ``setup_daqp`` on a zeroed
+``DAQPWorkspace``, ``daqp_update_ldp``, ``daqp_solve``, ``free_daqp_workspace`` and
+``free_daqp_ldp``. Nothing reads or writes a field of the workspace, whose layout is DAQP's own:
+the workspace is a zeroed buffer of :data:`WORKSPACE_BYTES` (twelve times ``sizeof`` in daqp
+0.11.0), followed by :data:`GUARD_BYTES` more zeroed bytes that :class:`DaqpWorkspace` checks are
+still zero after setup, so a DAQP whose workspace outgrew the buffer fails loudly instead of
+running on memory it does not own. With no settings in the workspace, DAQP allocates its default
+ones (``daqp_default_settings``, all the filter uses) and frees them with the workspace.
+
+A DAQP whose structs or calls no longer mean what they meant is caught at import: the module
+solves two small QPs through this binding (bounds and general rows on a workspace sized for more
+rows than it is given; and two levels of priority that conflict) and compares them with
+``daqp.solve``, DAQP's documented Python interface, on the same problems. A difference raises
+``ImportError`` naming the installed daqp and what differed. (A change of ``DAQPProblem`` or
+``DAQPResult`` themselves can crash that check instead: the layouts are what C code compiled
+against the headers relies on too.)
 """
 
 from __future__ import annotations
@@ -39,16 +54,12 @@ from c3bf_gym._capi import call_void
 
 __all__ = ["DAQP_VERSION", "DaqpBuffers", "DaqpWorkspace", "EXIT_FLAGS", "daqp_call"]
 
-#: the daqp release whose struct layouts are declared here
-DAQP_VERSION = "0.11.0"
 try:
-    _installed = version("daqp")
+    #: the installed daqp's version (the binding checks itself against it at import, below)
+    DAQP_VERSION = version("daqp")
 except PackageNotFoundError as error:  # pragma: no cover - a declared dependency
-    raise ImportError(f"the filter's QP solver needs daqp=={DAQP_VERSION}: pip install daqp=={DAQP_VERSION}") from error
-if _installed != DAQP_VERSION:
-    raise ImportError(f"c3bf_gym calls DAQP's C API with the struct layouts of daqp {DAQP_VERSION}; "
-                      f"daqp {_installed} is installed: pip install daqp=={DAQP_VERSION}")
-import daqp  # noqa: E402  (after the version check)
+    raise ImportError("the filter's QP solver needs daqp: pip install 'daqp>=0.11.0'") from error
+import daqp  # noqa: E402
 
 #: DAQP's "no bound" (constants.h)
 INF = 1e30
@@ -68,31 +79,18 @@ class _Problem(ct.Structure):  # DAQPProblem
                 ("problem_type", ct.c_int)]
 
 
-class _Settings(ct.Structure):  # DAQPSettings
-    _fields_ = [("primal_tol", ct.c_double), ("dual_tol", ct.c_double), ("zero_tol", ct.c_double),
-                ("pivot_tol", ct.c_double), ("progress_tol", ct.c_double), ("cycle_tol", ct.c_int),
-                ("iter_limit", ct.c_int), ("fval_bound", ct.c_double), ("eps_prox", ct.c_double),
-                ("eta_prox", ct.c_double), ("rho_soft", ct.c_double), ("rel_subopt", ct.c_double),
-                ("abs_subopt", ct.c_double), ("sing_tol", ct.c_double), ("refactor_tol", ct.c_double),
-                ("time_limit", ct.c_double), ("w_soft", ct.c_double), ("eq_reduction", ct.c_int),
-                ("presolve", ct.c_int)]
-
-
 class _Result(ct.Structure):  # DAQPResult
     _fields_ = [("x", _p), ("lam", _p), ("fval", ct.c_double), ("soft_slack", ct.c_double),
                 ("exitflag", ct.c_int), ("iter", ct.c_int), ("nodes", ct.c_int), ("solve_time", ct.c_double),
                 ("setup_time", ct.c_double)]
 
 
-class _Workspace(ct.Structure):  # DAQPWorkspace: filled by the library; declared for its size and offsets
-    _fields_ = ([("qp", _p), ("n", ct.c_int), ("m", ct.c_int), ("ms", ct.c_int)]
-                + [(k, _p) for k in "M dupper dlower Rinv v sense scaling RinvD x xold lam lam_star u".split()]
-                + [("fval", ct.c_double)] + [(k, _p) for k in "L D xldl zldl".split()]
-                + [("reuse_ind", ct.c_int), ("WS", _p), ("n_active", ct.c_int), ("iterations", ct.c_int),
-                   ("sing_ind", ct.c_int), ("prox_mask", _p), ("n_prox", ct.c_int), ("soft_slack", ct.c_double),
-                   ("settings", _p), ("bnb", _p), ("outer_iter", ct.c_int), ("hierarchy", _p), ("avi", _p),
-                   ("eq", _p), ("timer", _p), ("Mu", _p), ("rho_ls", _p), ("rho_us", _p), ("w_ls", _p),
-                   ("w_us", _p), ("state", ct.c_int)])
+#: bytes of zeroed memory each workspace gets (``DAQPWorkspace`` is 328 in daqp 0.11.0; its layout
+#: is DAQP's own, so none of its fields is read here)
+WORKSPACE_BYTES = 4096
+#: zeroed bytes after it that must still be zero after setup: a larger workspace, whose fields there
+#: DAQP reads as NULL and then sets, fails loudly
+GUARD_BYTES = 1024
 
 
 def _function(name: str, argtypes: list, restype):
@@ -101,12 +99,13 @@ def _function(name: str, argtypes: list, restype):
     return fn
 
 
-_default_settings = _function("daqp_default_settings", [_p], None)
 _setup = _function("setup_daqp", [_p, _p, _p], ct.c_int)
 _free_ldp = _function("free_daqp_ldp", [_p], None)
 _free_workspace = _function("free_daqp_workspace", [_p], None)
-_UPDATE_LDP = ct.cast(_function("daqp_update_ldp", [ct.c_int, _p, _p], ct.c_int), ct.c_void_p).value
-_SOLVE = ct.cast(_function("daqp_solve", [_p, _p], None), ct.c_void_p).value
+_update_ldp = _function("daqp_update_ldp", [ct.c_int, _p, _p], ct.c_int)
+_solve = _function("daqp_solve", [_p, _p], None)
+_UPDATE_LDP = ct.cast(_update_ldp, ct.c_void_p).value
+_SOLVE = ct.cast(_solve, ct.c_void_p).value
 
 #: int32 index of the exit flag and of the iteration count in a result buffer
 RESULT_EXITFLAG = _Result.exitflag.offset // 4
@@ -166,13 +165,13 @@ def _buffer(struct_type) -> tuple[np.ndarray, ct.Structure]:
     return buf, struct_type.from_buffer(buf)
 
 
-def _release(work_buf: np.ndarray, settings_buf: np.ndarray) -> None:
-    """Free what ``setup_daqp`` allocated for the workspace in ``work_buf`` (its settings are
-    ours, in ``settings_buf``: DAQP must not free them)."""
-    work_buf.view(np.uint64)[_Workspace.settings.offset // 8] = 0
+def _release(work_buf: np.ndarray) -> None:
+    """Free what ``setup_daqp`` allocated for the workspace in ``work_buf``, its settings included,
+    in the order of DAQP's documentation (each call frees only what is still allocated and clears
+    its pointers, so nothing is freed twice)."""
     address = work_buf.ctypes.data
-    _free_ldp(address)
     _free_workspace(address)
+    _free_ldp(address)
 
 
 class DaqpWorkspace:
@@ -192,8 +191,9 @@ class DaqpWorkspace:
             each further level is satisfied as well as the ones above it allow.
 
     Raises:
-        RuntimeError: DAQP's setup failed, or the workspace it filled does not have the layout
-            declared for daqp 0.11.0.
+        RuntimeError: DAQP's setup failed (nothing is left allocated then), or it wrote past the
+            :data:`WORKSPACE_BYTES` reserved for its workspace (what it allocated is not freed:
+            the workspace cannot be trusted).
     """
 
     def __init__(self, n: int, rows: int, lo: np.ndarray, hi: np.ndarray, break_points=None) -> None:
@@ -216,22 +216,16 @@ class DaqpWorkspace:
         prob.bupper, prob.blower, prob.sense = upper.ctypes.data, lower.ctypes.data, sense.ctypes.data
         if self._break is not None and len(self._break) > 1:
             prob.break_points, prob.nh = self._break.ctypes.data, len(self._break)
-        self._settings_buf, _ = _buffer(_Settings)
-        _default_settings(self._settings_buf.ctypes.data)
         self._res_buf, res = _buffer(_Result)
         res.x, res.lam = x.ctypes.data, self._lam.ctypes.data
-        self._work_buf = np.zeros((ct.sizeof(_Workspace) + 7) // 8)
-        words = self._work_buf.view(np.uint64)
-        words[_Workspace.settings.offset // 8] = self._settings_buf.ctypes.data  # ours, not DAQP's to free
+        # zeroed (no settings: DAQP allocates its defaults), the guard too
+        self._work_buf = np.zeros((WORKSPACE_BYTES + GUARD_BYTES) // 8)
         setup_time = np.zeros(1)
         flag = _setup(self._prob_buf.ctypes.data, self._work_buf.ctypes.data, setup_time.ctypes.data)
         if flag < 0:
             raise RuntimeError(f"DAQP's setup failed: exit flag {flag} ({EXIT_FLAGS.get(flag, 'unknown')})")
-        ints = self._work_buf.view(np.int32)
-        if ((ints[_Workspace.n.offset // 4], ints[_Workspace.m.offset // 4], ints[_Workspace.ms.offset // 4])
-                != (n, m, n) or words[_Workspace.settings.offset // 8] != self._settings_buf.ctypes.data):
-            raise RuntimeError("DAQP's workspace does not have the layout declared for daqp 0.11.0")
-        weakref.finalize(self, _release, self._work_buf, self._settings_buf)
+        self.check_guard()
+        weakref.finalize(self, _release, self._work_buf)
         addr = np.zeros(5, np.uint64)
         addr[ADDR_WORK], addr[ADDR_PROBLEM] = self._work_buf.ctypes.data, self._prob_buf.ctypes.data
         addr[ADDR_RESULT], addr[ADDR_UPDATE_LDP], addr[ADDR_SOLVE] = self._res_buf.ctypes.data, _UPDATE_LDP, _SOLVE
@@ -239,9 +233,69 @@ class DaqpWorkspace:
         self.buffers = DaqpBuffers(f, A, lower, sense, x, self._res_buf.view(np.int32), self._prob_buf.view(np.int32),
                                    levels, addr)
 
+    def check_guard(self) -> None:
+        """Raises RuntimeError if DAQP wrote past the :data:`WORKSPACE_BYTES` reserved for its
+        workspace."""
+        if np.any(self._work_buf.view(np.uint8)[WORKSPACE_BYTES:]):
+            raise RuntimeError(f"daqp {DAQP_VERSION} wrote past the {WORKSPACE_BYTES} bytes c3bf_gym reserves for its "
+                               "workspace (DAQPWorkspace grew): raise WORKSPACE_BYTES in c3bf_gym/safety/_daqp.py")
+
     def __getstate__(self):
         raise TypeError("a DaqpWorkspace holds C memory and cannot be pickled; build a new one")
 
+
+
+def _call_from_python(buffers: DaqpBuffers, mask: int) -> int:
+    """What :func:`daqp_call` does, through ctypes: the exit flag."""
+    addr = [int(a) for a in buffers.addr]
+    flag = _update_ldp(mask, addr[ADDR_WORK], addr[ADDR_PROBLEM])
+    if flag < 0:
+        return flag
+    _solve(addr[ADDR_RESULT], addr[ADDR_WORK])
+    return int(buffers.result[RESULT_EXITFLAG])
+
+
+def _self_check() -> None:
+    """Raises ImportError unless the binding gives what ``daqp.solve`` gives (exit flag, and the
+    solution within 1e-9) on: bounds and two general rows on a workspace with room for three (the
+    problem's constraint count set as the filter sets it), cold and then warm-started with a new
+    cost; and a box with two levels of rows that conflict (``break_points``). The workspaces are
+    built and freed as the filter's are."""
+    n = 3
+    lo, hi = np.full(n, -1.0), np.full(n, 1.0)
+    cases = [  # (rows capacity, break points, rows, lower bounds of the rows, nominal torques)
+        (3, None, [[1.0, 1.0, 0.0], [0.0, 1.0, -1.0]], [0.8, 0.2], [[2.0, -0.5, 0.3], [-0.4, 0.9, 0.1]]),
+        (2, [n, n + 1, n + 2], [[1.0, 1.0, 0.0], [-1.0, -1.0, 0.0]], [1.5, -0.5], [[0.2, -0.7, 0.5]]),
+    ]
+    for capacity, levels, rows, bounds, nominals in cases:
+        work = DaqpWorkspace(n, capacity, lo, hi, break_points=levels)
+        buffers, r = work.buffers, len(rows)
+        buffers.A[:r] = rows
+        buffers.lower[n:n + r] = bounds
+        buffers.problem[PROBLEM_M] = n + r
+        mask = UPDATE_M | UPDATE_V | UPDATE_D | UPDATE_SENSE
+        for nominal in nominals:
+            buffers.f[:] = -np.asarray(nominal)
+            flag = _call_from_python(buffers, mask)
+            mask = UPDATE_M | UPDATE_V | UPDATE_D  # then warm-started
+            work.check_guard()
+            x, _, expected, _ = daqp.solve(
+                np.eye(n), buffers.f.copy(), np.array(rows), np.concatenate([hi, np.full(r, INF)]),
+                np.concatenate([lo, bounds]), np.zeros(n + r, np.intc),
+                break_points=np.zeros(0, np.intc) if levels is None else np.array(levels, np.intc))
+            what = f"{'two levels' if levels else 'one level'}, nominal {nominal}"
+            if flag != expected or not np.allclose(buffers.x, x, rtol=0.0, atol=1e-9):
+                raise ImportError(
+                    f"c3bf_gym's binding of DAQP's C API disagrees with daqp.solve on daqp {DAQP_VERSION} ({what}): "
+                    f"exit flag {flag} vs {expected}, x {buffers.x.tolist()} vs {x.tolist()}; "
+                    "c3bf_gym/safety/_daqp.py needs updating for this daqp")
+        del work
+
+
+try:
+    _self_check()
+except RuntimeError as error:  # DAQP's setup failed or wrote past its workspace
+    raise ImportError(f"c3bf_gym's binding of DAQP's C API fails its check on daqp {DAQP_VERSION}: {error}") from error
 
 
 @njit(**STEP_KERNEL_OPTIONS)

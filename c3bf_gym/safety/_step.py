@@ -27,7 +27,7 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit
 
-from c3bf_gym._compile_cache import STEP_KERNEL_OPTIONS  # (before any @njit(cache=True): the cache keys)
+from c3bf_gym._compile_cache import KERNEL_OPTIONS, STEP_KERNEL_OPTIONS  # (before any @njit(cache=True): the cache keys)
 from c3bf_gym._capi import unpack
 
 # hook_substep compiles _rows.hook_rows_whole_arm and _qp.solve_rows into itself: _compile_cache keys
@@ -323,9 +323,13 @@ def hook_substep(stage, tau_nom, tau, buffers):
     return SOLVED if outcome == GAIN_RAISED else outcome
 
 
-@njit(**_opts)
+@njit(**KERNEL_OPTIONS)
 def hook_substep_at(stage, tau_nom, tau, handle, bound):
     """:func:`hook_substep` with its :class:`StepBuffers` by address: ``handle`` is
     :func:`c3bf_gym._capi.pack` of them and ``bound`` their numba type. From Python, one array
-    crosses into compiled code instead of the ~80 buffers, which numba would convert one by one."""
+    crosses into compiled code instead of the ~80 buffers, which numba would convert one by one.
+    Compiled with numba's reference counting, unlike the step kernels: the rebuild
+    (:func:`c3bf_gym._capi.unpack`, :func:`numba.carray`) needs it; the arrays it rebuilds have no
+    reference count to change, and :func:`hook_substep`, compiled without, runs as in the
+    environment's step."""
     return hook_substep(stage, tau_nom, tau, unpack(handle, bound))
