@@ -109,6 +109,63 @@ def _clear(buffers, start, stop):
 
 
 @njit(**STEP_KERNEL_OPTIONS)
+def _load_rows(tau_nom, A, b, scale, cols, qp):
+    """Step 1 of :func:`solve_rows`: the cost and the scaled, normalised rows into ``qp.plain`` (its
+    problem sized to them), each row's norm into ``qp.norm`` (0: a row the torque cannot change,
+    left out). Returns ``(SOLVED, impossible)`` (the largest ``b_k`` of a row that can never
+    hold, 0 if none), or ``(BAD_NOMINAL or BAD_ROWS, 0)`` for a non-finite input."""
+    n = tau_nom.shape[0]
+    m = b.shape[0]
+    plain = qp.plain
+    for j in range(n):
+        u_nom = tau_nom[j] / scale[j]
+        if not math.isfinite(u_nom):
+            return BAD_NOMINAL, 0.0
+        plain.f[j] = -u_nom
+    impossible = 0.0
+    for k in range(m):
+        sq = 0.0
+        for j in range(n):
+            a = A[k, cols[j]] * scale[j]
+            plain.A[k, j] = a
+            sq += a * a
+        norm = math.sqrt(sq)
+        if not (math.isfinite(norm) and math.isfinite(b[k])):
+            return BAD_ROWS, 0.0
+        if norm < ROW_NORM_MIN:
+            qp.norm[k] = 0.0
+            for j in range(n):
+                plain.A[k, j] = 0.0
+            plain.lower[n + k] = -INF
+            impossible = max(impossible, b[k])
+            continue
+        qp.norm[k] = norm
+        for j in range(n):
+            plain.A[k, j] /= norm
+        plain.lower[n + k] = b[k] / norm
+    plain.problem[PROBLEM_M] = n + m
+    return SOLVED, impossible
+
+
+@njit(**STEP_KERNEL_OPTIONS)
+def _active_and_slack(qp, b, status, impossible):
+    """After :func:`solve_rows`' solves: the rows active within :data:`ACTIVE_TOL`, and the slack
+    (the largest normalised violation or ``impossible``; only that when solved). A row left out
+    gets the residual ``−b_k`` when it can never hold, else 0."""
+    n_active = 0
+    slack = impossible
+    for k in range(b.shape[0]):
+        if qp.norm[k] == 0.0:
+            qp.residual[k] = -b[k] if b[k] > 0.0 else 0.0
+            continue
+        if qp.residual[k] <= ACTIVE_TOL:
+            n_active += 1
+        if status != SOLVED:
+            slack = max(slack, -qp.residual[k])
+    return n_active, slack
+
+
+@njit(**STEP_KERNEL_OPTIONS)
 def solve_rows(tau_nom, A, b, scale, cols, n_obstacle_rows, stride, qp):
     """The filter's QP (the module docstring) for the rows ``A[:, cols] τ ≥ b`` (``A`` (m, k), ``cols``
     (n,): the columns of the torque's dofs among ``A``'s ``k``) and nominal torque ``tau_nom``
@@ -143,33 +200,9 @@ def solve_rows(tau_nom, A, b, scale, cols, n_obstacle_rows, stride, qp):
     n = tau_nom.shape[0]
     m = b.shape[0]
     plain = qp.plain
-    for j in range(n):
-        u_nom = tau_nom[j] / scale[j]
-        if not math.isfinite(u_nom):
-            return BAD_NOMINAL, 0, 0, 0.0
-        plain.f[j] = -u_nom
-    impossible = 0.0
-    for k in range(m):
-        sq = 0.0
-        for j in range(n):
-            a = A[k, cols[j]] * scale[j]
-            plain.A[k, j] = a
-            sq += a * a
-        norm = math.sqrt(sq)
-        if not (math.isfinite(norm) and math.isfinite(b[k])):
-            return BAD_ROWS, 0, 0, 0.0
-        if norm < ROW_NORM_MIN:
-            qp.norm[k] = 0.0
-            for j in range(n):
-                plain.A[k, j] = 0.0
-            plain.lower[n + k] = -INF
-            impossible = max(impossible, b[k])
-            continue
-        qp.norm[k] = norm
-        for j in range(n):
-            plain.A[k, j] /= norm
-        plain.lower[n + k] = b[k] / norm
-    plain.problem[PROBLEM_M] = n + m
+    bad, impossible = _load_rows(tau_nom, A, b, scale, cols, qp)
+    if bad != SOLVED:
+        return bad, 0, 0, 0.0
     status = SOLVED
     iterations = 0
     by_priority = -1  # the prioritised solve's exit flag (-1: not run)
@@ -207,16 +240,7 @@ def solve_rows(tau_nom, A, b, scale, cols, n_obstacle_rows, stride, qp):
         elif impossible > 0.0:
             status = RELAXED
     qp.last[0] = status
-    n_active = 0
-    slack = impossible
-    for k in range(m):
-        if qp.norm[k] == 0.0:
-            qp.residual[k] = -b[k] if b[k] > 0.0 else 0.0
-            continue
-        if qp.residual[k] <= ACTIVE_TOL:
-            n_active += 1
-        if status != SOLVED:
-            slack = max(slack, -qp.residual[k])
+    n_active, slack = _active_and_slack(qp, b, status, impossible)
     return status, iterations, n_active, slack
 
 
