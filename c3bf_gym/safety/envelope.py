@@ -238,11 +238,7 @@ def filter_envelope(
     first = model.qpos0[qpos_ids] if qpos is None else np.asarray(qpos, dtype=np.float64)
     if first.shape != (robot.n,) or not np.isfinite(first).all():
         raise ValueError(f"qpos must be {robot.n} finite joint positions, got {qpos!r}")
-    low, high = robot.joint_range.T.copy()
-    low[~np.isfinite(low)], high[~np.isfinite(high)] = -np.pi, np.pi
-    rng = np.random.default_rng(seed)
-    samples = [first] + [rng.uniform(low, high) for _ in range(int(configurations))]
-
+    samples = [first] + _random_configurations(robot, int(configurations), seed)
     escapes = _Escapes(model, robot, config, float(obstacle_radius), float(keep_out_radius), float(keep_out_height))
     found = [escapes.at(q, qpos_ids, drop_below_floor=index > 0) for index, q in enumerate(samples)]
     parts = [part for part, _ in filter(None, found)]
@@ -267,6 +263,15 @@ def filter_envelope(
                           mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_GEOM, int(geoms[point])) or
                           f"geom {int(geoms[point])}", pos[point].copy(), escapes.approach[direction].copy(),
                           np.array(q), escapes.standoff, radius_all, t_all, speed_all, accel_all)  # fmt: skip
+
+
+def _random_configurations(robot: RobotDescription, count: int, seed: int) -> list[np.ndarray]:
+    """``count`` joint positions drawn uniformly within the joint ranges (``[−π, π]`` for a joint
+    without one)."""
+    low, high = robot.joint_range.T.copy()
+    low[~np.isfinite(low)], high[~np.isfinite(high)] = -np.pi, np.pi
+    rng = np.random.default_rng(seed)
+    return [rng.uniform(low, high) for _ in range(count)]
 
 
 def _largest_speed(envelope: FilterEnvelope, sensing: float) -> tuple[float, float]:
