@@ -44,6 +44,14 @@ _positive_float = _number(float, 0.0, strict=True)
 _nonnegative_float = _number(float, 0.0, strict=False)
 
 
+def subcommand(sub: argparse._SubParsersAction, name: str, summary: str, description: str, *,
+               show_defaults: bool = False) -> argparse.ArgumentParser:
+    """Add the subcommand ``name`` (``summary`` in ``c3bf-gym --help``, ``description`` in its own);
+    ``show_defaults``: its options' help shows their defaults."""
+    formatter = argparse.ArgumentDefaultsHelpFormatter if show_defaults else argparse.HelpFormatter
+    return sub.add_parser(name, help=summary, description=description, formatter_class=formatter)
+
+
 def _add_train(sub: argparse._SubParsersAction) -> None:
     from c3bf_gym.scenarios import SCENARIOS
     from c3bf_gym.envs.reach import ROBOTS
@@ -56,15 +64,14 @@ def _add_train(sub: argparse._SubParsersAction) -> None:
     def by_engine(name: str) -> str:
         return ", ".join(f"{e}: {ENGINE_DEFAULTS[e][name]}" for e in ENGINES)
 
-    p = sub.add_parser(
-        "train",
-        help="train one agent (Stable-Baselines3, or Ray RLlib with --engine rllib)",
-        description="Train PPO or SAC on C3BFReach-v0, with no filter or a named safety filter "
+    p = subcommand(
+        sub, "train", "train one agent (Stable-Baselines3, or Ray RLlib with --engine rllib)",
+        "Train PPO or SAC on C3BFReach-v0, with no filter or a named safety filter "
         "(c3bf_gym.FILTERS). Writes a run directory (config, model, per-episode metrics with the cumulative "
         "training cost, evaluations, tensorboard logs). The defaults are the recipe of the README's RL "
         "table (c3bf_gym.training.TrainConfig). --engine rllib trains RLlib PPO with --n-envs env runners "
         "on a local Ray instance, or on the cluster at --address (the rllib extra).",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        show_defaults=True,
     )
     p.add_argument("--engine", choices=ENGINES, default=d.engine, help="training engine")
     p.add_argument("--address", default=None,
@@ -129,10 +136,9 @@ def _add_evaluate(sub: argparse._SubParsersAction) -> None:
     from c3bf_gym.scenarios import SCENARIOS
     from c3bf_gym.training import FINAL_EVAL_SEED, TRAIN_FILTERS
 
-    p = sub.add_parser(
-        "evaluate",
-        help="evaluate a saved model",
-        description="Roll out a saved model for N seeded episodes: success rate, return, collisions "
+    p = subcommand(
+        sub, "evaluate", "evaluate a saved model",
+        "Roll out a saved model for N seeded episodes: success rate, return, collisions "
         "(from the environment's geometric cost) and filter interventions. --filter evaluates a "
         "model under another filter than it was trained with (e.g. an unfiltered agent with the default filter on).",
     )
@@ -162,10 +168,9 @@ def _run_evaluate(args: argparse.Namespace) -> int:
 def _add_plot_training(sub: argparse._SubParsersAction) -> None:
     from c3bf_gym.training import FINAL_EVAL_FILE
 
-    p = sub.add_parser(
-        "plot-training",
-        help="learning curves of several runs",
-        description="Plot return, success rate and cumulative training collisions against timesteps "
+    p = subcommand(
+        sub, "plot-training", "learning curves of several runs",
+        "Plot return, success rate and cumulative training collisions against timesteps "
         "for run directories, grouped by filter (mean and min-max band over seeds).",
     )
     p.add_argument("runs", nargs="+", help="run directories (each with config.json and episodes.csv)")

@@ -427,20 +427,19 @@ def _videos(config: ExperimentConfig, folder: Path) -> None:
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    from c3bf_gym.cli import _nonnegative_float, _nonnegative_int, _positive_float, _positive_int
+    from c3bf_gym.cli import _nonnegative_float, _nonnegative_int, _positive_float, _positive_int, subcommand
     from c3bf_gym.envs.reach import ROBOTS
     from c3bf_gym.scenarios import SCENARIOS
 
     d = ExperimentConfig()  # the defaults live there
-    p = sub.add_parser(
-        "experiments",
-        help="the paper's experiments: 4 scenarios x {no filter, HOCBF, C3BF} (the main job)",
-        description="Run the Cartesian impedance controller as nominal policy on the paper's scenarios "
+    p = subcommand(
+        sub, "experiments", "the paper's experiments: 4 scenarios x {no filter, HOCBF, C3BF} (the main job)",
+        "Run the Cartesian impedance controller as nominal policy on the paper's scenarios "
         "with no filter, the distance HOCBF and the C3BF filter over seeded episodes; write a results "
         "table (table.csv, .json, .md), figures per scenario, a C3BF-vs-HOCBF summary figure and a "
         "perception-boundary (sensing radius) sweep (sensing.csv, .json, .md). The defaults are the main "
         "job's (c3bf_gym.experiments.ExperimentConfig).",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        show_defaults=True,
     )
     p.add_argument("--out", type=Path, default=d.out, help="output directory")
     p.add_argument("--robot", choices=list(ROBOTS), default=d.robot,

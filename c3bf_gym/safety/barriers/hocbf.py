@@ -51,20 +51,9 @@ class DistanceHOCBF(Barrier):
         self._gamma1 = require_positive("gamma1", gamma1)
         self._gamma2 = require_positive("gamma2", gamma2)
 
-    @property
-    def gamma(self) -> float:
-        """Class-K gain applied to ψ₁ in the row (= γ₂) [1/s]."""
-        return self._gamma2
-
-    @property
-    def gamma1(self) -> float:
-        """Gain γ₁ [1/s] inside ψ₁."""
-        return self._gamma1
-
-    @property
-    def gamma2(self) -> float:
-        """Gain γ₂ [1/s] applied to ψ₁."""
-        return self._gamma2
+    gamma1 = property(lambda self: self._gamma1, doc="Gain γ₁ [1/s] inside ψ₁.")
+    gamma2 = property(lambda self: self._gamma2, doc="Gain γ₂ [1/s] applied to ψ₁.")
+    gamma = property(lambda self: self._gamma2, doc="Class-K gain applied to ψ₁ in the row (= γ₂) [1/s].")
 
     def __repr__(self) -> str:
         return f"DistanceHOCBF(gamma1={self._gamma1!r}, gamma2={self._gamma2!r})"
