@@ -56,6 +56,10 @@ TRAINING_TABLES = (
     ("training_table_ppo.md", "ppo/ppo_residual_10hz_dw10_aw3_set_*", "eval_200.json", "training_curves_ppo.png"),
     # the default filter's SAC recipe trained twice as long, 50k steps (code b762c7e)
     ("training_table_sac_50k.md", "sac_50k/sac_residual_10hz_dw10_aw3_set_*", "eval_200.json", "training_curves_sac_50k.png"),
+    # the sets of the README's RL table: the Panda with its 2 N m/rad posture pull, no filter and the
+    # default filter, each run's own evaluation on 200 episodes (code 51994f2)
+    ("training_table_sets_panda.md", "sets/panda_sac_residual_10hz_dw10_aw3_set_*", "final_eval.json",
+     "training_curves_sets_panda.png"),
 )
 
 
