@@ -60,6 +60,11 @@ TRAINING_TABLES = (
     # default filter, each run's own evaluation on 200 episodes (code 51994f2)
     ("training_table_sets_panda.md", "sets/panda_sac_residual_10hz_dw10_aw3_set_*", "final_eval.json",
      "training_curves_sets_panda.png"),
+    ("training_table_sets_ur5e.md", "sets/sac_residual_10hz_dw10_aw3_set_*", "final_eval.json",
+     "training_curves_sets_ur5e.png"),
+    # an attempt on the Panda: a dearer correction (--action-weight 10), 2 seeds
+    ("training_table_sets_panda_aw10.md", "sets/panda_sac_residual_10hz_dw10_aw10_set_*", "final_eval.json",
+     "training_curves_sets_panda_aw10.png"),
 )
 
 
