@@ -24,9 +24,9 @@ import numpy as np
 from c3bf_gym.envs.reach import ROBOTS
 from c3bf_gym.training import (
     DEFAULT_TRAIN_HZ,
-    TRAIN_FILTERS,
     FINAL_EVAL_SEED,
     POLICY_RATES,
+    TRAIN_FILTERS,
     by_scenario,
     env_kwargs,
     filter_config,

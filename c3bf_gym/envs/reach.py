@@ -153,7 +153,7 @@ ROBOTS: dict[str, ReachRobot] = {
     # with 0.45 m, 0.27 m/s with 0.65 m, 0.50 m/s with 0.7 m). Posture stiffness 2 N m/rad, not
     # the UR5e's 20: at 20 the pull to home (20 N m at 1 rad, beyond the wrist's 12 N m) fought the
     # filter's evasions, and the zero-action policy under the default filter reached the goal in
-    # 0.30 of `multi` episodes (0.94 unfiltered); at 2 in 0.88 (docs/results/rl.md).
+    # 0.26 of the evaluation's `multi` episodes (0.89 unfiltered); at 2 in 0.91 (docs/results/rl.md).
     "panda": ReachRobot("panda", "panda_scene.xml", 7, (2.175,) * 4 + (2.61,) * 3, keep_out_radius=0.2,
                         keep_out_height=0.7, posture_stiffness=2.0),
 }
