@@ -95,13 +95,11 @@ def pack(value) -> np.ndarray:
     return np.array(words, np.uint64)
 
 
+@functools.lru_cache(maxsize=None)
 def _pointer_word(dtype):
     """An intrinsic ``(uint64) -> CPointer(dtype)``: an address as a typed pointer, which
     :func:`numba.carray` takes (one per dtype)."""
-    return _POINTERS.setdefault(dtype, _make_pointer_word(dtype))
 
-
-def _make_pointer_word(dtype):
     @intrinsic
     def pointer_word(typingctx, word):
         def codegen(context, builder, signature, args):
@@ -112,13 +110,11 @@ def _make_pointer_word(dtype):
     return pointer_word
 
 
+@functools.lru_cache(maxsize=None)
 def _scalar_word(typ):
     """An intrinsic ``(uint64) -> typ`` for the numbers :func:`pack` writes: a bool (nonzero), an
-    integer (its low ``bitwidth`` bits, two's complement) or a float64 (its bits)."""
-    return _SCALARS.setdefault(typ, _make_scalar_word(typ))
+    integer (its low ``bitwidth`` bits, two's complement) or a float64 (its bits), one per type."""
 
-
-def _make_scalar_word(typ):
     @intrinsic
     def scalar_word(typingctx, word):
         def codegen(context, builder, signature, args):
@@ -156,10 +152,6 @@ def _exactly(typingctx, value, like):
         return args[0]
 
     return value(value, like), codegen
-
-
-_POINTERS: dict = {}
-_SCALARS: dict = {}
 
 
 def _packable(typ) -> bool:

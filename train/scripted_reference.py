@@ -48,8 +48,9 @@ def main() -> None:
     for stiffness, filter_name in itertools.product(args.posture_stiffness, args.filters):
         base = gym.make("C3BFReach-v0", scenario=args.scenario, **env_kwargs(args.policy_hz, robot=args.robot))
         env = CartesianImpedanceAction(base, residual=True, controller=default_impedance(base.unwrapped, stiffness))
-        if filter_config(filter_name) is not None:  # as training.build_env stacks them
-            env = SafetyFilter(env, filter_config(filter_name))
+        config = filter_config(filter_name)
+        if config is not None:  # as training.build_env stacks them
+            env = SafetyFilter(env, config)
         straight = np.zeros(env.action_space.shape, dtype=np.float32)  # no correction: straight for the goal
         success, collided, kinds = [], [], []
         for episode in range(args.episodes):

@@ -244,7 +244,6 @@ class DaqpWorkspace:
         raise TypeError("a DaqpWorkspace holds C memory and cannot be pickled; build a new one")
 
 
-
 def _call_from_python(buffers: DaqpBuffers, mask: int) -> int:
     """What :func:`daqp_call` does, through ctypes: the exit flag."""
     addr = [int(a) for a in buffers.addr]
