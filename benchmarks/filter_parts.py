@@ -2,7 +2,7 @@
 faster QP, or any faster rows, leaves under the filtered step.
 
 The script copies the ``c3bf_gym`` package it imports into a temporary folder once per variant
-and edits the copy's :func:`c3bf_gym.safety._step.hook_substep`, the filter's call at every
+and edits the copy's :func:`c3bf_gym.safety._step.filter_substep`, the filter's call at every
 physics step (the package itself is not touched):
 
 * ``no QP``: the QP (``solve_rows``) is replaced by the nominal torque clipped to the torque
@@ -47,7 +47,7 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 KERNELS = Path("safety") / "_step.py"
-#: the text of hook_substep each edit replaces, and its replacement
+#: the text of filter_substep each edit replaces, and its replacement
 _ROWS = "    m, min_h, inside, n_sensed = hook_rows_whole_arm(stage, arm, obstacles, params, A, b, tally.row_h)\n"
 _NO_ROWS = "    m, min_h, inside, n_sensed = 0, np.inf, False, 0\n"
 _QP = ("    status, iterations, n_active, slack = solve_rows(tau_nom, A[:m], b[:m], scale, params.dofs,\n"
@@ -68,7 +68,7 @@ DIFFERS = 3
 
 
 def edited_copy(package: Path, edits: tuple, root: Path) -> Path:
-    """A copy of ``package`` (the ``c3bf_gym`` folder) under ``root``, its ``hook_substep`` edited by
+    """A copy of ``package`` (the ``c3bf_gym`` folder) under ``root``, its ``filter_substep`` edited by
     ``edits`` (pairs of old and new text; none: a plain copy); returns ``root`` (the folder to put
     on ``PYTHONPATH``). A checkout's package finds its MJCF
     files in the top-level ``assets/`` beside it: that is copied too.
@@ -86,7 +86,7 @@ def edited_copy(package: Path, edits: tuple, root: Path) -> Path:
     source = kernels.read_text()
     for old, new in edits:
         if source.count(old) != 1:
-            raise SystemExit(f"filter_parts.py: {KERNELS} no longer holds this line of hook_substep once; "
+            raise SystemExit(f"filter_parts.py: {KERNELS} no longer holds this line of filter_substep once; "
                              f"update the script's edits:\n{old}")  # fmt: skip
         source = source.replace(old, new)
     kernels.write_text(source)

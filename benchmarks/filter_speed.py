@@ -9,14 +9,14 @@ has work to do (``--policy random``: uniformly random torques instead). Every ``
 is timed as a whole; with ``--split`` also (same call, no second evaluation) its rows
 (``SafetyHook.rows``: arm dynamics, barrier, joint limits) and QP solve (the QP object's
 ``solve_scaled``), for a hook that calls them: the whole-arm hook runs both in one kernel
-(``_step.hook_substep``, which a call from Python enters through ``hook_substep_at``), so its
+(``_step.filter_substep``, which a call from Python enters through ``filter_substep_at``), so its
 split columns stay empty ("nan"). Median, p99, max and mean in µs of all calls, the median of the
 solved ones, and median and p99 of the relaxed ones (no torque satisfied every row: the rows gave
 way), and the QP's status counts.
 
 **The same calls in compiled code.** Each latency run is repeated with the same seed while
 :class:`Replay` records every call's inputs; then every call is replayed in order with its inputs
-restored (untimed, in Python) and :func:`c3bf_gym.safety._step.hook_substep` alone timed in
+restored (untimed, in Python) and :func:`c3bf_gym.safety._step.filter_substep` alone timed in
 compiled code with the CPU's time-stamp counter (x86 only): the call an environment's compiled
 policy step makes between two physics steps, without what a call from Python adds around it. The
 replay must give every recorded torque bit for bit (it replays the same solves, warm starts
@@ -170,7 +170,7 @@ def _timed_substep(stage, tau_nom, tau, buffers):
     """One compiled filter call, as an environment's compiled policy step makes it between two
     physics steps; returns ``(status, time-stamp counter ticks)``."""
     start = _cycles()
-    status = _step.hook_substep(stage, tau_nom, tau, buffers)
+    status = _step.filter_substep(stage, tau_nom, tau, buffers)
     return status, _cycles() - start
 
 
@@ -181,7 +181,7 @@ class Replay:
     reads (every writable array of the arm's and the obstacles' kernel structures), the QP's
     cold-start flags (a reset between calls), the nominal torque and the answer. :meth:`run`
     restores each call's inputs in Python, untimed, then times
-    :func:`c3bf_gym.safety._step.hook_substep` alone, and checks that every call gives the
+    :func:`c3bf_gym.safety._step.filter_substep` alone, and checks that every call gives the
     recorded torque bit for bit: it replays the same solves, warm starts included.
 
     Every call is replayed at stage 2 (the arm's dynamics computed in the call), which is what

@@ -6,7 +6,9 @@ version of ``SafetyFilter`` since the guard takes) and for no filter, and each o
 scenarios, it runs ``EPISODES`` seeded episodes of ``STEPS`` policy steps, alternating uniformly
 random and chattering ±1 torques, and hashes the observations, joint positions and velocities,
 rewards, goal and obstacle distances, effort and the safety report's numbers; a second hash
-leaves the report's numbers out (a change to the report alone moves only the first). Run it on
+leaves the report's numbers out (a change to the report alone moves only the first). A second
+table does the same for the training recipe's stack (the residual Cartesian impedance action,
+filtered by the default filter and not) on both arms, with uniformly random actions. Run it on
 two trees and compare the printed hashes::
 
     PYTHONPATH=/path/to/other/checkout python benchmarks/rollout_hash.py 2 60
@@ -25,7 +27,7 @@ import gymnasium as gym  # noqa: E402
 import numpy as np  # noqa: E402
 
 import c3bf_gym  # noqa: E402
-from c3bf_gym import SafetyFilter  # noqa: E402
+from c3bf_gym import CartesianImpedanceAction, SafetyFilter  # noqa: E402
 
 #: (label, SafetyFilter settings): the default filter, the C3BF alone, the distance HOCBF, and no
 #: filter (None: the environment's own step).
@@ -60,6 +62,30 @@ def fingerprint(settings: dict | None, episodes: int, steps: int) -> tuple[str, 
     return digest.hexdigest()[:16], steps_only.hexdigest()[:16]
 
 
+def recipe_fingerprint(env_id: str, safety_filter: str | None, episodes: int, steps: int) -> str:
+    """The recipe's stack on ``env_id`` (``CartesianImpedanceAction(residual=True)`` over
+    ``SafetyFilter(safety_filter)``, or over the bare env for None): observations, rewards and
+    the safety report's numbers of seeded episodes in ``static`` and ``multi``."""
+    digest = hashlib.sha256()
+    for scenario in ("static", "multi"):
+        env = gym.make(env_id, scenario=scenario)
+        env = CartesianImpedanceAction(env if safety_filter is None else SafetyFilter(env, safety_filter), residual=True)
+        for episode in range(episodes):
+            env.reset(seed=200 + episode)
+            rng = np.random.default_rng(episode)
+            for _ in range(steps):
+                obs, reward, terminated, truncated, info = env.step(rng.uniform(-1, 1, 3).astype(np.float32))
+                digest.update(obs.tobytes())
+                digest.update(np.array([reward]).tobytes())
+                if safety_filter is not None:
+                    digest.update(np.array([float(info["safety"][key]) for key in sorted(info["safety"])
+                                            if key != "solve_time"]).tobytes())  # fmt: skip
+                if terminated or truncated:
+                    break
+        env.close()
+    return digest.hexdigest()[:16]
+
+
 def main() -> None:
     episodes = int(sys.argv[1]) if len(sys.argv) > 1 else 2
     steps = int(sys.argv[2]) if len(sys.argv) > 2 else 60
@@ -72,6 +98,10 @@ def main() -> None:
         total_steps.update(steps_value.encode())
         print(f"{label:<11} {value} {steps_value}")
     print(f"{'all':<11} {total.hexdigest()[:16]} {total_steps.hexdigest()[:16]}")
+    print(f"\n{'recipe stack':<30} everything")
+    for env_id in ("C3BFReach-v0", "C3BFReachPanda-v0"):
+        for safety_filter in ("c3bf+hocbf", None):
+            print(f"{env_id + ' ' + str(safety_filter):<30} {recipe_fingerprint(env_id, safety_filter, episodes, steps)}")
 
 
 if __name__ == "__main__":

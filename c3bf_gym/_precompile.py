@@ -21,12 +21,13 @@ def main() -> None:
     import numpy as np
 
     import c3bf_gym
-    from c3bf_gym.wrappers import ImpedanceHook, default_impedance
+    from c3bf_gym.controllers import ImpedanceHook
+    from c3bf_gym.wrappers import default_impedance
 
     for env_id in ("C3BFReach-v0", "C3BFReachPanda-v0"):
-        # the filter alone, behind the impedance controller, and the controller alone, each called from
-        # the environment's compiled policy step
-        for env in (c3bf_gym.SafetyFilter(gym.make(env_id, scenario="multi")),
+        # the torque alone, the filter alone, behind the impedance controller, and the controller alone,
+        # each in the environment's compiled policy step
+        for env in (gym.make(env_id, scenario="multi"), c3bf_gym.SafetyFilter(gym.make(env_id, scenario="multi")),
                     c3bf_gym.SafetyFilter(c3bf_gym.CartesianImpedanceAction(gym.make(env_id, scenario="multi"))),
                     c3bf_gym.CartesianImpedanceAction(gym.make(env_id, scenario="multi"))):
             env.reset(seed=0)

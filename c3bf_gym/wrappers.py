@@ -11,17 +11,15 @@ wrapping order: the impedance controller is always the ``nominal`` stage and the
 
 from __future__ import annotations
 
-from typing import Any, Callable
+from typing import Any
 
 import gymnasium as gym
 import numpy as np
 
-from c3bf_gym.controllers._kernels import ImpedanceWork, Target, ToolSite, impedance_substep
-from c3bf_gym.controllers.impedance import CartesianImpedance
+from c3bf_gym.controllers.impedance import CartesianImpedance, ImpedanceHook
 from c3bf_gym.envs.reach import _ACTION_BOUND, C3BFReachEnv
 from c3bf_gym.filter import SafetyHook
 from c3bf_gym.safety import FILTERS, FilterConfig, StepSafety
-from c3bf_gym.safety.dynamics import ArmModel
 
 __all__ = [
     "ActionPenalty",
@@ -31,10 +29,6 @@ __all__ = [
     "make_reach",
     "reach_env",
 ]
-
-#: (position, velocity, acceleration) of the desired tool motion at a time [s].
-Trajectory = Callable[[float], tuple[np.ndarray, np.ndarray, np.ndarray]]
-
 
 def reach_env(env: gym.Env, wrapper: str) -> C3BFReachEnv:
     """The unwrapped :class:`C3BFReachEnv` under ``env``, or a clear error."""
@@ -141,75 +135,6 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs, gym.utils.EzPic
             self._closed = True
             self._base.remove_torque_hook("filter")
         super().close()
-
-
-class ImpedanceHook:
-    """The ``nominal`` torque hook: a :class:`CartesianImpedance` law towards a tool target.
-
-    The target is either fixed by its owner (``set_target``: position, velocity, acceleration,
-    held until the next call) or, with ``trajectory``, evaluated at the simulation time of every
-    physics step. The commanded torque arriving at the hook is replaced by the controller's.
-
-    The law is :func:`c3bf_gym.controllers._kernels.impedance_substep` on the environment's arm
-    (its ``Minv``, shared with the filter, and the tool site's Jacobian and ``J̇ q̇``), called
-    from Python through :meth:`__call__`, or, without a ``trajectory``, from the environment's
-    compiled policy step (:meth:`compiled_impedance`), the safety filter's calls beside it: the
-    same torques, to rounding. A ``trajectory`` is a Python function, so with one every physics step
-    comes back to Python.
-
-    Args:
-        env: the unwrapped :class:`~c3bf_gym.envs.C3BFReachEnv`.
-        controller: the law; its settings are read once, here (:meth:`CartesianImpedance.gains`):
-            later changes to its attributes do not reach this hook.
-        trajectory: ``t [s] -> (position, velocity, acceleration)`` (3,) each, or None.
-
-    Raises:
-        ValueError: the controller's posture (or posture gains) does not have one entry per dof.
-    """
-
-    def __init__(self, env: C3BFReachEnv, controller: CartesianImpedance, trajectory: Trajectory | None = None) -> None:
-        n = env.model.nv
-        self.gains = controller.gains(n)
-        self.env = env
-        self.controller = controller
-        self.trajectory = trajectory
-        self.arm: ArmModel = env.arm
-        self.target_pos = env.data.site_xpos[env.ee_site_id].copy()
-        self.target_vel = np.zeros(3)
-        self.target_acc = np.zeros(3)
-        self._target = Target(self.target_pos, self.target_vel, self.target_acc)  # views: set_target updates it
-        self._site = ToolSite.of(env.data.site_xpos[env.ee_site_id], self.arm.site_chain)
-        self._work = ImpedanceWork.of(n)
-        self._bound: tuple | None = None
-
-    def set_target(self, pos: np.ndarray, vel: np.ndarray | None = None, acc: np.ndarray | None = None) -> None:
-        self.target_pos[:] = pos
-        self.target_vel[:] = 0.0 if vel is None else vel
-        self.target_acc[:] = 0.0 if acc is None else acc
-
-    def _arguments(self) -> tuple:
-        """The arguments of :func:`~c3bf_gym.controllers._kernels.impedance_substep` after ``stage``
-        and before ``tau``: views of the environment's arrays, gathered once."""
-        if self._bound is None:
-            self._bound = (self.arm.kernel_arrays(self.env.data), self._site, self.gains, self._target, self._work)
-        return self._bound
-
-    def compiled_impedance(self) -> tuple | None:
-        """For the environment's compiled policy step
-        (:func:`c3bf_gym.envs._kernels.impedance_steps`): the arguments of
-        :func:`~c3bf_gym.controllers._kernels.impedance_substep` after ``stage`` and before
-        ``tau``; None with a ``trajectory``, which only Python can evaluate."""
-        return None if self.trajectory is not None else self._arguments()
-
-    def __call__(self, tau: np.ndarray) -> np.ndarray:
-        """The controller's total torque (n,) [N m] for the current state (``tau`` is ignored)."""
-        env = self.env
-        if self.trajectory is not None:
-            self.set_target(*self.trajectory(env.data.time))
-        self.arm.update(env.data, env.state_version)
-        out = np.empty(env.model.nv)
-        impedance_substep(0, *self._arguments(), out)
-        return out
 
 
 def default_impedance(env: C3BFReachEnv, posture_stiffness: float | None = None) -> CartesianImpedance:

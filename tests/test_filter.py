@@ -642,7 +642,7 @@ def test_relaxed_solve_keeps_rows_outside_the_conflict(make_env):
 
 def _unfused_call(hook, tau_nom):
     """The hook's step as separate calls (rows, the QP, ``hook_post``): the path
-    :func:`c3bf_gym.safety._step.hook_substep` fuses."""
+    :func:`c3bf_gym.safety._step.filter_substep` fuses."""
     from c3bf_gym.safety import _step
 
     A, b, *_ = hook.rows()
@@ -698,7 +698,7 @@ def test_fused_step_replays_the_unfused_path(make_env, scenario, name):
 @pytest.mark.parametrize(("scenario", "settings"), [("multi", {}), ("crossing", {"barrier": "c3bf", "guard": None}),
                                                    ("head_on", {"margin": 0.05})])
 def test_the_compiled_policy_step_replays_the_hooks_loop(make_env, scenario, settings):
-    """The filter's calls inside the env's compiled policy step (``filtered_steps``) give what the
+    """The filter's calls inside the env's compiled policy step (``policy_steps``) give what the
     same calls through the hooks' Python loop give (``record_times`` sends every call through
     ``__call__``), bit for bit: observations, rewards, every ``info`` entry (the safety report's
     included), the joints, and a step with no safe torque raising (rolled back) at the same call."""
@@ -731,7 +731,6 @@ def test_the_compiled_policy_step_replays_the_hooks_loop(make_env, scenario, set
     assert envs[0].hook.last.status == envs[1].hook.last.status
     # the compiled calls are not timed (NaN), the recorded ones are
     assert np.isnan(envs[0].hook.report.solve_time) and envs[1].hook.report.solve_time > 0.0
-    assert envs[0].unwrapped._filtered_steps is not None and envs[1].unwrapped._filtered_steps is None
 
 
 def test_the_compiled_policy_step_raises_where_the_hooks_loop_raises(make_env):
@@ -764,16 +763,16 @@ def test_a_bound_hook_pickles_and_binds_again(make_env):
     env.reset(seed=5)
     env.step(np.zeros(6, np.float32))  # binds the hook
     tau = env.hook(np.zeros(6))  # a call from Python: its entry point and the buffers' handle
-    assert env.hook._bound and env.hook._hook_substep is not None
+    assert env.hook._bound and env.hook._filter_substep is not None
     A = env.hook._A.copy()
     hook = pickle.loads(pickle.dumps(env.hook))  # the hook alone (a wrapped env pickles as its arguments)
-    assert hook._bound == () and hook._hook_substep is None
+    assert hook._bound == () and hook._filter_substep is None
     assert env.hook.last is not None and hook.last is None  # the copy's QP is new: it has no last call
     # the same state (its QP starts cold, the original's warm: the same torque up to rounding)
     np.testing.assert_allclose(hook(np.zeros(6)), tau, rtol=0, atol=1e-9)
     assert hook._bound and hook._bound[0] is not env.hook._bound[0] and hook.qp is not env.hook.qp
     np.testing.assert_array_equal(hook.last.tau, hook.qp.buffers.u)
-    handle, original = hook._hook_substep[1][0], env.hook._hook_substep[1][0]
+    handle, original = hook._filter_substep[1][0], env.hook._filter_substep[1][0]
     assert not np.array_equal(handle, original)  # the copy's own buffers
     np.testing.assert_array_equal(env.hook._A, A)  # the original's buffers untouched by the copy's call
 

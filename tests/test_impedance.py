@@ -419,7 +419,7 @@ def test_trajectory_and_user_hook_run_in_python(robot):
     path = MinimumJerk(start, start + [0.1, -0.1, 0.05], 0.3)
     controller = default_impedance(base)
     hook = ImpedanceHook(base, controller, path)
-    assert hook.compiled_impedance() is None
+    assert hook.compiled_call() is None
     seen = []
 
     def user_hook(tau):  # the extension point: any Python function of the total torque

@@ -42,12 +42,11 @@ timed.hook.record_times()  # timing its calls: every call of the filter comes fr
 timed.reset(seed=0)
 timed.step(timed.action_space.sample())
 from c3bf_gym.safety import _step  # the fused step came from the machine code the build compiled
-print('KERNEL_CACHE_HITS', sum(_step.hook_substep_at.stats.cache_hits.values()))
-from c3bf_gym import scenarios  # and the environment's own: its obstacle sampler, physics steps (with and without
-from c3bf_gym.envs import _kernels as env_kernels  # the filter's and the impedance controller's calls) and observation
-print('ENV_CACHE_HITS', *(sum(f.stats.cache_hits.values()) for f in (scenarios._sample, env_kernels.physics_steps,
-                                                                       env_kernels.filtered_steps,
-                                                                       env_kernels.impedance_steps, env_kernels.observe)))
+print('KERNEL_CACHE_HITS', sum(_step.filter_substep_at.stats.cache_hits.values()))
+from c3bf_gym import scenarios  # and the environment's own: its obstacle sampler, physics steps (plain, under the
+from c3bf_gym.envs import _kernels as env_kernels  # filter, and under the impedance controller and the filter) and observation
+print('ENV_CACHE_HITS', *(sum(f.stats.cache_hits.values()) for f in (scenarios._sample, env_kernels.observe)))
+print('STACKS_LOADED', sum(hits >= 1 for hits in env_kernels.policy_steps.stats.cache_hits.values()))
 scene = resources.files('c3bf_gym.assets').joinpath('scene.xml')
 import mujoco  # the Panda scene compiles from the installed files too (its <include> resolves there)
 panda = mujoco.MjModel.from_xml_path(str(resources.files('c3bf_gym.assets').joinpath('panda_scene.xml')))
@@ -108,6 +107,7 @@ def test_pip_install_dot_into_fresh_venv_ships_assets(tmp_path):
     assert Path(lines["SCENE"]).resolve().as_posix().startswith(site), lines["SCENE"]
     assert int(lines["KERNEL_CACHE_HITS"]) >= 1, (built, check.stdout[-2000:])  # the build's compiled kernels
     assert all(int(hits) >= 1 for hits in lines["ENV_CACHE_HITS"].split()), (built, check.stdout[-2000:])
+    assert int(lines["STACKS_LOADED"]) == 3, (built, check.stdout[-2000:])  # each stack's policy step, from the cache
     assert lines["SHIPPED"].split() == [
         "c3bf_gym/assets/panda.xml", "c3bf_gym/assets/panda_scene.xml", "c3bf_gym/assets/scene.xml",
         "c3bf_gym/assets/ur5e.xml",

@@ -409,3 +409,48 @@ def test_gear_and_gain_scale_the_torque_limits_and_the_other_dofs_bounds():
     model = _model(geared)
     others = RobotDescription.from_model(model, joints=ARM_JOINTS, site="tool", joint_speed_limit=3.0)
     assert others.unmodelled_force[model.joint("finger_r").dofadr[0]] == 20.0  # gear 10 × force 2, no friction
+
+
+def test_a_compiled_loop_of_ones_own_calls_the_filter_through_the_seam():
+    """The seam of :mod:`c3bf_gym.safety.substep`, used as a simulator of one's own would: a numba
+    function calling ``filter_substep`` with a ``compiled_call`` gets the torque and the report
+    ``__call__`` gives from Python, bit for bit; ``failure`` names the exception of a status that
+    stops the loop (a non-finite torque; no safe torque under ``on_infeasible="raise"``)."""
+    from numba import njit
+
+    from c3bf_gym.safety import FilterCall
+    from c3bf_gym.safety.substep import filter_substep
+
+    @njit
+    def one_step(call, tau_nom, tau):
+        return filter_substep(call.stage, tau_nom, tau, call.buffers)
+
+    def controller(qvel=(0.5, -1.0, 0.7), **settings):
+        model = _model()
+        data = mujoco.MjData(model)
+        data.qpos[:] = (0.3, -0.6, 0.9)
+        data.qvel[:] = qvel
+        mujoco.mj_forward(model, data)
+        robot = RobotDescription.from_model(model, site="tool", joint_speed_limit=3.0)
+        ball = Obstacles(1)  # kept by the caller (MocapSpheres refresh from the model: Python calls only)
+        ball.position[0], ball.velocity[0], ball.radius[0], ball.active[0] = (0.45, 0.1, 0.75), (-0.2, 0.0, -0.4), 0.06, True
+        return SafetyController(model, data, robot, ball, FilterConfig(sensing_radius=0.5, **settings))
+
+    python, compiled = controller(), controller()
+    tau_nom = python.data.qfrc_bias + np.array([0.0, 30.0, -15.0])  # the fore-arm pushed up into the ball
+    expected = python(tau_nom)
+    call = compiled.compiled_call(version=0)
+    assert isinstance(call, FilterCall) and call.stage == 2 and not call.halt
+    tau = np.empty(3)
+    status = one_step(call, tau_nom.copy(), tau)
+    assert status == 0 and compiled.failure(status) is None
+    assert tau.tobytes() == expected.tobytes() and not np.allclose(tau, tau_nom)  # the filter changed it
+    assert python.report.as_info() == compiled.report.as_info()
+    assert python.report.solve_time > 0.0 and np.isnan(compiled.report.solve_time)  # compiled calls are not timed
+
+    assert isinstance(compiled.failure(one_step(call, np.full(3, np.nan), tau)), ValueError)
+    strict = controller(qvel=(0.0, -60.0, 60.0), on_infeasible="raise")  # far beyond the speed bound
+    call = strict.compiled_call(version=0)
+    assert call.halt
+    status = one_step(call, strict.data.qfrc_bias.copy(), tau)
+    assert status > 0 and isinstance(strict.failure(status), SafetyInfeasibleError)

@@ -1,5 +1,5 @@
 """Nominal controllers."""
 
-from c3bf_gym.controllers.impedance import CartesianImpedance
+from c3bf_gym.controllers.impedance import CartesianImpedance, ImpedanceHook
 
-__all__ = ["CartesianImpedance"]
+__all__ = ["CartesianImpedance", "ImpedanceHook"]

@@ -8,8 +8,8 @@
   ``mj_step2``: ``(M + h D)⁻¹`` (:func:`c3bf_gym.safety._dynamics.step_inverse`, on a new state),
   the tool site's Jacobian, velocity and ``J̇ q̇`` (:func:`c3bf_gym.safety._dynamics.point_dynamics`),
   then :func:`impedance_law`. The environment's compiled policy step calls it at every physics
-  step (:func:`c3bf_gym.envs._kernels.impedance_steps`), and so does
-  :class:`~c3bf_gym.wrappers.ImpedanceHook` from Python.
+  step (:func:`c3bf_gym.envs._kernels.policy_steps`), and so does
+  :class:`~c3bf_gym.controllers.ImpedanceHook` from Python.
 
 The 3×3 symmetric eigen-decompositions the law needs (the task inertia regularised near
 singularities, critical damping) are cyclic Jacobi rotations (:func:`_eigh3`), to rounding the
@@ -29,7 +29,7 @@ from numba import njit
 from c3bf_gym._compile_cache import STEP_KERNEL_OPTIONS  # (before any @njit(cache=True): the cache keys)
 from c3bf_gym.safety._dynamics import ArmMotion, SparseMass, point_dynamics, step_inverse
 
-__all__ = ["ImpedanceGains", "ImpedanceWork", "TaskState", "Target", "ToolSite", "critical_damping",
+__all__ = ["BoundImpedance", "ImpedanceGains", "ImpedanceWork", "TaskState", "Target", "ToolSite", "critical_damping",
            "impedance_law", "impedance_substep"]  # fmt: skip
 
 _opts = STEP_KERNEL_OPTIONS
@@ -316,20 +316,41 @@ def impedance_law(gains, state, target, work, tau):
             tau[j] += tau0[j] - (J[0, j] * F[0] + J[1, j] * F[1] + J[2, j] * F[2])
 
 
-@njit(**_opts)
-def impedance_substep(stage, arm, site, gains, target, work, tau):
-    """:func:`impedance_law` on the arm's current ``MjData`` (after ``mj_step1``), into ``tau``
-    (n,) [N m].
+class BoundImpedance(NamedTuple):
+    """The law bound to one arm's ``MjData``: what :func:`impedance_substep` reads and writes
+    besides the torque (views and buffers, made once by
+    :class:`~c3bf_gym.controllers.ImpedanceHook`).
 
-    ``arm``: the filter's :class:`~c3bf_gym.safety._dynamics.ArmArrays` (views of the ``MjData``
-    and the arm's ``Minv``, ``qacc_free``); with ``stage`` 2 (a state whose dynamics are not yet
-    computed) ``Minv = (M + h D)⁻¹`` and ``qacc_free`` are refreshed first
-    (:func:`~c3bf_gym.safety._dynamics.step_inverse`), otherwise they are read as they are.
-    ``site``: :class:`ToolSite`; its Jacobian ``J``, velocity ``J q̇`` and ``J̇ q̇`` come from
+    Attributes:
+        arm: the filter's :class:`~c3bf_gym.safety._dynamics.ArmArrays` (views of the
+            ``MjData`` and the arm's ``Minv``, ``qacc_free``).
+        site: :class:`ToolSite`.
+        gains: :class:`ImpedanceGains`.
+        target: :class:`Target`, read at every call.
+        work: :class:`ImpedanceWork`.
+    """
+
+    arm: tuple
+    site: ToolSite
+    gains: ImpedanceGains
+    target: Target
+    work: ImpedanceWork
+
+
+@njit(**_opts)
+def impedance_substep(stage, law, tau):
+    """:func:`impedance_law` on the arm's current ``MjData`` (after ``mj_step1``), into ``tau``
+    (n,) [N m], with the views and buffers of ``law`` (:class:`BoundImpedance`).
+
+    With ``stage`` 2 (a state whose dynamics are not yet computed) the arm's
+    ``Minv = (M + h D)⁻¹`` and ``qacc_free`` are refreshed first
+    (:func:`~c3bf_gym.safety._dynamics.step_inverse`), otherwise they are read as they are. The
+    tool site's Jacobian ``J``, velocity ``J q̇`` and ``J̇ q̇`` come from
     :func:`~c3bf_gym.safety._dynamics.point_dynamics` (MuJoCo's ``cdof`` and ``cdof_dot``: the
     values of ``mj_jacSite`` and ``mj_jacDot``, to rounding). The torque is the total joint torque
     (bias forces included), the law's ``M⁻¹`` the integrator's ``(M + h D)⁻¹``.
     """
+    arm, site = law.arm, law.site
     if stage >= 2:
         step_inverse(SparseMass(arm.M, arm.M_rowadr, arm.M_rownnz, arm.M_colind), arm.damping, arm.qfrc_passive,
                      arm.qfrc_bias, arm.factor, arm.Minv, arm.qacc_free)
@@ -340,4 +361,4 @@ def impedance_substep(stage, arm, site, gains, target, work, tau):
                    site.jac)
     state = TaskState(arm.qpos, arm.qvel, packed[0, :, 0], packed[0, :, 1], site.jac[0], packed[0, :, 2], arm.Minv,
                       arm.qfrc_bias)
-    impedance_law(gains, state, target, work, tau)
+    impedance_law(law.gains, state, law.target, law.work, tau)

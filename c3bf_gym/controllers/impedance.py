@@ -17,16 +17,34 @@ finite. ``M⁻¹`` is whatever the caller passes; the environment's hook passes 
 
 The per-step math exists once, compiled: :func:`c3bf_gym.controllers._kernels.impedance_law`.
 :meth:`CartesianImpedance.torque` calls it from Python; the environment calls it at every physics
-step from its own compiled policy step (:class:`~c3bf_gym.wrappers.ImpedanceHook`).
+step from its own compiled policy step (:class:`ImpedanceHook`).
 """
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING, Callable
+
 import numpy as np
 
-from c3bf_gym.controllers._kernels import ImpedanceGains, ImpedanceWork, Target, TaskState, critical_damping, impedance_law
+from c3bf_gym.controllers._kernels import (
+    BoundImpedance,
+    ImpedanceGains,
+    ImpedanceWork,
+    Target,
+    TaskState,
+    ToolSite,
+    critical_damping,
+    impedance_law,
+    impedance_substep,
+)
 
-__all__ = ["CartesianImpedance"]
+if TYPE_CHECKING:
+    from c3bf_gym.envs.reach import C3BFReachEnv
+
+__all__ = ["CartesianImpedance", "ImpedanceHook", "Trajectory"]
+
+#: ``t [s] -> (position, velocity, acceleration)`` of the tool target, (3,) each [m, m/s, m/s²].
+Trajectory = Callable[[float], tuple[np.ndarray, np.ndarray, np.ndarray]]
 
 
 def _spd(name: str, value: float | np.ndarray, size: int) -> np.ndarray:
@@ -181,3 +199,74 @@ class CartesianImpedance:
         tau = np.empty(n)
         impedance_law(self.gains(n), state, Target(a["x_des"], a["xd_des"], a["xdd_des"]), ImpedanceWork.of(n), tau)
         return tau
+
+
+class ImpedanceHook:
+    """The ``nominal`` torque hook of :class:`~c3bf_gym.envs.C3BFReachEnv`: a
+    :class:`CartesianImpedance` law towards a tool target.
+
+    The target is either fixed by its owner (``set_target``: position, velocity, acceleration,
+    held until the next call) or, with ``trajectory``, evaluated at the simulation time of every
+    physics step. The commanded torque arriving at the hook is replaced by the controller's.
+
+    The law is :func:`c3bf_gym.controllers._kernels.impedance_substep` on the environment's arm
+    (its ``Minv``, shared with the filter, and the tool site's Jacobian and ``J̇ q̇``), called
+    from Python through :meth:`__call__`, or, without a ``trajectory``, from the environment's
+    compiled policy step (:meth:`compiled_call`), the safety filter's calls beside it: the same
+    torques, to rounding. A ``trajectory`` is a Python function, so with one every physics step
+    comes back to Python.
+
+    Args:
+        env: the unwrapped :class:`~c3bf_gym.envs.C3BFReachEnv`.
+        controller: the law; its settings are read once, here (:meth:`CartesianImpedance.gains`):
+            later changes to its attributes do not reach this hook.
+        trajectory: ``t [s] -> (position, velocity, acceleration)`` (3,) each, or None.
+
+    Raises:
+        ValueError: the controller's posture (or posture gains) does not have one entry per dof.
+    """
+
+    def __init__(self, env: C3BFReachEnv, controller: CartesianImpedance, trajectory: Trajectory | None = None) -> None:
+        n = env.model.nv
+        self.gains = controller.gains(n)
+        self.env = env
+        self.controller = controller
+        self.trajectory = trajectory
+        self.arm = env.arm
+        self.target_pos = env.data.site_xpos[env.ee_site_id].copy()
+        self.target_vel = np.zeros(3)
+        self.target_acc = np.zeros(3)
+        self._target = Target(self.target_pos, self.target_vel, self.target_acc)  # views: set_target updates it
+        self._site = ToolSite.of(env.data.site_xpos[env.ee_site_id], self.arm.site_chain)
+        self._work = ImpedanceWork.of(n)
+        self._bound: BoundImpedance | None = None
+
+    def set_target(self, pos: np.ndarray, vel: np.ndarray | None = None, acc: np.ndarray | None = None) -> None:
+        """Hold the tool target ``pos`` [m], ``vel`` [m/s], ``acc`` [m/s²] (3,) each (None: zero)."""
+        self.target_pos[:] = pos
+        self.target_vel[:] = 0.0 if vel is None else vel
+        self.target_acc[:] = 0.0 if acc is None else acc
+
+    def _law(self) -> BoundImpedance:
+        """The law bound to the environment's arrays (views), gathered once."""
+        if self._bound is None:
+            self._bound = BoundImpedance(self.arm.kernel_arrays(self.env.data), self._site, self.gains, self._target,
+                                         self._work)  # fmt: skip
+        return self._bound
+
+    def compiled_call(self) -> BoundImpedance | None:
+        """What the environment's compiled policy step
+        (:func:`c3bf_gym.envs._kernels.policy_steps`) passes to
+        :func:`~c3bf_gym.controllers._kernels.impedance_substep` at every physics step; None with a
+        ``trajectory``, which only Python can evaluate."""
+        return None if self.trajectory is not None else self._law()
+
+    def __call__(self, tau: np.ndarray) -> np.ndarray:
+        """The controller's total torque (n,) [N m] for the current state (``tau`` is ignored)."""
+        env = self.env
+        if self.trajectory is not None:
+            self.set_target(*self.trajectory(env.data.time))
+        self.arm.update(env.data, env.state_version)
+        out = np.empty(env.model.nv)
+        impedance_substep(0, self._law(), out)
+        return out

@@ -1,13 +1,12 @@
 """The reaching environment's per-step work in compiled code (numba): its physics steps
-(:func:`physics_steps`: MuJoCo's own ``mj_step2`` and ``mj_step1``, with the obstacles' motion
-and the distance sensors' minimum between them; :func:`filtered_steps` under the safety filter;
-:func:`impedance_steps` under the Cartesian impedance controller, filtered or not), its
-observation (:func:`observe`) and the check for obstacles that left the workspace
-(:func:`departed`).
+(:func:`policy_steps`: MuJoCo's own ``mj_step2`` and ``mj_step1``, with the obstacles' motion
+and the distance sensors' minimum between them, under the torque, the Cartesian impedance
+controller, the safety filter or both), its observation (:func:`observe`) and the check for
+obstacles that left the workspace (:func:`departed`).
 
 A policy step is ``frame_skip`` physics steps; in Python each cost two calls into the bindings
 and two numpy operations on top of the physics, about as much again as the physics itself, and
-the observation a dozen numpy operations. :func:`physics_steps` runs any number of steps in one
+the observation a dozen numpy operations. :func:`policy_steps` runs any number of steps in one
 call. It calls the C functions of the ``libmujoco`` that the ``mujoco`` package loaded (the same
 library, so the same model and data structures) by address (:func:`c3bf_gym._capi.call_void`):
 ctypes reads the addresses here, and the compiled code receives them as data (:class:`Physics`).
@@ -31,10 +30,9 @@ from numba import njit
 from c3bf_gym._compile_cache import KERNEL_OPTIONS, STEP_KERNEL_OPTIONS  # (before any @njit: the cache keys)
 from c3bf_gym._capi import call_void
 from c3bf_gym.controllers._kernels import impedance_substep
-from c3bf_gym.safety._step import hook_substep
+from c3bf_gym.safety.substep import filter_substep
 
-__all__ = ["Drive", "Observed", "Physics", "departed", "entry", "filtered_steps", "impedance_steps", "observe",
-           "physics_steps"]  # fmt: skip
+__all__ = ["Drive", "Observed", "Physics", "departed", "entry", "observe", "policy_steps"]
 
 
 def _libmujoco() -> ctypes.CDLL:
@@ -56,7 +54,7 @@ _FUNCTIONS = np.array([ctypes.cast(_lib.mj_step1, ctypes.c_void_p).value,
 
 
 class Physics(NamedTuple):
-    """What :func:`physics_steps` works on (views of the environment's ``MjData``, updated in place).
+    """What :func:`policy_steps` works on (views of the environment's ``MjData``, updated in place).
 
     Attributes:
         functions: uint64 (2,) the addresses of ``mj_step1`` and ``mj_step2``.
@@ -101,19 +99,8 @@ def _advance(physics, lowest):
     return lowest
 
 
-@njit(**STEP_KERNEL_OPTIONS)
-def physics_steps(physics, n):
-    """``n`` physics steps (:func:`_advance`) from a state whose ``mj_step1`` has run. Returns the
-    smallest distance sensor reading over the ``n`` new states (``cutoff`` at most)."""
-    lowest = physics.cutoff
-    for _ in range(n):
-        lowest = _advance(physics, lowest)
-    return lowest
-
-
 class Drive(NamedTuple):
-    """The torque side of :func:`filtered_steps` and :func:`impedance_steps`: views of the
-    environment's arrays, made once.
+    """The torque side of :func:`policy_steps`: views of the environment's arrays, made once.
 
     Attributes:
         gravity: (n,) ``data.qfrc_gravcomp``, the gravity compensation MuJoCo adds [N m].
@@ -132,62 +119,54 @@ class Drive(NamedTuple):
 
 
 @njit(**STEP_KERNEL_OPTIONS)
-def filtered_steps(physics, n, torque, drive, stage, hook, halt):
-    """``n`` physics steps as :func:`physics_steps`, each under the safety filter: the nominal
-    total torque ``torque + drive.gravity`` (the gravity compensation ``data.qfrc_gravcomp``,
-    current for the state about to be integrated; :class:`Drive`) goes through
-    :func:`c3bf_gym.safety._step.hook_substep` with the filter's buffers ``hook``
-    (:class:`~c3bf_gym.safety._step.StepBuffers`; the first call at ``stage``, every later one on
-    a new state at 2), ``drive.ctrl`` becomes the filtered torque minus gravity, and row ``s`` of
-    ``drive.effort_rows`` that control over the limits (``ctrl * inv_limit``).
+def policy_steps(physics, n, torque, drive, nominal, call):
+    """``n`` physics steps (:func:`_advance`) from a state whose ``mj_step1`` has run, each with
+    the torque of the stack the arguments name; ``drive.ctrl`` (:class:`Drive`) becomes the
+    applied torque minus gravity before each step, and row ``s`` of ``drive.effort_rows`` that
+    control over the limits.
 
-    Stops before integrating a call whose status is invalid input (< 0) or, with ``halt``,
-    infeasible (> 0). Returns ``(physics steps done, smallest distance reading, last status)``.
+    * ``nominal`` and ``call`` None: ``torque`` (n,) [N m] itself.
+    * ``nominal``: the Cartesian impedance controller
+      (:func:`c3bf_gym.controllers._kernels.impedance_substep` on a
+      :class:`~c3bf_gym.controllers._kernels.BoundImpedance`; ``torque`` is not read). It
+      refreshes the arm's ``Minv`` on every state it is the first to see.
+    * ``call``: the safety filter (a :class:`~c3bf_gym.safety.substep.FilterCall`, the protocol
+      of :mod:`c3bf_gym.safety.substep`) on the nominal total torque: ``torque + drive.gravity``
+      (the gravity compensation ``data.qfrc_gravcomp``, current for the state about to be
+      integrated), or the controller's. It stops before integrating a call whose status is
+      invalid input (< 0) or, with ``call.halt``, infeasible (> 0).
+
+    Returns ``(physics steps done, smallest distance sensor reading over the new states (cutoff at
+    most), the last filter call's status (0 without a filter))``. The ``None`` tests are resolved
+    when numba compiles the function for its argument types: each stack is its own machine code.
     """
     lowest = physics.cutoff
     status = 0
-    gravity, ctrl, inv_limit, tau_nom, tau, effort_rows = drive
+    gravity, ctrl, tau_nom, tau = drive.gravity, drive.ctrl, drive.tau_nom, drive.tau
     for s in range(n):
-        for j in range(torque.shape[0]):
-            tau_nom[j] = torque[j] + gravity[j]
-        status = hook_substep(stage if s == 0 else 2, tau_nom, tau, hook)
-        if status < 0 or (halt and status > 0):
-            return s, lowest, status
-        for j in range(torque.shape[0]):
-            ctrl[j] = tau[j] - gravity[j]
-            effort_rows[s, j] = ctrl[j] * inv_limit[j]
-        lowest = _advance(physics, lowest)
-    return n, lowest, status
-
-
-@njit(**STEP_KERNEL_OPTIONS)
-def impedance_steps(physics, n, drive, nominal, stage, hook, halt):
-    """``n`` physics steps as :func:`physics_steps`, each under the Cartesian impedance controller
-    and, unless ``hook`` is None, the safety filter behind it: the nominal total torque is
-    :func:`c3bf_gym.controllers._kernels.impedance_substep` with the arguments ``nominal`` (its
-    ``stage`` at the first call, 2 on every later, new, state: it refreshes the arm's ``Minv``
-    itself), ``hook`` (the filter's buffers, as :func:`filtered_steps`) filters it, with stage at
-    most 1 (``Minv`` is current), and ``drive.ctrl`` becomes the (filtered) torque minus gravity
-    (:class:`Drive`).
-
-    Stops before integrating a filter call whose status is invalid input (< 0) or, with ``halt``,
-    infeasible (> 0). Returns ``(physics steps done, smallest distance reading, last status)``
-    (status 0 without a filter).
-    """
-    lowest = physics.cutoff
-    status = 0
-    tau_nom, tau, gravity, ctrl = drive.tau_nom, drive.tau, drive.gravity, drive.ctrl
-    for s in range(n):
-        first = stage if s == 0 else 2
-        impedance_substep(first, *nominal, tau_nom)
-        if hook is None:
-            for j in range(tau_nom.shape[0]):
-                ctrl[j] = tau_nom[j] - gravity[j]
+        # the state's dynamics: stale on every state after the first (2), the filter's word on the first
+        stage = 2
+        if call is not None:
+            if s == 0:
+                stage = call.stage
+        if nominal is None:
+            if call is None:
+                for j in range(ctrl.shape[0]):
+                    ctrl[j] = torque[j]
+            else:
+                for j in range(tau_nom.shape[0]):
+                    tau_nom[j] = torque[j] + gravity[j]
         else:
-            status = hook_substep(min(first, 1), tau_nom, tau, hook)
-            if status < 0 or (halt and status > 0):
+            impedance_substep(stage, nominal, tau_nom)
+            stage = min(stage, 1)  # it refreshed Minv and qacc_free in the filter's arm arrays
+            if call is None:
+                for j in range(ctrl.shape[0]):
+                    ctrl[j] = tau_nom[j] - gravity[j]
+        if call is not None:
+            status = filter_substep(stage, tau_nom, tau, call.buffers)
+            if status < 0 or (call.halt and status > 0):
                 return s, lowest, status
-            for j in range(tau.shape[0]):
+            for j in range(ctrl.shape[0]):
                 ctrl[j] = tau[j] - gravity[j]
         for j in range(ctrl.shape[0]):
             drive.effort_rows[s, j] = ctrl[j] * drive.inv_limit[j]

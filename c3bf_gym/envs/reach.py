@@ -14,20 +14,14 @@ import numpy as np
 from gymnasium import error, spaces, utils
 from gymnasium.envs.mujoco.mujoco_env import MujocoEnv
 
-from c3bf_gym.envs._kernels import (
-    Drive,
-    Observed,
-    Physics,
-    departed,
-    entry,
-    filtered_steps,
-    impedance_steps,
-    observe,
-    physics_steps,
-)
+from c3bf_gym.controllers._kernels import BoundImpedance
+from c3bf_gym.controllers.impedance import ImpedanceHook
+from c3bf_gym.envs._kernels import Drive, Observed, Physics, departed, entry, observe, policy_steps
+from c3bf_gym.safety.controller import SafetyController
 from c3bf_gym.safety.dynamics import ArmModel
 from c3bf_gym.safety.obstacles import Obstacles
 from c3bf_gym.safety.robot import RobotDescription, UnprotectedGeometryWarning
+from c3bf_gym.safety.substep import FilterCall
 from c3bf_gym.scenarios import (
     MAX_OBSTACLES,
     ArmCapsules,
@@ -370,10 +364,9 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
         self.state_version = 0
         self._arm = None
         self._hook_chain: tuple[TorqueHook, ...] = ()
-        self._compiled_filter = None
-        self._compiled_nominal = None
-        self._filtered_steps: tuple | None = None  # (the filter's arguments, filtered_steps' entry point)
-        self._impedance_steps: tuple | None = None  # (nominal's and filter's arguments, impedance_steps' entry point)
+        self._compiled_filter: SafetyController | None = None
+        self._compiled_nominal: ImpedanceHook | None = None
+        self._entry_cache: tuple | None = None  # (nominal, filter buffers, policy_steps' entry point): _steps_entry
         n = self.model.nv
         self._filter_scratch = (np.zeros(n), np.zeros(n), np.zeros((self.frame_skip, n)))  # tau_nom, tau, effort rows
         self._drive = Drive(self._gravcomp, self._ctrl, self._inv_limit, *self._filter_scratch)
@@ -438,7 +431,6 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
         #: the compiled physics steps' views of the model, data and obstacles (_simulate)
         self._physics = Physics.of(m, self.data, self.obstacle_pos, self._step_displacement, self.distances,
                                    DISTANCE_CUTOFF)
-        self._physics_steps = entry(physics_steps, self._physics, 0)
         self._seen = Observed(self.data.qpos, self.data.qvel, self.data.site_xpos[self.ee_site_id], self._tool_vel,
                               self.data.mocap_pos[self._goal_mocap], self.obstacle_pos, self.obstacle_vel,
                               self.obstacle_radius, self.obstacle_active, self.distances)
@@ -555,15 +547,16 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
     def add_torque_hook(self, hook: TorqueHook, stage: Literal["nominal", "filter"]) -> None:
         """Install ``hook`` to run at every physics step at ``stage`` (one hook per stage).
 
-        A ``filter`` hook that offers ``compiled_substeps`` and ``compiled_substeps_done`` (the
-        safety filter's :class:`~c3bf_gym.filter.SafetyHook` does; see
-        :meth:`~c3bf_gym.safety.SafetyController.compiled_substeps`) is called from the compiled
-        policy step while it is the only hook, with the same results as through ``__call__``. A
-        ``nominal`` hook that offers ``compiled_impedance`` (the Cartesian impedance controller's
-        :class:`~c3bf_gym.wrappers.ImpedanceHook` does) runs in the compiled policy step too, alone
-        or in front of such a filter (:func:`~c3bf_gym.envs._kernels.impedance_steps`), with the
-        same torques as through ``__call__`` to rounding. Any other hook (a Python function) runs
-        in Python at every physics step, and so do the hooks beside it."""
+        The built-in hooks run inside the compiled policy step
+        (:func:`~c3bf_gym.envs._kernels.policy_steps`): a ``nominal``
+        :class:`~c3bf_gym.controllers.ImpedanceHook` and a ``filter``
+        :class:`~c3bf_gym.safety.SafetyController` (``SafetyFilter``'s
+        :class:`~c3bf_gym.filter.SafetyHook`), alone or together, whenever they offer a compiled
+        call (:meth:`~c3bf_gym.controllers.ImpedanceHook.compiled_call`,
+        :meth:`~c3bf_gym.safety.SafetyController.compiled_call`), with the same torques as through
+        ``__call__`` (to rounding, with the impedance controller). Any other hook, a Python
+        function, runs in Python at every physics step, and so do the hooks beside it: it is the
+        extension point for a controller of one's own."""
         if stage not in HOOK_STAGES:
             raise ValueError(f"unknown hook stage {stage!r}; valid choices: {', '.join(map(repr, HOOK_STAGES))}")
         if not callable(hook):
@@ -579,13 +572,12 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
 
     def _chain_changed(self) -> None:
         self._hook_chain = tuple(self._hooks[s] for s in HOOK_STAGES if s in self._hooks)
-        # a filter alone that can run inside the compiled policy step (SafetyController.compiled_substeps)
-        only = self._hook_chain[0] if len(self._hook_chain) == 1 and "filter" in self._hooks else None
-        self._compiled_filter = only if hasattr(only, "compiled_substeps") else None
-        # a nominal impedance controller, alone or in front of such a filter (ImpedanceHook.compiled_impedance)
+        # the built-in hooks, alone or together, can run inside the compiled policy step (_compiled_calls)
         nominal, behind = self._hooks.get("nominal"), self._hooks.get("filter")
-        compiled = hasattr(nominal, "compiled_impedance") and (behind is None or hasattr(behind, "compiled_substeps"))
+        compiled = ((nominal is None or isinstance(nominal, ImpedanceHook))
+                    and (behind is None or isinstance(behind, SafetyController)))  # fmt: skip
         self._compiled_nominal = nominal if compiled else None
+        self._compiled_filter = behind if compiled else None
 
     def has_torque_hook(self, stage: str) -> bool:
         return stage in self._hooks
@@ -610,14 +602,17 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
         self._obstacles_saved = False
         goal_distance, episode_cost = self._goal_distance, self._episode_cost
         try:
-            return self._step(torque)
+            min_distance, effort = self._simulate(torque)
+            return self._outcome(min_distance, effort)
         except BaseException:
             self._goal_distance, self._episode_cost = goal_distance, episode_cost
             self._restore()
             raise
 
-    def _step(self, torque: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
-        min_distance, effort = self._simulate(torque)
+    def _outcome(self, min_distance: float, effort: float) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        """The step's 5-tuple after its physics steps: obstacles that left the workspace respawn,
+        then the reward, its terms and the measurements (``min_distance`` [m] and ``effort``, from
+        :meth:`_simulate`) into ``info``."""
         self._respawn_departed()
 
         to_goal = self._seen.goal - self._seen.tool  # the goal's mocap and the tool site, views made once
@@ -697,80 +692,81 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
         """Advance ``frame_skip`` physics steps; return (min signed distance, mean effort).
 
         Invariant: between calls ``data`` holds ``mj_step1`` results for the current state, so a
-        hook reads current kinematics, mass matrix and bias forces. Without hooks the steps run in
-        one compiled call (:func:`~c3bf_gym.envs._kernels.physics_steps`); with the safety filter
-        alone, so do the filter's calls between them
-        (:func:`~c3bf_gym.envs._kernels.filtered_steps`, when the filter offers
-        ``compiled_substeps``); with the impedance controller, alone or in front of that filter,
-        so do the controller's and the filter's calls
-        (:func:`~c3bf_gym.envs._kernels.impedance_steps`, when the controller offers
-        ``compiled_impedance``); otherwise the hooks run in Python between compiled single steps.
-        The compiled and the Python loops call the same kernels and give the same steps: bit for
-        bit without the impedance controller; with it the tests hold them to rounding.
+        hook reads current kinematics, mass matrix and bias forces. The steps run in one compiled
+        call (:func:`~c3bf_gym.envs._kernels.policy_steps`) under ``torque``, or under the
+        built-in hooks when they offer compiled calls (:meth:`_compiled_calls`): the impedance
+        controller, the safety filter, or both. Any other hook runs in Python between compiled
+        single steps (:meth:`_simulate_hooks`). Both loops call the same kernels and give the same
+        steps: bit for bit without the impedance controller; with it the tests hold them to
+        rounding. A filter call that stops the step raises the filter's exception
+        (:meth:`~c3bf_gym.safety.SafetyController.failure`).
         """
         np.multiply(self.obstacle_vel, self.model.opt.timestep, out=self._step_displacement)
-        hooks, physics, steps = self._hook_chain, self._physics, self._physics_steps
-        if not hooks:
-            self._ctrl[:] = torque
+        nominal, call = self._compiled_calls()
+        if self._hook_chain and nominal is None and call is None:
+            return self._simulate_hooks(torque)
+        steps = self._steps_entry(nominal, call)
+        done, min_distance, status = steps(self._physics, self.frame_skip, torque, self._drive, nominal, call)
+        self.state_version += done
+        if status:
+            error = self._compiled_filter.failure(status)
+            if error is not None:
+                raise error
+        if not self._hook_chain:
             u = torque * self._inv_limit
-            min_distance = steps(physics, self.frame_skip)
-            self.state_version += self.frame_skip
             return float(min_distance), float(u.dot(u)) / len(u)  # ndarray.dot: numpy's dot, as @
-        plan = None if self._compiled_filter is None else self._compiled_filter.compiled_substeps(self.state_version)
-        if plan is not None:
-            return self._simulate_filtered(torque, *plan)
-        nominal = None if self._compiled_nominal is None else self._compiled_nominal.compiled_impedance()
-        if nominal is not None:
-            behind = self._hooks.get("filter")
-            if behind is None:
-                return self._simulate_impedance(nominal, 2, None, False)
-            plan = behind.compiled_substeps(self.state_version)  # (after the nominal's check: it claims the arm)
-            if plan is not None:
-                return self._simulate_impedance(nominal, *plan)
-        gravity, control, inv_limit = self._gravcomp, self._ctrl, self._inv_limit
+        return float(min_distance), self._effort()
+
+    def _compiled_calls(self) -> tuple[BoundImpedance | None, FilterCall | None]:
+        """What :func:`~c3bf_gym.envs._kernels.policy_steps` runs this step: the impedance
+        controller's and the filter's compiled calls, each None where that hook is absent;
+        (None, None) too when a hook must run in Python (a Python function; a trajectory target;
+        a filter on its per-class path or timing its calls)."""
+        nominal_hook, filter_hook = self._compiled_nominal, self._compiled_filter
+        nominal = call = None
+        if nominal_hook is not None:
+            nominal = nominal_hook.compiled_call()
+            if nominal is None:
+                return None, None
+        if filter_hook is not None:  # (after the nominal's check: it claims the arm for the loop)
+            call = filter_hook.compiled_call(self.state_version)
+            if call is None:
+                return None, None
+        elif nominal is not None:
+            self.arm.forget()  # the controller overwrites the arm's dynamics arrays
+        return nominal, call
+
+    def _steps_entry(self, nominal: BoundImpedance | None, call: FilterCall | None) -> Callable:
+        """:func:`~c3bf_gym.envs._kernels.policy_steps`' entry point for this stack (``nominal``,
+        ``call``), its torque a float64 (n,) array: compiled once per stack, kept while the
+        controller's and the filter's buffers stay the same objects."""
+        buffers = None if call is None else call.buffers
+        cached = self._entry_cache
+        if cached is None or cached[0] is not nominal or cached[1] is not buffers:
+            types = (self._physics, self.frame_skip, self._drive.tau, self._drive, nominal, call)
+            cached = self._entry_cache = (nominal, buffers, entry(policy_steps, *types))
+        return cached[2]
+
+    def _simulate_hooks(self, torque: np.ndarray) -> tuple[float, float]:
+        """:meth:`_simulate` with the hooks called from Python at every physics step, in stage
+        order, on the nominal total torque ``torque + data.qfrc_gravcomp``."""
+        gravity, inv_limit = self._gravcomp, self._inv_limit
+        physics, drive = self._physics, self._drive
+        steps = self._steps_entry(None, None)
         min_distance = DISTANCE_CUTOFF
         effort = 0.0
         for _ in range(self.frame_skip):
             tau = torque + gravity
-            for hook in hooks:
+            for hook in self._hook_chain:
                 tau = hook(tau)
             ctrl = tau - gravity
-            control[:] = ctrl
             u = ctrl * inv_limit
             effort += float(u @ u) / (len(u) * self.frame_skip)
-            distance = steps(physics, 1)
+            _, distance, _ = steps(physics, 1, ctrl, drive, None, None)  # data.ctrl = ctrl, one physics step
             self.state_version += 1
             if distance < min_distance:
                 min_distance = distance
         return float(min_distance), effort
-
-    def _simulate_filtered(self, torque: np.ndarray, stage: int, hook: tuple, halt: bool) -> tuple[float, float]:
-        """:meth:`_simulate` with the filter's calls compiled in (``SafetyController.compiled_substeps``
-        gave ``stage``, ``hook`` and ``halt``); the effort is summed here, as in the hooks' loop."""
-        args = (self._physics, self.frame_skip, torque, self._drive, stage, hook, halt)
-        run = self._filtered_steps
-        if run is None or run[0] is not hook:  # compiled for this filter's argument types, once
-            run = self._filtered_steps = (hook, entry(filtered_steps, *args))
-        done, min_distance, status = run[1](*args)
-        last = self.state_version + min(done, self.frame_skip - 1)  # the state of the last call
-        self.state_version += done
-        self._compiled_filter.compiled_substeps_done(status, last)  # raises as the hook would have
-        return float(min_distance), self._effort()
-
-    def _simulate_impedance(self, nominal: tuple, stage: int, hook: tuple | None, halt: bool) -> tuple[float, float]:
-        """:meth:`_simulate` with the impedance controller's calls (its arguments ``nominal``,
-        ``ImpedanceHook.compiled_impedance``), and the filter's behind them unless ``hook`` is None,
-        compiled in (``stage``, ``hook``, ``halt``: ``SafetyController.compiled_substeps``)."""
-        args = (self._physics, self.frame_skip, self._drive, nominal, stage, hook, halt)
-        run = self._impedance_steps
-        if run is None or run[0] is not nominal or run[1] is not hook:  # compiled for these argument types, once
-            run = self._impedance_steps = (nominal, hook, entry(impedance_steps, *args))
-        done, min_distance, status = run[2](*args)
-        last = self.state_version + min(done, self.frame_skip - 1)  # the state of the last call
-        self.state_version += done
-        if hook is not None:
-            self._hooks["filter"].compiled_substeps_done(status, last)  # raises as the hook would have
-        return float(min_distance), self._effort()
 
     def _effort(self) -> float:
         """The mean effort over the last policy step's physics steps, from the compiled steps' rows."""

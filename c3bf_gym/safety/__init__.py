@@ -9,7 +9,8 @@ of the way) → the constraint rows
 (:mod:`.barriers` for their math; compiled in :mod:`._rows`, on the arm's dynamics kernels
 :mod:`._dynamics`) → the QP (:mod:`.priority_qp`; its priority algorithm compiled in :mod:`._qp`,
 on DAQP's C API bound in :mod:`._daqp`) → the controller (:mod:`.controller`: rows and QP, one
-physics step per call; compiled as one call in :mod:`._step`). The compiled modules import only
+physics step per call; compiled as one call in :mod:`._step`, which a simulator's own compiled
+loop calls through the seam :mod:`.substep`). The compiled modules import only
 the layers below them (:mod:`._rows` the dynamics, :mod:`._qp` the binding, :mod:`._step` both), and
 this package imports the names it exports when they are first read, so computing a barrier or
 its rows loads no QP solver. ``c3bf_gym.filter.SafetyHook`` runs the controller inside
@@ -50,6 +51,7 @@ if TYPE_CHECKING:
     )
     from c3bf_gym.safety.obstacles import MocapSpheres, Obstacles
     from c3bf_gym.safety.robot import RobotDescription, UnprotectedGeometryWarning, UnsupportedModelError
+    from c3bf_gym.safety.substep import FilterCall
 
 #: the module each name comes from, imported when the name is first read (PEP 562): importing
 #: :mod:`.barriers` or the row kernels loads neither the controller nor the QP's solver
@@ -59,6 +61,7 @@ _EXPORTS = {
     "GUARD_GAMMA": "c3bf_gym.safety.config",
     "Capsule": "c3bf_gym.safety.geometry",
     "EnvelopeWarning": "c3bf_gym.safety.envelope",
+    "FilterCall": "c3bf_gym.safety.substep",
     "FilterConfig": "c3bf_gym.safety.config",
     "FilterEnvelope": "c3bf_gym.safety.envelope",
     "MocapSpheres": "c3bf_gym.safety.obstacles",
@@ -83,6 +86,7 @@ __all__ = [
     "GUARD_GAMMA",
     "Capsule",
     "EnvelopeWarning",
+    "FilterCall",
     "FilterConfig",
     "FilterEnvelope",
     "MocapSpheres",

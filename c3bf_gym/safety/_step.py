@@ -8,11 +8,11 @@ in plain loops, compiled once by numba with :data:`~c3bf_gym._compile_cache.STEP
 (cached on disk, keyed on every kernel source by :mod:`c3bf_gym._compile_cache`; no allocation,
 no reference counting).
 
-* :func:`hook_substep`: the rows (:func:`~c3bf_gym.safety._rows.hook_rows_whole_arm`), the QP
+* :func:`filter_substep`: the rows (:func:`~c3bf_gym.safety._rows.hook_rows_whole_arm`), the QP
   (:func:`~c3bf_gym.safety._qp.solve_rows`, priorities by :func:`low_priority_span`),
   :func:`hook_post` and the report's running values (:func:`record` into a :class:`Tally`);
-  :func:`hook_substep_at`: the same with its buffers by address, for calls from Python. An
-  environment's compiled policy step (:mod:`c3bf_gym.envs._kernels`) calls :func:`hook_substep`
+  :func:`filter_substep_at`: the same with its buffers by address, for calls from Python. An
+  environment's compiled policy step (:mod:`c3bf_gym.envs._kernels`) calls :func:`filter_substep`
   between physics steps.
 * :func:`record`, :func:`violations_by_kind`, :func:`beyond_allowance`: what a policy step's calls
   accumulate for :class:`~c3bf_gym.safety.StepSafety`, the one implementation the fused step and
@@ -30,7 +30,7 @@ from numba import njit
 from c3bf_gym._compile_cache import KERNEL_OPTIONS, STEP_KERNEL_OPTIONS  # (before any @njit(cache=True): the cache keys)
 from c3bf_gym._capi import unpack
 
-# hook_substep compiles _rows.hook_rows_whole_arm and _qp.solve_rows into itself: _compile_cache keys
+# filter_substep compiles _rows.hook_rows_whole_arm and _qp.solve_rows into itself: _compile_cache keys
 # the on-disk cache of every kernel file's functions on all of them.
 from c3bf_gym.safety._qp import ACTIVE_TOL, RELAXED, SOLVED, solve_rows
 from c3bf_gym.safety._rows import hook_rows_whole_arm
@@ -266,7 +266,7 @@ def record(tally, call, tau_nom, tau, qp, layout, intervention_tol):
 
 
 class StepBuffers(NamedTuple):
-    """What :func:`hook_substep` works in besides a call's torques, gathered once by the filter
+    """What :func:`filter_substep` works in besides a call's torques, gathered once by the filter
     (:class:`~c3bf_gym.safety.SafetyController`; all allocated once and updated in place).
 
     Attributes:
@@ -293,10 +293,10 @@ class StepBuffers(NamedTuple):
 
 
 @njit(**_opts)
-def hook_substep(stage, tau_nom, tau, buffers):
+def filter_substep(stage, tau_nom, tau, buffers):
     """One whole-arm filter step in one call, in ``buffers`` (:class:`StepBuffers`; an
     environment's compiled policy step, and :meth:`~c3bf_gym.safety.SafetyController.__call__`
-    through :func:`hook_substep_at`): the rows
+    through :func:`filter_substep_at`): the rows
     (:func:`~c3bf_gym.safety._rows.hook_rows_whole_arm`, whose arguments ``stage`` … ``b`` are),
     the QP (:func:`c3bf_gym.safety._qp.solve_rows` on ``qp``, priorities by
     :func:`low_priority_span`) in the scaled torque ``τ / scale``, :func:`hook_post`, which writes
@@ -324,12 +324,12 @@ def hook_substep(stage, tau_nom, tau, buffers):
 
 
 @njit(**KERNEL_OPTIONS)
-def hook_substep_at(stage, tau_nom, tau, handle, bound):
-    """:func:`hook_substep` with its :class:`StepBuffers` by address: ``handle`` is
+def filter_substep_at(stage, tau_nom, tau, handle, bound):
+    """:func:`filter_substep` with its :class:`StepBuffers` by address: ``handle`` is
     :func:`c3bf_gym._capi.pack` of them and ``bound`` their numba type. From Python, one array
     crosses into compiled code instead of the ~80 buffers, which numba would convert one by one.
     Compiled with numba's reference counting, unlike the step kernels: the rebuild
     (:func:`c3bf_gym._capi.unpack`, :func:`numba.carray`) needs it; the arrays it rebuilds have no
-    reference count to change, and :func:`hook_substep`, compiled without, runs as in the
+    reference count to change, and :func:`filter_substep`, compiled without, runs as in the
     environment's step."""
-    return hook_substep(stage, tau_nom, tau, unpack(handle, bound))
+    return filter_substep(stage, tau_nom, tau, unpack(handle, bound))

@@ -34,8 +34,9 @@ Steps 1–4 for ``whole_arm`` with the built-in barriers (:class:`~c3bf_gym.safe
 barrier classes and :class:`~c3bf_gym.safety.dynamics.ArmModel` call; other barriers (or ``points="ee"``)
 go through ``Barrier.terms`` and ``rows_from_terms`` and give the same rows. On the fused path the
 rows, the QP and the report's bookkeeping are one compiled call
-(:func:`c3bf_gym.safety._step.hook_substep`), which an environment may also call from its own
-compiled policy step (:meth:`SafetyController.compiled_substeps`; ``C3BFReachEnv`` does). Why each
+(:func:`c3bf_gym.safety._step.filter_substep`), which an environment may also call from its own
+compiled policy step (:meth:`SafetyController.compiled_call`, the seam of :mod:`c3bf_gym.safety.substep`;
+``C3BFReachEnv`` uses it). Why each
 of these choices was made, with the measurements and the commands that repeat them:
 ``docs/design-decisions.md``.
 """
@@ -58,8 +59,9 @@ from c3bf_gym.safety.dynamics import ArmModel, segment_closest_points
 from c3bf_gym.safety.envelope import EnvelopeWarning, FilterEnvelope, filter_envelope
 from c3bf_gym.safety.config import FilterConfig
 from c3bf_gym.safety.obstacles import Obstacles
-from c3bf_gym.safety.priority_qp import STATUS, PriorityQP, QPResult, raise_bad_input
+from c3bf_gym.safety.priority_qp import STATUS, PriorityQP, QPResult, bad_input_error
 from c3bf_gym.safety.robot import RobotDescription, UnsupportedModelError, floor_height
+from c3bf_gym.safety.substep import FilterCall
 
 __all__ = ["MAX_GAIN_STEP", "RAISED_GAIN_STEP", "ROW_KINDS", "SafetyController", "SafetyInfeasibleError", "StepSafety"]
 
@@ -314,8 +316,8 @@ class SafetyController:
         self._tally = _new_tally(self.barrier, n, max_rows, model.opt.timestep)
         self._solve_time = 0.0
         self.begin_step()
-        self._bound: tuple = ()  # hook_substep's arguments after the first three (_bind)
-        self._hook_substep: tuple | None = None  # what __call__ calls (_substep_entry)
+        self._bound: tuple = ()  # filter_substep's arguments after the first three (_bind)
+        self._filter_substep: tuple | None = None  # what __call__ calls (_substep_entry)
         self._last_time: float | None = None  # the last recorded call's wall time [s] (None: no call yet)
         self.solve_times: list[float] | None = None
 
@@ -355,7 +357,7 @@ class SafetyController:
         entry point and a handle of their addresses): the unpickled hook binds again on its first
         call, to its own env's arrays."""
         state = self.__dict__.copy()
-        state.update(_bound=(), _hook_substep=None, _last_time=None)  # the copy's QP is new: no last call
+        state.update(_bound=(), _filter_substep=None, _last_time=None)  # the copy's QP is new: no last call
         return state
 
     def _version(self) -> int | None:
@@ -476,7 +478,7 @@ class SafetyController:
     def record_times(self, enabled: bool = True) -> None:
         """Start (or stop) keeping every physics step's filter time in ``solve_times``. While on,
         every call comes through :meth:`__call__` and is timed (not inside an environment's
-        compiled policy step, :meth:`compiled_substeps`): the same torques, more Python per call."""
+        compiled policy step, :meth:`compiled_call`): the same torques, more Python per call."""
         self.solve_times = [] if enabled else None
 
     def reset(self) -> None:
@@ -580,26 +582,26 @@ class SafetyController:
         return k
 
     def _bind(self) -> tuple:
-        """The buffers :func:`c3bf_gym.safety._step.hook_substep` works in (env, arm, hook, QP and
+        """The buffers :func:`c3bf_gym.safety._step.filter_substep` works in (env, arm, hook, QP and
         tally; all allocated once by their constructors and updated in place) and the intervention
         tolerance, gathered once: fetching them attribute by attribute on every call cost more than
         the kernel's dispatch."""
         self._bound = _step.StepBuffers(self.arm.kernel_arrays(self.data), self._obstacle_arrays, self._params,
                                         self._A, self._b, self._scale, self._limit, self.qp.buffers, self._tally,
                                         float(self.intervention_tol))
-        self._hook_substep = None  # its entry point and handle, if any, were for the buffers before
+        self._filter_substep = None  # its entry point and handle, if any, were for the buffers before
         return self._bound
 
     def _substep_entry(self) -> tuple:
         """What :meth:`__call__` calls: a compiled entry point and its arguments after the first three,
         and the structure they point into (kept with them: the handle borrows its memory).
 
-        Normally the entry point of :func:`~c3bf_gym.safety._step.hook_substep_at` for exactly
+        Normally the entry point of :func:`~c3bf_gym.safety._step.filter_substep_at` for exactly
         :meth:`_bind`'s buffers, with their handle (:func:`c3bf_gym._capi.pack`) and numba type:
         one array crosses into compiled code instead of every buffer, which numba would convert
         one by one (the speed page). When the buffers include an array ``pack`` cannot describe
         (obstacle arrays given as strided views of a simulator's state), the entry point of
-        :func:`~c3bf_gym.safety._step.hook_substep` itself, with the buffers: the same torques.
+        :func:`~c3bf_gym.safety._step.filter_substep` itself, with the buffers: the same torques.
         Called directly, an entry point skips the dispatcher's type resolution. The types are
         fixed: fresh C-contiguous float64 (n,) arrays tau_nom and tau (:meth:`__call__` checks the
         shape: the entry point takes any array as the type it was compiled for) and a Python int
@@ -610,36 +612,49 @@ class SafetyController:
         bound = self._bound or self._bind()
         try:
             arguments = (pack(bound), numba.typeof(bound))
-            kernel = _step.hook_substep_at
+            kernel = _step.filter_substep_at
         except ValueError:  # an array pack() cannot describe
-            arguments, kernel = (bound,), _step.hook_substep
+            arguments, kernel = (bound,), _step.filter_substep
         entry = kernel.compile(tuple(numba.typeof(a) for a in (0, vec, vec, *arguments)))
-        self._hook_substep = (entry, arguments, bound)
-        return self._hook_substep
+        self._filter_substep = (entry, arguments, bound)
+        return self._filter_substep
 
-    def compiled_substeps(self, version: int) -> tuple[int, tuple, bool] | None:
-        """For a caller that runs a whole policy step in compiled code (``C3BFReachEnv``): the
-        buffers of :func:`c3bf_gym.safety._step.hook_substep` (its last argument), the
-        ``stage`` of the first call (the arm's dynamics for state ``version``; every later call
-        is on a new state, stage 2), and whether an infeasible call must stop the step
-        (``on_infeasible="raise"``). None when every call must come through :meth:`__call__`:
-        the per-class rows, obstacles that refresh themselves, or timings being recorded
-        (:meth:`record_times`). After the compiled calls, :meth:`compiled_substeps_done`."""
+    def compiled_call(self, version: int) -> FilterCall | None:
+        """This filter for a simulator that calls it from its own compiled loop
+        (:mod:`c3bf_gym.safety.substep`, whose protocol this is; ``C3BFReachEnv`` does), for one
+        policy step starting from the state ``version``: a :class:`~c3bf_gym.safety.substep.FilterCall`
+        with the buffers, the first call's stage and whether an infeasible call must stop the
+        loop (``on_infeasible="raise"``). None when every call must come through
+        :meth:`__call__`: the per-class rows, obstacles that refresh themselves, or timings being
+        recorded (:meth:`record_times`).
+
+        The calls in the loop write the arm's dynamics arrays, so the arm caches no state after
+        it: the next call, compiled or not, computes its state's dynamics afresh. They are not
+        timed: :attr:`report`'s ``solve_time`` and :attr:`last`'s are NaN for this policy step."""
         if not self._fused or self._refresh or self.solve_times is not None:
             return None
         bound = self._bound or self._bind()
-        return self.arm.claim(self.data, version), bound, self.on_infeasible == "raise"
+        stage = self.arm.claim(self.data, version)
+        self.arm.forget()
+        self._solve_time = self._last_time = np.nan
+        return FilterCall(bound, stage, self.on_infeasible == "raise")
 
-    def compiled_substeps_done(self, status: int, version: int) -> None:
-        """After compiled calls of :func:`c3bf_gym.safety._step.hook_substep` (see
-        :meth:`compiled_substeps`), the last on state ``version`` with ``status``: the arm's
-        dynamics are marked current for that state, :attr:`last` describes that call (its
-        ``solve_time`` NaN: the calls were not timed, nor is :attr:`report`'s ``solve_time``),
-        and an invalid input or, with ``on_infeasible="raise"``, an infeasible call raises as
-        :meth:`__call__` does."""
-        self.arm.claim(self.data, version)  # the kernel computed this state's dynamics
-        self._solve_time = np.nan
-        self._settle(status, np.nan)
+    def failure(self, status: int) -> Exception | None:
+        """The exception a call's ``status`` calls for, to be raised by the caller, or None:
+        ``ValueError`` for invalid input (< 0: a non-finite torque, state or obstacle), and with
+        ``on_infeasible="raise"`` :class:`SafetyInfeasibleError` for a call with no safe torque
+        (> 0; its report recorded), naming the largest violation of each row kind."""
+        if status < 0:
+            return bad_input_error(status)
+        if status != _qp.SOLVED and self.on_infeasible == "raise":
+            values = self._tally.values
+            violation = dict(zip(ROW_KINDS, values[_step.T_VIOLATION:].tolist()))
+            return SafetyInfeasibleError(
+                f"no torque within the limits satisfies the safety rows (status {STATUS[status]!r}, largest "
+                f"violation by kind {self._violation_text(violation)}, min h {values[_step.T_MIN_H]:.3g}); pass "
+                "on_infeasible='relax' to let the rows give way by priority instead"
+            )
+        return None
 
     def __call__(self, tau_nom: np.ndarray) -> np.ndarray:
         """The safe torque (n,) [N m] for ``tau_nom`` (n,) [N m], the report accumulating into
@@ -656,7 +671,7 @@ class SafetyController:
         if self._fused:
             if self._refresh:
                 self.obstacles.refresh(self.data)
-            substep, arguments, _ = self._hook_substep or self._substep_entry()
+            substep, arguments, _ = self._filter_substep or self._substep_entry()
             status = substep(self.arm.claim(self.data, self._version()), tau_nom, tau, *arguments)
         else:
             A, b, min_h, inside, n_sensed = self.rows()
@@ -690,20 +705,15 @@ class SafetyController:
         return _qp.SOLVED if outcome == _step.GAIN_RAISED else outcome
 
     def _settle(self, status: int, elapsed: float) -> None:
-        """After a call (or compiled calls) with ``status``: raise on invalid input; keep the
-        call's wall time ``elapsed`` for :attr:`last` (its other values are in the tally);
-        with ``on_infeasible="raise"``, raise on a call with no safe torque (its
-        report recorded first)."""
-        raise_bad_input(status)
-        self._last_time = elapsed
-        if status != _qp.SOLVED and self.on_infeasible == "raise":
-            values = self._tally.values
-            violation = dict(zip(ROW_KINDS, values[_step.T_VIOLATION:].tolist()))
-            raise SafetyInfeasibleError(
-                f"no torque within the limits satisfies the safety rows (status {STATUS[status]!r}, largest "
-                f"violation by kind {self._violation_text(violation)}, min h {values[_step.T_MIN_H]:.3g}); pass "
-                "on_infeasible='relax' to let the rows give way by priority instead"
-            )
+        """After a call from Python with ``status``: raise on invalid input; keep the call's wall
+        time ``elapsed`` for :attr:`last` (its other values are in the tally); with
+        ``on_infeasible="raise"``, raise on a call with no safe torque (its report recorded
+        first). :meth:`failure` is the exception."""
+        error = self.failure(status)
+        if status >= 0:
+            self._last_time = elapsed
+        if error is not None:
+            raise error
 
     @property
     def last(self) -> QPResult | None:
@@ -711,7 +721,7 @@ class SafetyController:
         invalid input (None before the first, and in a pickled copy, whose QP is new). Built at
         every read from what the call recorded: keep the object, not the attribute, to hold one
         call's values (its ``tau`` is the QP's buffer all the same). After compiled calls
-        (:meth:`compiled_substeps_done`) ``solve_time`` is NaN: they are not timed."""
+        (:meth:`compiled_call`) ``solve_time`` is NaN: they are not timed."""
         if self._last_time is None:
             return None
         status, iterations, active, slack = self._tally.last.tolist()

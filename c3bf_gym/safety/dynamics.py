@@ -280,6 +280,13 @@ class ArmModel:
         self._ends_current = True
         return stage
 
+    def forget(self) -> None:
+        """Hold no state as current: compiled code is about to overwrite the dynamics arrays with
+        states this object does not track (a simulator's compiled loop), so the next
+        :meth:`update` or :meth:`claim` computes its state afresh."""
+        self._version = None
+        self._ends_current = False
+
     def capsule_segments(self, data: mujoco.MjData) -> tuple[np.ndarray, np.ndarray]:
         """End points (S, 3), (S, 3) of the protected capsules' axes, in world coordinates [m]."""
         return world_segments(data, self.capsule_ids, self.capsule_local, self.capsule_body)

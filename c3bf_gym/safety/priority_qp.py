@@ -115,14 +115,18 @@ class PriorityQP:
             n_obstacle_rows = m
         code, iterations, active, slack = _qp.solve_rows(tau_nom, A, b, scale, self._cols, int(n_obstacle_rows),
                                                          int(stride), self.buffers)
-        raise_bad_input(code)
+        error = bad_input_error(code)
+        if error is not None:
+            raise error
         return QPResult(self.buffers.u, slack, code == _qp.SOLVED, STATUS[code], iterations, active,
                         time.perf_counter() - start)
 
 
-def raise_bad_input(code: int) -> None:
-    """Turn :func:`c3bf_gym.safety._qp.solve_rows`' invalid-input codes into ``ValueError``."""
+def bad_input_error(code: int) -> ValueError | None:
+    """The ``ValueError`` for :func:`c3bf_gym.safety._qp.solve_rows`' invalid-input codes, None
+    for any other code."""
     if code == _qp.BAD_NOMINAL:
-        raise ValueError("tau_nom contains NaN or inf")
+        return ValueError("tau_nom contains NaN or inf")
     if code == _qp.BAD_ROWS:
-        raise ValueError("the safety rows contain NaN or inf (the state or the obstacles are not finite)")
+        return ValueError("the safety rows contain NaN or inf (the state or the obstacles are not finite)")
+    return None
