@@ -8,8 +8,9 @@ compared on identical episodes and the unfiltered run is the reference for track
 Outputs (``--out``): ``table.csv``, ``table.json``, ``table.md`` (per scenario and filter),
 ``sensing.csv``, ``sensing.json``, ``sensing.md`` (perception-boundary sweep), ``config.json``
 (the options and the code version), ``figures/*.png`` and, with ``--video``, ``videos/*.gif``.
-``scripts/regenerate_tables.py`` writes ``docs/experiments_table.md`` and ``docs/sensing_table.md``
-from the committed copies of ``table.json`` and ``sensing.json`` with :func:`markdown_table`.
+``scripts/regenerate_tables.py`` writes the docs' tables (``docs/results/experiments_ur5e/``,
+``experiments_panda/``) from the committed copies of ``table.json`` and ``sensing.json`` with
+:func:`markdown_table`.
 """
 
 from __future__ import annotations
@@ -255,7 +256,7 @@ def _aggregate(rows: list[dict[str, Any]]) -> dict[str, Any]:
     }
 
 
-#: The results table's columns (``table.*``, ``docs/experiments_table.md``).
+#: The results table's columns (``table.*``, ``docs/results/experiments_*/experiments_table.md``).
 COLUMNS = (
     "scenario", "filter", "episodes", "collision_episodes", "collision_steps", "min_clearance_m", "reached",
     "time_to_goal_s", "tracking_deviation_m", "intervention_share", "infeasible_steps", "mean_correction_Nm",
@@ -263,7 +264,7 @@ COLUMNS = (
 )  # fmt: skip
 
 
-#: The sensing sweep's columns (``sensing.*``, ``docs/sensing_table.md``).
+#: The sensing sweep's columns (``sensing.*``, ``docs/results/experiments_*/sensing_table.md``).
 SENSING_COLUMNS = (
     "filter", "sensing_radius", "obstacle_speed", "episodes", "collision_episodes", "collision_rate", "infeasible_share",
 )  # fmt: skip
