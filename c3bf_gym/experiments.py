@@ -428,8 +428,7 @@ def _videos(config: ExperimentConfig, folder: Path) -> None:
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    from c3bf_gym.cli import _nonnegative_float, _nonnegative_int, _positive_float, _positive_int, subcommand
-    from c3bf_gym.envs.reach import ROBOTS
+    from c3bf_gym.cli import _nonnegative_float, _nonnegative_int, _positive_float, _positive_int, add_robot, subcommand
     from c3bf_gym.scenarios import SCENARIOS
 
     d = ExperimentConfig()  # the defaults live there
@@ -438,13 +437,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "Run the Cartesian impedance controller as nominal policy on the paper's scenarios "
         "with no filter, the distance HOCBF and the C3BF filter over seeded episodes; write a results "
         "table (table.csv, .json, .md), figures per scenario, a C3BF-vs-HOCBF summary figure and a "
-        "perception-boundary (sensing radius) sweep (sensing.csv, .json, .md). The defaults are the main "
-        "job's (c3bf_gym.experiments.ExperimentConfig).",
-        show_defaults=True,
+        "perception-boundary (sensing radius) sweep (sensing.csv, .json, .md). With its defaults it is "
+        "the main job.", defaults=ExperimentConfig,
     )
     p.add_argument("--out", type=Path, default=d.out, help="output directory")
-    p.add_argument("--robot", choices=list(ROBOTS), default=d.robot,
-                   help="the arm: ur5e (C3BFReach-v0's) or panda (C3BFReachPanda-v0's)")  # fmt: skip
+    add_robot(p, d.robot)
     seeds = p.add_mutually_exclusive_group()
     seeds.add_argument("--seeds", nargs="+", type=_nonnegative_int, default=list(d.seeds), metavar="SEED",
                        help="seed ids: one episode per seed, scenario and filter (the same episode for every filter)")  # fmt: skip
