@@ -45,16 +45,30 @@ _nonnegative_float = _number(float, 0.0, strict=False)
 
 
 def subcommand(sub: argparse._SubParsersAction, name: str, summary: str, description: str, *,
-               show_defaults: bool = False) -> argparse.ArgumentParser:
-    """Add the subcommand ``name`` (``summary`` in ``c3bf-gym --help``, ``description`` in its own);
-    ``show_defaults``: its options' help shows their defaults."""
-    formatter = argparse.ArgumentDefaultsHelpFormatter if show_defaults else argparse.HelpFormatter
+               defaults: type | None = None) -> argparse.ArgumentParser:
+    """Add the subcommand ``name`` (``summary`` in ``c3bf-gym --help``, ``description`` in its own).
+
+    ``defaults``: the dataclass whose fields are the options' defaults, the one place they are kept
+    (e.g. :class:`~c3bf_gym.training.TrainConfig`); the description ends by naming it, and each
+    option's help shows its default.
+    """
+    formatter = argparse.HelpFormatter
+    if defaults is not None:
+        description = f"{description} Defaults: {defaults.__module__}.{defaults.__qualname__}."
+        formatter = argparse.ArgumentDefaultsHelpFormatter
     return sub.add_parser(name, help=summary, description=description, formatter_class=formatter)
+
+
+def add_robot(parser: argparse.ArgumentParser, default: str) -> None:
+    """The ``--robot`` option: the arm, one of :data:`~c3bf_gym.envs.reach.ROBOTS`."""
+    from c3bf_gym.envs.reach import ROBOTS
+
+    parser.add_argument("--robot", choices=list(ROBOTS), default=default,
+                        help="the arm: ur5e (C3BFReach-v0's) or panda (C3BFReachPanda-v0's)")  # fmt: skip
 
 
 def _add_train(sub: argparse._SubParsersAction) -> None:
     from c3bf_gym.scenarios import SCENARIOS
-    from c3bf_gym.envs.reach import ROBOTS
     from c3bf_gym.safety import GUARD_GAMMA
     from c3bf_gym.training import (ACTIONS, ALGORITHMS, ENGINE_DEFAULTS, ENGINES, OBSTACLE_ENCODERS, POLICY_RATES,
                                    TRAIN_FILTERS, TrainConfig)  # fmt: skip
@@ -68,17 +82,15 @@ def _add_train(sub: argparse._SubParsersAction) -> None:
         sub, "train", "train one agent (Stable-Baselines3, or Ray RLlib with --engine rllib)",
         "Train PPO or SAC on C3BFReach-v0, with no filter or a named safety filter "
         "(c3bf_gym.FILTERS). Writes a run directory (config, model, per-episode metrics with the cumulative "
-        "training cost, evaluations, tensorboard logs). The defaults are the recipe of the README's RL "
-        "table (c3bf_gym.training.TrainConfig). --engine rllib trains RLlib PPO with --n-envs env runners "
-        "on a local Ray instance, or on the cluster at --address (the rllib extra).",
-        show_defaults=True,
+        "training cost, evaluations, tensorboard logs). --engine rllib trains RLlib PPO with --n-envs env "
+        "runners on a local Ray instance, or on the cluster at --address (the rllib extra). With its "
+        "defaults it trains the recipe of the README's RL table.", defaults=TrainConfig,
     )
     p.add_argument("--engine", choices=ENGINES, default=d.engine, help="training engine")
     p.add_argument("--address", default=None,
                    help="with --engine rllib: the Ray cluster to join (e.g. auto); default: a local Ray instance")  # fmt: skip
     p.add_argument("--algo", choices=ALGORITHMS, default=None, help=f"algorithm (default by engine: {by_engine('algo')})")
-    p.add_argument("--robot", choices=list(ROBOTS), default=d.robot,
-                   help="the arm: ur5e (C3BFReach-v0) or panda (C3BFReachPanda-v0's arm)")  # fmt: skip
+    add_robot(p, d.robot)
     p.add_argument("--action", choices=ACTIONS, default=d.action,
                    help="impedance: Cartesian tool targets through the impedance controller; residual: corrections "
                    "to a straight step for the goal, through the same controller; torque: raw joint torques")  # fmt: skip

@@ -8,8 +8,9 @@ compared on identical episodes and the unfiltered run is the reference for track
 Outputs (``--out``): ``table.csv``, ``table.json``, ``table.md`` (per scenario and filter),
 ``sensing.csv``, ``sensing.json``, ``sensing.md`` (perception-boundary sweep), ``config.json``
 (the options and the code version), ``figures/*.png`` and, with ``--video``, ``videos/*.gif``.
-``scripts/regenerate_tables.py`` writes ``docs/experiments_table.md`` and ``docs/sensing_table.md``
-from the committed copies of ``table.json`` and ``sensing.json`` with :func:`markdown_table`.
+``scripts/regenerate_tables.py`` writes the docs' tables (``docs/results/experiments_ur5e/``,
+``experiments_panda/``) from the committed copies of ``table.json`` and ``sensing.json`` with
+:func:`markdown_table`.
 """
 
 from __future__ import annotations
@@ -255,7 +256,7 @@ def _aggregate(rows: list[dict[str, Any]]) -> dict[str, Any]:
     }
 
 
-#: The results table's columns (``table.*``, ``docs/experiments_table.md``).
+#: The results table's columns (``table.*``, ``docs/results/experiments_*/experiments_table.md``).
 COLUMNS = (
     "scenario", "filter", "episodes", "collision_episodes", "collision_steps", "min_clearance_m", "reached",
     "time_to_goal_s", "tracking_deviation_m", "intervention_share", "infeasible_steps", "mean_correction_Nm",
@@ -263,7 +264,7 @@ COLUMNS = (
 )  # fmt: skip
 
 
-#: The sensing sweep's columns (``sensing.*``, ``docs/sensing_table.md``).
+#: The sensing sweep's columns (``sensing.*``, ``docs/results/experiments_*/sensing_table.md``).
 SENSING_COLUMNS = (
     "filter", "sensing_radius", "obstacle_speed", "episodes", "collision_episodes", "collision_rate", "infeasible_share",
 )  # fmt: skip
@@ -427,8 +428,7 @@ def _videos(config: ExperimentConfig, folder: Path) -> None:
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    from c3bf_gym.cli import _nonnegative_float, _nonnegative_int, _positive_float, _positive_int, subcommand
-    from c3bf_gym.envs.reach import ROBOTS
+    from c3bf_gym.cli import _nonnegative_float, _nonnegative_int, _positive_float, _positive_int, add_robot, subcommand
     from c3bf_gym.scenarios import SCENARIOS
 
     d = ExperimentConfig()  # the defaults live there
@@ -437,13 +437,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "Run the Cartesian impedance controller as nominal policy on the paper's scenarios "
         "with no filter, the distance HOCBF and the C3BF filter over seeded episodes; write a results "
         "table (table.csv, .json, .md), figures per scenario, a C3BF-vs-HOCBF summary figure and a "
-        "perception-boundary (sensing radius) sweep (sensing.csv, .json, .md). The defaults are the main "
-        "job's (c3bf_gym.experiments.ExperimentConfig).",
-        show_defaults=True,
+        "perception-boundary (sensing radius) sweep (sensing.csv, .json, .md). With its defaults it is "
+        "the main job.", defaults=ExperimentConfig,
     )
     p.add_argument("--out", type=Path, default=d.out, help="output directory")
-    p.add_argument("--robot", choices=list(ROBOTS), default=d.robot,
-                   help="the arm: ur5e (C3BFReach-v0's) or panda (C3BFReachPanda-v0's)")  # fmt: skip
+    add_robot(p, d.robot)
     seeds = p.add_mutually_exclusive_group()
     seeds.add_argument("--seeds", nargs="+", type=_nonnegative_int, default=list(d.seeds), metavar="SEED",
                        help="seed ids: one episode per seed, scenario and filter (the same episode for every filter)")  # fmt: skip

@@ -276,7 +276,12 @@ class ArmCapsules:
     def clearance(self, centre: np.ndarray, radius: float) -> float:
         """The smallest surface distance [m] from the sphere (``centre`` (3,) [m], ``radius`` [m])
         to the capsules, negative when it overlaps one; ``inf`` without capsules."""
-        return float(_clearance(self.a, self.b, self.radius, np.asarray(centre, dtype=np.float64), float(radius)))
+        return float(_clearance(self._compiled, np.asarray(centre, dtype=np.float64), float(radius)))
+
+    @functools.cached_property
+    def _compiled(self) -> _ArmArrays:
+        """The capsules as the compiled sampler reads them."""
+        return _ArmArrays(self.a, self.b, self.radius)
 
 
 #: the kinds' codes in the compiled sampler
@@ -305,6 +310,14 @@ class _EnvelopeArrays(NamedTuple):
     horizon: float
     low: np.ndarray
     high: np.ndarray
+
+
+class _ArmArrays(NamedTuple):
+    """:class:`ArmCapsules` as the compiled sampler reads it."""
+
+    a: np.ndarray
+    b: np.ndarray
+    radius: np.ndarray
 
 
 @dataclass
@@ -348,7 +361,7 @@ class ObstacleSampler:
         start, goal = (np.ascontiguousarray(x, dtype=np.float64) for x in (start, goal))
         if start.shape != (3,) or goal.shape != (3,) or not (np.isfinite(start).all() and np.isfinite(goal).all()):
             raise ValueError(f"start and goal must be finite points of shape (3,) [m], got {start!r} and {goal!r}")
-        if not _sample(params, self.envelope._compiled, start, goal, rng, arm.a, arm.b, arm.radius, self.max_attempts, out):
+        if not _sample(params, self.envelope._compiled, arm._compiled, start, goal, rng, self.max_attempts, out):
             return None
         return ObstacleSample(out[:3].copy(), out[3:6].copy(), float(out[6]))
 
@@ -375,9 +388,10 @@ def _path_ok(envelope, start, velocity, radius):
 
 
 @njit(**_opts)
-def _clearance(a, b, capsule_radius, centre, radius):
+def _clearance(arm, centre, radius):
     """The smallest surface distance [m] from the sphere (``centre``, ``radius``) to the capsules
-    ``a``-``b`` (``inf`` without one)."""
+    of ``arm`` (:class:`_ArmArrays`; ``inf`` without one)."""
+    a, b, capsule_radius = arm.a, arm.b, arm.radius
     gap = np.inf
     for g in range(a.shape[0]):
         ab0, ab1, ab2 = b[g, 0] - a[g, 0], b[g, 1] - a[g, 1], b[g, 2] - a[g, 2]
@@ -394,9 +408,10 @@ def _clearance(a, b, capsule_radius, centre, radius):
 
 
 @njit(**_opts)
-def _sample(spec, envelope, start, goal, rng, arm_a, arm_b, arm_radius, max_attempts, out):
-    """:meth:`ObstacleSampler.sample`'s attempts: on success ``out`` (7,) holds position (3,),
-    velocity (3,) and radius, and the result is True. The arithmetic is element by element in the
+def _sample(spec, envelope, arm, start, goal, rng, max_attempts, out):
+    """:meth:`ObstacleSampler.sample`'s attempts, for ``spec`` (:class:`_SpecArrays`) in ``envelope``
+    (:class:`_EnvelopeArrays`) clear of ``arm`` (:class:`_ArmArrays`): on success ``out`` (7,) holds
+    position (3,), velocity (3,) and radius, and the result is True. The arithmetic is element by element in the
     order of the numpy expressions it replaced, so the draws and samples are theirs bit for bit."""
     path = np.empty(3)
     direction = np.empty(3)
@@ -453,7 +468,7 @@ def _sample(spec, envelope, start, goal, rng, arm_a, arm_b, arm_radius, max_atte
         for i in range(3):
             inside = inside and low[i] <= position[i] <= high[i]
         if (inside and _path_ok(envelope, position, velocity, radius)
-                and _clearance(arm_a, arm_b, arm_radius, position, radius) >= envelope.spawn_clearance):
+                and _clearance(arm, position, radius) >= envelope.spawn_clearance):
             for i in range(3):
                 out[i] = position[i]
                 out[3 + i] = velocity[i]

@@ -2,15 +2,15 @@
 """Write every table in docs/ from the committed results, with the code that writes them in a run.
 
     python scripts/regenerate_tables.py                       # rewrite the tables in docs/ (and the training curves)
-    python scripts/regenerate_tables.py --from-run results    # first copy a main job's results into docs/experiments/
+    python scripts/regenerate_tables.py --from-run results    # first copy a main job's results into docs/results/
     python scripts/regenerate_tables.py --out /tmp/tables     # write elsewhere (docs/ is only read)
 
-* ``experiments_table.md`` and ``sensing_table.md``: ``docs/experiments/table.json`` and
-  ``docs/experiments/sensing.json``, copies of what ``c3bf-gym experiments`` (the main job, default
+* ``results/experiments_ur5e/experiments_table.md`` and ``sensing_table.md``: from ``table.json``
+  and ``sensing.json`` beside them, copies of what ``c3bf-gym experiments`` (the main job, default
   options; its ``config.json`` beside them) wrote, through
   :func:`c3bf_gym.experiments.markdown_table`: the run's own ``table.md`` and ``sensing.md``.
-  ``experiments_panda_table.md`` and ``sensing_panda_table.md`` likewise from
-  ``docs/experiments_panda/`` (the main job with ``--robot panda``).
+  ``results/experiments_panda/`` likewise (the main job with ``--robot panda``). Each folder also
+  holds the run's figures that the results pages show.
 * ``results/training/training_table*.md``: what ``c3bf-gym plot-training docs/runs/GLOB
   --evaluation FILE --out docs/results/training/FIGURE --table docs/results/training/TABLE``
   writes, for each row of :data:`TRAINING_TABLES`, with the table's curves
@@ -30,10 +30,11 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parent.parent
 DOCS = REPO / "docs"
 
-#: The files of a ``c3bf-gym experiments`` run that docs/experiments/ keeps.
+#: The files of a ``c3bf-gym experiments`` run that each of :data:`EXPERIMENT_FOLDERS` keeps.
 RESULT_FILES = ("table.json", "sensing.json", "config.json")
-#: Where each robot's experiments live under docs/, and the suffix of their tables' names.
-EXPERIMENT_FOLDERS = {"ur5e": ("experiments", ""), "panda": ("experiments_panda", "_panda")}
+#: Where each robot's experiments live under docs/ (its ``config.json`` names the robot): the run's
+#: :data:`RESULT_FILES`, the tables written from them and the figures the results pages show.
+EXPERIMENT_FOLDERS = {"ur5e": "results/experiments_ur5e", "panda": "results/experiments_panda"}
 
 #: Where the training tables and their curves live, under docs/ (the RL results page includes them).
 TRAINING_FOLDER = "results/training"
@@ -69,17 +70,17 @@ TRAINING_TABLES = (
 
 
 def experiment_tables(docs: Path) -> dict[str, str]:
-    """``{file name: text}`` of the experiments' tables, from each robot's folder
+    """``{path under docs/: text}`` of the experiments' tables, from each robot's folder
     (:data:`EXPERIMENT_FOLDERS`) that exists."""
     from c3bf_gym.experiments import COLUMNS, SENSING_COLUMNS, markdown_table
 
     tables = {}
-    for folder, suffix in EXPERIMENT_FOLDERS.values():
+    for folder in EXPERIMENT_FOLDERS.values():
         if not (docs / folder).is_dir():
             continue
         for name, source, columns in (("experiments", "table.json", COLUMNS), ("sensing", "sensing.json", SENSING_COLUMNS)):
             rows = json.loads((docs / folder / source).read_text())
-            tables[f"{name}{suffix}_table.md"] = markdown_table(rows, columns) + "\n"
+            tables[f"{folder}/{name}_table.md"] = markdown_table(rows, columns) + "\n"
     return tables
 
 
@@ -111,16 +112,20 @@ def regenerate(docs: Path = DOCS, out: Path | None = None) -> dict[str, str]:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     parser.add_argument("--from-run", type=Path, default=None,
-                        help=f"first copy {', '.join(RESULT_FILES)} of this c3bf-gym experiments output into docs/experiments/ "
-                             "(docs/experiments_panda/ for a run with --robot panda)")  # fmt: skip
+                        help=f"first copy {', '.join(RESULT_FILES)} of this c3bf-gym experiments output, and "
+                             "its figures that the folder keeps, into "
+                             f"docs/{EXPERIMENT_FOLDERS['ur5e']}/ (docs/{EXPERIMENT_FOLDERS['panda']}/ for a run "
+                             "with --robot panda)")  # fmt: skip
     parser.add_argument("--out", type=Path, default=DOCS, help="where the tables and the training curves go")
     args = parser.parse_args(argv)
     if args.from_run is not None:
         robot = json.loads((args.from_run / "config.json").read_text()).get("robot", "ur5e")
-        target = DOCS / EXPERIMENT_FOLDERS[robot][0]
-        target.mkdir(exist_ok=True)
+        target = DOCS / EXPERIMENT_FOLDERS[robot]
+        target.mkdir(parents=True, exist_ok=True)
         for name in RESULT_FILES:
             shutil.copyfile(args.from_run / name, target / name)
+        for figure in target.glob("*.png"):  # the figures the folder keeps, as the run drew them
+            shutil.copyfile(args.from_run / "figures" / figure.name, figure)
     for name in regenerate(DOCS, args.out):
         print(args.out / name)
     return 0
