@@ -60,8 +60,6 @@ import c3bf_gym  # noqa: F401  (registers C3BFReach-v0)
 from c3bf_gym import SafetyFilter
 from c3bf_gym.envs.reach import DISTANCE_CUTOFF
 from c3bf_gym.safety import _step
-from c3bf_gym.scenarios import ObstacleSample, ObstacleSpec
-
 
 
 def place_obstacles(u, count: int, rng: np.random.Generator) -> None:
@@ -84,15 +82,12 @@ def place_obstacles(u, count: int, rng: np.random.Generator) -> None:
             continue
         if np.hypot(centre[0], centre[1]) < 0.3 + radius and centre[2] < 0.45 + radius:
             continue  # the scenarios' keep-out cylinder around the base (nothing can dodge there)
-        sample = ObstacleSample(centre, rng.uniform(-0.05, 0.05, 3), radius)
-        u._place(slot, sample)
-        mujoco.mj_forward(m, d)
+        u.place_obstacle(slot, centre, rng.uniform(-0.05, 0.05, 3), radius)
         if u.obstacle_distances()[slot] < 0.07:  # too close to some other link: park it again
             u.obstacle_active[slot] = False
             u.obstacle_vel[slot] = 0.0
             u.obstacle_pos[slot] = (slot * 2.0 * DISTANCE_CUTOFF, 0.0, -50.0)
             continue
-        u._obstacle_specs[slot] = ObstacleSpec("static")
         placed.append((centre, radius))
         slot += 1
     mujoco.mj_forward(m, d)

@@ -2,9 +2,9 @@
 health, determinism, reward and cost signals, observation layout, input validation, rendering,
 pickling/vectorisation and gravity compensation.
 
-Obstacles are placed by hand through the environment's own state (``_place``, which writes the
-mocap position, velocity, radius and the model's geom size) followed by ``mujoco.mj_forward``, so
-that the distance sensors see them before the next step.
+Obstacles are placed by hand with the environment's ``place_obstacle`` (mocap position,
+velocity, radius and the model's geom size, then ``mujoco.mj_forward``), so that the distance
+sensors see them before the next step.
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ import pytest
 
 from c3bf_gym import SCENARIOS, C3BFReachEnv, ObstacleSpec, Scenario
 from c3bf_gym.envs.reach import DISTANCE_CUTOFF, OBSERVATION_LAYOUT
-from c3bf_gym.scenarios import MAX_OBSTACLES, ObstacleSample
+from c3bf_gym.scenarios import MAX_OBSTACLES
 
 from conftest import ENV_ID
 
@@ -88,11 +88,8 @@ def independent_arm_distances(env, centre, radius) -> dict[str, float]:
 
 
 def put_obstacle(env, slot: int, centre, radius: float, velocity=(0.0, 0.0, 0.0)) -> None:
-    """Place obstacle ``slot`` by hand and bring sensors/contacts up to date."""
-    u = env.unwrapped
-    u._place(slot, ObstacleSample(np.asarray(centre, float), np.asarray(velocity, float), float(radius)))
-    u._obstacle_specs[slot] = ObstacleSpec("static")  # what a respawn would redraw from
-    mujoco.mj_forward(u.model, u.data)
+    """Place obstacle ``slot`` by hand (sensors and contacts brought up to date)."""
+    env.unwrapped.place_obstacle(slot, centre, velocity, radius)
 
 
 def beside_link(env, link: str, surface_gap: float, radius: float) -> np.ndarray:
@@ -278,7 +275,7 @@ def test_reward_terms_sum_to_reward_and_follow_the_spec(make_env):
     w_progress, w_effort = defaults["progress_weight"].default, defaults["effort_weight"].default
     env.reset(seed=11)
     rng = np.random.default_rng(0)
-    goal = u.data.mocap_pos[u._goal_mocap].copy()
+    goal = u.goal.copy()
     d_prev = float(np.linalg.norm(goal - u.data.site_xpos[u.ee_site_id]))
     for step in range(1, 251):
         action = rng.uniform(-1.0, 1.0, 6).astype(np.float32)
@@ -312,7 +309,7 @@ def test_success_bonus_when_tool_at_goal(make_env):
     env = make_env(scenario="none", success_bonus=2.5)
     u = env.unwrapped
     env.reset(seed=0)
-    u.data.mocap_pos[u._goal_mocap] = u.data.site_xpos[u.ee_site_id]  # goal on the tool
+    u.goal[:] = u.data.site_xpos[u.ee_site_id]  # goal on the tool
     _, reward, _, _, info = env.step(np.zeros(6, np.float32))
     assert info["is_success"] is True
     assert info["reward_success"] == 2.5
@@ -413,7 +410,7 @@ def test_observation_layout_matches_simulator_state(make_env):
     np.testing.assert_array_equal(obs[JOINT_POS], d.qpos.astype(np.float32))
     np.testing.assert_array_equal(obs[JOINT_VEL], d.qvel.astype(np.float32))
     np.testing.assert_array_equal(obs[TOOL_POS], tool.astype(np.float32))
-    goal = d.mocap_pos[u._goal_mocap]
+    goal = u.goal
     np.testing.assert_allclose(obs[GOAL_REL], goal - tool, atol=1e-6)
     # tool velocity = site Jacobian times joint velocity (independent of mj_objectVelocity)
     jacp = np.zeros((3, u.model.nv))
@@ -1018,3 +1015,45 @@ def test_compiled_physics_steps_are_the_bindings_steps(make_env):
             continue  # an obstacle left the workspace and respawned: its slot moved on
         assert np.array_equal(twin.qpos, u.data.qpos) and np.array_equal(twin.qvel, u.data.qvel)
         assert np.array_equal(twin.mocap_pos, u.data.mocap_pos) and info["min_distance"] == lowest
+
+
+def test_place_obstacle_puts_a_sphere_where_asked_and_refuses_bad_input(make_env):
+    """``place_obstacle``: the sphere is active where asked, the distance sensors see it at once
+    (MuJoCo's own signed distance to the nearest link), it moves at the given velocity over the
+    next step, and bad input raises naming the valid range with nothing changed."""
+    env = make_env(scenario="none")
+    u = env.unwrapped
+    env.reset(seed=3)
+    link = u.arm.capsule_ids[2]
+    centre = u.data.geom_xpos[link] + np.array([0.0, 0.0, 0.3])
+    version = u.state_version
+    u.place_obstacle(5, centre, velocity=(0.1, 0.0, 0.0), radius=0.04)
+    assert u.obstacle_active[5] and np.array_equal(u.obstacle_pos[5], centre) and u.obstacle_radius[5] == 0.04
+    assert u.state_version > version and 0.0 < u.obstacle_distances()[5] < 0.3
+    env.step(np.zeros(6, np.float32))
+    np.testing.assert_allclose(u.obstacle_pos[5], centre + [0.1 * u.dt, 0.0, 0.0], rtol=0, atol=1e-12)
+    before = u.obstacle_pos.copy(), u.obstacle_active.copy()
+    for bad, match in (({"slot": 8}, r"slot must be an integer in \[0, 7\]"), ({"slot": -1}, "slot must be"),
+                       ({"position": (0.0, 1.0)}, "position must be three finite"),
+                       ({"velocity": (np.nan, 0.0, 0.0)}, "velocity must be three finite"),
+                       ({"radius": 0.0}, "radius must be")):  # fmt: skip
+        arguments = {"slot": 0, "position": centre, "velocity": (0.0, 0.0, 0.0), "radius": 0.05} | bad
+        with pytest.raises(ValueError, match=match):
+            u.place_obstacle(**arguments)
+    assert np.array_equal(u.obstacle_pos, before[0]) and np.array_equal(u.obstacle_active, before[1])
+
+
+def test_torque_hooks_are_refused_by_name_and_read_back_by_stage(make_env):
+    u = make_env(scenario="none").unwrapped
+    hook = lambda tau: tau  # noqa: E731
+    for call in (lambda: u.add_torque_hook(hook, "nominl"), lambda: u.torque_hook("filtre")):
+        with pytest.raises(ValueError, match="unknown hook stage .*valid choices: 'nominal', 'filter'"):
+            call()
+    with pytest.raises(TypeError, match="hook must be callable"):
+        u.add_torque_hook(None, "filter")
+    u.add_torque_hook(hook, "filter")
+    with pytest.raises(ValueError, match="a 'filter' torque hook is already installed"):
+        u.add_torque_hook(hook, "filter")
+    assert u.torque_hook("filter") is hook and u.torque_hook("nominal") is None
+    u.remove_torque_hook("filter")
+    assert u.torque_hook("filter") is None and not u.has_torque_hook("filter")

@@ -78,7 +78,7 @@ def random_action(rng, n: int = 6) -> np.ndarray:
 
 def goal_action(u, max_offset) -> np.ndarray:
     """Impedance target: straight for the goal (the obstacles are the filter's business)."""
-    goal = u.data.mocap_pos[u._goal_mocap]
+    goal = u.goal
     tool = u.data.site_xpos[u.ee_site_id]
     return np.clip((goal - tool) / max_offset, -1.0, 1.0).astype(np.float32)
 

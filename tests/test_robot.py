@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from c3bf_gym.safety.dynamics import ArmModel, segment_closest_points
-from c3bf_gym.scenarios import MAX_OBSTACLES, ObstacleSample, ObstacleSpec
+from c3bf_gym.scenarios import MAX_OBSTACLES
 
 import reference
 
@@ -97,11 +97,6 @@ def closest_on_segment(a, b, x):
     ab = b - a
     t = np.clip(np.dot(x - a, ab) / np.dot(ab, ab), 0.0, 1.0)
     return a + t * ab
-
-
-def put_obstacle(u, slot, centre, radius, velocity=(0.0, 0.0, 0.0)):
-    u._place(slot, ObstacleSample(np.asarray(centre, float), np.asarray(velocity, float), float(radius)))
-    u._obstacle_specs[slot] = ObstacleSpec("static")
 
 
 def arm_bodies(u):
@@ -273,9 +268,7 @@ def test_closest_points_reproduce_mujoco_distance_sensors(env, seed):
             centres[slot] = a + rng.uniform(0.2, 0.8) * (b - a) + direction * 0.04
         else:
             centres[slot] = a + rng.uniform(-0.2, 1.2) * (b - a) + direction * rng.uniform(0.02, 0.6)
-        put_obstacle(u, slot, centres[slot], radii[slot])
-    mujoco.mj_forward(m, d)
-    u.state_version += 1
+        u.place_obstacle(slot, centres[slot], radius=radii[slot])
     arm.update(d, u.state_version)
     got = reference.closest_dynamics(arm, u.obstacle_pos.copy())
     s = len(arm.capsule_ids)

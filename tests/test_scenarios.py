@@ -101,7 +101,7 @@ def check_obstacle_in_envelope(env, slot: int, where: str) -> None:
 def start_and_goal(env) -> tuple[np.ndarray, np.ndarray]:
     """Tool position and goal right after reset (the arm has not moved yet)."""
     u = env.unwrapped
-    return u.data.site_xpos[u.ee_site_id].copy(), u.data.mocap_pos[u._goal_mocap].copy()
+    return u.data.site_xpos[u.ee_site_id].copy(), u.goal.copy()
 
 
 # ----------------------------------------------------------------------------- envelope at reset

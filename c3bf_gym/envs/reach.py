@@ -26,6 +26,7 @@ from c3bf_gym.scenarios import (
     MAX_OBSTACLES,
     ArmCapsules,
     Envelope,
+    ObstacleSample,
     ObstacleSampler,
     ObstacleSpec,
     Scenario,
@@ -582,6 +583,12 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
     def has_torque_hook(self, stage: str) -> bool:
         return stage in self._hooks
 
+    def torque_hook(self, stage: Literal["nominal", "filter"]) -> TorqueHook | None:
+        """The hook installed at ``stage`` (:data:`HOOK_STAGES`), or None."""
+        if stage not in HOOK_STAGES:
+            raise ValueError(f"unknown hook stage {stage!r}; valid choices: {', '.join(map(repr, HOOK_STAGES))}")
+        return self._hooks.get(stage)
+
     # ------------------------------------------------------------------ gym API
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         """Apply ``action`` (6,) for ``frame_skip`` physics steps; Gymnasium's 5-tuple.
@@ -849,6 +856,34 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
         self.obstacle_pos[:] = 0.0
         self.obstacle_pos[:, 0] = np.arange(MAX_OBSTACLES) * 2.0 * DISTANCE_CUTOFF
         self.obstacle_pos[:, 2] = _PARK_DEPTH
+
+    def place_obstacle(self, slot: int, position: np.ndarray, velocity: np.ndarray = (0.0, 0.0, 0.0),
+                       radius: float = 0.05, respawn: ObstacleSpec | None = None) -> None:
+        """Put obstacle ``slot`` (``0 <= slot < MAX_OBSTACLES``, active or not) at ``position`` (3,)
+        [m], moving at the constant ``velocity`` (3,) [m/s], with ``radius`` [m]: for hand-made
+        scenes in tests, demos and benchmarks, after :meth:`reset` and between steps. The
+        kinematics and distance sensors are recomputed (``mj_forward``) and ``state_version``
+        moves on, so the next observation, step and safety filter call see it. When it leaves the
+        workspace it respawns as ``respawn`` draws it (default ``ObstacleSpec("static")``: at rest
+        on the tool's path). Nothing checks that it is clear of the arm or outside the keep-out
+        cylinder: a hand-made obstacle may start in contact.
+
+        Raises:
+            ValueError: an unknown slot, a position or velocity that is not three finite numbers,
+                or a radius that is not a finite number > 0 (nothing changes).
+        """
+        slot = integer("slot", slot, low=0)
+        if slot >= MAX_OBSTACLES:
+            raise ValueError(f"slot must be an integer in [0, {MAX_OBSTACLES - 1}], got {slot}")
+        position, velocity = (np.array(v, dtype=np.float64) for v in (position, velocity))
+        for name, v in (("position", position), ("velocity", velocity)):
+            if v.shape != (3,) or not np.isfinite(v).all():
+                raise ValueError(f"{name} must be three finite numbers [m, m/s], got {v!r}")
+        radius = number("radius", radius, low=0.0, low_open=True, unit="m")
+        self._place(slot, ObstacleSample(position, velocity, radius))
+        self._obstacle_specs[slot] = ObstacleSpec("static") if respawn is None else respawn
+        mujoco.mj_forward(self.model, self.data)
+        self.state_version += 1
 
     def _place(self, slot: int, sample) -> None:
         geom = self.obstacle_geom_ids[slot]
