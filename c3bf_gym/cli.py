@@ -100,6 +100,8 @@ def _add_train(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--guard-gamma", type=_positive_float, default=d.guard_gamma,
                    help=f"the guard's gains, gamma1 = gamma2 [1/s], with filter c3bf+hocbf (None: {GUARD_GAMMA:g})")
     p.add_argument("--scenario", choices=list(SCENARIOS), default=d.scenario, help="obstacle scenario")
+    p.add_argument("--eval-scenario", choices=list(SCENARIOS), default=d.eval_scenario,
+                   help="scenario of the periodic and final evaluations (default: the training scenario)")
     p.add_argument("--timesteps", type=_positive_int, default=d.timesteps, help="policy steps to train")
     p.add_argument("--seed", type=_nonnegative_int, default=d.seed, help="seed of the agent and the training envs")
     p.add_argument("--n-envs", type=_positive_int, default=d.n_envs,
@@ -134,7 +136,7 @@ def _run_train(args: argparse.Namespace) -> int:
     defaults = ENGINE_DEFAULTS[args.engine]
     config = TrainConfig(
         engine=args.engine, algo=args.algo or defaults["algo"], robot=args.robot, action=args.action, filter=args.filter, guard_gamma=args.guard_gamma, scenario=args.scenario,
-        timesteps=args.timesteps, seed=args.seed, n_envs=args.n_envs, eval_freq=args.eval_freq,
+        eval_scenario=args.eval_scenario, timesteps=args.timesteps, seed=args.seed, n_envs=args.n_envs, eval_freq=args.eval_freq,
         eval_episodes=args.eval_episodes, final_eval_episodes=args.final_eval_episodes, checkpoint_freq=args.checkpoint_freq, out=args.out,
         progress_bar=not args.no_progress, normalize_obs=args.normalize_obs, policy_hz=args.policy_hz, distance_weight=args.distance_weight, action_weight=args.action_weight, obstacle_encoder=args.obstacle_encoder or defaults["obstacle_encoder"], hyperparams=args.hyperparams,
     )  # fmt: skip

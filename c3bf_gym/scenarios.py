@@ -223,6 +223,10 @@ for _scenario in (
 SCENARIOS["random"] = Scenario(
     "random", mixture=("static", "head_on", "crossing", "multi"), description="a uniform mixture of the four"
 )
+SCENARIOS["random_multi"] = Scenario(
+    "random_multi", mixture=("static", "head_on", "crossing", "multi", "multi", "multi"),
+    description="the four, multi in half the episodes (a training mixture; evaluate on random)",
+)
 SCENARIOS["none"] = Scenario("none", description="no obstacles (free reaching)")
 del _scenario
 

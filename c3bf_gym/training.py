@@ -197,6 +197,10 @@ class TrainConfig:
     encoder for the obstacle slots, 25k steps. Each was chosen by measured runs (the docs' RL
     results page, ``docs/results/rl.md``); the PPO defaults share them untested.
 
+    ``eval_scenario`` is the scenario of the periodic and the final evaluations (None: the training
+    scenario): a run trained on a weighted mixture such as ``random_multi`` is evaluated on the
+    same episodes as every other run (``random``).
+
     ``engine="rllib"`` trains with Ray RLlib instead (:func:`c3bf_gym.rllib.train_rllib`): PPO
     only, the flat encoder only, no ``normalize_obs``; ``n_envs`` env runners, one env each.
     """
@@ -208,6 +212,7 @@ class TrainConfig:
     filter: str = DEFAULT_FILTER
     guard_gamma: float | None = None
     scenario: str = "random"
+    eval_scenario: str | None = None
     timesteps: int = 25_000
     seed: int = 0
     n_envs: int = 1
@@ -243,6 +248,8 @@ class TrainConfig:
                 if value != supported:
                     raise ValueError(f"the rllib engine supports {name}={supported!r} only, got {value!r}")
         get_scenario(self.scenario)
+        if self.eval_scenario is not None:
+            get_scenario(self.eval_scenario)
         policy_rate_kwargs(self.policy_hz)
         filter_config(self.filter, self.guard_gamma)  # the filter's own checks, guard_gamma's included
         for name in ("distance_weight", "action_weight"):
@@ -273,6 +280,12 @@ class TrainConfig:
             f"{engine}{robot}{self.algo}_{self.action}{norm}{rate}{dense}{penalty}{encoder}_{filter_label(self.filter, self.guard_gamma)}"
             f"_{self.scenario}_s{self.seed}"
         )
+
+    @property
+    def evaluated_scenario(self) -> str:
+        """The scenario of the periodic and the final evaluations: ``eval_scenario``, or the
+        training scenario when that is None."""
+        return self.scenario if self.eval_scenario is None else self.eval_scenario
 
     def env_kwargs(self) -> dict[str, Any]:
         """``gym.make`` keywords: the policy rate (the episode stays ``EPISODE_SECONDS`` long), the
@@ -451,7 +464,8 @@ def train(config: TrainConfig, address: str | None = None) -> Path:
     rate, penalty = config.env_kwargs(), config.action_weight
     venv = training_envs(config)
     eval_env = DummyVecEnv(
-        [make_env(config.scenario, filter_, config.action, seed=10_000 + config.seed, action_weight=penalty, **rate)]
+        [make_env(config.evaluated_scenario, filter_, config.action, seed=10_000 + config.seed, action_weight=penalty,
+                  **rate)]
     )
     if config.normalize_obs:
         # Running mean/std of the observations (not of the rewards); EvalCallback copies the
@@ -615,8 +629,9 @@ def evaluate(
 
     ``model_path`` is an SB3 ``model.zip`` (or one in ``best/`` or ``checkpoints/``) or an RLlib
     checkpoint directory (``checkpoint/`` of a run trained with ``engine="rllib"``).
-    ``filter`` (one of :data:`TRAIN_FILTERS`), ``guard_gamma`` and ``scenario`` default to the
-    run's own (from its ``config.json``); pass a filter to evaluate, e.g., an unfiltered agent
+    ``filter`` (one of :data:`TRAIN_FILTERS`) and ``guard_gamma`` default to the run's own (from
+    its ``config.json``), ``scenario`` to the run's evaluation scenario (its ``eval_scenario``,
+    else its training scenario); pass a filter to evaluate, e.g., an unfiltered agent
     with the default filter on (its guard then has the default gains). The action mode,
     policy rate and reward (``distance_weight``, ``action_weight``) are the run's too (also for
     ``best/`` and ``checkpoints/`` models), so returns compare only between runs with the same
@@ -636,7 +651,8 @@ def evaluate(
         filter = config.get("filter", "none")
         guard_gamma = config.get("guard_gamma") if guard_gamma is None else guard_gamma
     filter_ = filter_config(filter, guard_gamma)  # checked before the model loads
-    scenario = config.get("scenario", "random") if scenario is None else scenario
+    if scenario is None:
+        scenario = config.get("eval_scenario") or config.get("scenario", "random")
     policy = _load_policy(model_path, config, run_dir, deterministic)
     returns, successes, costs, collided, interventions, infeasible, kinds = [], [], [], [], [], [], []
     run_env = env_kwargs(config.get("policy_hz", DEFAULT_POLICY_HZ), config.get("distance_weight", 0.0),

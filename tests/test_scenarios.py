@@ -367,6 +367,9 @@ def test_mixture_resolves_to_its_components_uniformly():
         assert abs(draws.count(name) / len(draws) - 1 / len(mixture.mixture)) < 0.03
     plain = SCENARIOS["multi"]
     assert plain.resolve(rng) is plain
+    weighted = [SCENARIOS["random_multi"].resolve(rng).name for _ in range(4000)]  # a name repeated weighs more
+    assert abs(weighted.count("multi") / len(weighted) - 0.5) < 0.03
+    assert all(abs(weighted.count(name) / len(weighted) - 1 / 6) < 0.03 for name in ("static", "head_on", "crossing"))
 
 
 def test_sampler_gives_up_when_nothing_fits():

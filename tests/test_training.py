@@ -27,6 +27,22 @@ from c3bf_gym.training import (
 
 
 @pytest.mark.slow
+def test_a_run_on_a_weighted_mixture_is_evaluated_on_its_eval_scenario(tmp_path):
+    """``eval_scenario``: the periodic and final evaluations, and ``evaluate`` by default, run the
+    evaluation scenario, not the training mixture."""
+    config = TrainConfig(scenario="random_multi", eval_scenario="static", timesteps=200, eval_freq=150, eval_episodes=1,
+                         final_eval_episodes=2, checkpoint_freq=150, out=str(tmp_path), progress_bar=False,
+                         hyperparams={"learning_starts": 100})  # fmt: skip
+    run = train(config)
+    assert run.name.endswith("_random_multi_s0")
+    assert json.loads((run / "config.json").read_text())["eval_scenario"] == "static"
+    final = json.loads((run / "final_eval.json").read_text())
+    assert final["scenario"] == "static" and list(final["by_scenario"]) == ["static"]
+    assert evaluate(run / "model.zip", episodes=1)["scenario"] == "static"
+    assert evaluate(run / "model.zip", episodes=2, scenario="multi")["by_scenario"].keys() == {"multi"}
+
+
+@pytest.mark.slow
 @pytest.mark.parametrize("algo", ["sac", "ppo"])
 @pytest.mark.parametrize("filter_name", ["none", "c3bf+hocbf"])
 def test_train_save_reload_evaluate(algo, filter_name, tmp_path):
@@ -294,6 +310,7 @@ def test_make_env_action_modes(action, shape):
         ({"timesteps": 0}, "timesteps must be an integer >= 1"),
         ({"seed": -1}, "seed must be an integer >= 0"),
         ({"final_eval_episodes": -1}, "final_eval_episodes must be an integer >= 0"),
+        ({"eval_scenario": "radnom"}, "scenario 'radnom'.*'random', 'random_multi'"),
         ({"normalize_obs": 1}, "normalize_obs must be True or False"),
         ({"policy_hz": 30}, "policy_hz must be one of 10, 20, 25, 50, 100"),
         ({"policy_hz": 10.0}, "policy_hz must be one of"),

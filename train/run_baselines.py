@@ -33,6 +33,8 @@ def main() -> int:
     parser.add_argument("--guard-gamma", type=float, default=d.guard_gamma,
                         help="the gains of c3bf+hocbf's guard (default: the filter's)")
     parser.add_argument("--scenario", default=d.scenario)
+    parser.add_argument("--eval-scenario", default=d.eval_scenario,
+                        help="scenario of the evaluations (default: the training scenario)")
     parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     parser.add_argument("--timesteps", type=int, default=d.timesteps)
     parser.add_argument("--policy-hz", type=int, choices=POLICY_RATES, default=d.policy_hz)
@@ -72,6 +74,7 @@ def main() -> int:
             sys.executable, "-m", "c3bf_gym.cli", "train", "--algo", args.algo, "--robot", args.robot, "--action", args.action,
             "--filter", filter_name, *(["--guard-gamma", str(gains(filter_name))] if gains(filter_name) else []),
             "--scenario", args.scenario, "--seed", str(seed),
+            *(["--eval-scenario", args.eval_scenario] if args.eval_scenario else []),
             "--timesteps", str(args.timesteps), "--out", str(out), "--no-progress", "--policy-hz", str(args.policy_hz),
             "--distance-weight", str(args.distance_weight), "--action-weight", str(args.action_weight),
             "--obstacle-encoder", args.obstacle_encoder, "--n-envs", str(args.n_envs),

@@ -258,7 +258,8 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
 
     ## Scenarios
     ``static``, ``head_on``, ``crossing``, ``multi`` (the paper's four), ``random`` (uniform mixture
-    of the four, the default) and ``none``; or any :class:`~c3bf_gym.scenarios.Scenario` instance.
+    of the four, the default), ``random_multi`` (the four, ``multi`` in half the episodes: a
+    training mixture) and ``none``; or any :class:`~c3bf_gym.scenarios.Scenario` instance.
     Obstacles move at constant velocity and respawn (redrawn by their spec) when they leave the
     workspace box. The :class:`~c3bf_gym.scenarios.Envelope` bounds the speed of moving obstacles
     (``obstacle_speed_range``, default 0.1-0.4 m/s; static ones are at rest) and radius (``obstacle_radius_range``, default
