@@ -104,7 +104,11 @@ def _ppo_config(config: TrainConfig, hyper: dict[str, Any]):
                          "keywords, plus fcnet_hiddens and train_batch_size_per_env)") from None  # fmt: skip
     return (
         ppo.environment(ENV_NAME, env_config=env_config, clip_actions=True, normalize_actions=False)
-        .env_runners(num_env_runners=config.n_envs, num_envs_per_env_runner=1, num_cpus_per_env_runner=1)
+        # sample_timeout_s=None: wait for every env runner's samples. RLlib's default (60 s) discards
+        # the samples of a runner that takes longer (a busy machine, a cold first step) and reports
+        # an empty iteration: steps paid for and thrown away.
+        .env_runners(num_env_runners=config.n_envs, num_envs_per_env_runner=1, num_cpus_per_env_runner=1,
+                     sample_timeout_s=None)
         .learners(num_learners=0)
         .rl_module(model_config=DefaultModelConfig(fcnet_hiddens=hidden, fcnet_activation="tanh",
                                                    vf_share_layers=False, free_log_std=True))  # fmt: skip
