@@ -55,6 +55,9 @@ class ArmArrays(NamedTuple):
         end_jac: (2S, 3, nv) scratch for the capsule ends' Jacobians.
         Minv, qacc_free: (nv, nv), (nv,) ``(M + h D)⁻¹`` and the joint acceleration at zero torque.
         ends, ends_ab, a_dot_ab: the capsule ends' packed dynamics (:func:`capsule_ends`).
+        site: the tool site (:class:`ToolSite`; position zeros and no dofs for an arm without
+            one), whose dynamics the filter's rows for ``points="ee"`` compute
+            (:func:`tool_site_dynamics`).
     """
 
     M: np.ndarray
@@ -86,6 +89,7 @@ class ArmArrays(NamedTuple):
     ends: np.ndarray
     ends_ab: np.ndarray
     a_dot_ab: np.ndarray
+    site: ToolSite
 
 
 class SparseMass(NamedTuple):

@@ -228,6 +228,11 @@ class ArmModel:
                 data.subtree_com[self._root], data.geom_xpos, data.geom_xmat, data.xpos, data.xmat,
             )
             self._views_of = data
+            # the tool site as the kernels read it: a view of this data's position (zeros, moved by
+            # no dof, without a site)
+            pos = data.site_xpos[self.site_id] if self.site_id >= 0 else np.zeros(3)
+            chain = self.site_chain if self.site_chain is not None else np.zeros(self.nv)
+            self._tool_site = _dynamics.ToolSite.of(pos, chain)
         return self._views
 
     def kernel_arrays(self, data: mujoco.MjData) -> _dynamics.ArmArrays:
@@ -239,7 +244,7 @@ class ArmModel:
             v.qpos, v.qvel, self._capsule_ids, self.capsule_body, self._M_rowadr, self._M_rownnz, self._M_colind,
             self.implicit_damping,
             self.capsule_local, self._length2, self.capsule_radius, self.capsule_chain, self._factor, self._end_jac,
-            self.Minv, self.qacc_free, self._ends, self._ends_ab, self._a_dot_ab,
+            self.Minv, self.qacc_free, self._ends, self._ends_ab, self._a_dot_ab, self._tool_site,
         )
 
     def _ensure_ends(self) -> None:
@@ -265,7 +270,7 @@ class ArmModel:
         return self._unpack(self._ends[None])
 
     def claim(self, data: mujoco.MjData, version: int | None = None) -> int:
-        """For a fused kernel (:func:`c3bf_gym.safety._rows.hook_rows_whole_arm`) that refreshes the
+        """For a fused kernel (:func:`c3bf_gym.safety._rows.filter_rows`) that refreshes the
         dynamics itself, in this object's arrays: which parts are stale, 2 (``Minv``,
         ``qacc_free`` and the capsule ends), 1 (the ends) or 0 (none), with :meth:`update`'s
         caching on ``version``. Marks them current: the caller must compute them now."""
