@@ -177,10 +177,11 @@ def test_standalone_controller_keeps_a_falling_ball_off_an_inline_arm():
                           ("ee", "hocbf", None, 1), ("ee", "hocbf", "hocbf", 2)])  # fmt: skip
 def test_standalone_fused_and_per_class_paths_agree(points, barrier, guard, obstacle_rows):
     """The fused kernel (which measures sensing distances to the protected geoms itself when the
-    obstacles keep none, treats the wrist sphere as a capsule of length 0, and computes the tool
-    site's dynamics from ``cdof`` for ``points="ee"``) gives the rows of the per-class path, which
-    uses numpy geometry (and MuJoCo's ``mj_jacSite``, ``mj_jacDot`` for the site), the guard's
-    included."""
+    obstacles keep none, treats the wrist sphere as a capsule of length 0, and writes the tool
+    site's rows for ``points="ee"``) gives the rows of the per-class path, which uses numpy
+    geometry and the barrier classes' ``terms``, the guard's included. (The site's dynamics, the
+    same kernel on both paths, are checked against MuJoCo's ``mj_jacSite`` and ``mj_jacDot`` in
+    tests/test_robot.py.)"""
     model = _model()
     data = mujoco.MjData(model)
     data.qpos[:] = (0.3, -0.6, 0.9)

@@ -174,9 +174,6 @@ class ArmModel:
         self._version: int | None = None
         self._ends_current = False
         self._views_of: mujoco.MjData | None = None
-        self._site_body = int(model.site_bodyid[self.site_id]) if self.site_id >= 0 else -1
-        self._site_jac = np.zeros((1, 3, self.nv))
-        self._site_jac_dot = np.zeros((3, self.nv))
 
     @staticmethod
     def _implicit_damping(model: mujoco.MjModel) -> np.ndarray:
@@ -342,12 +339,19 @@ class ArmModel:
         return PointDynamics(p, v, None, G, c), slide_p
 
     def site_dynamics(self, data: mujoco.MjData) -> PointDynamics:
-        """:class:`PointDynamics` of the tool site (P = 1), from ``mj_jacSite`` and ``mj_jacDot``.
-        ``Minv`` and ``qacc_free`` must be current (:meth:`update`)."""
-        jac, jac_dot = self._site_jac[0], self._site_jac_dot
-        mujoco.mj_jacSite(self.model, data, jac, None, self.site_id)
-        pos = data.site_xpos[self.site_id]
-        mujoco.mj_jacDot(self.model, data, jac_dot, None, pos, self._site_body)
-        G = jac @ self.Minv
-        c = jac @ self.qacc_free + jac_dot @ data.qvel
-        return PointDynamics(pos[None].copy(), (jac @ data.qvel)[None], self._site_jac.copy(), G[None], c[None])
+        """:class:`PointDynamics` (copies) of the tool site (P = 1), Jacobian included, computed as
+        the filter's compiled rows compute it (:func:`~c3bf_gym.safety._dynamics.tool_site_dynamics`,
+        from ``cdof`` and ``cdof_dot``: ``mj_jacSite`` and ``mj_jacDot``'s values, to rounding).
+        ``Minv`` and ``qacc_free`` must be current (:meth:`update`).
+
+        Raises:
+            ValueError: the arm was built without a tool site (``site_id`` -1)."""
+        if self.site_id < 0:
+            raise ValueError("this arm has no tool site: build it with the site's id (RobotDescription.from_model's "
+                             "site=)")  # fmt: skip
+        v = self.views(data)
+        site = self._tool_site
+        _dynamics.tool_site_dynamics(site, _dynamics.ArmMotion(v.cdof, v.cdof_dot, v.com, v.qvel, self.Minv,
+                                                               self.qacc_free))
+        packed = site.packed.copy()
+        return PointDynamics(packed[:, :, 0], packed[:, :, 1], site.jac.copy(), packed[:, :, 3:], packed[:, :, 2])
