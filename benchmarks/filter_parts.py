@@ -8,7 +8,7 @@ physics step (the package itself is not touched):
 * ``no QP``: the QP (``solve_rows``) is replaced by the nominal torque clipped to the torque
   limits. The rows are built as always (the arm's dynamics, the capsule ends, every barrier,
   guard, floor and joint-limit row), then reported as held.
-* ``no rows, no QP``: the rows are left out too (``hook_rows_whole_arm``, which also computes the
+* ``no rows, no QP``: the rows are left out too (``filter_rows``, which also computes the
   arm's dynamics). What remains is the filtered path's own work: the wrapper's Python once per
   policy step, the compiled policy step's calls and their report.
 
@@ -48,7 +48,7 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 KERNELS = Path("safety") / "_step.py"
 #: the text of filter_substep each edit replaces, and its replacement
-_ROWS = "    m, min_h, inside, n_sensed = hook_rows_whole_arm(stage, arm, obstacles, params, A, b, tally.row_h)\n"
+_ROWS = "    m, min_h, inside, n_sensed = filter_rows(stage, arm, obstacles, params, A, b, tally.row_h)\n"
 _NO_ROWS = "    m, min_h, inside, n_sensed = 0, np.inf, False, 0\n"
 _QP = ("    status, iterations, n_active, slack = solve_rows(tau_nom, A[:m], b[:m], scale, params.dofs,\n"
        "                                                     low_priority_span(m, n_fixed, guarded), stride, qp)\n")

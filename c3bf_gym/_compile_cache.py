@@ -1,7 +1,7 @@
 """numba's on-disk cache for the package's compiled kernels, keyed on every kernel source file.
 
 numba keys a cached function on a hash of the one file that defines it. The filter's kernels call
-each other across files (``safety/_step.filter_substep`` compiles ``_rows.hook_rows_whole_arm`` and ``_qp.solve_rows`` into
+each other across files (``safety/_step.filter_substep`` compiles ``_rows.filter_rows`` and ``_qp.solve_rows`` into
 itself), so an edit to ``_qp.py`` alone would leave the old solver inside the cached ``filter_substep``. Here
 the cache stamp of every function defined in :data:`KERNEL_SOURCES` (the filter's kernels, the
 scenarios' obstacle sampler and the environment's own) is the hash of all those files together:

@@ -8,6 +8,7 @@ against the KKT conditions of the QP the filter claims to solve.
 
 from __future__ import annotations
 
+import gymnasium as gym
 import mujoco
 import numpy as np
 import pytest
@@ -695,23 +696,31 @@ def test_fused_step_replays_the_unfused_path(make_env, scenario, name):
     assert "solved" in statuses and (scenario == "crossing" or statuses & {"relaxed", "gain raised"})
 
 
-@pytest.mark.parametrize(("scenario", "settings"), [("multi", {}), ("crossing", {"barrier": "c3bf", "guard": None}),
-                                                   ("head_on", {"margin": 0.05})])
-def test_the_compiled_policy_step_replays_the_hooks_loop(make_env, scenario, settings):
+@pytest.mark.parametrize(
+    ("env_id", "scenario", "settings"),
+    [("C3BFReach-v0", "multi", {}), ("C3BFReach-v0", "crossing", {"barrier": "c3bf", "guard": None}),
+     ("C3BFReach-v0", "head_on", {"margin": 0.05}), ("C3BFReach-v0", "multi", {"points": "ee"}),
+     ("C3BFReachPanda-v0", "multi", {"points": "ee"}),
+     ("C3BFReach-v0", "head_on", {"points": "ee", "barrier": "hocbf"}),
+     ("C3BFReachPanda-v0", "crossing", {"points": "ee", "barrier": "c3bf", "guard": None})],  # fmt: skip
+)
+def test_the_compiled_policy_step_replays_the_hooks_loop(env_id, scenario, settings):
     """The filter's calls inside the env's compiled policy step (``policy_steps``) give what the
     same calls through the hooks' Python loop give (``record_times`` sends every call through
     ``__call__``), bit for bit: observations, rewards, every ``info`` entry (the safety report's
-    included), the joints, and a step with no safe torque raising (rolled back) at the same call."""
-    envs = [SafetyFilter(make_env(scenario=scenario), **settings) for _ in range(2)]
+    included), the joints, and a step with no safe torque raising (rolled back) at the same call.
+    The tool sphere (``points="ee"``) too, on both arms: its rows are compiled as the whole arm's."""
+    envs = [SafetyFilter(gym.make(env_id, scenario=scenario), **settings) for _ in range(2)]
     envs[1].hook.record_times()
+    n = envs[0].action_space.shape[0]
     rng = np.random.default_rng(11)
     raised = [0, 0]
-    steps = 0
+    steps = intervened = 0
     for episode in range(3):
         for env in envs:
             env.reset(seed=20 + episode)
         for _ in range(80):
-            action = (rng.choice([-1.0, 1.0], 6) if episode % 2 else rng.uniform(-1, 1, 6)).astype(np.float32)
+            action = (rng.choice([-1.0, 1.0], n) if episode % 2 else rng.uniform(-1, 1, n)).astype(np.float32)
             outcomes = []
             for i, env in enumerate(envs):
                 try:
@@ -724,13 +733,16 @@ def test_the_compiled_policy_step_replays_the_hooks_loop(make_env, scenario, set
                 continue
             (obs_a, r_a, *_, info_a), (obs_b, r_b, *_, info_b) = outcomes
             steps += 1
+            intervened += info_a["safety"]["intervened"]
             assert obs_a.tobytes() == obs_b.tobytes() and r_a == r_b and info_a == info_b
             assert np.array_equal(envs[0].unwrapped.data.qpos, envs[1].unwrapped.data.qpos)
             assert np.array_equal(envs[0].unwrapped.data.qvel, envs[1].unwrapped.data.qvel)
-    assert steps > 100 and raised == [0, 0]
+    assert steps > 100 and raised == [0, 0] and intervened > 0  # (the filter changed some torques)
     assert envs[0].hook.last.status == envs[1].hook.last.status
     # the compiled calls are not timed (NaN), the recorded ones are
     assert np.isnan(envs[0].hook.report.solve_time) and envs[1].hook.report.solve_time > 0.0
+    for env in envs:
+        env.close()
 
 
 def test_the_compiled_policy_step_raises_where_the_hooks_loop_raises(make_env):

@@ -287,22 +287,23 @@ def test_fused_hook_rows_match_numpy_assembly(make_env, barrier, seed):
     assert min_h == pytest.approx(h_ref, rel=1e-10)
 
 
+@pytest.mark.parametrize("points", ["whole_arm", "ee"])
 @pytest.mark.parametrize("guard", [None, DistanceHOCBF(gamma1=3.0, gamma2=4.0)])
-def test_fused_rows_equal_the_per_class_path(make_env, guard):
+def test_fused_rows_equal_the_per_class_path(make_env, guard, points):
     """A barrier the filter cannot fuse (a subclass changing terms) takes the per-class path;
     with the same math it must give the fused kernel's rows, the guard's included (one after each
-    of the barrier's)."""
+    of the barrier's), at the capsules' closest points and at the tool site."""
     u = make_env(scenario="none").unwrapped
     u.reset(seed=3)
     scene(u, np.random.default_rng(3), 3)
-    config = FilterConfig(sensing_radius=0.5, joint_speed_fraction=1.0, guard=guard)
+    config = FilterConfig(sensing_radius=0.5, joint_speed_fraction=1.0, guard=guard, points=points)
     fused = SafetyHook(u, config.replace(barrier=C3BF(gamma=5.0, eps=1e-2)))
     generic = SafetyHook(u, config.replace(barrier=_NumpyC3BF(gamma=5.0, eps=1e-2)))
     assert fused._fused and not generic._fused
     A1, b1, h1, in1, n1 = (x.copy() if isinstance(x, np.ndarray) else x for x in fused.rows())
     A2, b2, h2, in2, n2 = generic.rows()
     assert n1 == n2 == 3 and in1 == in2 and h1 == pytest.approx(h2, rel=1e-12)
-    assert len(b1) == 6 * 3 * (1 if guard is None else 2) + 12 + 24
+    assert len(b1) == (6 if points == "whole_arm" else 1) * 3 * (1 if guard is None else 2) + 12 + 24
     close(A1, A2, 1e-10)
     close(b1, b2, 1e-10)
 

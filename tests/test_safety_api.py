@@ -172,10 +172,16 @@ def test_standalone_controller_keeps_a_falling_ball_off_an_inline_arm():
     assert controller.report.substeps == 1  # filter(): one call's own report
 
 
-def test_standalone_fused_and_per_class_paths_agree():
-    """The whole-arm kernel (which measures sensing distances to the protected geoms itself when
-    the obstacles keep none, and treats the wrist sphere as a capsule of length 0) gives the rows
-    of the per-class path, which uses numpy geometry."""
+@pytest.mark.parametrize(("points", "barrier", "guard", "obstacle_rows"),
+                         [("whole_arm", "c3bf", None, 3), ("ee", "c3bf", None, 1), ("ee", "c3bf", "auto", 2),
+                          ("ee", "hocbf", None, 1), ("ee", "hocbf", "hocbf", 2)])  # fmt: skip
+def test_standalone_fused_and_per_class_paths_agree(points, barrier, guard, obstacle_rows):
+    """The fused kernel (which measures sensing distances to the protected geoms itself when the
+    obstacles keep none, treats the wrist sphere as a capsule of length 0, and writes the tool
+    site's rows for ``points="ee"``) gives the rows of the per-class path, which uses numpy
+    geometry and the barrier classes' ``terms``, the guard's included. (The site's dynamics, the
+    same kernel on both paths, are checked against MuJoCo's ``mj_jacSite`` and ``mj_jacDot`` in
+    tests/test_robot.py.)"""
     model = _model()
     data = mujoco.MjData(model)
     data.qpos[:] = (0.3, -0.6, 0.9)
@@ -185,16 +191,20 @@ def test_standalone_fused_and_per_class_paths_agree():
     robot = RobotDescription.from_model(model, site="tool", joint_speed_limit=3.0)
     balls = MocapSpheres(model, ["ball"])
     balls.velocity[0] = (-0.2, 0.0, -0.4)
-    config = FilterConfig(sensing_radius=0.5, guard=None)
+    config = FilterConfig(sensing_radius=0.5, barrier=barrier, guard=guard, points=points)
     fused = SafetyController(model, data, robot, balls, config)
     generic = SafetyController(model, data, robot, balls, config)
     generic._fused = False  # the per-class path, as a barrier the kernel cannot fuse takes
+    assert fused._fused
     A1, b1, h1, in1, n1 = (x.copy() if isinstance(x, np.ndarray) else x for x in fused.rows())
     A2, b2, h2, in2, n2 = generic.rows()
     assert n1 == n2 == 1 and in1 == in2 and h1 == pytest.approx(h2, rel=1e-12)
     np.testing.assert_allclose(A1, A2, rtol=0, atol=1e-10)
     np.testing.assert_allclose(b1, b2, rtol=0, atol=1e-10)
-    assert len(b1) == 3 + 5 + 12  # 3 protected geoms; floor: both ends of 2 capsules, 1 of the sphere; 4n
+    # whole arm: 3 protected geoms (ee: the tool site; with a guard, its row too); floor: both ends
+    # of 2 capsules, 1 of the sphere; 4n
+    assert len(b1) == obstacle_rows + 5 + 12
+    assert np.abs(A1[:obstacle_rows]).max() > 0.0  # the obstacle rows are there, not zeros on both paths
 
 
 def test_obstacle_arrays_given_as_strided_views_filter_as_their_copies():

@@ -6,7 +6,7 @@
   :func:`critical_damping`: its damping matrix for a given task inertia.
 * :func:`impedance_substep`: the same law on an arm's ``MjData`` between ``mj_step1`` and
   ``mj_step2``: ``(M + h D)⁻¹`` (:func:`c3bf_gym.safety._dynamics.step_inverse`, on a new state),
-  the tool site's Jacobian, velocity and ``J̇ q̇`` (:func:`c3bf_gym.safety._dynamics.point_dynamics`),
+  the tool site's Jacobian, velocity and ``J̇ q̇`` (:func:`c3bf_gym.safety._dynamics.tool_site_dynamics`),
   then :func:`impedance_law`. The environment's compiled policy step calls it at every physics
   step (:func:`c3bf_gym.envs._kernels.policy_steps`), and so does
   :class:`~c3bf_gym.controllers.ImpedanceHook` from Python.
@@ -27,10 +27,10 @@ import numpy as np
 from numba import njit
 
 from c3bf_gym._compile_cache import STEP_KERNEL_OPTIONS  # (before any @njit(cache=True): the cache keys)
-from c3bf_gym.safety._dynamics import ArmMotion, SparseMass, point_dynamics, step_inverse
+from c3bf_gym.safety._dynamics import ArmMotion, SparseMass, ToolSite, step_inverse, tool_site_dynamics
 
-__all__ = ["BoundImpedance", "ImpedanceGains", "ImpedanceWork", "TaskState", "Target", "ToolSite", "critical_damping",
-           "impedance_law", "impedance_substep"]  # fmt: skip
+__all__ = ["BoundImpedance", "ImpedanceGains", "ImpedanceWork", "TaskState", "Target", "critical_damping", "impedance_law",
+           "impedance_substep"]  # fmt: skip
 
 _opts = STEP_KERNEL_OPTIONS
 
@@ -106,30 +106,6 @@ class ImpedanceWork(NamedTuple):
     @classmethod
     def of(cls, n: int) -> ImpedanceWork:
         return cls(np.zeros((7, 3, 3)), np.zeros((3, 3)), np.zeros((3, n)), np.zeros(n))
-
-
-class ToolSite(NamedTuple):
-    """The tool site as :func:`impedance_substep` reads it.
-
-    Attributes:
-        pos: (3,) the site's position, a view of ``data.site_xpos`` [m].
-        chain: (1, nv) 1.0 for the dofs that move the site's body, else 0.0.
-        zero: (nv,) zeros: with them in place of the free joint acceleration,
-            :func:`~c3bf_gym.safety._dynamics.point_dynamics` gives ``J̇ q̇`` itself.
-        packed: (1, 3, 3 + nv) and ``jac`` (1, 3, nv): scratch of ``point_dynamics``.
-    """
-
-    pos: np.ndarray
-    chain: np.ndarray
-    zero: np.ndarray
-    packed: np.ndarray
-    jac: np.ndarray
-
-    @classmethod
-    def of(cls, pos: np.ndarray, chain: np.ndarray) -> ToolSite:
-        nv = chain.shape[0]
-        return cls(pos, np.ascontiguousarray(chain, dtype=np.float64).reshape(1, nv), np.zeros(nv),
-                   np.zeros((1, 3, 3 + nv)), np.zeros((1, 3, nv)))
 
 
 # ----------------------------------------------------------------------------- 3×3 linear algebra
@@ -324,7 +300,7 @@ class BoundImpedance(NamedTuple):
     Attributes:
         arm: the filter's :class:`~c3bf_gym.safety._dynamics.ArmArrays` (views of the
             ``MjData`` and the arm's ``Minv``, ``qacc_free``).
-        site: :class:`ToolSite`.
+        site: the tool site (:class:`~c3bf_gym.safety._dynamics.ToolSite`; the law's own scratch).
         gains: :class:`ImpedanceGains`.
         target: :class:`Target`, read at every call.
         work: :class:`ImpedanceWork`.
@@ -346,7 +322,7 @@ def impedance_substep(stage, law, tau):
     ``Minv = (M + h D)⁻¹`` and ``qacc_free`` are refreshed first
     (:func:`~c3bf_gym.safety._dynamics.step_inverse`), otherwise they are read as they are. The
     tool site's Jacobian ``J``, velocity ``J q̇`` and ``J̇ q̇`` come from
-    :func:`~c3bf_gym.safety._dynamics.point_dynamics` (MuJoCo's ``cdof`` and ``cdof_dot``: the
+    :func:`~c3bf_gym.safety._dynamics.tool_site_dynamics` (MuJoCo's ``cdof`` and ``cdof_dot``: the
     values of ``mj_jacSite`` and ``mj_jacDot``, to rounding). The torque is the total joint torque
     (bias forces included), the law's ``M⁻¹`` the integrator's ``(M + h D)⁻¹``.
     """
@@ -354,11 +330,8 @@ def impedance_substep(stage, law, tau):
     if stage >= 2:
         step_inverse(SparseMass(arm.M, arm.M_rowadr, arm.M_rownnz, arm.M_colind), arm.damping, arm.qfrc_passive,
                      arm.qfrc_bias, arm.factor, arm.Minv, arm.qacc_free)
+    tool_site_dynamics(site, ArmMotion(arm.cdof, arm.cdof_dot, arm.com, arm.qvel, arm.Minv, site.zero))
     packed = site.packed
-    for i in range(3):
-        packed[0, i, 0] = site.pos[i]
-    point_dynamics(site.chain, ArmMotion(arm.cdof, arm.cdof_dot, arm.com, arm.qvel, arm.Minv, site.zero), packed,
-                   site.jac)
     state = TaskState(arm.qpos, arm.qvel, packed[0, :, 0], packed[0, :, 1], site.jac[0], packed[0, :, 2], arm.Minv,
                       arm.qfrc_bias)
     impedance_law(law.gains, state, law.target, law.work, tau)

@@ -32,11 +32,11 @@ from c3bf_gym.controllers._kernels import (
     ImpedanceWork,
     Target,
     TaskState,
-    ToolSite,
     critical_damping,
     impedance_law,
     impedance_substep,
 )
+from c3bf_gym.safety._dynamics import ToolSite
 
 if TYPE_CHECKING:
     from c3bf_gym.envs.reach import C3BFReachEnv

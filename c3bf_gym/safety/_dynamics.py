@@ -8,9 +8,10 @@ in plain loops, compiled once by numba with :data:`~c3bf_gym._compile_cache.STEP
 no reference counting).
 
 * :func:`step_inverse`: ``(M + h D)⁻¹`` and ``qacc_free`` (:class:`~c3bf_gym.safety.dynamics.ArmModel`).
-* :func:`point_dynamics` / :func:`capsule_ends`: position, velocity, ``c``, ``G`` and Jacobian of
-  points on the arm, from ``cdof`` and ``cdof_dot`` (the formulas of :mod:`c3bf_gym.safety.dynamics`),
-  the latter into :class:`ArmArrays`.
+* :func:`point_dynamics` / :func:`capsule_ends` / :func:`tool_site_dynamics`: position, velocity,
+  ``c``, ``G`` and Jacobian of points on the arm, from ``cdof`` and ``cdof_dot`` (the formulas of
+  :mod:`c3bf_gym.safety.dynamics`): any points, the capsule ends (into :class:`ArmArrays`), the
+  tool site (into a :class:`ToolSite`).
 * :func:`closest_relative`: closest points on the capsule axes, relative to moving obstacles,
   with their sliding terms (:func:`_closest_pair`: one pair, its terms from :func:`closest_terms`);
   :func:`surface_gap`: an obstacle's surface distance to the capsules.
@@ -54,6 +55,9 @@ class ArmArrays(NamedTuple):
         end_jac: (2S, 3, nv) scratch for the capsule ends' Jacobians.
         Minv, qacc_free: (nv, nv), (nv,) ``(M + h D)⁻¹`` and the joint acceleration at zero torque.
         ends, ends_ab, a_dot_ab: the capsule ends' packed dynamics (:func:`capsule_ends`).
+        site: the tool site (:class:`ToolSite`; position zeros and no dofs for an arm without
+            one), whose dynamics the filter's rows for ``points="ee"`` compute
+            (:func:`tool_site_dynamics`).
     """
 
     M: np.ndarray
@@ -85,6 +89,7 @@ class ArmArrays(NamedTuple):
     ends: np.ndarray
     ends_ab: np.ndarray
     a_dot_ab: np.ndarray
+    site: ToolSite
 
 
 class SparseMass(NamedTuple):
@@ -110,6 +115,31 @@ class ArmMotion(NamedTuple):
     qvel: np.ndarray
     Minv: np.ndarray
     qacc_free: np.ndarray
+
+
+class ToolSite(NamedTuple):
+    """The tool site as :func:`tool_site_dynamics` reads and writes it.
+
+    Attributes:
+        pos: (3,) the site's position, a view of ``data.site_xpos`` [m].
+        chain: (1, nv) 1.0 for the dofs that move the site's body, else 0.0.
+        zero: (nv,) zeros: with them in place of the free joint acceleration (:class:`ArmMotion`),
+            :func:`tool_site_dynamics` gives ``J̇ q̇`` itself as ``c`` (the impedance controller's use).
+        packed: (1, 3, 3 + nv) the site's ``[pos | vel | c | G]`` and ``jac`` (1, 3, nv) its
+            Jacobian, written by :func:`tool_site_dynamics`.
+    """
+
+    pos: np.ndarray
+    chain: np.ndarray
+    zero: np.ndarray
+    packed: np.ndarray
+    jac: np.ndarray
+
+    @classmethod
+    def of(cls, pos: np.ndarray, chain: np.ndarray) -> ToolSite:
+        nv = chain.shape[0]
+        return cls(pos, np.ascontiguousarray(chain, dtype=np.float64).reshape(1, nv), np.zeros(nv),
+                   np.zeros((1, 3, 3 + nv)), np.zeros((1, 3, nv)))
 
 
 class CapsuleAxes(NamedTuple):
@@ -243,6 +273,18 @@ def point_dynamics(chain, motion, packed, jac):
     for p in range(packed.shape[0]):
         x = (packed[p, 0, 0], packed[p, 1, 0], packed[p, 2, 0])
         _one_point(p, x, chain[p], motion, packed, jac)
+
+
+@njit(**_opts)
+def tool_site_dynamics(site, motion):
+    """The tool site's position, velocity, ``c`` and ``G`` (``site.packed[0]``, ``[pos | vel | c |
+    G]``) and Jacobian (``site.jac[0]``), the site being ``site`` (:class:`ToolSite`) and the arm
+    moving as ``motion`` says (:class:`ArmMotion`: with ``qacc_free``, ``c`` is the site's
+    acceleration at zero torque; with ``site.zero``, ``J̇ q̇``)."""
+    packed = site.packed
+    for i in range(3):
+        packed[0, i, 0] = site.pos[i]
+    point_dynamics(site.chain, motion, packed, site.jac)
 
 
 @njit(**_opts)

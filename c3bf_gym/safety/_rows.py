@@ -1,5 +1,5 @@
 """Compiled (numba) kernels of the safety rows ``A τ ≥ b``: the barriers' math at one point and
-the whole-arm filter's rows in one call. Imports the dynamics kernels (:mod:`c3bf_gym.safety._dynamics`)
+the filter's rows in one call. Imports the dynamics kernels (:mod:`c3bf_gym.safety._dynamics`)
 and nothing of the QP, so computing ``h`` or a row loads no solver.
 
 The filter runs at every physics step (500 Hz); at the arm's size (6 joints, 7 capsules: tens of
@@ -10,16 +10,23 @@ no reference counting).
 
 Each piece of math lives once, in an inner ``@njit`` function that works on one point or one row;
 the classes of :mod:`c3bf_gym.safety.barriers` call it through small vectorised kernels, and the
-fused :func:`hook_rows_whole_arm` calls the same inner functions directly:
+fused :func:`filter_rows` calls the same inner functions directly:
 
 * :func:`c3bf_terms`, :func:`hocbf_terms`, :func:`rows_from_terms`, :func:`joint_limit_rows`: the
   barriers of :mod:`c3bf_gym.safety.barriers`; :func:`floor_rows`, :func:`unmodelled_margin`:
   the controller's floor rows and the margin for forces it cannot predict.
-* :func:`hook_rows_whole_arm`: every row of the whole-arm filter in one call, reading
-  :class:`~c3bf_gym.safety._dynamics.ArmArrays`, :class:`ObstacleArrays` and :class:`RowParams`.
+* :func:`filter_rows`: every row of the filter with the built-in barriers in one call, the
+  protected points the closest points of the link capsules or the tool site
+  (:attr:`RowParams.points`), reading :class:`~c3bf_gym.safety._dynamics.ArmArrays`,
+  :class:`ObstacleArrays` and :class:`RowParams`.
 
 The floating-point operations follow the numpy code they replace (same formulas, same order where
 it matters), so results agree with it to rounding (~1e-15 relative).
+
+The pieces of :func:`filter_rows` that take the arm's or the obstacles' named structures (or the
+rows' buffers) are inlined into it by numba (``inline="always"``): called instead, each call
+passes every array of those structures, and LLVM does not inline them, which made the whole-arm
+rows 5× slower.
 """
 
 from __future__ import annotations
@@ -31,7 +38,8 @@ import numpy as np
 from numba import njit
 
 from c3bf_gym._compile_cache import STEP_KERNEL_OPTIONS  # (before any @njit(cache=True): the cache keys)
-from c3bf_gym.safety._dynamics import SparseMass, capsule_ends, closest_terms, step_inverse, surface_gap
+from c3bf_gym.safety._dynamics import (ArmMotion, SparseMass, capsule_ends, closest_terms, step_inverse, surface_gap,
+                                       tool_site_dynamics)
 
 #: barrier kinds of the fused kernel
 C3BF_KIND = 0
@@ -121,28 +129,32 @@ def _row(grad_v, G, c, drift, h, gamma, A_row):
 
 
 @njit(**_opts)
-def _sliding_rhs(grad_v, grad_p, slide, c, drift, h, gamma):
-    """:func:`_row_rhs` for a closest point sliding by ``slide`` along its link: less the sliding
-    term ``⟨grad_p, slide⟩`` (3-tuples)."""
-    bk = _row_rhs(grad_v, c, drift, h, gamma)
-    return bk - (grad_p[0] * slide[0] + grad_p[1] * slide[1] + grad_p[2] * slide[2])
+def _dot3(x, y):
+    """``⟨x, y⟩`` of two 3-tuples."""
+    return x[0] * y[0] + x[1] * y[1] + x[2] * y[2]
 
 
-@njit(**_opts)
-def _pair_rows(ends_a, ends_ab, s, tc, grads, A, m, both):
-    """The coefficients ``A[m] = grad_vᵀ G`` (and, with ``both``, ``A[m + 1] = grad_wᵀ G``;
-    ``grads`` is ``(grad_v, grad_w)``, 3-tuples) of the rows at the point ``tc`` of capsule
-    ``s``'s axis, ``G = G_a + tc (G_b − G_a)`` taken column by column as the rows need it (the
-    same arithmetic as :func:`~c3bf_gym.safety._dynamics._closest_pair`'s ``G`` and :func:`_row`,
-    without writing ``G`` out and reading it back)."""
+@njit(inline="always", **_opts)
+def _coefficients(g, grads, A, m, j, both):
+    """Column ``j`` of the rows at one point, ``g`` (3-tuple) being that column of the point's
+    ``G``: ``A[m, j] = ⟨grad_v, g⟩`` and, with ``both``, ``A[m + 1, j] = ⟨grad_w, g⟩`` (``grads``
+    is ``(grad_v, grad_w)``, 3-tuples): :func:`_row`'s arithmetic, one column at a time."""
     grad_v, grad_w = grads
+    A[m, j] = _dot3(grad_v, g)
+    if both:
+        A[m + 1, j] = _dot3(grad_w, g)
+
+
+@njit(inline="always", **_opts)
+def _pair_rows(ends_a, ends_ab, s, tc, grads, A, m, both):
+    """:func:`_coefficients` of the rows at the point ``tc`` of capsule ``s``'s axis, its
+    ``G = G_a + tc (G_b − G_a)`` taken column by column as the rows need it (the same arithmetic as
+    :func:`~c3bf_gym.safety._dynamics._closest_pair`'s ``G``, without writing ``G`` out and reading
+    it back)."""
     for j in range(A.shape[1]):
-        g0 = tc * ends_ab[s, 0, 3 + j] + ends_a[s, 0, 3 + j]
-        g1 = tc * ends_ab[s, 1, 3 + j] + ends_a[s, 1, 3 + j]
-        g2 = tc * ends_ab[s, 2, 3 + j] + ends_a[s, 2, 3 + j]
-        A[m, j] = grad_v[0] * g0 + grad_v[1] * g1 + grad_v[2] * g2
-        if both:
-            A[m + 1, j] = grad_w[0] * g0 + grad_w[1] * g1 + grad_w[2] * g2
+        g = (tc * ends_ab[s, 0, 3 + j] + ends_a[s, 0, 3 + j], tc * ends_ab[s, 1, 3 + j] + ends_a[s, 1, 3 + j],
+             tc * ends_ab[s, 2, 3 + j] + ends_a[s, 2, 3 + j])
+        _coefficients(g, grads, A, m, j, both)
 
 
 @njit(**_opts)
@@ -244,7 +256,12 @@ def unmodelled_margin(A, b, bound):
 
 
 
-# ----------------------------------------------------------------------------- the whole arm's rows
+# ----------------------------------------------------------------------------- the filter's rows
+
+#: protected points of the fused kernel (:attr:`RowParams.points`): the closest point of every
+#: link capsule, or a sphere at the tool site
+WHOLE_ARM_POINTS = 0
+EE_POINTS = 1
 
 
 class ObstacleArrays(NamedTuple):
@@ -268,6 +285,8 @@ class RowParams(NamedTuple):
         kind: :data:`C3BF_KIND` or :data:`HOCBF_KIND`, the barrier.
         gamma, p1, p2: the barrier's gains (its ``fused_spec``): C3BF γ, ε, δ; HOCBF γ₂, γ₁, unused.
         guard_gamma1, guard_gamma2: a distance-HOCBF guard's gains (0: no guard).
+        points: :data:`WHOLE_ARM_POINTS` or :data:`EE_POINTS`, the protected points
+            (:attr:`~c3bf_gym.safety.FilterConfig.points`); ``ee_radius`` [m] the tool sphere's radius.
         sensing_radius, margin: [m].
         floor_gamma: the floor rows' gain [1/s]; ``floor_ends`` (F,) the capsule ends that get
             one, ``floor_min`` (F,) their lowest allowed heights [m].
@@ -283,6 +302,8 @@ class RowParams(NamedTuple):
     p2: float
     guard_gamma1: float
     guard_gamma2: float
+    points: int
+    ee_radius: float
     sensing_radius: float
     margin: float
     floor_gamma: float
@@ -298,19 +319,105 @@ class RowParams(NamedTuple):
     unmodelled_force: np.ndarray
 
 
+@njit(inline="always", **_opts)
+def _point_rows(point, r, params, b, row_h, m):
+    """The right-hand sides of the rows at one protected point: the barrier's (``params.kind``:
+    :func:`_c3bf_point` or :func:`_hocbf_point`, then :func:`_row_rhs`) into ``b[m]``, its ``h``
+    into ``row_h[m]``, and with a guard (``params.guard_gamma2 > 0``) the guard's into ``b[m + 1]``.
+    ``point`` is ``(p, v, c)``, 3-tuples: the point's position, velocity and acceleration at zero
+    torque relative to the obstacle; ``r`` the combined radius [m].
+
+    Returns ``(h, inside, (grad_v, grad_w), (grad_p, grad_q))``: the barrier's value and overlap
+    flag, and the barrier's and the guard's gradients (the barrier's twice without a guard), which
+    the caller turns into the rows' coefficients and, for a sliding point, the sliding terms."""
+    p, v, c = point
+    if params.kind == C3BF_KIND:
+        h, drift, inside, grad_v, grad_p = _c3bf_point(p, v, r, params.gamma, params.p1, params.p2)
+    else:
+        h, drift, inside, grad_v, grad_p = _hocbf_point(p, v, r, params.p1)
+    b[m] = _row_rhs(grad_v, c, drift, h, params.gamma)
+    row_h[m] = h
+    grad_w, grad_q = grad_v, grad_p
+    if params.guard_gamma2 > 0.0:
+        h_guard, drift, _, grad_w, grad_q = _hocbf_point(p, v, r, params.guard_gamma1)
+        b[m + 1] = _row_rhs(grad_w, c, drift, h_guard, params.guard_gamma2)
+    return h, inside, (grad_v, grad_w), (grad_p, grad_q)
+
+
+@njit(inline="always", **_opts)
+def _capsule_rows(arm, obstacles, k, params, A, b, row_h, m):
+    """The rows of obstacle ``k`` at the closest point of every capsule axis
+    (:func:`~c3bf_gym.safety._dynamics.closest_terms`), from row ``m`` on: :func:`_point_rows`,
+    less the sliding terms ``⟨grad_p, ṫ (b − a)⟩`` (the closest points slide along the links), and
+    :func:`_pair_rows`. Returns the smallest ``h`` and whether a point was inside."""
+    s_count = arm.ends_ab.shape[0]
+    ends_a, ends_ab = arm.ends[:s_count], arm.ends_ab
+    o, vo, ao = obstacles.position[k], obstacles.velocity[k], obstacles.acceleration[k]
+    guard = params.guard_gamma2 > 0.0
+    min_h = np.inf
+    inside_any = False
+    for s in range(s_count):
+        _, tc, p, v, c, slide = closest_terms(ends_a, ends_ab, arm.a_dot_ab, arm.length2, s, o, vo, ao)
+        r = (obstacles.radius[k] + arm.capsule_radius[s]) + params.margin
+        h, inside, grads, grads_p = _point_rows((p, v, c), r, params, b, row_h, m)
+        b[m] -= _dot3(grads_p[0], slide)
+        if guard:
+            b[m + 1] -= _dot3(grads_p[1], slide)
+        _pair_rows(ends_a, ends_ab, s, tc, grads, A, m, guard)
+        min_h = min(min_h, h)
+        inside_any = inside_any or inside
+        m += 2 if guard else 1
+    return min_h, inside_any
+
+
+@njit(inline="always", **_opts)
+def _site_rows(site, obstacles, k, params, A, b, row_h, m):
+    """The rows of obstacle ``k`` at the tool site (a sphere of ``params.ee_radius``), row ``m``
+    (and ``m + 1``, the guard's): :func:`_point_rows` and :func:`_coefficients` on the site's
+    dynamics ``site.packed[0]`` (:func:`~c3bf_gym.safety._dynamics.tool_site_dynamics`, current).
+    The site is a material point: no sliding terms. Returns its ``h`` and whether it was inside."""
+    x = site.packed[0]
+    o, vo, ao = obstacles.position[k], obstacles.velocity[k], obstacles.acceleration[k]
+    point = ((x[0, 0] - o[0], x[1, 0] - o[1], x[2, 0] - o[2]), (x[0, 1] - vo[0], x[1, 1] - vo[1], x[2, 1] - vo[2]),
+             (x[0, 2] - ao[0], x[1, 2] - ao[1], x[2, 2] - ao[2]))
+    r = (obstacles.radius[k] + params.ee_radius) + params.margin
+    h, inside, grads, _ = _point_rows(point, r, params, b, row_h, m)
+    for j in range(A.shape[1]):
+        _coefficients((x[0, 3 + j], x[1, 3 + j], x[2, 3 + j]), grads, A, m, j, params.guard_gamma2 > 0.0)
+    return h, inside
+
+
+@njit(inline="always", **_opts)
+def _sensed(arm, obstacles, k, sensing_radius):
+    """Whether obstacle ``k`` is active and its surface within ``sensing_radius`` of the arm: its
+    kept ``distances``, or, with none kept (shape (K, 0)), its distance to the capsules
+    (:func:`~c3bf_gym.safety._dynamics.surface_gap`), whatever the protected points."""
+    if not obstacles.active[k]:
+        return False
+    distances = obstacles.distances
+    dmin = np.inf
+    for g in range(distances.shape[1]):
+        dmin = min(dmin, distances[k, g])
+    if distances.shape[1] == 0:
+        s_count = arm.ends_ab.shape[0]
+        dmin = surface_gap(arm.ends[:s_count], arm.ends_ab, arm.a_dot_ab, arm.length2, arm.capsule_radius,
+                           obstacles.position[k], obstacles.radius[k])
+    return dmin <= sensing_radius
+
+
 @njit(**_opts)
-def hook_rows_whole_arm(stage, arm, obstacles, params, A, b, row_h):
-    """All rows of the whole-arm filter (:meth:`~c3bf_gym.safety.SafetyController.rows`) in one call.
+def filter_rows(stage, arm, obstacles, params, A, b, row_h):
+    """All rows of the filter (:meth:`~c3bf_gym.safety.SafetyController.rows`) in one call, for the
+    built-in barriers and either kind of protected points.
 
     1. ``stage`` 2: ``Minv``, ``qacc_free`` (:func:`~c3bf_gym.safety._dynamics.step_inverse`),
        then (``stage`` ≥ 1) the capsule ends (:func:`~c3bf_gym.safety._dynamics.capsule_ends`),
-       into ``arm`` (:class:`~c3bf_gym.safety._dynamics.ArmArrays`).
-    2. For every sensed obstacle (:class:`ObstacleArrays`: active and ``distances[k].min() <=
-       sensing_radius``, or with ``distances`` of shape (K, 0) its surface distance to the
-       capsules), one row per capsule: closest point (:func:`~c3bf_gym.safety._dynamics.closest_terms`), barrier
-       ``params.kind`` (:func:`_c3bf_point` or :func:`_hocbf_point`), row (:func:`_sliding_rhs`,
-       with the sliding term ``−⟨grad_p, ṫ (b − a)⟩``, and :func:`_pair_rows`); with a guard
-       (``params.guard_gamma2 > 0``), the guard's row for the same point right after it.
+       into ``arm`` (:class:`~c3bf_gym.safety._dynamics.ArmArrays`); with ``params.points``
+       :data:`EE_POINTS`, at every call, the tool site's dynamics
+       (:func:`~c3bf_gym.safety._dynamics.tool_site_dynamics`, into ``arm.site``).
+    2. For every sensed obstacle (:func:`_sensed`), the rows at the protected points
+       (:func:`_capsule_rows`: one per capsule; :func:`_site_rows`: one at the tool site), each
+       followed, with a guard (``params.guard_gamma2 > 0``), by the guard's row for that point.
     3. The floor rows of the capsule ends ``params.floor_ends`` (:func:`floor_rows`).
     4. With ``params.joint_rows``, the ``4 n`` joint-limit rows (:func:`joint_limit_rows`).
     The obstacle and floor rows are tightened for the forces the filter cannot predict
@@ -323,52 +430,31 @@ def hook_rows_whole_arm(stage, arm, obstacles, params, A, b, row_h):
     guard's and the other rows' entries are left as they are). Returns ``(rows, min h of the
     barrier's rows (not the guard's), any inside, sensed count)``.
     """
-    s_count = arm.ends_ab.shape[0]
     n = params.dofs.shape[0]
     if stage >= 2:
         step_inverse(SparseMass(arm.M, arm.M_rowadr, arm.M_rownnz, arm.M_colind), arm.damping, arm.qfrc_passive,
                      arm.qfrc_bias, arm.factor, arm.Minv, arm.qacc_free)
     if stage >= 1:
         capsule_ends(arm)
-    ends_a = arm.ends[:s_count]
-    ends_ab, a_dot_ab, length2, capsule_radius = arm.ends_ab, arm.a_dot_ab, arm.length2, arm.capsule_radius
-    gamma = params.gamma
-    guard = params.guard_gamma2 > 0.0
-    distances = obstacles.distances
+    ee = params.points == EE_POINTS
+    if ee:
+        tool_site_dynamics(arm.site, ArmMotion(arm.cdof, arm.cdof_dot, arm.com, arm.qvel, arm.Minv, arm.qacc_free))
+    per_obstacle = (1 if ee else arm.ends_ab.shape[0]) * (2 if params.guard_gamma2 > 0.0 else 1)
     m = 0
     n_sensed = 0
     min_h = np.inf
     inside_any = False
     for k in range(obstacles.active.shape[0]):
-        if not obstacles.active[k]:
-            continue
-        dmin = np.inf
-        for g in range(distances.shape[1]):
-            dmin = min(dmin, distances[k, g])
-        if distances.shape[1] == 0:  # no distances kept by the obstacles' owner: to the capsules
-            dmin = surface_gap(ends_a, ends_ab, a_dot_ab, length2, capsule_radius, obstacles.position[k],
-                                obstacles.radius[k])
-        if not dmin <= params.sensing_radius:
+        if not _sensed(arm, obstacles, k, params.sensing_radius):
             continue
         n_sensed += 1
-        o, vo, ao = obstacles.position[k], obstacles.velocity[k], obstacles.acceleration[k]
-        for s in range(s_count):
-            _, tc, p, v, c, slide = closest_terms(ends_a, ends_ab, a_dot_ab, length2, s, o, vo, ao)
-            r = (obstacles.radius[k] + capsule_radius[s]) + params.margin
-            if params.kind == C3BF_KIND:
-                h, drift, inside, grad_v, grad_p = _c3bf_point(p, v, r, gamma, params.p1, params.p2)
-            else:
-                h, drift, inside, grad_v, grad_p = _hocbf_point(p, v, r, params.p1)
-            b[m] = _sliding_rhs(grad_v, grad_p, slide, c, drift, h, gamma)
-            row_h[m] = h
-            min_h = min(min_h, h)
-            inside_any = inside_any or inside
-            grad_w = grad_v
-            if guard:
-                h, drift, _, grad_w, grad_q = _hocbf_point(p, v, r, params.guard_gamma1)
-                b[m + 1] = _sliding_rhs(grad_w, grad_q, slide, c, drift, h, params.guard_gamma2)
-            _pair_rows(ends_a, ends_ab, s, tc, (grad_v, grad_w), A, m, guard)
-            m += 2 if guard else 1
+        if ee:
+            h, inside = _site_rows(arm.site, obstacles, k, params, A, b, row_h, m)
+        else:
+            h, inside = _capsule_rows(arm, obstacles, k, params, A, b, row_h, m)
+        min_h = min(min_h, h)
+        inside_any = inside_any or inside
+        m += per_obstacle
     n_floor = params.floor_ends.shape[0]
     floor_rows(arm.ends, params.floor_ends, params.floor_min, params.floor_gamma, A[m:m + n_floor], b[m:m + n_floor])
     m += n_floor

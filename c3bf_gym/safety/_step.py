@@ -8,7 +8,7 @@ in plain loops, compiled once by numba with :data:`~c3bf_gym._compile_cache.STEP
 (cached on disk, keyed on every kernel source by :mod:`c3bf_gym._compile_cache`; no allocation,
 no reference counting).
 
-* :func:`filter_substep`: the rows (:func:`~c3bf_gym.safety._rows.hook_rows_whole_arm`), the QP
+* :func:`filter_substep`: the rows (:func:`~c3bf_gym.safety._rows.filter_rows`), the QP
   (:func:`~c3bf_gym.safety._qp.solve_rows`, priorities by :func:`low_priority_span`),
   :func:`hook_post` and the report's running values (:func:`record` into a :class:`Tally`);
   :func:`filter_substep_at`: the same with its buffers by address, for calls from Python. An
@@ -30,10 +30,10 @@ from numba import njit
 from c3bf_gym._compile_cache import KERNEL_OPTIONS, STEP_KERNEL_OPTIONS  # (before any @njit(cache=True): the cache keys)
 from c3bf_gym._capi import unpack
 
-# filter_substep compiles _rows.hook_rows_whole_arm and _qp.solve_rows into itself: _compile_cache keys
+# filter_substep compiles _rows.filter_rows and _qp.solve_rows into itself: _compile_cache keys
 # the on-disk cache of every kernel file's functions on all of them.
 from c3bf_gym.safety._qp import ACTIVE_TOL, RELAXED, SOLVED, solve_rows
-from c3bf_gym.safety._rows import hook_rows_whole_arm
+from c3bf_gym.safety._rows import filter_rows
 
 _opts = STEP_KERNEL_OPTIONS
 
@@ -184,7 +184,7 @@ class CallSummary(NamedTuple):
         m: the call's rows.
         min_h, inside, n_sensed: the smallest ``h`` of the barrier's rows, whether a point was
             inside its margin, and the obstacles sensed
-            (:func:`~c3bf_gym.safety._rows.hook_rows_whole_arm`).
+            (:func:`~c3bf_gym.safety._rows.filter_rows`).
         iterations, n_active, slack: DAQP's iterations, the active rows and the slack
             (:func:`~c3bf_gym.safety._qp.solve_rows`).
         residual, correction: the smallest row residual and the filter's change of the torque
@@ -294,10 +294,10 @@ class StepBuffers(NamedTuple):
 
 @njit(**_opts)
 def filter_substep(stage, tau_nom, tau, buffers):
-    """One whole-arm filter step in one call, in ``buffers`` (:class:`StepBuffers`; an
+    """One filter step in one call, in ``buffers`` (:class:`StepBuffers`; an
     environment's compiled policy step, and :meth:`~c3bf_gym.safety.SafetyController.__call__`
     through :func:`filter_substep_at`): the rows
-    (:func:`~c3bf_gym.safety._rows.hook_rows_whole_arm`, whose arguments ``stage`` … ``b`` are),
+    (:func:`~c3bf_gym.safety._rows.filter_rows`, whose arguments ``stage`` … ``b`` are),
     the QP (:func:`c3bf_gym.safety._qp.solve_rows` on ``qp``, priorities by
     :func:`low_priority_span`) in the scaled torque ``τ / scale``, :func:`hook_post`, which writes
     the torque into ``tau``, and :func:`record` of the outcome into ``tally``.
@@ -308,7 +308,7 @@ def filter_substep(stage, tau_nom, tau, buffers):
     callers (an environment's loop, ``on_infeasible="raise"``) stop on the others.
     """
     arm, obstacles, params, A, b, scale, limit, qp, tally, intervention_tol = buffers
-    m, min_h, inside, n_sensed = hook_rows_whole_arm(stage, arm, obstacles, params, A, b, tally.row_h)
+    m, min_h, inside, n_sensed = filter_rows(stage, arm, obstacles, params, A, b, tally.row_h)
     n_floor = params.floor_ends.shape[0]
     n_fixed = n_floor + (4 * params.dofs.shape[0] if params.joint_rows else 0)
     guarded = params.guard_gamma2 > 0.0

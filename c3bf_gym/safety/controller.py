@@ -28,11 +28,14 @@ configurations the project compares. At every physics step (between ``mj_step1``
    reported infeasible, with the largest violation of each kind of row
    (:attr:`StepSafety.violation`); ``on_infeasible="raise"`` raises instead.
 
-Steps 1–4 for ``whole_arm`` with the built-in barriers (:class:`~c3bf_gym.safety.barriers.C3BF`,
-:class:`~c3bf_gym.safety.barriers.DistanceHOCBF`, and a distance-HOCBF guard) are one compiled kernel,
-:func:`c3bf_gym.safety._rows.hook_rows_whole_arm`, built from the same per-point functions the
-barrier classes and :class:`~c3bf_gym.safety.dynamics.ArmModel` call; other barriers (or ``points="ee"``)
-go through ``Barrier.terms`` and ``rows_from_terms`` and give the same rows. On the fused path the
+Steps 1–4 with the built-in barriers (:class:`~c3bf_gym.safety.barriers.C3BF`,
+:class:`~c3bf_gym.safety.barriers.DistanceHOCBF`, and a distance-HOCBF guard or none), for either
+kind of protected points, are one compiled kernel, :func:`c3bf_gym.safety._rows.filter_rows`, built
+from the same per-point functions the barrier classes and :class:`~c3bf_gym.safety.dynamics.ArmModel`
+call. A barrier or guard the kernel does not know (a user's own
+:class:`~c3bf_gym.safety.barriers.Barrier` subclass, a guard other than a distance HOCBF) goes
+through ``Barrier.terms`` and ``rows_from_terms`` from Python: that per-class path is the
+extension point, and gives the built-in barriers' rows to rounding. On the fused path the
 rows, the QP and the report's bookkeeping are one compiled call
 (:func:`c3bf_gym.safety._step.filter_substep`), which an environment may also call from its own
 compiled policy step (:meth:`SafetyController.compiled_call`, the seam of :mod:`c3bf_gym.safety.substep`;
@@ -228,10 +231,10 @@ class SafetyController:
             region, when :meth:`filter` first sees an obstacle, if the sensing radius is finite).
 
     The torque passed in and returned is the total joint torque [N m] (n,), in dof order, with
-    the limits ``robot.torque_limit``. The fused whole-arm kernel computes the C3BF's, the
-    distance HOCBF's and a distance-HOCBF guard's rows itself; any other barrier or guard, and
-    ``points="ee"``, take the per-class path (``Barrier.terms``). ``min_h`` in the report is the
-    barrier's, not the guard's.
+    the limits ``robot.torque_limit``. The fused kernel computes the C3BF's, the distance
+    HOCBF's and a distance-HOCBF guard's rows itself, at either kind of protected points; any
+    other barrier or guard takes the per-class path (``Barrier.terms``), the extension point for
+    barriers the kernel does not know. ``min_h`` in the report is the barrier's, not the guard's.
 
     Warns:
         :class:`~c3bf_gym.safety.EnvelopeWarning`: a timestep too coarse for the filter's gains
@@ -322,14 +325,16 @@ class SafetyController:
         self.solve_times: list[float] | None = None
 
     def _kernel_settings(self, barrier, guard, joint_limits: JointLimits | None) -> tuple[bool, _rows.RowParams, _rows.ObstacleArrays]:
-        """Whether the fused whole-arm kernel computes the rows, and its settings and obstacles
-        (:func:`c3bf_gym.safety._rows.hook_rows_whole_arm`, sharing the barrier classes' per-point
-        code). It does for the built-in barriers with ``points="whole_arm"`` and a distance-HOCBF
-        guard or none; any other barrier, guard or ``points="ee"`` goes through
-        ``Barrier.terms`` / ``rows_from_terms``."""
+        """Whether the fused kernel computes the rows, and its settings and obstacles
+        (:func:`c3bf_gym.safety._rows.filter_rows`, sharing the barrier classes' per-point code).
+        It does for the built-in barriers (their ``fused_spec``) with a distance-HOCBF guard or
+        none, whatever the protected points (``"whole_arm"`` or ``"ee"``). Any other barrier or
+        guard (a user's own :class:`~c3bf_gym.safety.barriers.Barrier`) goes through
+        ``Barrier.terms`` / ``rows_from_terms`` (:meth:`rows`), the extension point for rows the
+        kernel does not know."""
         n, obstacles = self.robot.n, self.obstacles
         spec = getattr(barrier, "fused_spec", None)
-        spec = spec() if spec is not None and self.points == "whole_arm" else None
+        spec = spec() if spec is not None else None
         guard_gains = (0.0, 0.0)  # the kernel's guard gains (γ₁, γ₂) of a distance HOCBF (0: no guard)
         if guard is not None:
             guard_spec = guard.fused_spec() if hasattr(guard, "fused_spec") else None
@@ -343,10 +348,15 @@ class SafetyController:
                   joint_limits.qd_max]
         else:
             jl = [np.ones(3), np.zeros(n), np.ones(n), np.ones(n)]
+        joint_gains, q_lo, q_hi, qd_max = (np.ascontiguousarray(x, dtype=np.float64) for x in jl)
+        gamma, p1, p2 = map(float, params)
         row_params = _rows.RowParams(
-            int(kind), *map(float, params), *guard_gains, float(self.sensing_radius), float(self.margin),
-            float(self.floor_gamma), self._floor_idx, self._floor_min, joint_limits is not None,
-            *(np.ascontiguousarray(x, dtype=np.float64) for x in jl), self._dofs, self._qpos_ids, self._unmodelled,
+            kind=int(kind), gamma=gamma, p1=p1, p2=p2, guard_gamma1=guard_gains[0], guard_gamma2=guard_gains[1],
+            points=_rows.EE_POINTS if self.points == "ee" else _rows.WHOLE_ARM_POINTS,
+            ee_radius=float(self.ee_radius), sensing_radius=float(self.sensing_radius), margin=float(self.margin),
+            floor_gamma=float(self.floor_gamma), floor_ends=self._floor_idx, floor_min=self._floor_min,
+            joint_rows=joint_limits is not None, joint_gains=joint_gains, q_lo=q_lo, q_hi=q_hi, qd_max=qd_max,
+            dofs=self._dofs, qpos_ids=self._qpos_ids, unmodelled_force=self._unmodelled,
         )
         obstacle_arrays = _rows.ObstacleArrays(obstacles.active, self._distances, obstacles.position,
                                                obstacles.velocity, obstacles.acceleration, obstacles.radius)
@@ -497,7 +507,7 @@ class SafetyController:
         if self._refresh:
             obstacles.refresh(data)
         if self._fused:
-            m, min_h, inside, n_sensed = _rows.hook_rows_whole_arm(
+            m, min_h, inside, n_sensed = _rows.filter_rows(
                 arm.claim(data, self._version()), arm.kernel_arrays(data), self._obstacle_arrays, self._params,
                 self._A, self._b, self._tally.row_h)
             return self._A[:m], self._b[:m], min_h, inside, n_sensed

@@ -174,9 +174,6 @@ class ArmModel:
         self._version: int | None = None
         self._ends_current = False
         self._views_of: mujoco.MjData | None = None
-        self._site_body = int(model.site_bodyid[self.site_id]) if self.site_id >= 0 else -1
-        self._site_jac = np.zeros((1, 3, self.nv))
-        self._site_jac_dot = np.zeros((3, self.nv))
 
     @staticmethod
     def _implicit_damping(model: mujoco.MjModel) -> np.ndarray:
@@ -228,6 +225,11 @@ class ArmModel:
                 data.subtree_com[self._root], data.geom_xpos, data.geom_xmat, data.xpos, data.xmat,
             )
             self._views_of = data
+            # the tool site as the kernels read it: a view of this data's position (zeros, moved by
+            # no dof, without a site)
+            pos = data.site_xpos[self.site_id] if self.site_id >= 0 else np.zeros(3)
+            chain = self.site_chain if self.site_chain is not None else np.zeros(self.nv)
+            self._tool_site = _dynamics.ToolSite.of(pos, chain)
         return self._views
 
     def kernel_arrays(self, data: mujoco.MjData) -> _dynamics.ArmArrays:
@@ -239,7 +241,7 @@ class ArmModel:
             v.qpos, v.qvel, self._capsule_ids, self.capsule_body, self._M_rowadr, self._M_rownnz, self._M_colind,
             self.implicit_damping,
             self.capsule_local, self._length2, self.capsule_radius, self.capsule_chain, self._factor, self._end_jac,
-            self.Minv, self.qacc_free, self._ends, self._ends_ab, self._a_dot_ab,
+            self.Minv, self.qacc_free, self._ends, self._ends_ab, self._a_dot_ab, self._tool_site,
         )
 
     def _ensure_ends(self) -> None:
@@ -265,7 +267,7 @@ class ArmModel:
         return self._unpack(self._ends[None])
 
     def claim(self, data: mujoco.MjData, version: int | None = None) -> int:
-        """For a fused kernel (:func:`c3bf_gym.safety._rows.hook_rows_whole_arm`) that refreshes the
+        """For a fused kernel (:func:`c3bf_gym.safety._rows.filter_rows`) that refreshes the
         dynamics itself, in this object's arrays: which parts are stale, 2 (``Minv``,
         ``qacc_free`` and the capsule ends), 1 (the ends) or 0 (none), with :meth:`update`'s
         caching on ``version``. Marks them current: the caller must compute them now."""
@@ -337,12 +339,19 @@ class ArmModel:
         return PointDynamics(p, v, None, G, c), slide_p
 
     def site_dynamics(self, data: mujoco.MjData) -> PointDynamics:
-        """:class:`PointDynamics` of the tool site (P = 1), from ``mj_jacSite`` and ``mj_jacDot``.
-        ``Minv`` and ``qacc_free`` must be current (:meth:`update`)."""
-        jac, jac_dot = self._site_jac[0], self._site_jac_dot
-        mujoco.mj_jacSite(self.model, data, jac, None, self.site_id)
-        pos = data.site_xpos[self.site_id]
-        mujoco.mj_jacDot(self.model, data, jac_dot, None, pos, self._site_body)
-        G = jac @ self.Minv
-        c = jac @ self.qacc_free + jac_dot @ data.qvel
-        return PointDynamics(pos[None].copy(), (jac @ data.qvel)[None], self._site_jac.copy(), G[None], c[None])
+        """:class:`PointDynamics` (copies) of the tool site (P = 1), Jacobian included, computed as
+        the filter's compiled rows compute it (:func:`~c3bf_gym.safety._dynamics.tool_site_dynamics`,
+        from ``cdof`` and ``cdof_dot``: ``mj_jacSite`` and ``mj_jacDot``'s values, to rounding).
+        ``Minv`` and ``qacc_free`` must be current (:meth:`update`).
+
+        Raises:
+            ValueError: the arm was built without a tool site (``site_id`` -1)."""
+        if self.site_id < 0:
+            raise ValueError("this arm has no tool site: build it with the site's id (RobotDescription.from_model's "
+                             "site=)")  # fmt: skip
+        v = self.views(data)
+        site = self._tool_site
+        _dynamics.tool_site_dynamics(site, _dynamics.ArmMotion(v.cdof, v.cdof_dot, v.com, v.qvel, self.Minv,
+                                                               self.qacc_free))
+        packed = site.packed.copy()
+        return PointDynamics(packed[:, :, 0], packed[:, :, 1], site.jac.copy(), packed[:, :, 3:], packed[:, :, 2])
