@@ -29,10 +29,11 @@ import numpy as np  # noqa: E402
 import c3bf_gym  # noqa: E402
 from c3bf_gym import CartesianImpedanceAction, SafetyFilter  # noqa: E402
 
-#: (label, SafetyFilter settings): the default filter, the C3BF alone, the distance HOCBF, and no
-#: filter (None: the environment's own step).
+#: (label, SafetyFilter settings): the default filter, the C3BF alone, the distance HOCBF, the
+#: default filter protecting the tool only, and no filter (None: the environment's own step).
 FILTERS = (("c3bf+hocbf", dict(barrier="c3bf")), ("c3bf", dict(barrier="c3bf", guard=None)),
-           ("hocbf", dict(barrier="hocbf")), ("none", None))  # fmt: skip
+           ("hocbf", dict(barrier="hocbf")), ("c3bf+hocbf ee", dict(barrier="c3bf", points="ee")),
+           ("none", None))  # fmt: skip
 
 
 def fingerprint(settings: dict | None, episodes: int, steps: int) -> tuple[str, str]:
@@ -91,13 +92,13 @@ def main() -> None:
     steps = int(sys.argv[2]) if len(sys.argv) > 2 else 60
     print(f"c3bf_gym from {os.path.dirname(c3bf_gym.__file__)}")
     total, total_steps = hashlib.sha256(), hashlib.sha256()
-    print(f"{'filter':<11} {'everything':<16} steps alone")
+    print(f"{'filter':<13} {'everything':<16} steps alone")
     for label, settings in FILTERS:
         value, steps_value = fingerprint(settings, episodes, steps)
         total.update(value.encode())
         total_steps.update(steps_value.encode())
-        print(f"{label:<11} {value} {steps_value}")
-    print(f"{'all':<11} {total.hexdigest()[:16]} {total_steps.hexdigest()[:16]}")
+        print(f"{label:<13} {value} {steps_value}")
+    print(f"{'all':<13} {total.hexdigest()[:16]} {total_steps.hexdigest()[:16]}")
     print(f"\n{'recipe stack':<30} everything")
     for env_id in ("C3BFReach-v0", "C3BFReachPanda-v0"):
         for safety_filter in ("c3bf+hocbf", None):

@@ -59,13 +59,16 @@ TRAINING_TABLES = (
     ("training_table_sac_50k.md", "sac_50k/sac_residual_10hz_dw10_aw3_set_*", "eval_200.json", "training_curves_sac_50k.png"),
     # the sets of the README's RL table: the Panda with its 2 N m/rad posture pull, no filter and the
     # default filter, each run's own evaluation on 200 episodes (code 51994f2)
-    ("training_table_sets_panda.md", "sets/panda_sac_residual_10hz_dw10_aw3_set_*", "final_eval.json",
+    ("training_table_sets_panda.md", "sets/panda_sac_residual_10hz_dw10_aw3_set_*_random_s*", "final_eval.json",
      "training_curves_sets_panda.png"),
     ("training_table_sets_ur5e.md", "sets/sac_residual_10hz_dw10_aw3_set_*", "final_eval.json",
      "training_curves_sets_ur5e.png"),
     # an attempt on the Panda: a dearer correction (--action-weight 10), 2 seeds
     ("training_table_sets_panda_aw10.md", "sets/panda_sac_residual_10hz_dw10_aw10_set_*", "final_eval.json",
      "training_curves_sets_panda_aw10.png"),
+    # an attempt on the Panda: training on random_multi (multi in half the episodes), evaluated on random
+    ("training_table_sets_panda_random_multi.md", "sets/panda_sac_residual_10hz_dw10_aw3_set_c3bf+hocbf_random_multi_*",
+     "final_eval.json", "training_curves_sets_panda_random_multi.png"),
 )
 
 
