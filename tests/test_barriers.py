@@ -9,6 +9,7 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
 from c3bf_gym.safety.barriers import (
+    Floor,
     BARRIERS,
     C3BF,
     Barrier,
@@ -352,6 +353,35 @@ def test_joint_limits_rows_shape_validation():
         lim.rows(z, z, np.eye(3), z)
     with pytest.raises(ValueError, match="out.A"):
         lim.rows(z, z, Z, z, out=Rows(np.zeros((7, 2)), np.zeros(8)))
+
+
+def test_floor_rows_are_the_second_order_barrier_on_each_end():
+    """``Floor.rows``: ``A_k = G_z``, ``b_k = −γ² (z − z_min) − 2γ ż − c_z`` for the listed ends
+    of packed end dynamics (per end and axis: position, velocity, acceleration at zero torque,
+    then the acceleration per unit force)."""
+    rng = np.random.default_rng(3)
+    packed = rng.normal(size=(6, 3, 3 + 4))  # 3 capsules, ends a then b, nv = 4
+    floor = Floor([0, 4, 5], [0.1, 0.2, -0.05], gamma=7.0)
+    rows = floor.rows(packed)
+    (z, zd, c), G = (packed[[0, 4, 5], 2, i] for i in range(3)), packed[[0, 4, 5], 2, 3:]
+    assert floor.n_rows == 3 and rows.A.shape == (3, 4)
+    np.testing.assert_allclose(rows.A, G, rtol=0, atol=0)
+    np.testing.assert_allclose(rows.b, -(49.0 * (z - [0.1, 0.2, -0.05]) + 14.0 * zd + c), rtol=1e-14, atol=1e-14)
+    assert Floor((), (), 5.0).rows(packed).A.shape == (0, 4)  # no floor plane: no rows
+
+
+@pytest.mark.parametrize(
+    "args, match",
+    [
+        (([0, 1], [0.1], 5.0), "one entry each per row; got 2 and 1"),
+        (([-1], [0.1], 5.0), "ends must be indices >= 0"),
+        (([0], [np.nan], 5.0), "min_height finite"),
+        (([0], [0.1], 0.0), r"gamma.*\(0, inf\)"),
+    ],
+)
+def test_floor_validation(args, match):
+    with pytest.raises(ValueError, match=match):
+        Floor(*args)
 
 
 # ----------------------------------------------------------------------------- registry / params

@@ -261,9 +261,9 @@ def numpy_rows(u, hook):
     b = -((gv * c).sum(1) + drift + bar.gamma * h) - (gp * slide_p).sum(1)
     # floor rows: z'' + 2γ z' + γ² (z − z_min) ≥ 0 at the capsule ends the filter protects
     ends = arm.end_dynamics()
-    idx, g = hook._floor_ends, FilterConfig().floor_gamma
+    idx, g = hook.floor.ends, FilterConfig().floor_gamma
     A_floor = ends.G[idx, 2]
-    b_floor = -(ends.c[idx, 2] + 2 * g * ends.vel[idx, 2] + g * g * (ends.pos[idx, 2] - hook._floor_min))
+    b_floor = -(ends.c[idx, 2] + 2 * g * ends.vel[idx, 2] + g * g * (ends.pos[idx, 2] - hook.floor.min_height))
     jl = hook.joint_limits.rows(u.data.qpos, u.data.qvel, arm.Minv, arm.qacc_free)
     A_all, b_all = np.concatenate([A, A_floor, jl.A]), np.concatenate([b, b_floor, jl.b])
     return A_all, b_all, h.min(initial=np.inf), inside.any(), len(sensed)
@@ -281,7 +281,7 @@ def test_fused_hook_rows_match_numpy_assembly(make_env, barrier, seed):
     A, b, min_h, inside, n_sensed = hook.rows()
     A_ref, b_ref, h_ref, inside_ref, sensed_ref = numpy_rows(u, hook)
     assert n_sensed == sensed_ref >= 1 and inside == inside_ref
-    assert len(hook._floor_ends) == 12 and len(b) == 6 * n_sensed + 12 + 24  # 6 capsules: link1 (pan axis) is not one
+    assert len(hook.floor.ends) == 12 and len(b) == 6 * n_sensed + 12 + 24  # 6 capsules: link1 (pan axis) is not one
     close(A, A_ref, 1e-10)
     close(b, b_ref, 1e-10)
     assert min_h == pytest.approx(h_ref, rel=1e-10)
@@ -330,15 +330,15 @@ def test_fused_obstacle_rows_are_their_pieces_bit_for_bit(make_env, guard):
     _dynamics.closest_relative(axes, u.obstacle_pos[sensed], u.obstacle_vel[sensed], u.obstacle_acc[sensed],
                                _dynamics.ClosestPoints(p, v, c, G, slide, t))
     r = ((u.obstacle_radius[sensed][:, None] + arm.capsule_radius[None]) + params.margin).reshape(-1)
-    barriers = [("c3bf", params.gamma)] + ([] if guard is None else [("guard", params.guard_gamma2)])
+    barriers = [("c3bf", params.barrier.gamma)] + ([] if guard is None else [("guard", params.guard.gamma2)])
     for i, (kind, gain) in enumerate(barriers):
         h, drift, grad_v, grad_p = np.zeros(pairs), np.zeros(pairs), np.zeros((pairs, 3)), np.zeros((pairs, 3))
         inside = np.zeros(pairs, bool)
         if kind == "c3bf":
             terms = BarrierTerms(h, grad_v, drift, inside, grad_p)
-            _rows.c3bf_terms(p, v, r, params.gamma, params.p1, params.p2, terms)
+            _rows.c3bf_terms(p, v, r, params.barrier.gamma, params.barrier.epsilon, params.barrier.delta, terms)
         else:
-            _rows.hocbf_terms(p, v, r, params.guard_gamma1, BarrierTerms(h, grad_v, drift, inside, grad_p))
+            _rows.hocbf_terms(p, v, r, params.guard.gamma1, BarrierTerms(h, grad_v, drift, inside, grad_p))
         A_ref, b_ref = np.zeros((pairs, nv)), np.zeros(pairs)
         _rows.rows_from_terms(grad_v, drift, h, gain, G, c, A_ref, b_ref)
         b_ref = [bk - (gp[0] * sl[0] + gp[1] * sl[1] + gp[2] * sl[2])

@@ -318,13 +318,13 @@ def test_guard_choices(make_env, barrier, guard, expected):
     assert type(env.hook.guard) is expected
     if expected is DistanceHOCBF:
         assert (env.hook.guard.gamma1, env.hook.guard.gamma2) == (GUARD_GAMMA, GUARD_GAMMA)
-        assert (env.hook._params.guard_gamma1, env.hook._params.guard_gamma2) == (GUARD_GAMMA, GUARD_GAMMA)  # the fused kernel's
+        assert env.hook._params.guard == (True, GUARD_GAMMA, GUARD_GAMMA)  # the fused kernel's
 
 
 def test_guard_gamma_sets_a_named_guards_gains(make_env):
     env = SafetyFilter(make_env(scenario="none"), guard_gamma=7.0)
     assert (env.hook.guard.gamma1, env.hook.guard.gamma2) == (7.0, 7.0)
-    assert (env.hook._params.guard_gamma1, env.hook._params.guard_gamma2) == (7.0, 7.0)
+    assert env.hook._params.guard == (True, 7.0, 7.0)
     env = SafetyFilter(make_env(scenario="none"), barrier="hocbf", guard="c3bf", guard_gamma=3.0)
     assert env.hook.guard.gamma == 3.0 and env.hook.barrier.gamma1 == 5.0  # the barrier keeps its own
 

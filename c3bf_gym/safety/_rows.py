@@ -278,13 +278,44 @@ class ObstacleArrays(NamedTuple):
     radius: np.ndarray
 
 
+class BarrierGains(NamedTuple):
+    """The barrier of the fused rows and its gains, each by its name (the built-in barriers'
+    ``fused_spec``); the other kind's fields are 0.
+
+    Attributes:
+        kind: :data:`C3BF_KIND` (:class:`~c3bf_gym.safety.barriers.C3BF`) or :data:`HOCBF_KIND`
+            (:class:`~c3bf_gym.safety.barriers.DistanceHOCBF`).
+        gamma: the row's class-K gain [1/s]: the C3BF's γ, the distance HOCBF's γ₂.
+        epsilon, delta: the C3BF's ε and δ [m].
+        gamma1: the distance HOCBF's γ₁ [1/s].
+    """
+
+    kind: int
+    gamma: float
+    epsilon: float
+    delta: float
+    gamma1: float
+
+
+class GuardGains(NamedTuple):
+    """The distance-HOCBF guard beside the barrier (:data:`~c3bf_gym.safety.GUARD_GAMMA`), if any.
+
+    Attributes:
+        present: whether the rows have a guard row after each barrier row.
+        gamma1, gamma2: its γ₁ and γ₂ [1/s] (0 without a guard).
+    """
+
+    present: bool
+    gamma1: float
+    gamma2: float
+
+
 class RowParams(NamedTuple):
     """The fused rows' settings (:class:`~c3bf_gym.safety.SafetyController` builds them once).
 
     Attributes:
-        kind: :data:`C3BF_KIND` or :data:`HOCBF_KIND`, the barrier.
-        gamma, p1, p2: the barrier's gains (its ``fused_spec``): C3BF γ, ε, δ; HOCBF γ₂, γ₁, unused.
-        guard_gamma1, guard_gamma2: a distance-HOCBF guard's gains (0: no guard).
+        barrier: :class:`BarrierGains`.
+        guard: :class:`GuardGains`.
         points: :data:`WHOLE_ARM_POINTS` or :data:`EE_POINTS`, the protected points
             (:attr:`~c3bf_gym.safety.FilterConfig.points`); ``ee_radius`` [m] the tool sphere's radius.
         sensing_radius, margin: [m].
@@ -296,12 +327,8 @@ class RowParams(NamedTuple):
         unmodelled_force: (nv,) bounds of the forces the filter cannot predict (:func:`unmodelled_margin`).
     """
 
-    kind: int
-    gamma: float
-    p1: float
-    p2: float
-    guard_gamma1: float
-    guard_gamma2: float
+    barrier: BarrierGains
+    guard: GuardGains
     points: int
     ee_radius: float
     sensing_radius: float
@@ -321,9 +348,9 @@ class RowParams(NamedTuple):
 
 @njit(inline="always", **_opts)
 def _point_rows(point, r, params, b, row_h, m):
-    """The right-hand sides of the rows at one protected point: the barrier's (``params.kind``:
+    """The right-hand sides of the rows at one protected point: the barrier's (``params.barrier``:
     :func:`_c3bf_point` or :func:`_hocbf_point`, then :func:`_row_rhs`) into ``b[m]``, its ``h``
-    into ``row_h[m]``, and with a guard (``params.guard_gamma2 > 0``) the guard's into ``b[m + 1]``.
+    into ``row_h[m]``, and with a guard (``params.guard``) the guard's into ``b[m + 1]``.
     ``point`` is ``(p, v, c)``, 3-tuples: the point's position, velocity and acceleration at zero
     torque relative to the obstacle; ``r`` the combined radius [m].
 
@@ -331,16 +358,17 @@ def _point_rows(point, r, params, b, row_h, m):
     flag, and the barrier's and the guard's gradients (the barrier's twice without a guard), which
     the caller turns into the rows' coefficients and, for a sliding point, the sliding terms."""
     p, v, c = point
-    if params.kind == C3BF_KIND:
-        h, drift, inside, grad_v, grad_p = _c3bf_point(p, v, r, params.gamma, params.p1, params.p2)
+    barrier, guard = params.barrier, params.guard
+    if barrier.kind == C3BF_KIND:
+        h, drift, inside, grad_v, grad_p = _c3bf_point(p, v, r, barrier.gamma, barrier.epsilon, barrier.delta)
     else:
-        h, drift, inside, grad_v, grad_p = _hocbf_point(p, v, r, params.p1)
-    b[m] = _row_rhs(grad_v, c, drift, h, params.gamma)
+        h, drift, inside, grad_v, grad_p = _hocbf_point(p, v, r, barrier.gamma1)
+    b[m] = _row_rhs(grad_v, c, drift, h, barrier.gamma)
     row_h[m] = h
     grad_w, grad_q = grad_v, grad_p
-    if params.guard_gamma2 > 0.0:
-        h_guard, drift, _, grad_w, grad_q = _hocbf_point(p, v, r, params.guard_gamma1)
-        b[m + 1] = _row_rhs(grad_w, c, drift, h_guard, params.guard_gamma2)
+    if guard.present:
+        h_guard, drift, _, grad_w, grad_q = _hocbf_point(p, v, r, guard.gamma1)
+        b[m + 1] = _row_rhs(grad_w, c, drift, h_guard, guard.gamma2)
     return h, inside, (grad_v, grad_w), (grad_p, grad_q)
 
 
@@ -353,7 +381,7 @@ def _capsule_rows(arm, obstacles, k, params, A, b, row_h, m):
     s_count = arm.ends_ab.shape[0]
     ends_a, ends_ab = arm.ends[:s_count], arm.ends_ab
     o, vo, ao = obstacles.position[k], obstacles.velocity[k], obstacles.acceleration[k]
-    guard = params.guard_gamma2 > 0.0
+    guard = params.guard.present
     min_h = np.inf
     inside_any = False
     for s in range(s_count):
@@ -383,7 +411,7 @@ def _site_rows(site, obstacles, k, params, A, b, row_h, m):
     r = (obstacles.radius[k] + params.ee_radius) + params.margin
     h, inside, grads, _ = _point_rows(point, r, params, b, row_h, m)
     for j in range(A.shape[1]):
-        _coefficients((x[0, 3 + j], x[1, 3 + j], x[2, 3 + j]), grads, A, m, j, params.guard_gamma2 > 0.0)
+        _coefficients((x[0, 3 + j], x[1, 3 + j], x[2, 3 + j]), grads, A, m, j, params.guard.present)
     return h, inside
 
 
@@ -417,7 +445,7 @@ def filter_rows(stage, arm, obstacles, params, A, b, row_h):
        (:func:`~c3bf_gym.safety._dynamics.tool_site_dynamics`, into ``arm.site``).
     2. For every sensed obstacle (:func:`_sensed`), the rows at the protected points
        (:func:`_capsule_rows`: one per capsule; :func:`_site_rows`: one at the tool site), each
-       followed, with a guard (``params.guard_gamma2 > 0``), by the guard's row for that point.
+       followed, with a guard (``params.guard``), by the guard's row for that point.
     3. The floor rows of the capsule ends ``params.floor_ends`` (:func:`floor_rows`).
     4. With ``params.joint_rows``, the ``4 n`` joint-limit rows (:func:`joint_limit_rows`).
     The obstacle and floor rows are tightened for the forces the filter cannot predict
@@ -439,7 +467,7 @@ def filter_rows(stage, arm, obstacles, params, A, b, row_h):
     ee = params.points == EE_POINTS
     if ee:
         tool_site_dynamics(arm.site, ArmMotion(arm.cdof, arm.cdof_dot, arm.com, arm.qvel, arm.Minv, arm.qacc_free))
-    per_obstacle = (1 if ee else arm.ends_ab.shape[0]) * (2 if params.guard_gamma2 > 0.0 else 1)
+    per_obstacle = (1 if ee else arm.ends_ab.shape[0]) * (2 if params.guard.present else 1)
     m = 0
     n_sensed = 0
     min_h = np.inf

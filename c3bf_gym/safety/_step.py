@@ -311,7 +311,7 @@ def filter_substep(stage, tau_nom, tau, buffers):
     m, min_h, inside, n_sensed = filter_rows(stage, arm, obstacles, params, A, b, tally.row_h)
     n_floor = params.floor_ends.shape[0]
     n_fixed = n_floor + (4 * params.dofs.shape[0] if params.joint_rows else 0)
-    guarded = params.guard_gamma2 > 0.0
+    guarded = params.guard.present
     stride = 2 if guarded else 1  # obstacle rows: barrier, guard, barrier, guard, ... beside a guard
     status, iterations, n_active, slack = solve_rows(tau_nom, A[:m], b[:m], scale, params.dofs,
                                                      low_priority_span(m, n_fixed, guarded), stride, qp)

@@ -57,13 +57,13 @@ import numpy as np
 
 from c3bf_gym._capi import pack
 from c3bf_gym.safety import _qp, _rows, _step
-from c3bf_gym.safety.barriers import JointLimits, Rows
+from c3bf_gym.safety.barriers import Floor, JointLimits, Rows
 from c3bf_gym.safety.dynamics import ArmModel, segment_closest_points
 from c3bf_gym.safety.envelope import EnvelopeWarning, FilterEnvelope, filter_envelope
 from c3bf_gym.safety.config import FilterConfig
 from c3bf_gym.safety.obstacles import Obstacles
 from c3bf_gym.safety.priority_qp import STATUS, PriorityQP, QPResult, bad_input_error
-from c3bf_gym.safety.robot import RobotDescription, UnsupportedModelError, floor_height
+from c3bf_gym.safety.robot import RobotDescription, UnsupportedModelError
 from c3bf_gym.safety.substep import FilterCall
 
 __all__ = ["MAX_GAIN_STEP", "RAISED_GAIN_STEP", "ROW_KINDS", "SafetyController", "SafetyInfeasibleError", "StepSafety"]
@@ -271,7 +271,6 @@ class SafetyController:
         self.ee_radius = config.ee_radius
         self.on_infeasible = config.on_infeasible
         self.intervention_tol = config.intervention_tol
-        self.floor_gamma = config.floor_gamma
         self.envelope = envelope
         self._envelope_seen = (0.0, 0.0)  # the largest obstacle speed and radius checked so far
         self._envelope_warned = False
@@ -294,8 +293,9 @@ class SafetyController:
         self._per_obstacle = points_count * (1 if guard is None else 2)
         n_obstacles = obstacles.capacity
         self._n_joint_rows = 0 if joint_limits is None else 4 * n
-        self._floor_ends, self._floor_min = self._floor_setup(model)
-        self._n_floor_rows = len(self._floor_ends)
+        #: the floor's rows (:class:`~c3bf_gym.safety.barriers.Floor`; none without a floor plane)
+        self.floor = Floor.of_model(model, self.arm, self.margin, config.floor_gamma)
+        self._n_floor_rows = self.floor.n_rows
         self._stride = 1 if guard is None else 2  # obstacle rows: barrier, guard, barrier, guard, ...
         # priority 2 (giving way first) only for the barrier's rows beside a guard: without one, the
         # barrier's rows are the only ones keeping obstacles off, and they share priority 1 with the
@@ -314,7 +314,6 @@ class SafetyController:
         self._qpos_ids = np.asarray(model.jnt_qposadr[model.dof_jntid[robot.dof_ids]], dtype=np.int64)
         self._unmodelled = np.ascontiguousarray(robot.unmodelled_force, dtype=np.float64)
         self._capsule_radius = self.arm.capsule_radius
-        self._floor_idx = self._floor_ends.astype(np.int64)
         self._fused, self._params, self._obstacle_arrays = self._kernel_settings(barrier, guard, joint_limits)
         self._tally = _new_tally(self.barrier, n, max_rows, model.opt.timestep)
         self._solve_time = 0.0
@@ -335,26 +334,24 @@ class SafetyController:
         n, obstacles = self.robot.n, self.obstacles
         spec = getattr(barrier, "fused_spec", None)
         spec = spec() if spec is not None else None
-        guard_gains = (0.0, 0.0)  # the kernel's guard gains (γ₁, γ₂) of a distance HOCBF (0: no guard)
+        guard_gains = _rows.GuardGains(False, 0.0, 0.0)
         if guard is not None:
             guard_spec = guard.fused_spec() if hasattr(guard, "fused_spec") else None
-            if guard_spec is not None and guard_spec[0] == _rows.HOCBF_KIND:
-                guard_gains = (float(guard_spec[1][1]), float(guard_spec[1][0]))
+            if guard_spec is not None and guard_spec.kind == _rows.HOCBF_KIND:
+                guard_gains = _rows.GuardGains(True, guard_spec.gamma1, guard_spec.gamma)
             else:
                 spec = None
-        kind, params = spec if spec is not None else (-1, np.zeros(3))
         if joint_limits is not None:
             jl = [np.array(joint_limits.gains, dtype=np.float64), joint_limits.q_lo, joint_limits.q_hi,
                   joint_limits.qd_max]
         else:
             jl = [np.ones(3), np.zeros(n), np.ones(n), np.ones(n)]
         joint_gains, q_lo, q_hi, qd_max = (np.ascontiguousarray(x, dtype=np.float64) for x in jl)
-        gamma, p1, p2 = map(float, params)
         row_params = _rows.RowParams(
-            kind=int(kind), gamma=gamma, p1=p1, p2=p2, guard_gamma1=guard_gains[0], guard_gamma2=guard_gains[1],
+            barrier=spec if spec is not None else _rows.BarrierGains(-1, 0.0, 0.0, 0.0, 0.0), guard=guard_gains,
             points=_rows.EE_POINTS if self.points == "ee" else _rows.WHOLE_ARM_POINTS,
             ee_radius=float(self.ee_radius), sensing_radius=float(self.sensing_radius), margin=float(self.margin),
-            floor_gamma=float(self.floor_gamma), floor_ends=self._floor_idx, floor_min=self._floor_min,
+            floor_gamma=self.floor.gamma, floor_ends=self.floor.ends, floor_min=self.floor.min_height,
             joint_rows=joint_limits is not None, joint_gains=joint_gains, q_lo=q_lo, q_hi=q_hi, qd_max=qd_max,
             dofs=self._dofs, qpos_ids=self._qpos_ids, unmodelled_force=self._unmodelled,
         )
@@ -468,7 +465,7 @@ class SafetyController:
 
     def _check_timestep(self, timestep: float) -> None:
         """Warn when a row's gain times ``timestep`` exceeds :data:`MAX_GAIN_STEP`."""
-        gains = {"floor_gamma": self.floor_gamma}
+        gains = {"floor_gamma": self.config.floor_gamma}
         for label, barrier in (("the barrier", self.barrier), ("the guard", self.guard)):
             for attribute in ("gamma", "gamma1", "gamma2"):
                 value = getattr(barrier, attribute, None) if barrier is not None else None
@@ -551,45 +548,14 @@ class SafetyController:
                     inside = bool(terms.inside.any())
             m = len(barriers) * len(p)
         if self._n_floor_rows:
-            m += self._floor_rows(self._A[m:], self._b[m:])
+            arm.end_dynamics()  # refreshes the packed capsule ends (arm._ends) if stale
+            m += len(self.floor.rows(arm._ends, Rows(self._A[m:], self._b[m:])).b)
         _rows.unmodelled_margin(self._A[:m], self._b[:m], self._unmodelled)
         if self.joint_limits is not None:
             self.joint_limits.rows(data.qpos, data.qvel, arm.Minv, arm.qacc_free, out=Rows(self._A[m:], self._b[m:]),
                                    dofs=self._dofs, qpos_ids=self._qpos_ids)
             m += self._n_joint_rows
         return self._A[:m], self._b[:m], min_h, inside, len(sensed)
-
-    def _floor_setup(self, model: mujoco.MjModel) -> tuple[np.ndarray, np.ndarray]:
-        """Which capsule ends get a floor row, and their lowest allowed height (floor + capsule
-        radius + margin); both empty without an upright plane geom in the world body. Capsules moved
-        only by hinges about vertical axes (link 1, on the base's pan joint) keep their height
-        and get no row: theirs could only be a constant, possibly unsatisfiable, 0 ≥ b. A sphere
-        (a capsule of length 0) gets one row."""
-        floor = floor_height(model)
-        if floor is None:
-            return np.zeros(0, dtype=int), np.zeros(0)
-        scratch = mujoco.MjData(model)
-        mujoco.mj_kinematics(model, scratch)
-        hinge = model.jnt_type == int(mujoco.mjtJoint.mjJNT_HINGE)
-        level = hinge & (np.abs(scratch.xaxis[:, 2]) > 1.0 - 1e-12)  # (njnt,) hinges about world z
-        moving = []
-        for chain in self.arm.capsule_chain:
-            joints = model.dof_jntid[np.flatnonzero(chain)]
-            moving.append(not level[joints].all())
-        moving = np.array(moving)
-        # both ends of a capsule; one of a sphere (its two ends coincide)
-        ends = np.flatnonzero(np.concatenate([moving, moving & (self.arm._length2 > 0.0)]))
-        radius = np.tile(self.arm.capsule_radius, 2)[ends]
-        return ends, floor + radius + self.margin
-
-    def _floor_rows(self, A: np.ndarray, b: np.ndarray) -> int:
-        """Rows keeping every capsule end ``z ≥ z_min`` (floor + radius + margin): the
-        second-order barrier ``z̈ + 2γ ż + γ² (z − z_min) ≥ 0`` with ``z̈ = G_z τ + c_z``.
-        (The fused kernel's :func:`c3bf_gym.safety._rows.floor_rows`.)"""
-        self.arm.end_dynamics()  # refreshes the packed capsule ends (arm._ends) if stale
-        k = self._n_floor_rows
-        _rows.floor_rows(self.arm._ends, self._floor_idx, self._floor_min, self.floor_gamma, A[:k], b[:k])
-        return k
 
     def _bind(self) -> tuple:
         """The buffers :func:`c3bf_gym.safety._step.filter_substep` works in (env, arm, hook, QP and

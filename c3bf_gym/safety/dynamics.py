@@ -156,6 +156,8 @@ class ArmModel:
         self.implicit_damping = np.asarray(implicit_damping, dtype=np.float64)
         axis = self.capsule_local[:, 1] - self.capsule_local[:, 0]
         self._length2 = np.einsum("ij,ij->i", axis, axis)
+        #: (S,) the capsules' axis lengths [m] (0: a sphere)
+        self.capsule_length = np.sqrt(self._length2)
         self.capsule_radius = np.asarray(self.capsule_radius, dtype=np.float64)
         self._ends = np.zeros((2 * s, 3, 3 + nv))  # ends a then b, packed [pos | vel | c | G]
         self._ends_a = self._ends[:s]

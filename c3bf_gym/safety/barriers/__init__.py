@@ -5,7 +5,8 @@ Obstacle barriers (per arm point, see :mod:`.base`):
 - :class:`C3BF` — collision-cone CBF (``"c3bf"``),
 - :class:`DistanceHOCBF` — second-order CBF on the squared distance (``"hocbf"``),
 
-and :class:`JointLimits` for joint position/velocity boxes. All produce
+and :class:`JointLimits` for joint position/velocity boxes and :class:`Floor` for the floor
+under the arm. All produce
 :class:`Rows` ``A @ tau >= b``. The arithmetic runs in compiled kernels
 (:mod:`c3bf_gym.safety._rows`).
 """
@@ -17,6 +18,7 @@ from typing import Any
 
 from .base import Barrier, BarrierTerms, Rows, distance_barrier
 from .c3bf import C3BF
+from .floor import Floor
 from .hocbf import DistanceHOCBF
 from .joint_limits import JointLimits
 
@@ -26,6 +28,7 @@ __all__ = [
     "BarrierTerms",
     "C3BF",
     "DistanceHOCBF",
+    "Floor",
     "JointLimits",
     "Rows",
     "distance_barrier",

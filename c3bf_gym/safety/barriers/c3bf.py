@@ -98,12 +98,14 @@ class C3BF(Barrier):
                          terms)
         return terms
 
-    def fused_spec(self) -> tuple[int, np.ndarray] | None:
-        """``(kind, params)`` of the filter's fused kernel (:mod:`c3bf_gym.safety._rows`), or None
-        for a subclass that changes :meth:`terms`. The parameters are read through the public
+    def fused_spec(self) -> _rows.BarrierGains | None:
+        """This barrier as the filter's fused kernel reads it
+        (:class:`c3bf_gym.safety._rows.BarrierGains`), or None for a subclass that changes
+        :meth:`terms`. The parameters are read through the public
         properties (:attr:`gamma`, :attr:`eps`, :attr:`delta`), as :meth:`terms` and
         :meth:`rows_from_terms` read them, so a subclass that overrides one is honoured on both
         paths."""
         if type(self).terms is not C3BF.terms:
             return None
-        return _rows.C3BF_KIND, np.array([float(self.gamma), float(self.eps), float(self.delta)])
+        return _rows.BarrierGains(_rows.C3BF_KIND, gamma=float(self.gamma), epsilon=float(self.eps),
+                                  delta=float(self.delta), gamma1=0.0)

@@ -84,12 +84,14 @@ class DistanceHOCBF(Barrier):
         _rows.hocbf_terms(contiguous(p), contiguous(v), radii(r, n_pts), float(self.gamma1), terms)
         return terms
 
-    def fused_spec(self) -> tuple[int, np.ndarray] | None:
-        """``(kind, params)`` of the filter's fused kernel (:mod:`c3bf_gym.safety._rows`), or None
-        for a subclass that changes :meth:`terms`. The gains are read through the public
+    def fused_spec(self) -> _rows.BarrierGains | None:
+        """This barrier as the filter's fused kernel reads it
+        (:class:`c3bf_gym.safety._rows.BarrierGains`), or None for a subclass that changes
+        :meth:`terms`. The gains are read through the public
         properties (:attr:`gamma`, the row's γ₂, and :attr:`gamma1`), as :meth:`terms` and
         :meth:`rows_from_terms` read them, so a subclass that overrides one is honoured on both
         paths."""
         if type(self).terms is not DistanceHOCBF.terms:
             return None
-        return _rows.HOCBF_KIND, np.array([float(self.gamma), float(self.gamma1), 0.0])
+        return _rows.BarrierGains(_rows.HOCBF_KIND, gamma=float(self.gamma), epsilon=0.0, delta=0.0,
+                                  gamma1=float(self.gamma1))
