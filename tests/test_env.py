@@ -1036,7 +1036,8 @@ def test_place_obstacle_puts_a_sphere_where_asked_and_refuses_bad_input(make_env
     for bad, match in (({"slot": 8}, r"slot must be an integer in \[0, 7\]"), ({"slot": -1}, "slot must be"),
                        ({"position": (0.0, 1.0)}, "position must be three finite"),
                        ({"velocity": (np.nan, 0.0, 0.0)}, "velocity must be three finite"),
-                       ({"radius": 0.0}, "radius must be")):  # fmt: skip
+                       ({"radius": 0.0}, "radius must be"),
+                       ({"respawn": "static"}, "respawn must be an ObstacleSpec")):  # fmt: skip
         arguments = {"slot": 0, "position": centre, "velocity": (0.0, 0.0, 0.0), "radius": 0.05} | bad
         with pytest.raises(ValueError, match=match):
             u.place_obstacle(**arguments)

@@ -871,7 +871,8 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
 
         Raises:
             ValueError: an unknown slot, a position or velocity that is not three finite numbers,
-                or a radius that is not a finite number > 0 (nothing changes).
+                a radius that is not a finite number > 0, or a ``respawn`` that is not an
+                ``ObstacleSpec`` (nothing changes).
         """
         slot = integer("slot", slot, low=0)
         if slot >= MAX_OBSTACLES:
@@ -881,6 +882,8 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
             if v.shape != (3,) or not np.isfinite(v).all():
                 raise ValueError(f"{name} must be three finite numbers [m, m/s], got {v!r}")
         radius = number("radius", radius, low=0.0, low_open=True, unit="m")
+        if respawn is not None and not isinstance(respawn, ObstacleSpec):
+            raise ValueError(f"respawn must be an ObstacleSpec or None, got {respawn!r}")
         self._place(slot, ObstacleSample(position, velocity, radius))
         self._obstacle_specs[slot] = ObstacleSpec("static") if respawn is None else respawn
         mujoco.mj_forward(self.model, self.data)
