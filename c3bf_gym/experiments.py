@@ -448,7 +448,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     seeds.add_argument("--num-seeds", type=_positive_int, default=None, metavar="N",
                        help="N seeds, FIRST_SEED .. FIRST_SEED+N-1, instead of --seeds")  # fmt: skip
     p.add_argument("--first-seed", type=_nonnegative_int, default=0, help="the first seed of --num-seeds")
-    p.add_argument("--scenarios", nargs="+", choices=[s for s in SCENARIOS if s not in ("random", "none")], default=list(d.scenarios),
+    p.add_argument("--scenarios", nargs="+", choices=[name for name, s in SCENARIOS.items() if s.obstacles], default=list(d.scenarios),
                    help="scenarios of the table; the sensing sweep runs on those of them it supports "
                         f"({', '.join(SENSING_SCENARIOS)})")  # fmt: skip
     p.add_argument("--filters", nargs="+", choices=EXPERIMENT_FILTERS, default=list(d.filters),

@@ -12,6 +12,8 @@ from pathlib import Path
 
 import pytest
 
+from c3bf_gym import SCENARIOS
+
 BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
 #: filter_speed.py replays the filter's calls timed with the x86 time-stamp counter, only there
 REPLAYED = platform.machine() in ("x86_64", "AMD64", "i686", "i386")
@@ -29,7 +31,7 @@ def test_env_speed_times_every_configuration_against_the_bare_physics(tmp_path):
             "Pusher-v5"} <= set(result["us_per_step"])
     assert result["recipe_to_filtered"] > 0 and result["impedance_to_unfiltered"] > 0
     assert result["ratio_to_bare"]["bare"] == 1.0 and all(len(v) == 2 for v in result["us_per_step"].values())
-    assert set(result["reset_ms"]) == {"static", "head_on", "crossing", "multi", "random"}
+    assert set(result["reset_ms"]) == set(SCENARIOS) - {"none"}  # every registered scenario with obstacles
     refused = subprocess.run([sys.executable, str(BENCHMARKS / "env_speed.py"), "--rounds", "0"],
                              capture_output=True, text=True, timeout=300)  # fmt: skip
     assert refused.returncode == 2 and "--rounds and --steps must be >= 1" in refused.stderr

@@ -557,7 +557,8 @@ def test_unknown_scenario_lists_valid_choices():
         ({"obstacle_speed_range": 0.3}, r"obstacle_speed_range must be \(low, high\).*got 0.3"),
         ({"obstacle_radius_range": (0.05,)}, r"obstacle_radius_range must be \(low, high\).*both > 0 \[m\], got \(0.05,\)"),
         ({"obstacle_radius_range": "0.04, 0.08"}, r"obstacle_radius_range must be \(low, high\)"),
-        ({"scenario": 3}, r"unknown scenario 3; valid choices: 'static', 'head_on', 'crossing', 'multi', 'random', 'none'"),
+        ({"scenario": 3}, r"unknown scenario 3; valid choices: 'static', 'head_on', 'crossing', 'multi', 'random', "
+                          r"'random_multi', 'none'"),
         ({"width": 0}, r"width must be an integer >= 1"),
         ({"height": 240.0}, r"height must be an integer >= 1"),
     ],
