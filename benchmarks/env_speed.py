@@ -38,6 +38,7 @@ Usage::
 
     python benchmarks/env_speed.py                              # 5 rounds x 1000 steps, scenario multi
     python benchmarks/env_speed.py --rounds 9 --profile --json results/env_speed.json
+    python benchmarks/env_speed.py --points ee                  # the filter protecting the tool sphere only
 """
 
 from __future__ import annotations
@@ -210,6 +211,8 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--scenario", default="multi", choices=[s for s in SCENARIOS if s != "none"],
                         help="C3BFReach scenario of the step timing (default multi: 4 obstacles)")  # fmt: skip
     parser.add_argument("--env", default="C3BFReach-v0", choices=["C3BFReach-v0", "C3BFReachPanda-v0"])
+    parser.add_argument("--points", default="whole_arm", choices=["whole_arm", "ee"],
+                        help="what the filtered configurations protect: the whole arm (default) or the tool sphere")
     parser.add_argument("--reset-samples", type=int, default=200, help="timed resets per scenario (default 200; 0: none)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--profile", action="store_true", help="print the cProfile breakdown of unfiltered and filtered steps")
@@ -223,10 +226,11 @@ def main(argv: list[str] | None = None) -> dict:
     parked_env, run_parked = _bare_runner(args.env, args.scenario, args.steps, args.seed, parked=True)
     envs = {
         "unfiltered": gym.make(args.env, scenario=args.scenario),
-        "filtered random": SafetyFilter(gym.make(args.env, scenario=args.scenario)),
-        "filtered adversarial": SafetyFilter(gym.make(args.env, scenario=args.scenario)),
+        "filtered random": SafetyFilter(gym.make(args.env, scenario=args.scenario), points=args.points),
+        "filtered adversarial": SafetyFilter(gym.make(args.env, scenario=args.scenario), points=args.points),
         "impedance": CartesianImpedanceAction(gym.make(args.env, scenario=args.scenario), residual=True),
-        "recipe": SafetyFilter(CartesianImpedanceAction(gym.make(args.env, scenario=args.scenario), residual=True)),
+        "recipe": SafetyFilter(CartesianImpedanceAction(gym.make(args.env, scenario=args.scenario), residual=True),
+                               points=args.points),
         "Pusher-v5": gym.make("Pusher-v5"),
     }
     runs = {"bare": run_bare, "bare, reset states": run_reset, "bare, parked": run_parked}
