@@ -137,6 +137,31 @@ def test_conflicting_rows_give_way_by_priority():
     assert beyond.tau[0] == pytest.approx(1.0) and beyond.slack == pytest.approx(0.5)
 
 
+def test_the_barriers_rows_give_way_within_their_allowance_first():
+    """Two barrier rows in conflict, one with an allowance: the prioritised solve holds the other
+    as written and lets the first give way within its allowance (levels 2 and 3), where least
+    squares over both rows would violate each by half the conflict."""
+    qp = PriorityQP(1, -np.ones(1), np.ones(1), 1, 2)
+    A = np.array([[1.0], [-1.0]])  # u >= 0.5 (no allowance), u <= 0.2 (allowance 0.4: u <= 0.6)
+    b = np.array([0.5, -0.2])
+    spread = qp.solve_scaled(np.zeros(1), A, b, np.ones(1), n_obstacle_rows=2)
+    assert spread.status == "relaxed" and spread.tau[0] == pytest.approx(0.35, abs=1e-9)
+    ranked = qp.solve_scaled(np.zeros(1), A, b, np.ones(1), n_obstacle_rows=2, allowance=np.array([0.0, 0.4]))
+    assert ranked.status == "relaxed" and ranked.tau[0] == pytest.approx(0.5, abs=1e-9)
+    np.testing.assert_allclose(qp.buffers.residual[:2], [0.0, -0.3], atol=1e-9)  # within 0.4
+    # an allowance too small for the conflict: the loosened rows give way by least squares, the
+    # rows as written come only after them
+    short = qp.solve_scaled(np.zeros(1), A, b, np.ones(1), n_obstacle_rows=2, allowance=np.array([0.0, 0.1]))
+    assert short.tau[0] == pytest.approx(0.4, abs=1e-9)  # u >= 0.5 and u <= 0.3 split the 0.2
+    # with nothing in conflict the allowance changes nothing
+    free = qp.solve_scaled(np.array([0.3]), A[:1], np.array([0.1]), np.ones(1), n_obstacle_rows=1,
+                           allowance=np.array([0.4]))
+    assert free.feasible and free.tau[0] == pytest.approx(0.3)
+    for bad in (np.array([-0.1, 0.0]), np.array([np.nan, 0.0]), np.zeros(3)):
+        with pytest.raises(ValueError, match="allowance"):
+            qp.solve_scaled(np.zeros(1), A, b, np.ones(1), n_obstacle_rows=2, allowance=bad)
+
+
 def test_stride_marks_every_other_obstacle_row_as_the_barriers():
     """With a guard (stride 2) the obstacle rows alternate barrier, guard: the guard's hold."""
     qp = PriorityQP(1, -np.ones(1), np.ones(1), 1, 1)

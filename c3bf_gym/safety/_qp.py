@@ -15,10 +15,16 @@ of the level's violations), and only then minimises the cost. The levels:
 
 0. the torque box: hard;
 1. the joint position and speed limits, the floor and the distance guard;
-2. the barrier's rows beside a guard (the C3BF's in the default filter), which give way first.
+2. the barrier's rows beside a guard (the C3BF's in the default filter), each loosened by its
+   allowance (``QPBuffers.allowance``: how far the row may give way and still hold the barrier
+   condition with a raised gain, :func:`c3bf_gym.safety._step.allowances`);
+3. the same rows as written, which give way first.
 
 So with a guard the joint-speed bound holds whenever some torque within the limits can hold it
-together with the floor and the guard. A filter without a guard has no level 2: its barrier's
+together with the floor and the guard, and the barrier's rows give way beyond their allowance only
+when no such torque can hold them within it: a conflict is not spread over rows that have no
+allowance (a point already inside its cone, ``h ≤ 0``) while others have room to spare. Level 3
+is left empty when no row has an allowance. A filter without a guard has no level 2: its barrier's
 rows are the only ones keeping obstacles off, so they share level 1 with the joint limits and the
 floor, and a conflict spreads over all of them (least squares of the normalised violations). Rows
 whose scaled coefficients are all (numerically) zero cannot change with the torque: with
@@ -84,6 +90,10 @@ class QPBuffers(NamedTuple):
         cold: int64 (2,) 1: the next solve of ``plain`` (``cold[0]``) or ``hier`` (``cold[1]``)
             starts from an empty working set (then 0).
         last: int64 (1,) the previous call's status (:data:`SOLVED`, :data:`RELAXED`, ...).
+        allowance: (rows,) how far each of the barrier's rows may give way before it counts as
+            infeasible [the rows' ``b`` units, ≥ 0], set by the caller before each solve (0 for
+            every other row); level 2 of the prioritised solve holds the barrier's rows loosened
+            by it.
     """
 
     plain: DaqpBuffers
@@ -96,6 +106,7 @@ class QPBuffers(NamedTuple):
     residual: np.ndarray
     cold: np.ndarray
     last: np.ndarray
+    allowance: np.ndarray
 
 
 @njit(**STEP_KERNEL_OPTIONS)
@@ -178,9 +189,10 @@ def solve_rows(tau_nom, A, b, scale, cols, n_obstacle_rows, stride, qp):
        them), warm-started from its previous solve's working set. If DAQP finds the optimum and
        every row holds within :data:`ACTIVE_TOL`, that is the answer (:data:`SOLVED`).
     3. Otherwise, by priority (:data:`RELAXED`, ``qp.hier``): level 1 holds the rows that are not
-       the barrier's (the guard's, the floor's, the joint limits'), level 2 the barrier's: rows
-       ``k < n_obstacle_rows`` with ``k % stride == 0``; its problem too is sized to the rows in
-       use. Warm-started from its own previous solve's working set, and once more from an empty
+       the barrier's (the guard's, the floor's, the joint limits'), level 2 the barrier's (rows
+       ``k < n_obstacle_rows`` with ``k % stride == 0``) loosened by ``qp.allowance``, level 3
+       the barrier's as written (none when every allowance is 0); its problem too is sized to
+       the rows in use. Warm-started from its own previous solve's working set, and once more from an empty
        one if that fails. If it fails too, ``u`` is the box projection of ``u_nom``
        (:data:`FAILED`).
 
@@ -246,7 +258,7 @@ def solve_rows(tau_nom, A, b, scale, cols, n_obstacle_rows, stride, qp):
 
 @njit(**STEP_KERNEL_OPTIONS)
 def _barrier_row(k, n_obstacle_rows, stride):
-    """Whether row ``k`` is the barrier's, of priority 2 (:func:`solve_rows`, step 3)."""
+    """Whether row ``k`` is the barrier's, of priorities 2 and 3 (:func:`solve_rows`, step 3)."""
     return k < n_obstacle_rows and k % stride == 0
 
 
@@ -258,39 +270,48 @@ def _solve_by_priority(qp, m, n_obstacle_rows, stride):
     plain, hier = qp.plain, qp.hier
     n = plain.x.shape[0]
     # The problem is sized to the rows in use, level by level (DAQP reads its break_points, hier.levels,
-    # at every solve): level 1's rows first, then level 2's. A level the workspace has keeps at least
-    # one row, a zero one (which DAQP ignores) when it has none this call.
+    # at every solve): level 1's rows first, then level 2's (the barrier's, loosened by their
+    # allowance), then level 3's (the barrier's as written, only when some allowance is not 0). A level
+    # the workspace has keeps at least one row, a zero one (which DAQP ignores) when it has none.
     count1 = count2 = 0
+    loosened = False
     for k in range(m):
         if qp.norm[k] != 0.0:
             if _barrier_row(k, n_obstacle_rows, stride):
                 count2 += 1
+                loosened = loosened or qp.allowance[k] > 0.0
             else:
                 count1 += 1
+    count3 = count2 if loosened else 0
     size1 = max(count1, 1) if qp.capacity[0] > 0 else 0
     size2 = max(count2, 1) if qp.capacity[1] > 0 else 0
+    size3 = max(count3, 1) if qp.capacity[1] > 0 else 0
     _clear(hier, count1, size1)
     _clear(hier, size1 + count2, size1 + size2)
+    _clear(hier, size1 + size2 + count3, size1 + size2 + size3)
     level, end = 1, n
-    for size in (size1, size2):
+    for size in (size1, size2, size3):
         if size > 0:
             end += size
             hier.levels[level] = end
             level += 1
     hier.problem[PROBLEM_M] = end
-    i1, i2 = 0, size1
+    i1, i2, i3 = 0, size1, size1 + size2
     for k in range(m):
         if qp.norm[k] == 0.0:
             continue
+        lower = plain.lower[n + k]
         if _barrier_row(k, n_obstacle_rows, stride):
             i = i2
             i2 += 1
+            if loosened:
+                _copy_row(plain, hier, k, i3, lower)
+                i3 += 1
+            lower -= qp.allowance[k] / qp.norm[k]
         else:
             i = i1
             i1 += 1
-        for j in range(n):
-            hier.A[i, j] = plain.A[k, j]
-        hier.lower[n + i] = plain.lower[n + k]
+        _copy_row(plain, hier, k, i, lower)
     for j in range(n):
         hier.f[j] = plain.f[j]
     flag, iterations = 0, 0
@@ -306,6 +327,15 @@ def _solve_by_priority(qp, m, n_obstacle_rows, stride):
         for j in range(n):
             qp.u[j] = min(max(hier.x[j], qp.lo[j]), qp.hi[j])
     return flag, iterations
+
+
+@njit(**STEP_KERNEL_OPTIONS)
+def _copy_row(plain, hier, k, i, lower):
+    """Row ``k`` of ``plain`` (normalised) into row ``i`` of ``hier``, with the lower bound ``lower``."""
+    n = plain.x.shape[0]
+    for j in range(n):
+        hier.A[i, j] = plain.A[k, j]
+    hier.lower[n + i] = lower
 
 
 @njit(**STEP_KERNEL_OPTIONS)

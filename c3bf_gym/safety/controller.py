@@ -196,7 +196,7 @@ def _checked_arguments(model: mujoco.MjModel, robot: RobotDescription, obstacles
 
 def _new_tally(barrier, n: int, max_rows: int, timestep: float) -> _step.Tally:
     """The report's running values, in compiled code (:func:`_step.record`): with the barrier's
-    gain and the largest it may rise to (:func:`_step.beyond_allowance`; a barrier without a gain
+    gain and the largest it may rise to (:func:`_step.allowances`; a barrier without a gain
     gets no allowance)."""
     gain = getattr(barrier, "gamma", None)
     limit_gain = RAISED_GAIN_STEP / timestep
@@ -653,6 +653,8 @@ class SafetyController:
             A, b, min_h, inside, n_sensed = self.rows()
             m = len(b)
             qp = self.qp.buffers
+            _step.allowances(qp.allowance[:m], self._tally.row_h, self._tally.gains,
+                             m - self._n_floor_rows - self._n_joint_rows, self._stride)
             status, iterations, active, slack = _qp.solve_rows(
                 tau_nom, A, b, self._scale, self._dofs, self._low_priority_span(m), self._stride, qp)
             if status >= 0:

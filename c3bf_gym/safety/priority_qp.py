@@ -67,14 +67,16 @@ class PriorityQP:
         self.tau_max = np.array(tau_max, dtype=np.float64)
         self._levels = (int(level1_rows), int(level2_rows))
         rows = sum(self._levels)
-        points = [n] + [n + level1_rows] * (level1_rows > 0) + [n + rows] * (level2_rows > 0)
+        # the prioritised workspace holds the barrier's rows twice: loosened by their allowance (level 2)
+        # and as written (level 3)
+        points = [n] + [n + level1_rows] * (level1_rows > 0) + [n + rows, n + rows + level2_rows] * (level2_rows > 0)
         self._plain = _daqp.DaqpWorkspace(n, rows, self.tau_min, self.tau_max)
-        self._hier = _daqp.DaqpWorkspace(n, rows, self.tau_min, self.tau_max, break_points=points)
+        self._hier = _daqp.DaqpWorkspace(n, rows + level2_rows, self.tau_min, self.tau_max, break_points=points)
         self.max_rows = rows
         self.buffers = _qp.QPBuffers(self._plain.buffers, self._hier.buffers,
                                      np.array([level1_rows, level2_rows], np.int64), self.tau_min, self.tau_max,
                                      np.zeros(n), np.zeros(max(rows, 1)), np.zeros(max(rows, 1)),
-                                     np.ones(2, np.int64), np.zeros(1, np.int64))
+                                     np.ones(2, np.int64), np.zeros(1, np.int64), np.zeros(max(rows, 1)))
 
     def reset(self) -> None:
         """Forget the warm start: the next solve starts from an empty working set, so a sequence
@@ -87,7 +89,8 @@ class PriorityQP:
         return PriorityQP, (self.n, self.tau_min, self.tau_max, *self._levels)
 
     def solve_scaled(self, tau_nom: np.ndarray, A: np.ndarray, b: np.ndarray, scale: np.ndarray,
-                     n_obstacle_rows: int | None = None, stride: int = 1) -> QPResult:
+                     n_obstacle_rows: int | None = None, stride: int = 1,
+                     allowance: np.ndarray | None = None) -> QPResult:
         """Solve for ``u`` with rows ``(A s) u ≥ b``; ``tau_nom`` in torque units.
 
         Args:
@@ -96,9 +99,14 @@ class PriorityQP:
             scale: (n,) ``s``.
             n_obstacle_rows, stride: which rows are the barrier's (class docstring); None: all m
                 rows.
+            allowance: (m,) how far each of the barrier's rows may give way [``b``'s units, ≥ 0]:
+                when the rows conflict, the barrier's give way first down to ``b − allowance``
+                and only then further (:mod:`c3bf_gym.safety._qp`, levels 2 and 3); entries of
+                other rows are ignored. None: 0 for every row.
 
         Raises:
-            ValueError: wrong shapes, more rows than the capacity, NaN or inf in the input.
+            ValueError: wrong shapes, more rows than the capacity, NaN or inf in the input, a
+                negative or non-finite allowance.
         """
         start = time.perf_counter()
         tau_nom = np.ascontiguousarray(tau_nom, dtype=np.float64)
@@ -113,6 +121,13 @@ class PriorityQP:
             raise ValueError(f"{m} rows exceed the {self.max_rows} this QP was built for")
         if n_obstacle_rows is None:
             n_obstacle_rows = m
+        if allowance is None:
+            self.buffers.allowance[:m] = 0.0
+        else:
+            allowance = np.asarray(allowance, dtype=np.float64)
+            if allowance.shape != (m,) or not np.all(np.isfinite(allowance)) or np.any(allowance < 0):
+                raise ValueError(f"allowance must be finite, >= 0 and of shape ({m},), got {allowance!r}")
+            self.buffers.allowance[:m] = allowance
         code, iterations, active, slack = _qp.solve_rows(tau_nom, A, b, scale, self._cols, int(n_obstacle_rows),
                                                          int(stride), self.buffers)
         error = bad_input_error(code)
