@@ -78,10 +78,11 @@ class QPBuffers(NamedTuple):
     Attributes:
         plain: the one-level workspace (every row hard), warm-started call to call.
         hier: the prioritised workspace, solved when ``plain`` is infeasible, warm-started from
-            its own previous solve's working set: level 1's rows first, then level 2's (the
-            barrier's), its problem and break points sized to the rows in use at every solve.
-        capacity: int64 (2,) the row capacity of the two levels (0: the workspace has no such
-            level).
+            its own previous solve's working set: level 1's rows first, then level 2's and level
+            3's (the barrier's, loosened by ``allowance`` and as written), its problem and break
+            points sized to the rows in use at every solve.
+        capacity: int64 (2,) the row capacity of level 1 and of the barrier's levels, 2 and 3
+            each (0: the workspace has no such level).
         lo, hi: (n,) the box of ``u``.
         u: (n,) the solution.
         norm: (rows,) each row's norm ``‖A_k s‖`` (0: left out).
