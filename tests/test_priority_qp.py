@@ -94,8 +94,9 @@ def test_runs_of_calls_with_no_safe_torque_give_a_fresh_workspaces_answers():
 
 def test_prioritised_solves_through_level_sizes_that_change_give_a_fresh_workspaces_answers():
     """The prioritised problem is sized to the rows in use at every solve, level by level: through
-    warm-started runs whose level sizes grow, shrink and empty out (a level's placeholder zero row),
-    every status, answer and slack equals a fresh workspace's, and the rows of priority 1 hold."""
+    warm-started runs whose level sizes grow, shrink and empty out (a level's placeholder zero row;
+    level 3 with and without allowances), every status, answer and slack equals a fresh
+    workspace's, and the rows of priority 1 hold."""
     rng = np.random.default_rng(5)
     n, cap1, cap2 = 6, 12, 10
     warm = PriorityQP(n, -np.ones(n), np.ones(n), cap1, cap2)
@@ -107,8 +108,13 @@ def test_prioritised_solves_through_level_sizes_that_change_give_a_fresh_workspa
         b2 = rng.uniform(0.5, 3.0, m2) * np.linalg.norm(A2, axis=1)  # beyond the box: level 2 gives way
         tau_nom = rng.uniform(-2.0, 2.0, n)
         A, b = np.vstack([A2, A1]), np.concatenate([b2, b1])
-        got = warm.solve_scaled(tau_nom, A, b, np.ones(n), n_obstacle_rows=m2)
-        fresh = PriorityQP(n, -np.ones(n), np.ones(n), cap1, cap2).solve_scaled(tau_nom, A, b, np.ones(n), m2)
+        # every other solve, some of the barrier's rows have an allowance: level 3 fills and empties
+        allowance = np.zeros(m1 + m2)
+        if rng.random() < 0.5:
+            allowance[:m2] = rng.uniform(0.0, 2.0, m2) * (rng.random(m2) < 0.5) * np.linalg.norm(A2, axis=1)
+        got = warm.solve_scaled(tau_nom, A, b, np.ones(n), n_obstacle_rows=m2, allowance=allowance)
+        fresh = PriorityQP(n, -np.ones(n), np.ones(n), cap1, cap2).solve_scaled(tau_nom, A, b, np.ones(n), m2,
+                                                                                allowance=allowance)
         assert got.status == fresh.status
         np.testing.assert_allclose(got.tau, fresh.tau, atol=1e-7)
         assert got.slack == pytest.approx(fresh.slack, abs=1e-7)
@@ -138,9 +144,9 @@ def test_conflicting_rows_give_way_by_priority():
 
 
 def test_the_barriers_rows_give_way_within_their_allowance_first():
-    """Two barrier rows in conflict, one with an allowance: the prioritised solve holds the other
-    as written and lets the first give way within its allowance (levels 2 and 3), where least
-    squares over both rows would violate each by half the conflict."""
+    """Two barrier rows in conflict, row 1 with an allowance: the prioritised solve holds row 0
+    as written and lets row 1 give way within its allowance (levels 2 and 3), where least squares
+    over both rows would violate each by half the conflict."""
     qp = PriorityQP(1, -np.ones(1), np.ones(1), 1, 2)
     A = np.array([[1.0], [-1.0]])  # u >= 0.5 (no allowance), u <= 0.2 (allowance 0.4: u <= 0.6)
     b = np.array([0.5, -0.2])
@@ -248,6 +254,10 @@ def test_bad_input_is_refused():
         qp.solve_scaled(np.zeros(2), A, np.array([np.inf, 0.0]), np.ones(2))
     with pytest.raises(ValueError, match="exceed"):
         qp.solve_scaled(np.zeros(2), np.eye(3, 2), np.zeros(3), np.ones(2))
+    with pytest.raises(ValueError, match="1 barrier rows and 1 others exceed the 0 and 2"):
+        qp.solve_scaled(np.zeros(2), A, np.zeros(2), np.ones(2), n_obstacle_rows=1)  # no barrier level
+    with pytest.raises(ValueError, match="stride"):
+        qp.solve_scaled(np.zeros(2), A, np.zeros(2), np.ones(2), stride=0)
     with pytest.raises(ValueError, match="shape"):
         qp.solve_scaled(np.zeros(3), A, np.zeros(2), np.ones(2))
 
@@ -275,7 +285,7 @@ def test_the_joint_speed_bound_holds_under_chattering_torques():
 
 
 def test_only_a_guarded_filters_barrier_rows_give_way_first():
-    """Beside a guard the barrier's rows are priority 2; without one (the C3BF or the HOCBF
+    """Beside a guard the barrier's rows are priorities 2 and 3; without one (the C3BF or the HOCBF
     alone) they are the only rows keeping obstacles off, and share priority 1 with the joint
     limits and the floor (ranked below them, the unguarded C3BF let links reach obstacles)."""
     guarded = SafetyFilter(gym.make("C3BFReach-v0"), "c3bf+hocbf").hook

@@ -24,9 +24,9 @@ So with a guard the joint-speed bound holds whenever some torque within the limi
 together with the floor and the guard, and the barrier's rows give way beyond their allowance only
 when no such torque can hold them within it: a conflict is not spread over rows that have no
 allowance (a point already inside its cone, ``h ≤ 0``) while others have room to spare. Level 3
-is left empty when no row has an allowance. A filter without a guard has no level 2: its barrier's
-rows are the only ones keeping obstacles off, so they share level 1 with the joint limits and the
-floor, and a conflict spreads over all of them (least squares of the normalised violations). Rows
+is a placeholder zero row when no row has an allowance. A filter without a guard has no levels 2
+and 3: its barrier's rows are the only ones keeping obstacles off, so they share level 1 with the
+joint limits and the floor, and a conflict spreads over all of them (least squares of the normalised violations). Rows
 whose scaled coefficients are all (numerically) zero cannot change with the torque: with
 ``b_k ≤ 0`` they hold; with ``b_k > 0`` (a link the joints cannot move, headed for by an
 obstacle) they can never hold, and are left out of the solve with their ``b_k`` counted in
@@ -91,10 +91,9 @@ class QPBuffers(NamedTuple):
         cold: int64 (2,) 1: the next solve of ``plain`` (``cold[0]``) or ``hier`` (``cold[1]``)
             starts from an empty working set (then 0).
         last: int64 (1,) the previous call's status (:data:`SOLVED`, :data:`RELAXED`, ...).
-        allowance: (rows,) how far each of the barrier's rows may give way before it counts as
-            infeasible [the rows' ``b`` units, ≥ 0], set by the caller before each solve (0 for
-            every other row); level 2 of the prioritised solve holds the barrier's rows loosened
-            by it.
+        allowance: (rows,) how far each row may give way before it counts as infeasible [the
+            rows' ``b`` units, ≥ 0], set by the caller before each solve; the prioritised solve
+            reads it for the barrier's rows only, which level 2 holds loosened by it.
     """
 
     plain: DaqpBuffers
@@ -192,13 +191,13 @@ def solve_rows(tau_nom, A, b, scale, cols, n_obstacle_rows, stride, qp):
     3. Otherwise, by priority (:data:`RELAXED`, ``qp.hier``): level 1 holds the rows that are not
        the barrier's (the guard's, the floor's, the joint limits'), level 2 the barrier's (rows
        ``k < n_obstacle_rows`` with ``k % stride == 0``) loosened by ``qp.allowance``, level 3
-       the barrier's as written (none when every allowance is 0); its problem too is sized to
-       the rows in use. Warm-started from its own previous solve's working set, and once more from an empty
-       one if that fails. If it fails too, ``u`` is the box projection of ``u_nom``
+       the barrier's as written (a placeholder zero row when every allowance is 0); its problem
+       too is sized to the rows in use. Warm-started from its own previous solve's working set,
+       and once more from an empty one if that fails. If it fails too, ``u`` is the box projection of ``u_nom``
        (:data:`FAILED`).
 
     Right after a call that was not solved, step 3 comes first: if its answer violates some row
-    by more than :data:`INFEASIBLE_TOL`, no torque satisfies every row (else both levels would
+    by more than :data:`INFEASIBLE_TOL`, no torque satisfies every row (else every level would
     hold up to DAQP's soft tolerance), so that answer stands without step 2. Otherwise step 2
     runs as usual. The answer is the same either way; a run of calls with no safe torque just
     does not prove infeasibility again at every call.

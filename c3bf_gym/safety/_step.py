@@ -66,10 +66,10 @@ def hook_post(b, norm, residual, u, scale, tau_nom, limit, tau):
 @njit(**_opts)
 def low_priority_span(m, n_fixed, guarded):
     """The priority rule of the filter's QP: of ``m`` rows whose last ``n_fixed`` are the floor's
-    and the joint limits', how many leading (obstacle) rows hold the priority-2 rows (every other
-    one, the barrier's; :func:`c3bf_gym.safety._qp.solve_rows`' ``n_obstacle_rows``). Beside a
-    guard (``guarded``) the barrier's rows give way first: all obstacle rows. Without one every
-    row has priority 1: 0."""
+    and the joint limits', how many leading (obstacle) rows hold the rows of priorities 2 and 3
+    (every other one, the barrier's; :func:`c3bf_gym.safety._qp.solve_rows`' ``n_obstacle_rows``).
+    Beside a guard (``guarded``) the barrier's rows give way first: all obstacle rows. Without
+    one every row has priority 1: 0."""
     return m - n_fixed if guarded else 0
 
 

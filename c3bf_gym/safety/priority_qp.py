@@ -53,7 +53,8 @@ class PriorityQP:
         n: number of joints.
         tau_min, tau_max: (n,) box of the scaled torque ``u``.
         level1_rows: the largest number of priority-1 rows (guard, floor, joint limits).
-        level2_rows: the largest number of priority-2 rows (the barrier's).
+        level2_rows: the largest number of the barrier's rows (priorities 2 and 3: the
+            prioritised workspace holds them twice, loosened by their allowance and as written).
 
     Which row is which is given per solve: of the rows, those with index ``k <
     n_obstacle_rows`` and ``k % stride == 0`` are the barrier's (``stride`` 2 when each barrier
@@ -98,15 +99,15 @@ class PriorityQP:
             A, b: (m, n), (m,) the rows, ``m ≤`` the capacity.
             scale: (n,) ``s``.
             n_obstacle_rows, stride: which rows are the barrier's (class docstring); None: all m
-                rows.
+                rows when the QP has barrier rows (``level2_rows > 0``), else none.
             allowance: (m,) how far each of the barrier's rows may give way [``b``'s units, ≥ 0]:
                 when the rows conflict, the barrier's give way first down to ``b − allowance``
                 and only then further (:mod:`c3bf_gym.safety._qp`, levels 2 and 3); entries of
                 other rows are ignored. None: 0 for every row.
 
         Raises:
-            ValueError: wrong shapes, more rows than the capacity, NaN or inf in the input, a
-                negative or non-finite allowance.
+            ValueError: wrong shapes, more rows than the capacity (in all, or of either
+                priority), NaN or inf in the input, a negative or non-finite allowance.
         """
         start = time.perf_counter()
         tau_nom = np.ascontiguousarray(tau_nom, dtype=np.float64)
@@ -120,7 +121,13 @@ class PriorityQP:
         if m > self.max_rows:
             raise ValueError(f"{m} rows exceed the {self.max_rows} this QP was built for")
         if n_obstacle_rows is None:
-            n_obstacle_rows = m
+            n_obstacle_rows = m if self._levels[1] > 0 else 0
+        if int(stride) < 1:
+            raise ValueError(f"stride must be >= 1, got {stride}")
+        barrier = len(range(0, min(int(n_obstacle_rows), m), int(stride)))
+        if barrier > self._levels[1] or m - barrier > self._levels[0]:
+            raise ValueError(f"{barrier} barrier rows and {m - barrier} others exceed the {self._levels[1]} and "
+                             f"{self._levels[0]} this QP was built for")
         if allowance is None:
             self.buffers.allowance[:m] = 0.0
         else:
