@@ -57,19 +57,21 @@ TRAINING_TABLES = (
     ("training_table_ppo.md", "ppo/ppo_residual_10hz_dw10_aw3_set_*", "eval_200.json", "training_curves_ppo.png"),
     # the default filter's SAC recipe trained twice as long, 50k steps (code b762c7e)
     ("training_table_sac_50k.md", "sac_50k/sac_residual_10hz_dw10_aw3_set_*", "eval_200.json", "training_curves_sac_50k.png"),
-    # the sets of the README's RL table: the Panda with its 2 N m/rad posture pull, no filter (code
-    # 51994f2) and the default filter (code b921cc4: the barrier's rows ranked by their allowance), each
-    # run's own evaluation on 200 episodes
+    # the sets of the README's RL table: the Panda with its 2 N m/rad posture pull, no filter and the
+    # default filter, each run's own evaluation on 200 episodes (code 51994f2)
     ("training_table_sets_panda.md", "sets/panda_sac_residual_10hz_dw10_aw3_set_*_random_s*", "final_eval.json",
      "training_curves_sets_panda.png"),
     ("training_table_sets_ur5e.md", "sets/sac_residual_10hz_dw10_aw3_set_*", "final_eval.json",
      "training_curves_sets_ur5e.png"),
-    # the default filter's sets before the barrier's rows were ranked by their allowance (code 51994f2)
-    ("training_table_sets_panda_51994f2.md", "sets_51994f2/panda_sac_residual_10hz_dw10_aw3_set_*", "final_eval.json",
-     "training_curves_sets_panda_51994f2.png"),
-    ("training_table_sets_ur5e_51994f2.md", "sets_51994f2/sac_residual_10hz_dw10_aw3_set_*", "final_eval.json",
-     "training_curves_sets_ur5e_51994f2.png"),
-    # an attempt on the Panda: a dearer correction (--action-weight 10), 2 seeds (code 51994f2)
+    # measured, not adopted: the default filter with the barrier's rows ranked by their allowance (code b921cc4),
+    # both arms' sets, and the Panda's trained for 50k steps on it
+    ("training_table_sets_panda_allowance.md", "sets_allowance/panda_sac_residual_10hz_dw10_aw3_set_*",
+     "final_eval.json", "training_curves_sets_panda_allowance.png"),
+    ("training_table_sets_ur5e_allowance.md", "sets_allowance/sac_residual_10hz_dw10_aw3_set_*", "final_eval.json",
+     "training_curves_sets_ur5e_allowance.png"),
+    ("training_table_sets_panda_allowance_50k.md", "sets_allowance_50k/panda_sac_residual_10hz_dw10_aw3_set_*",
+     "final_eval.json", "training_curves_sets_panda_allowance_50k.png"),
+    # an attempt on the Panda: a dearer correction (--action-weight 10), 2 seeds
     ("training_table_sets_panda_aw10.md", "sets/panda_sac_residual_10hz_dw10_aw10_set_*", "final_eval.json",
      "training_curves_sets_panda_aw10.png"),
     # an attempt on the Panda: training on random_multi (multi in half the episodes), evaluated on random

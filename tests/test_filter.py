@@ -647,16 +647,14 @@ def _unfused_call(hook, tau_nom):
     from c3bf_gym.safety import _step
 
     A, b, *_ = hook.rows()
-    m = len(b)
-    allowance = np.empty(m)
-    _step.allowances(allowance, hook._tally.row_h, hook._tally.gains, m - hook._n_floor_rows - hook._n_joint_rows,
-                     hook._stride)
     tau_nom = np.ascontiguousarray(tau_nom, dtype=np.float64)
-    result = hook.qp.solve_scaled(tau_nom, A, b, hook._scale, hook._low_priority_span(m), hook._stride, allowance)
+    result = hook.qp.solve_scaled(tau_nom, A, b, hook._scale, hook._low_priority_span(len(b)), hook._stride)
     tau = np.empty_like(tau_nom)
-    qp = hook.qp.buffers
+    qp, m = hook.qp.buffers, len(b)
     _step.hook_post(b, qp.norm[:m], qp.residual[:m], result.tau, hook._scale, tau_nom, hook._limit, tau)
-    if result.status == "relaxed" and not _step.beyond_allowance(qp.residual[:m], qp.norm[:m], allowance):
+    n_obstacle = m - hook._n_floor_rows - hook._n_joint_rows
+    if result.status == "relaxed" and not _step.beyond_allowance(qp.residual[:m], qp.norm[:m], hook._tally.row_h,
+                                                                 hook._tally.gains, n_obstacle, hook._stride):
         result = result._replace(feasible=True, status="gain raised")  # the barrier's rows held, gain raised
     return tau, result
 
@@ -750,13 +748,13 @@ def test_the_compiled_policy_step_replays_the_hooks_loop(env_id, scenario, setti
 def test_the_compiled_policy_step_raises_where_the_hooks_loop_raises(make_env):
     """``on_infeasible="raise"``: the compiled policy step and the hooks' Python loop raise at the
     same policy step, with the same message, from the same state (a 10 cm margin in ``multi``,
-    chattering torques: seed 7 finds a step with no safe torque at step 242)."""
+    chattering torques: seed 2 finds a step with no safe torque at step 121)."""
     envs = [SafetyFilter(make_env(scenario="multi"), on_infeasible="raise", margin=0.1) for _ in range(2)]
     envs[1].hook.record_times()
     raised = []
     for env in envs:
-        env.reset(seed=7)
-        rng = np.random.default_rng(7)
+        env.reset(seed=2)
+        rng = np.random.default_rng(2)
         for step in range(250):
             try:
                 env.step(rng.choice([-1.0, 1.0], size=6).astype(np.float32))

@@ -434,21 +434,17 @@ def test_a_subclass_changing_only_gamma_is_honoured_on_the_fused_path(make_env):
 
 
 def test_a_barrier_row_may_give_way_only_within_its_raised_gain():
-    """allowances and beyond_allowance: a barrier row at h > 0 may give way by (γ_max − γ) h (in
-    ḣ's units: violation × row norm); not at h <= 0, and no other row may give way at all."""
-    from c3bf_gym.safety._step import allowances, beyond_allowance
+    """beyond_allowance: a barrier row at h > 0 may give way by (γ_max − γ) h (in ḣ's units:
+    violation × row norm); not at h <= 0, and no other row may give way at all."""
+    from c3bf_gym.safety._step import beyond_allowance
 
     gains = np.array([5.0, 25.0])  # γ, γ_max: allowance 20 h
     norm = np.array([2.0, 2.0, 3.0])  # barrier, guard (stride 2), floor
     row_h = np.array([0.01, 9.9, 9.9])
     held = np.array([0.0, 0.0, 0.0])
-    allowance = np.full(3, np.nan)
-    allowances(allowance, row_h, gains, 2, 2)
-    np.testing.assert_allclose(allowance, [0.2, 0.0, 0.0])  # the guard's and the floor's rows: none
 
     def beyond(residual, h=row_h):
-        allowances(allowance, np.array(h, dtype=float), gains, 2, 2)
-        return beyond_allowance(np.array(residual, dtype=float), norm, allowance)
+        return beyond_allowance(np.array(residual, dtype=float), norm, np.array(h, dtype=float), gains, 2, 2)
 
     assert not beyond(held)
     assert not beyond([-0.099, 0.0, 0.0])  # 0.099 * 2 = 0.198 <= 20 * 0.01 = 0.2

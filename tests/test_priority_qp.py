@@ -94,9 +94,8 @@ def test_runs_of_calls_with_no_safe_torque_give_a_fresh_workspaces_answers():
 
 def test_prioritised_solves_through_level_sizes_that_change_give_a_fresh_workspaces_answers():
     """The prioritised problem is sized to the rows in use at every solve, level by level: through
-    warm-started runs whose level sizes grow, shrink and empty out (a level's placeholder zero row;
-    level 3 with and without allowances), every status, answer and slack equals a fresh
-    workspace's, and the rows of priority 1 hold."""
+    warm-started runs whose level sizes grow, shrink and empty out (a level's placeholder zero row),
+    every status, answer and slack equals a fresh workspace's, and the rows of priority 1 hold."""
     rng = np.random.default_rng(5)
     n, cap1, cap2 = 6, 12, 10
     warm = PriorityQP(n, -np.ones(n), np.ones(n), cap1, cap2)
@@ -108,13 +107,8 @@ def test_prioritised_solves_through_level_sizes_that_change_give_a_fresh_workspa
         b2 = rng.uniform(0.5, 3.0, m2) * np.linalg.norm(A2, axis=1)  # beyond the box: level 2 gives way
         tau_nom = rng.uniform(-2.0, 2.0, n)
         A, b = np.vstack([A2, A1]), np.concatenate([b2, b1])
-        # every other solve, some of the barrier's rows have an allowance: level 3 fills and empties
-        allowance = np.zeros(m1 + m2)
-        if rng.random() < 0.5:
-            allowance[:m2] = rng.uniform(0.0, 2.0, m2) * (rng.random(m2) < 0.5) * np.linalg.norm(A2, axis=1)
-        got = warm.solve_scaled(tau_nom, A, b, np.ones(n), n_obstacle_rows=m2, allowance=allowance)
-        fresh = PriorityQP(n, -np.ones(n), np.ones(n), cap1, cap2).solve_scaled(tau_nom, A, b, np.ones(n), m2,
-                                                                                allowance=allowance)
+        got = warm.solve_scaled(tau_nom, A, b, np.ones(n), n_obstacle_rows=m2)
+        fresh = PriorityQP(n, -np.ones(n), np.ones(n), cap1, cap2).solve_scaled(tau_nom, A, b, np.ones(n), m2)
         assert got.status == fresh.status
         np.testing.assert_allclose(got.tau, fresh.tau, atol=1e-7)
         assert got.slack == pytest.approx(fresh.slack, abs=1e-7)
@@ -141,31 +135,6 @@ def test_conflicting_rows_give_way_by_priority():
     # a priority-1 row beyond the box's reach is met as nearly as the box allows
     beyond = qp.solve_scaled(np.zeros(2), A[1:2], np.array([1.5]), np.ones(2), n_obstacle_rows=0)
     assert beyond.tau[0] == pytest.approx(1.0) and beyond.slack == pytest.approx(0.5)
-
-
-def test_the_barriers_rows_give_way_within_their_allowance_first():
-    """Two barrier rows in conflict, row 1 with an allowance: the prioritised solve holds row 0
-    as written and lets row 1 give way within its allowance (levels 2 and 3), where least squares
-    over both rows would violate each by half the conflict."""
-    qp = PriorityQP(1, -np.ones(1), np.ones(1), 1, 2)
-    A = np.array([[1.0], [-1.0]])  # u >= 0.5 (no allowance), u <= 0.2 (allowance 0.4: u <= 0.6)
-    b = np.array([0.5, -0.2])
-    spread = qp.solve_scaled(np.zeros(1), A, b, np.ones(1), n_obstacle_rows=2)
-    assert spread.status == "relaxed" and spread.tau[0] == pytest.approx(0.35, abs=1e-9)
-    ranked = qp.solve_scaled(np.zeros(1), A, b, np.ones(1), n_obstacle_rows=2, allowance=np.array([0.0, 0.4]))
-    assert ranked.status == "relaxed" and ranked.tau[0] == pytest.approx(0.5, abs=1e-9)
-    np.testing.assert_allclose(qp.buffers.residual[:2], [0.0, -0.3], atol=1e-9)  # within 0.4
-    # an allowance too small for the conflict: the loosened rows give way by least squares, the
-    # rows as written come only after them
-    short = qp.solve_scaled(np.zeros(1), A, b, np.ones(1), n_obstacle_rows=2, allowance=np.array([0.0, 0.1]))
-    assert short.tau[0] == pytest.approx(0.4, abs=1e-9)  # u >= 0.5 and u <= 0.3 split the 0.2
-    # with nothing in conflict the allowance changes nothing
-    free = qp.solve_scaled(np.array([0.3]), A[:1], np.array([0.1]), np.ones(1), n_obstacle_rows=1,
-                           allowance=np.array([0.4]))
-    assert free.feasible and free.tau[0] == pytest.approx(0.3)
-    for bad in (np.array([-0.1, 0.0]), np.array([np.nan, 0.0]), np.zeros(3)):
-        with pytest.raises(ValueError, match="allowance"):
-            qp.solve_scaled(np.zeros(1), A, b, np.ones(1), n_obstacle_rows=2, allowance=bad)
 
 
 def test_stride_marks_every_other_obstacle_row_as_the_barriers():
@@ -285,7 +254,7 @@ def test_the_joint_speed_bound_holds_under_chattering_torques():
 
 
 def test_only_a_guarded_filters_barrier_rows_give_way_first():
-    """Beside a guard the barrier's rows are priorities 2 and 3; without one (the C3BF or the HOCBF
+    """Beside a guard the barrier's rows are priority 2; without one (the C3BF or the HOCBF
     alone) they are the only rows keeping obstacles off, and share priority 1 with the joint
     limits and the floor (ranked below them, the unguarded C3BF let links reach obstacles)."""
     guarded = SafetyFilter(gym.make("C3BFReach-v0"), "c3bf+hocbf").hook

@@ -15,18 +15,12 @@ of the level's violations), and only then minimises the cost. The levels:
 
 0. the torque box: hard;
 1. the joint position and speed limits, the floor and the distance guard;
-2. the barrier's rows beside a guard (the C3BF's in the default filter), each loosened by its
-   allowance (``QPBuffers.allowance``: how far the row may give way and still hold the barrier
-   condition with a raised gain, :func:`c3bf_gym.safety._step.allowances`);
-3. the same rows as written, which give way first.
+2. the barrier's rows beside a guard (the C3BF's in the default filter), which give way first.
 
 So with a guard the joint-speed bound holds whenever some torque within the limits can hold it
-together with the floor and the guard, and the barrier's rows give way beyond their allowance only
-when no such torque can hold them within it: a conflict is not spread over rows that have no
-allowance (a point already inside its cone, ``h ≤ 0``) while others have room to spare. Level 3
-is a placeholder zero row when no row has an allowance. A filter without a guard has no levels 2
-and 3: its barrier's rows are the only ones keeping obstacles off, so they share level 1 with the
-joint limits and the floor, and a conflict spreads over all of them (least squares of the normalised violations). Rows
+together with the floor and the guard. A filter without a guard has no level 2: its barrier's
+rows are the only ones keeping obstacles off, so they share level 1 with the joint limits and the
+floor, and a conflict spreads over all of them (least squares of the normalised violations). Rows
 whose scaled coefficients are all (numerically) zero cannot change with the torque: with
 ``b_k ≤ 0`` they hold; with ``b_k > 0`` (a link the joints cannot move, headed for by an
 obstacle) they can never hold, and are left out of the solve with their ``b_k`` counted in
@@ -78,11 +72,10 @@ class QPBuffers(NamedTuple):
     Attributes:
         plain: the one-level workspace (every row hard), warm-started call to call.
         hier: the prioritised workspace, solved when ``plain`` is infeasible, warm-started from
-            its own previous solve's working set: level 1's rows first, then level 2's and level
-            3's (the barrier's, loosened by ``allowance`` and as written), its problem and break
-            points sized to the rows in use at every solve.
-        capacity: int64 (2,) the row capacity of level 1 and of the barrier's levels, 2 and 3
-            each (0: the workspace has no such level).
+            its own previous solve's working set: level 1's rows first, then level 2's (the
+            barrier's), its problem and break points sized to the rows in use at every solve.
+        capacity: int64 (2,) the row capacity of the two levels (0: the workspace has no such
+            level).
         lo, hi: (n,) the box of ``u``.
         u: (n,) the solution.
         norm: (rows,) each row's norm ``‖A_k s‖`` (0: left out).
@@ -91,9 +84,6 @@ class QPBuffers(NamedTuple):
         cold: int64 (2,) 1: the next solve of ``plain`` (``cold[0]``) or ``hier`` (``cold[1]``)
             starts from an empty working set (then 0).
         last: int64 (1,) the previous call's status (:data:`SOLVED`, :data:`RELAXED`, ...).
-        allowance: (rows,) how far each row may give way before it counts as infeasible [the
-            rows' ``b`` units, ≥ 0], set by the caller before each solve; the prioritised solve
-            reads it for the barrier's rows only, which level 2 holds loosened by it.
     """
 
     plain: DaqpBuffers
@@ -106,7 +96,6 @@ class QPBuffers(NamedTuple):
     residual: np.ndarray
     cold: np.ndarray
     last: np.ndarray
-    allowance: np.ndarray
 
 
 @njit(**STEP_KERNEL_OPTIONS)
@@ -189,15 +178,14 @@ def solve_rows(tau_nom, A, b, scale, cols, n_obstacle_rows, stride, qp):
        them), warm-started from its previous solve's working set. If DAQP finds the optimum and
        every row holds within :data:`ACTIVE_TOL`, that is the answer (:data:`SOLVED`).
     3. Otherwise, by priority (:data:`RELAXED`, ``qp.hier``): level 1 holds the rows that are not
-       the barrier's (the guard's, the floor's, the joint limits'), level 2 the barrier's (rows
-       ``k < n_obstacle_rows`` with ``k % stride == 0``) loosened by ``qp.allowance``, level 3
-       the barrier's as written (a placeholder zero row when every allowance is 0); its problem
-       too is sized to the rows in use. Warm-started from its own previous solve's working set,
-       and once more from an empty one if that fails. If it fails too, ``u`` is the box projection of ``u_nom``
+       the barrier's (the guard's, the floor's, the joint limits'), level 2 the barrier's: rows
+       ``k < n_obstacle_rows`` with ``k % stride == 0``; its problem too is sized to the rows in
+       use. Warm-started from its own previous solve's working set, and once more from an empty
+       one if that fails. If it fails too, ``u`` is the box projection of ``u_nom``
        (:data:`FAILED`).
 
     Right after a call that was not solved, step 3 comes first: if its answer violates some row
-    by more than :data:`INFEASIBLE_TOL`, no torque satisfies every row (else every level would
+    by more than :data:`INFEASIBLE_TOL`, no torque satisfies every row (else both levels would
     hold up to DAQP's soft tolerance), so that answer stands without step 2. Otherwise step 2
     runs as usual. The answer is the same either way; a run of calls with no safe torque just
     does not prove infeasibility again at every call.
@@ -258,7 +246,7 @@ def solve_rows(tau_nom, A, b, scale, cols, n_obstacle_rows, stride, qp):
 
 @njit(**STEP_KERNEL_OPTIONS)
 def _barrier_row(k, n_obstacle_rows, stride):
-    """Whether row ``k`` is the barrier's, of priorities 2 and 3 (:func:`solve_rows`, step 3)."""
+    """Whether row ``k`` is the barrier's, of priority 2 (:func:`solve_rows`, step 3)."""
     return k < n_obstacle_rows and k % stride == 0
 
 
@@ -270,48 +258,39 @@ def _solve_by_priority(qp, m, n_obstacle_rows, stride):
     plain, hier = qp.plain, qp.hier
     n = plain.x.shape[0]
     # The problem is sized to the rows in use, level by level (DAQP reads its break_points, hier.levels,
-    # at every solve): level 1's rows first, then level 2's (the barrier's, loosened by their
-    # allowance), then level 3's (the barrier's as written, only when some allowance is not 0). A level
-    # the workspace has keeps at least one row, a zero one (which DAQP ignores) when it has none.
+    # at every solve): level 1's rows first, then level 2's. A level the workspace has keeps at least
+    # one row, a zero one (which DAQP ignores) when it has none this call.
     count1 = count2 = 0
-    loosened = False
     for k in range(m):
         if qp.norm[k] != 0.0:
             if _barrier_row(k, n_obstacle_rows, stride):
                 count2 += 1
-                loosened = loosened or qp.allowance[k] > 0.0
             else:
                 count1 += 1
-    count3 = count2 if loosened else 0
     size1 = max(count1, 1) if qp.capacity[0] > 0 else 0
     size2 = max(count2, 1) if qp.capacity[1] > 0 else 0
-    size3 = max(count3, 1) if qp.capacity[1] > 0 else 0
     _clear(hier, count1, size1)
     _clear(hier, size1 + count2, size1 + size2)
-    _clear(hier, size1 + size2 + count3, size1 + size2 + size3)
     level, end = 1, n
-    for size in (size1, size2, size3):
+    for size in (size1, size2):
         if size > 0:
             end += size
             hier.levels[level] = end
             level += 1
     hier.problem[PROBLEM_M] = end
-    i1, i2, i3 = 0, size1, size1 + size2
+    i1, i2 = 0, size1
     for k in range(m):
         if qp.norm[k] == 0.0:
             continue
-        lower = plain.lower[n + k]
         if _barrier_row(k, n_obstacle_rows, stride):
             i = i2
             i2 += 1
-            if loosened:
-                _copy_row(plain, hier, k, i3, lower)
-                i3 += 1
-            lower -= qp.allowance[k] / qp.norm[k]
         else:
             i = i1
             i1 += 1
-        _copy_row(plain, hier, k, i, lower)
+        for j in range(n):
+            hier.A[i, j] = plain.A[k, j]
+        hier.lower[n + i] = plain.lower[n + k]
     for j in range(n):
         hier.f[j] = plain.f[j]
     flag, iterations = 0, 0
@@ -327,15 +306,6 @@ def _solve_by_priority(qp, m, n_obstacle_rows, stride):
         for j in range(n):
             qp.u[j] = min(max(hier.x[j], qp.lo[j]), qp.hi[j])
     return flag, iterations
-
-
-@njit(**STEP_KERNEL_OPTIONS)
-def _copy_row(plain, hier, k, i, lower):
-    """Row ``k`` of ``plain`` (normalised) into row ``i`` of ``hier``, with the lower bound ``lower``."""
-    n = plain.x.shape[0]
-    for j in range(n):
-        hier.A[i, j] = plain.A[k, j]
-    hier.lower[n + i] = lower
 
 
 @njit(**STEP_KERNEL_OPTIONS)

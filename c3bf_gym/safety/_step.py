@@ -66,10 +66,10 @@ def hook_post(b, norm, residual, u, scale, tau_nom, limit, tau):
 @njit(**_opts)
 def low_priority_span(m, n_fixed, guarded):
     """The priority rule of the filter's QP: of ``m`` rows whose last ``n_fixed`` are the floor's
-    and the joint limits', how many leading (obstacle) rows hold the rows of priorities 2 and 3
-    (every other one, the barrier's; :func:`c3bf_gym.safety._qp.solve_rows`' ``n_obstacle_rows``).
-    Beside a guard (``guarded``) the barrier's rows give way first: all obstacle rows. Without
-    one every row has priority 1: 0."""
+    and the joint limits', how many leading (obstacle) rows hold the priority-2 rows (every other
+    one, the barrier's; :func:`c3bf_gym.safety._qp.solve_rows`' ``n_obstacle_rows``). Beside a
+    guard (``guarded``) the barrier's rows give way first: all obstacle rows. Without one every
+    row has priority 1: 0."""
     return m - n_fixed if guarded else 0
 
 
@@ -150,40 +150,28 @@ TALLY_START.flags.writeable = False
 
 
 @njit(**_opts)
-def allowances(allowance, row_h, gains, n_obstacle, stride):
-    """Each row's allowance into ``allowance`` (m,): how far it may give way [its ``b`` units]
-    before it counts as infeasible (:func:`beyond_allowance`), which the QP's level 2 loosens the
-    barrier's rows by (:mod:`c3bf_gym.safety._qp`).
-
-    A barrier row (``k < n_obstacle`` and ``k % stride == 0``; its value ``h`` in ``row_h``) is
-    the condition ``ḣ ≥ −γ h`` (:data:`G_BARRIER`). Where ``h > 0``, giving way by ``δ`` (in
-    ``ḣ``'s units) is that condition with the gain ``γ + δ/h``, which keeps ``h ≥ 0`` invariant as
-    any positive gain does; the filter accepts gains up to ``γ_max`` =
-    :data:`~c3bf_gym.safety.controller.RAISED_GAIN_STEP` / Δt (:data:`G_LIMIT`), under which one
-    physics step can at most halve ``h`` (the discrete-time barrier condition
-    ``h(t + Δt) ≥ (1 − γ' Δt) h(t)``, ``γ' Δt ≤ 1/2``). So a barrier row's allowance is
-    ``(γ_max − γ) h`` for ``h > 0`` and 0 for ``h ≤ 0``; every other row (the guard's, the
-    floor's, the joint limits', an unmovable one) has none."""
-    raise_by = max(gains[G_LIMIT] - gains[G_BARRIER], 0.0)
-    for k in range(allowance.shape[0]):
-        barrier = k < n_obstacle and k % stride == 0
-        allowance[k] = raise_by * max(row_h[k], 0.0) if barrier else 0.0
-
-
-@njit(**_opts)
-def beyond_allowance(residual, norm, allowance):
+def beyond_allowance(residual, norm, row_h, gains, n_obstacle, stride):
     """Whether some row of a call that gave way (``residual`` (m,), ``norm`` (m,): the QP's
-    normalised residuals and row norms) gave way beyond its ``allowance`` (m,) (:func:`allowances`:
-    a barrier row's ``(γ_max − γ) h`` at ``h > 0``, else 0), by more than
-    :data:`~c3bf_gym.safety._qp.ACTIVE_TOL` (row-normalised). A row the torque cannot change
-    (``norm`` 0) that gave way always has."""
+    normalised residuals and row norms) gave way beyond its allowance.
+
+    A barrier row (``k < n_obstacle`` and ``k % stride == 0``) is the condition
+    ``ḣ ≥ −γ h`` (:data:`G_BARRIER`). Where ``h > 0``, giving way by ``δ`` (in ``ḣ``'s units,
+    ``−residual·norm``) is that condition with the gain ``γ + δ/h``, which keeps ``h ≥ 0``
+    invariant as any positive gain does; the filter accepts gains up to
+    ``γ_max`` = :data:`~c3bf_gym.safety.controller.RAISED_GAIN_STEP` / Δt (:data:`G_LIMIT`),
+    under which one physics step can at most halve ``h`` (the discrete-time barrier condition
+    ``h(t + Δt) ≥ (1 − γ' Δt) h(t)``, ``γ' Δt ≤ 1/2``). So a barrier
+    row's allowance is ``(γ_max − γ) h`` for ``h > 0`` and none for ``h ≤ 0``; every other row
+    (the guard's, the floor's, the joint limits', an unmovable one) has none. Both are taken
+    beyond :data:`~c3bf_gym.safety._qp.ACTIVE_TOL` (row-normalised)."""
+    raise_by = max(gains[G_LIMIT] - gains[G_BARRIER], 0.0)
     for k in range(residual.shape[0]):
         violation = -residual[k]
         if violation <= ACTIVE_TOL:
             continue
-        if norm[k] == 0.0:
+        if norm[k] == 0.0 or k >= n_obstacle or k % stride != 0:
             return True
-        if violation * norm[k] > allowance[k] + ACTIVE_TOL * norm[k]:
+        if violation * norm[k] > raise_by * max(row_h[k], 0.0) + ACTIVE_TOL * norm[k]:
             return True
     return False
 
@@ -264,7 +252,8 @@ def record(tally, call, tau_nom, tau, qp, layout, intervention_tol):
         values[T_SLACK] = max(values[T_SLACK], slack)
         violations_by_kind(qp.residual[:m], qp.norm[:m], n_obstacle, stride, n_floor, ACTIVE_TOL,
                            values[T_VIOLATION:])
-        if status == RELAXED and not beyond_allowance(qp.residual[:m], qp.norm[:m], qp.allowance[:m]):
+        if status == RELAXED and not beyond_allowance(qp.residual[:m], qp.norm[:m], tally.row_h, tally.gains,
+                                                      n_obstacle, stride):
             outcome = GAIN_RAISED
             values[T_GAIN_RAISED_STEPS] += 1.0
         else:
@@ -324,7 +313,6 @@ def filter_substep(stage, tau_nom, tau, buffers):
     n_fixed = n_floor + (4 * params.dofs.shape[0] if params.joint_rows else 0)
     guarded = params.guard.present
     stride = 2 if guarded else 1  # obstacle rows: barrier, guard, barrier, guard, ... beside a guard
-    allowances(qp.allowance[:m], tally.row_h, tally.gains, m - n_fixed, stride)
     status, iterations, n_active, slack = solve_rows(tau_nom, A[:m], b[:m], scale, params.dofs,
                                                      low_priority_span(m, n_fixed, guarded), stride, qp)
     if status < 0:

@@ -80,9 +80,9 @@ MAX_GAIN_STEP = 0.05
 #: halve ``h``, and never takes it below zero.
 RAISED_GAIN_STEP = 0.5
 
-#: The kinds of safety rows, in :attr:`StepSafety.violation`: the barrier's (priorities 2 and 3:
-#: they give way first, within their allowance before beyond it), the guard's, the floor's and the
-#: joint limits' (priority 1), and rows no torque can change that an obstacle violates ("unmovable").
+#: The kinds of safety rows, in :attr:`StepSafety.violation`: the barrier's (priority 2: they give
+#: way first), the guard's, the floor's and the joint limits' (priority 1), and rows no torque can
+#: change that an obstacle violates ("unmovable").
 ROW_KINDS = ("barrier", "guard", "floor", "joint_limits", "unmovable")
 
 _perf_counter = time.perf_counter
@@ -196,7 +196,7 @@ def _checked_arguments(model: mujoco.MjModel, robot: RobotDescription, obstacles
 
 def _new_tally(barrier, n: int, max_rows: int, timestep: float) -> _step.Tally:
     """The report's running values, in compiled code (:func:`_step.record`): with the barrier's
-    gain and the largest it may rise to (:func:`_step.allowances`; a barrier without a gain
+    gain and the largest it may rise to (:func:`_step.beyond_allowance`; a barrier without a gain
     gets no allowance)."""
     gain = getattr(barrier, "gamma", None)
     limit_gain = RAISED_GAIN_STEP / timestep
@@ -297,7 +297,7 @@ class SafetyController:
         self.floor = Floor.of_model(model, self.arm, self.margin, config.floor_gamma)
         self._n_floor_rows = self.floor.n_rows
         self._stride = 1 if guard is None else 2  # obstacle rows: barrier, guard, barrier, guard, ...
-        # priorities 2 and 3 (giving way first) only for the barrier's rows beside a guard: without one, the
+        # priority 2 (giving way first) only for the barrier's rows beside a guard: without one, the
         # barrier's rows are the only ones keeping obstacles off, and they share priority 1 with the
         # joint limits and the floor
         barrier_rows = n_obstacles * points_count if guard is not None else 0
@@ -653,8 +653,6 @@ class SafetyController:
             A, b, min_h, inside, n_sensed = self.rows()
             m = len(b)
             qp = self.qp.buffers
-            _step.allowances(qp.allowance[:m], self._tally.row_h, self._tally.gains,
-                             m - self._n_floor_rows - self._n_joint_rows, self._stride)
             status, iterations, active, slack = _qp.solve_rows(
                 tau_nom, A, b, self._scale, self._dofs, self._low_priority_span(m), self._stride, qp)
             if status >= 0:

@@ -53,8 +53,7 @@ class PriorityQP:
         n: number of joints.
         tau_min, tau_max: (n,) box of the scaled torque ``u``.
         level1_rows: the largest number of priority-1 rows (guard, floor, joint limits).
-        level2_rows: the largest number of the barrier's rows (priorities 2 and 3: the
-            prioritised workspace holds them twice, loosened by their allowance and as written).
+        level2_rows: the largest number of priority-2 rows (the barrier's).
 
     Which row is which is given per solve: of the rows, those with index ``k <
     n_obstacle_rows`` and ``k % stride == 0`` are the barrier's (``stride`` 2 when each barrier
@@ -68,16 +67,14 @@ class PriorityQP:
         self.tau_max = np.array(tau_max, dtype=np.float64)
         self._levels = (int(level1_rows), int(level2_rows))
         rows = sum(self._levels)
-        # the prioritised workspace holds the barrier's rows twice: loosened by their allowance (level 2)
-        # and as written (level 3)
-        points = [n] + [n + level1_rows] * (level1_rows > 0) + [n + rows, n + rows + level2_rows] * (level2_rows > 0)
+        points = [n] + [n + level1_rows] * (level1_rows > 0) + [n + rows] * (level2_rows > 0)
         self._plain = _daqp.DaqpWorkspace(n, rows, self.tau_min, self.tau_max)
-        self._hier = _daqp.DaqpWorkspace(n, rows + level2_rows, self.tau_min, self.tau_max, break_points=points)
+        self._hier = _daqp.DaqpWorkspace(n, rows, self.tau_min, self.tau_max, break_points=points)
         self.max_rows = rows
         self.buffers = _qp.QPBuffers(self._plain.buffers, self._hier.buffers,
                                      np.array([level1_rows, level2_rows], np.int64), self.tau_min, self.tau_max,
                                      np.zeros(n), np.zeros(max(rows, 1)), np.zeros(max(rows, 1)),
-                                     np.ones(2, np.int64), np.zeros(1, np.int64), np.zeros(max(rows, 1)))
+                                     np.ones(2, np.int64), np.zeros(1, np.int64))
 
     def reset(self) -> None:
         """Forget the warm start: the next solve starts from an empty working set, so a sequence
@@ -90,8 +87,7 @@ class PriorityQP:
         return PriorityQP, (self.n, self.tau_min, self.tau_max, *self._levels)
 
     def solve_scaled(self, tau_nom: np.ndarray, A: np.ndarray, b: np.ndarray, scale: np.ndarray,
-                     n_obstacle_rows: int | None = None, stride: int = 1,
-                     allowance: np.ndarray | None = None) -> QPResult:
+                     n_obstacle_rows: int | None = None, stride: int = 1) -> QPResult:
         """Solve for ``u`` with rows ``(A s) u ≥ b``; ``tau_nom`` in torque units.
 
         Args:
@@ -100,14 +96,10 @@ class PriorityQP:
             scale: (n,) ``s``.
             n_obstacle_rows, stride: which rows are the barrier's (class docstring); None: all m
                 rows when the QP has barrier rows (``level2_rows > 0``), else none.
-            allowance: (m,) how far each of the barrier's rows may give way [``b``'s units, ≥ 0]:
-                when the rows conflict, the barrier's give way first down to ``b − allowance``
-                and only then further (:mod:`c3bf_gym.safety._qp`, levels 2 and 3); entries of
-                other rows are ignored. None: 0 for every row.
 
         Raises:
             ValueError: wrong shapes, more rows than the capacity (in all, or of either
-                priority), NaN or inf in the input, a negative or non-finite allowance.
+                priority), a stride below 1, NaN or inf in the input.
         """
         start = time.perf_counter()
         tau_nom = np.ascontiguousarray(tau_nom, dtype=np.float64)
@@ -128,13 +120,6 @@ class PriorityQP:
         if barrier > self._levels[1] or m - barrier > self._levels[0]:
             raise ValueError(f"{barrier} barrier rows and {m - barrier} others exceed the {self._levels[1]} and "
                              f"{self._levels[0]} this QP was built for")
-        if allowance is None:
-            self.buffers.allowance[:m] = 0.0
-        else:
-            allowance = np.asarray(allowance, dtype=np.float64)
-            if allowance.shape != (m,) or not np.all(np.isfinite(allowance)) or np.any(allowance < 0):
-                raise ValueError(f"allowance must be finite, >= 0 and of shape ({m},), got {allowance!r}")
-            self.buffers.allowance[:m] = allowance
         code, iterations, active, slack = _qp.solve_rows(tau_nom, A, b, scale, self._cols, int(n_obstacle_rows),
                                                          int(stride), self.buffers)
         error = bad_input_error(code)
