@@ -374,6 +374,7 @@ def test_floor_rows_are_the_second_order_barrier_on_each_end():
     "args, match",
     [
         (([0, 1], [0.1], 5.0), "one entry each per row; got 2 and 1"),
+        (([[0, 1]], [[0.1, 0.2]], 5.0), r"must be 1-D.*\(1, 2\)"),
         (([-1], [0.1], 5.0), "ends must be indices >= 0"),
         (([0], [np.nan], 5.0), "min_height finite"),
         (([0], [0.1], 0.0), r"gamma.*\(0, inf\)"),

@@ -652,7 +652,7 @@ def _unfused_call(hook, tau_nom):
     tau = np.empty_like(tau_nom)
     qp, m = hook.qp.buffers, len(b)
     _step.hook_post(b, qp.norm[:m], qp.residual[:m], result.tau, hook._scale, tau_nom, hook._limit, tau)
-    n_obstacle = m - hook._n_floor_rows - hook._n_joint_rows
+    n_obstacle = m - hook.floor.n_rows - hook._n_joint_rows
     if result.status == "relaxed" and not _step.beyond_allowance(qp.residual[:m], qp.norm[:m], hook._tally.row_h,
                                                                  hook._tally.gains, n_obstacle, hook._stride):
         result = result._replace(feasible=True, status="gain raised")  # the barrier's rows held, gain raised

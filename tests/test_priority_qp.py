@@ -262,7 +262,7 @@ def test_only_a_guarded_filters_barrier_rows_give_way_first():
     assert guarded.qp._levels[1] == capacity and guarded._low_priority_span(2 * capacity + 36) == 2 * capacity
     for name in ("c3bf", "hocbf"):
         alone = SafetyFilter(gym.make("C3BFReach-v0"), name).hook
-        assert alone.qp._levels == (capacity + alone._n_floor_rows + 24, 0) and alone._low_priority_span(50) == 0
+        assert alone.qp._levels == (capacity + alone.floor.n_rows + 24, 0) and alone._low_priority_span(50) == 0
 
 
 @pytest.mark.parametrize("name", ["c3bf+hocbf", "c3bf"])
@@ -273,7 +273,7 @@ def test_violations_are_folded_by_the_kind_row_kinds_names(name):
     counting as "unmovable"; and it keeps a larger value the report already holds."""
     hook = SafetyFilter(gym.make("C3BFReach-v0"), name).hook
     rng = np.random.default_rng(3)
-    m = 3 * hook._per_obstacle + hook._n_floor_rows + hook._n_joint_rows
+    m = 3 * hook._per_obstacle + hook.floor.n_rows + hook._n_joint_rows
     residual = rng.normal(scale=0.1, size=m)
     residual[rng.choice(m, 5, replace=False)] = -5e-7  # violated by less than the tolerance: held
     norm = rng.uniform(0.5, 2.0, m)

@@ -295,13 +295,12 @@ class SafetyController:
         self._n_joint_rows = 0 if joint_limits is None else 4 * n
         #: the floor's rows (:class:`~c3bf_gym.safety.barriers.Floor`; none without a floor plane)
         self.floor = Floor.of_model(model, self.arm, self.margin, config.floor_gamma)
-        self._n_floor_rows = self.floor.n_rows
         self._stride = 1 if guard is None else 2  # obstacle rows: barrier, guard, barrier, guard, ...
         # priority 2 (giving way first) only for the barrier's rows beside a guard: without one, the
         # barrier's rows are the only ones keeping obstacles off, and they share priority 1 with the
         # joint limits and the floor
         barrier_rows = n_obstacles * points_count if guard is not None else 0
-        max_rows = n_obstacles * self._per_obstacle + self._n_floor_rows + self._n_joint_rows
+        max_rows = n_obstacles * self._per_obstacle + self.floor.n_rows + self._n_joint_rows
         # The QP runs in normalised torque u = τ / s with s = τ_max ("limits": W = diag(1/τ_max²)
         # becomes the identity, box ±1) or s = 1 ("identity"): a well-conditioned problem either way.
         self._scale = limit.copy() if weight == "limits" else np.ones(n)
@@ -547,7 +546,7 @@ class SafetyController:
                     min_h = float(terms.h.min())
                     inside = bool(terms.inside.any())
             m = len(barriers) * len(p)
-        if self._n_floor_rows:
+        if self.floor.n_rows:
             arm.end_dynamics()  # refreshes the packed capsule ends (arm._ends) if stale
             m += len(self.floor.rows(arm._ends, Rows(self._A[m:], self._b[m:])).b)
         _rows.unmodelled_margin(self._A[:m], self._b[:m], self._unmodelled)
@@ -676,7 +675,7 @@ class SafetyController:
         does the same in compiled code). Returns the status as the fused kernel does: a call
         that held every row with the barrier's gain raised as solved."""
         call = _step.CallSummary(status, m, min_h, inside, n_sensed, iterations, active, slack, residual, correction)
-        layout = _step.RowLayout(m - self._n_floor_rows - self._n_joint_rows, self._stride, self._n_floor_rows)
+        layout = _step.RowLayout(m - self.floor.n_rows - self._n_joint_rows, self._stride, self.floor.n_rows)
         outcome = _step.record(self._tally, call, tau_nom, tau, self.qp.buffers, layout, self.intervention_tol)
         return _qp.SOLVED if outcome == _step.GAIN_RAISED else outcome
 
@@ -727,13 +726,13 @@ class SafetyController:
 
     def _low_priority_span(self, m: int) -> int:
         """:func:`~c3bf_gym.safety._step.low_priority_span` of :meth:`rows`' ``m`` rows."""
-        return _step.low_priority_span(m, self._n_floor_rows + self._n_joint_rows, self.guard is not None)
+        return _step.low_priority_span(m, self.floor.n_rows + self._n_joint_rows, self.guard is not None)
 
     def row_kinds(self, m: int) -> list[str]:
         """The kind (:data:`ROW_KINDS`, "unmovable" aside) of each of :meth:`rows`' ``m`` rows."""
-        n_obstacle = m - self._n_floor_rows - self._n_joint_rows
+        n_obstacle = m - self.floor.n_rows - self._n_joint_rows
         kinds = ["barrier" if k % self._stride == 0 else "guard" for k in range(n_obstacle)]
-        return kinds + ["floor"] * self._n_floor_rows + ["joint_limits"] * self._n_joint_rows
+        return kinds + ["floor"] * self.floor.n_rows + ["joint_limits"] * self._n_joint_rows
 
     @staticmethod
     def _violation_text(violation: dict[str, float]) -> str:

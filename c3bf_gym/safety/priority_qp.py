@@ -98,8 +98,8 @@ class PriorityQP:
                 rows when the QP has barrier rows (``level2_rows > 0``), else none.
 
         Raises:
-            ValueError: wrong shapes, more rows than the capacity (in all, or of either
-                priority), a stride below 1, NaN or inf in the input.
+            ValueError: wrong shapes, more rows of either priority than the capacity, a stride
+                below 1, NaN or inf in the input.
         """
         start = time.perf_counter()
         tau_nom = np.ascontiguousarray(tau_nom, dtype=np.float64)
@@ -110,8 +110,6 @@ class PriorityQP:
         if tau_nom.shape != (self.n,) or scale.shape != (self.n,) or A.shape != (m, self.n):
             raise ValueError(f"expected tau_nom and scale of shape ({self.n},) and A of shape (m, {self.n}) with "
                              f"b (m,); got {tau_nom.shape}, {scale.shape}, {A.shape}, {b.shape}")
-        if m > self.max_rows:
-            raise ValueError(f"{m} rows exceed the {self.max_rows} this QP was built for")
         if n_obstacle_rows is None:
             n_obstacle_rows = m if self._levels[1] > 0 else 0
         if int(stride) < 1:

@@ -38,8 +38,11 @@ class Floor:
     """
 
     def __init__(self, ends: ArrayLike, min_height: ArrayLike, gamma: float) -> None:
-        ends = np.array(ends, dtype=np.int64).reshape(-1) if np.size(ends) else np.zeros(0, dtype=np.int64)
-        min_height = np.array(min_height, dtype=np.float64).reshape(-1) if np.size(min_height) else np.zeros(0)
+        ends = np.array(ends, dtype=np.int64)
+        min_height = np.array(min_height, dtype=np.float64)
+        if ends.ndim != 1 or min_height.ndim != 1:
+            raise ValueError(f"ends and min_height must be 1-D, one entry per row; got shapes {ends.shape} and "
+                             f"{min_height.shape}")  # fmt: skip
         if ends.shape != min_height.shape:
             raise ValueError(f"ends and min_height must have one entry each per row; got {ends.shape[0]} and "
                              f"{min_height.shape[0]}")  # fmt: skip
