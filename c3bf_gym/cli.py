@@ -70,8 +70,8 @@ def add_robot(parser: argparse.ArgumentParser, default: str) -> None:
 def _add_train(sub: argparse._SubParsersAction) -> None:
     from c3bf_gym.scenarios import SCENARIOS
     from c3bf_gym.safety import GUARD_GAMMA
-    from c3bf_gym.training import (ACTIONS, ALGORITHMS, ENGINE_DEFAULTS, ENGINES, OBSTACLE_ENCODERS, POLICY_RATES,
-                                   TRAIN_FILTERS, TrainConfig)  # fmt: skip
+    from c3bf_gym.training import (ACTIONS, ALGORITHMS, DEFAULT_TIMESTEPS, ENGINE_DEFAULTS, ENGINES, OBSTACLE_ENCODERS,
+                                   POLICY_RATES, TRAIN_FILTERS, TrainConfig)  # fmt: skip
 
     d = TrainConfig()  # the defaults live there
 
@@ -102,7 +102,8 @@ def _add_train(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--scenario", choices=list(SCENARIOS), default=d.scenario, help="obstacle scenario")
     p.add_argument("--eval-scenario", choices=list(SCENARIOS), default=d.eval_scenario,
                    help="scenario of the periodic and final evaluations (default: the training scenario)")
-    p.add_argument("--timesteps", type=_positive_int, default=d.timesteps, help="policy steps to train")
+    p.add_argument("--timesteps", type=_positive_int, default=None,
+                   help=f"policy steps to train (default by algorithm: {', '.join(f'{a}: {n:,}' for a, n in DEFAULT_TIMESTEPS.items())})")
     p.add_argument("--seed", type=_nonnegative_int, default=d.seed, help="seed of the agent and the training envs")
     p.add_argument("--n-envs", type=_positive_int, default=d.n_envs,
                    help="parallel environments (SB3: SubprocVecEnv when > 1; RLlib: env runners)")  # fmt: skip

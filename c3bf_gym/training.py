@@ -77,6 +77,10 @@ POLICY_RATES = (10, 20, 25, 50, 100)
 DEFAULT_TRAIN_HZ = 10
 
 ALGORITHMS = ("sac", "ppo")
+#: Each algorithm's training budget in env (policy) steps, when a run names none: SAC learns
+#: from every sample through its replay buffer, PPO's samples are cheap and it needs more of
+#: them. Why these (measured): the docs' RL results page, "PPO".
+DEFAULT_TIMESTEPS = {"sac": 25_000, "ppo": 100_000}
 #: Training engines: Stable-Baselines3 on one machine, or Ray RLlib (PPO on its new API stack,
 #: env runners on a local Ray instance or a cluster; :mod:`c3bf_gym.rllib`, the ``rllib`` extra).
 ENGINES = ("sb3", "rllib")
@@ -195,7 +199,12 @@ class TrainConfig:
     command line takes them from here): SAC, residual Cartesian actions at 10 Hz, the reward's
     distance term (``distance_weight=10``) and action penalty (``action_weight=3``), the set
     encoder for the obstacle slots, 25k steps. Each was chosen by measured runs (the docs' RL
-    results page, ``docs/results/rl.md``); the PPO defaults share them untested.
+    results page, ``docs/results/rl.md``). PPO shares the actions, reward and encoder, with
+    RL-Zoo's MuJoCo settings (:data:`HYPERPARAMS`) and its own budget.
+
+    ``timesteps`` None (the default) is the algorithm's budget, :data:`DEFAULT_TIMESTEPS`
+    (SAC 25k, PPO 100k); it is resolved when the config is made, so ``config.timesteps`` and the
+    run's ``config.json`` hold the number.
 
     ``eval_scenario`` is the scenario of the periodic and the final evaluations (None: the training
     scenario): a run trained on a weighted mixture such as ``random_multi`` is evaluated on the
@@ -213,7 +222,7 @@ class TrainConfig:
     guard_gamma: float | None = None
     scenario: str = "random"
     eval_scenario: str | None = None
-    timesteps: int = 25_000
+    timesteps: int | None = None
     seed: int = 0
     n_envs: int = 1
     eval_freq: int = 10_000
@@ -228,6 +237,10 @@ class TrainConfig:
     action_weight: float = 3.0
     obstacle_encoder: Literal["flat", "set"] = "set"
     hyperparams: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if self.timesteps is None and self.algo in DEFAULT_TIMESTEPS:  # an unknown algo: validate() names it
+            self.timesteps = DEFAULT_TIMESTEPS[self.algo]
 
     def validate(self) -> None:
         from c3bf_gym.scenarios import get_scenario

@@ -237,7 +237,8 @@ def test_defaults_are_the_readme_recipe_on_every_entry_point(monkeypatch, tmp_pa
     import c3bf_gym.training
 
     assert TrainConfig().name == "sac_residual_10hz_dw10_aw3_set_c3bf+hocbf_random_s0"
-    assert TrainConfig().timesteps == 25_000
+    assert TrainConfig().timesteps == 25_000 and TrainConfig(algo="ppo").timesteps == 100_000  # each its budget
+    assert TrainConfig(algo="ppo", timesteps=7).timesteps == 7
     seen = []
     (tmp_path / "summary.json").write_text("{}")
     monkeypatch.setattr(c3bf_gym.training, "train", lambda config, address=None: seen.append(config) or tmp_path)
@@ -265,7 +266,7 @@ def test_the_rllib_engine_has_its_own_defaults_and_refuses_what_it_cannot_train(
     assert main(["train", "--engine", "rllib", "--n-envs", "2", "--address", "auto"]) == 0
     config, address = seen[0]
     assert config == TrainConfig(engine="rllib", algo="ppo", obstacle_encoder="flat", n_envs=2) and address == "auto"
-    assert config.name == "rllib_ppo_residual_10hz_dw10_aw3_c3bf+hocbf_random_s0"
+    assert config.name == "rllib_ppo_residual_10hz_dw10_aw3_c3bf+hocbf_random_s0" and config.timesteps == 100_000
     assert config.resolved_hyperparams()["train_batch_size_per_env"] == 1024
     assert main(["train", "--engine", "rllib", "--algo", "sac"]) == 0  # the CLI passes it on; validate() refuses
     with pytest.raises(ValueError, match="the rllib engine supports algo='ppo' only, got 'sac'"):

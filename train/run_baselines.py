@@ -36,7 +36,7 @@ def main() -> int:
     parser.add_argument("--eval-scenario", default=d.eval_scenario,
                         help="scenario of the evaluations (default: the training scenario)")
     parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
-    parser.add_argument("--timesteps", type=int, default=d.timesteps)
+    parser.add_argument("--timesteps", type=int, default=None, help="policy steps per run (default: the algorithm's, TrainConfig)")
     parser.add_argument("--policy-hz", type=int, choices=POLICY_RATES, default=d.policy_hz)
     parser.add_argument("--normalize-obs", action="store_true")
     parser.add_argument("--distance-weight", type=float, default=d.distance_weight,
@@ -75,7 +75,7 @@ def main() -> int:
             "--filter", filter_name, *(["--guard-gamma", str(gains(filter_name))] if gains(filter_name) else []),
             "--scenario", args.scenario, "--seed", str(seed),
             *(["--eval-scenario", args.eval_scenario] if args.eval_scenario else []),
-            "--timesteps", str(args.timesteps), "--out", str(out), "--no-progress", "--policy-hz", str(args.policy_hz),
+            *(["--timesteps", str(args.timesteps)] if args.timesteps else []), "--out", str(out), "--no-progress", "--policy-hz", str(args.policy_hz),
             "--distance-weight", str(args.distance_weight), "--action-weight", str(args.action_weight),
             "--obstacle-encoder", args.obstacle_encoder, "--n-envs", str(args.n_envs),
             "--final-eval-episodes", str(args.final_eval_episodes),
