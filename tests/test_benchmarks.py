@@ -62,9 +62,12 @@ def test_train_speed_times_filtered_and_unfiltered_throughput_side_by_side(tmp_p
                            "--steps", "64", "--json", str(out)], capture_output=True, text=True, timeout=900)  # fmt: skip
     assert done.returncode == 0, done.stderr[-2000:]
     result = json.loads(out.read_text())
-    rows = {(r["action"], r["filter"]): r for r in result["results"]}
-    assert set(rows) == {("torque", "none"), ("torque", "c3bf+hocbf")}
+    rows = {(r["algo"], r["action"], r["filter"]): r for r in result["results"]}
+    assert set(rows) == {(algo, "torque", name) for algo in ("sac", "ppo") for name in ("none", "c3bf+hocbf")}
     assert all(len(r["steps_per_s"]) == 2 and r["median"] > 0 for r in rows.values())
+    for algo in ("sac", "ppo"):  # the share of the unfiltered throughput kept, from the same run's medians
+        filtered, unfiltered = rows[algo, "torque", "c3bf+hocbf"], rows[algo, "torque", "none"]
+        assert filtered["filtered_over_unfiltered"] == pytest.approx(filtered["median"] / unfiltered["median"])
     refused = subprocess.run([sys.executable, str(BENCHMARKS / "train_speed.py"), "--rounds", "0"],
                              capture_output=True, text=True, timeout=300)  # fmt: skip
     assert refused.returncode == 2 and "--rounds must be >= 1" in refused.stderr
