@@ -75,6 +75,8 @@ TRAINING_TABLES = (
     # filter (code 08985b1): SB3 (one env per run, two runs at a time) and RLlib (2 env runners, the default filter)
     ("training_table_sets_ppo_ur5e.md", "sets_ppo/ppo_residual_10hz_dw10_aw3_set_*", "final_eval.json",
      "training_curves_sets_ppo_ur5e.png"),
+    ("training_table_sets_ppo_panda.md", "sets_ppo/panda_ppo_residual_10hz_dw10_aw3_set_*", "final_eval.json",
+     "training_curves_sets_ppo_panda.png"),
     # an attempt on the Panda: a dearer correction (--action-weight 10), 2 seeds
     ("training_table_sets_panda_aw10.md", "sets/panda_sac_residual_10hz_dw10_aw10_set_*", "final_eval.json",
      "training_curves_sets_panda_aw10.png"),
