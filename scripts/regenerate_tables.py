@@ -77,6 +77,10 @@ TRAINING_TABLES = (
      "training_curves_sets_ppo_ur5e.png"),
     ("training_table_sets_ppo_panda.md", "sets_ppo/panda_ppo_residual_10hz_dw10_aw3_set_*", "final_eval.json",
      "training_curves_sets_ppo_panda.png"),
+    ("training_table_sets_rllib_ur5e.md", "sets_rllib/rllib_ppo_residual_10hz_dw10_aw3_*", "final_eval.json",
+     "training_curves_sets_rllib_ur5e.png"),
+    ("training_table_sets_rllib_panda.md", "sets_rllib/rllib_panda_ppo_residual_10hz_dw10_aw3_*", "final_eval.json",
+     "training_curves_sets_rllib_panda.png"),
     # an attempt on the Panda: a dearer correction (--action-weight 10), 2 seeds
     ("training_table_sets_panda_aw10.md", "sets/panda_sac_residual_10hz_dw10_aw10_set_*", "final_eval.json",
      "training_curves_sets_panda_aw10.png"),
