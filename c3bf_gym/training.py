@@ -79,7 +79,7 @@ DEFAULT_TRAIN_HZ = 10
 ALGORITHMS = ("sac", "ppo")
 #: Each algorithm's training budget in env (policy) steps, when a run names none: SAC learns
 #: from every sample through its replay buffer, PPO's samples are cheap and it needs more of
-#: them. Why these (measured): the docs' RL results page, "PPO".
+#: them. Why these (measured): the docs' RL results page, "PPO: its own budget".
 DEFAULT_TIMESTEPS = {"sac": 25_000, "ppo": 100_000}
 #: Training engines: Stable-Baselines3 on one machine, or Ray RLlib (PPO on its new API stack,
 #: env runners on a local Ray instance or a cluster; :mod:`c3bf_gym.rllib`, the ``rllib`` extra).

@@ -71,8 +71,8 @@ TRAINING_TABLES = (
      "training_curves_sets_ur5e_allowance.png"),
     ("training_table_sets_panda_allowance_50k.md", "sets_allowance_50k/panda_sac_residual_10hz_dw10_aw3_set_*",
      "final_eval.json", "training_curves_sets_panda_allowance_50k.png"),
-    # PPO on the standing filter, each algorithm's budget (100k steps), both arms, no filter and the default
-    # filter (code 08985b1): SB3 (one env per run, two runs at a time) and RLlib (2 env runners, the default filter)
+    # PPO on the standing filter at its own budget (100k steps), both arms, no filter and the default filter
+    # (code 08985b1): SB3 (one env per run, two runs at a time) and RLlib (2 env runners, one run at a time)
     ("training_table_sets_ppo_ur5e.md", "sets_ppo/ppo_residual_10hz_dw10_aw3_set_*", "final_eval.json",
      "training_curves_sets_ppo_ur5e.png"),
     ("training_table_sets_ppo_panda.md", "sets_ppo/panda_ppo_residual_10hz_dw10_aw3_set_*", "final_eval.json",
