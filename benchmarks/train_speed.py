@@ -52,8 +52,8 @@ def main(argv: list[str] | None = None) -> dict:
     import torch
 
     torch.set_num_threads(1)  # as training runs do
-    configs = [(algo, action, name) for algo in dict.fromkeys(args.algo) for action in args.actions
-               for name in ("none", args.filter)]  # fmt: skip
+    algos = list(dict.fromkeys(args.algo))  # each learner once, in the order given
+    configs = [(algo, action, name) for algo in algos for action in args.actions for name in ("none", args.filter)]
     models = {}
     for algo, action, name in configs:
         config = TrainConfig(algo=algo, action=action, filter=name, n_envs=args.n_envs, progress_bar=False)
@@ -79,8 +79,7 @@ def main(argv: list[str] | None = None) -> dict:
     print(f"SB3, {args.n_envs} SubprocVecEnv envs, recipe's env (policy at {TrainConfig().policy_hz} Hz), "
           f"{args.rounds} rounds x {args.steps} env steps per configuration, interleaved")
     print(f"{'algo':5s} {'action':10s} {'filter':12s} | {'env steps/s median':>18s} {'min':>7s} {'max':>7s} | filtered ÷ unfiltered")
-    out = {"algo": list(dict.fromkeys(args.algo)), "n_envs": args.n_envs, "steps": args.steps, "rounds": args.rounds,
-           "results": []}  # fmt: skip
+    out = {"algo": algos, "n_envs": args.n_envs, "steps": args.steps, "rounds": args.rounds, "results": []}
     for algo, action, name in configs:
         values = rates[algo, action, name]
         median = statistics.median(values)

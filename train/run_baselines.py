@@ -75,7 +75,7 @@ def main() -> int:
             "--filter", filter_name, *(["--guard-gamma", str(gains(filter_name))] if gains(filter_name) else []),
             "--scenario", args.scenario, "--seed", str(seed),
             *(["--eval-scenario", args.eval_scenario] if args.eval_scenario else []),
-            *(["--timesteps", str(args.timesteps)] if args.timesteps else []), "--out", str(out), "--no-progress", "--policy-hz", str(args.policy_hz),
+            *(["--timesteps", str(args.timesteps)] if args.timesteps is not None else []), "--out", str(out), "--no-progress", "--policy-hz", str(args.policy_hz),
             "--distance-weight", str(args.distance_weight), "--action-weight", str(args.action_weight),
             "--obstacle-encoder", args.obstacle_encoder, "--n-envs", str(args.n_envs),
             "--final-eval-episodes", str(args.final_eval_episodes),
