@@ -36,22 +36,31 @@ class ObstacleSetExtractor(BaseFeaturesExtractor):
     """Features = the robot's own observation entries ++ max and sum of ``phi`` over sensed slots.
 
     Args:
-        observation_space: ``C3BFReach-v0``'s observation space (its size is checked).
+        observation_space: ``C3BFReach-v0``'s observation space (its size is checked), possibly
+            with ``extra_features`` entries appended (e.g. by
+            :class:`~c3bf_gym.wrappers.FilterFeedback`).
         slot_features: width of ``phi``'s output (and of its hidden layer).
+        extra_features: entries after the environment's own observation, passed through beside
+            the robot's own entries.
     """
 
-    def __init__(self, observation_space: gym.spaces.Box, slot_features: int = 64) -> None:
+    def __init__(self, observation_space: gym.spaces.Box, slot_features: int = 64, extra_features: int = 0) -> None:
+        if isinstance(extra_features, bool) or not isinstance(extra_features, int) or extra_features < 0:
+            raise ValueError(f"extra_features must be an integer >= 0, got {extra_features!r}")
         # the arm's joints, from the observation's length 2 n + 73 (c3bf_gym.envs.reach.observation_layout)
-        fixed = sum(s.stop - s.start for s in observation_slices(0).values())
+        fixed = sum(s.stop - s.start for s in observation_slices(0).values()) + extra_features
         shape = observation_space.shape
         n_joints = (shape[0] - fixed) // 2 if len(shape) == 1 else -1
         if n_joints < 1 or shape != (2 * n_joints + fixed,):
+            appended = f" ({extra_features} extra entries appended)" if extra_features else ""
             raise ValueError(f"ObstacleSetExtractor needs a C3BFReach observation of shape (2 n + {fixed},) for an arm of "
-                             f"n >= 1 joints, got {shape}")  # fmt: skip
+                             f"n >= 1 joints{appended}, got {shape}")  # fmt: skip
         parts = observation_slices(n_joints)
         if isinstance(slot_features, bool) or not isinstance(slot_features, int) or slot_features < 1:
             raise ValueError(f"slot_features must be an integer >= 1, got {slot_features!r}")
-        own = torch.cat([torch.arange(s.start, s.stop) for name, s in parts.items() if name not in _PER_SLOT])
+        size = max(s.stop for s in parts.values())
+        own = torch.cat([torch.arange(s.start, s.stop) for name, s in parts.items() if name not in _PER_SLOT]
+                        + [torch.arange(size, size + extra_features)])  # fmt: skip
         context = torch.cat([torch.arange(parts[n].start, parts[n].stop) for n in _CONTEXT])
         # (MAX_OBSTACLES, per-slot width) indices: slot k's entries of every per-slot part.
         columns = []

@@ -34,7 +34,7 @@ import numpy as np
 from c3bf_gym import validation
 from c3bf_gym.envs.reach import ROBOTS
 from c3bf_gym.safety import DEFAULT_FILTER, FILTERS, FilterConfig
-from c3bf_gym.wrappers import ActionPenalty, CartesianImpedanceAction, SafetyFilter
+from c3bf_gym.wrappers import ActionPenalty, CartesianImpedanceAction, FilterFeedback, SafetyFilter
 
 __all__ = [
     "ACTIONS",
@@ -210,6 +210,9 @@ class TrainConfig:
     scenario): a run trained on a weighted mixture such as ``random_multi`` is evaluated on the
     same episodes as every other run (``random``).
 
+    ``observe_correction`` appends the filter's last correction to the observation
+    (:class:`~c3bf_gym.wrappers.FilterFeedback`; SB3 and a filter only).
+
     ``engine="rllib"`` trains with Ray RLlib instead (:func:`c3bf_gym.rllib.train_rllib`): PPO
     only, the flat encoder only, no ``normalize_obs``; ``n_envs`` env runners, one env each.
     """
@@ -236,6 +239,7 @@ class TrainConfig:
     distance_weight: float = 10.0
     action_weight: float = 3.0
     obstacle_encoder: Literal["flat", "set"] = "set"
+    observe_correction: bool = False
     hyperparams: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
@@ -257,7 +261,8 @@ class TrainConfig:
                 raise ValueError(f"unknown {name} {value!r}; valid choices: {', '.join(map(repr, choices))}")
         if self.engine == "rllib":
             for name, value, supported in (("algo", self.algo, "ppo"), ("obstacle_encoder", self.obstacle_encoder, "flat"),
-                                           ("normalize_obs", self.normalize_obs, False)):  # fmt: skip
+                                           ("normalize_obs", self.normalize_obs, False),
+                                           ("observe_correction", self.observe_correction, False)):  # fmt: skip
                 if value != supported:
                     raise ValueError(f"the rllib engine supports {name}={supported!r} only, got {value!r}")
         get_scenario(self.scenario)
@@ -269,8 +274,12 @@ class TrainConfig:
             validation.number(name, getattr(self, name), low=0.0)
         if not (isinstance(self.hyperparams, dict) and all(isinstance(key, str) for key in self.hyperparams)):
             raise ValueError(f"hyperparams must be a dict of keyword arguments, got {self.hyperparams!r}")
-        if not isinstance(self.normalize_obs, bool):
-            raise ValueError(f"normalize_obs must be True or False, got {self.normalize_obs!r}")
+        for name in ("normalize_obs", "observe_correction"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"{name} must be True or False, got {getattr(self, name)!r}")
+        if self.observe_correction and filter_config(self.filter, self.guard_gamma) is None:
+            raise ValueError("observe_correction observes the safety filter's correction: it needs a filter "
+                             f"(one of {', '.join(map(repr, FILTERS))}), got filter={self.filter!r}")  # fmt: skip
         for name in ("timesteps", "n_envs", "eval_freq", "eval_episodes", "checkpoint_freq"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
@@ -287,6 +296,7 @@ class TrainConfig:
         dense = f"_dw{self.distance_weight:g}" if self.distance_weight else ""
         penalty = f"_aw{self.action_weight:g}" if self.action_weight else ""
         encoder = "" if self.obstacle_encoder == "flat" else f"_{self.obstacle_encoder}"
+        encoder += "_oc" if self.observe_correction else ""
         robot = "" if self.robot == "ur5e" else f"{self.robot}_"  # UR5e runs keep their earlier names
         engine = "" if self.engine == "sb3" else f"{self.engine}_"
         return (
@@ -339,16 +349,19 @@ def build_env(
     action: str = "impedance",
     action_weight: float = 0.0,
     guard_gamma: float | None = None,
+    observe_correction: bool = False,
     **env_kwargs: Any,
 ) -> gym.Env:
-    """``ActionPenalty(SafetyFilter(CartesianImpedanceAction(C3BFReach-v0)))``, the parts the
-    options ask for (``ActionPenalty`` when ``action_weight > 0``): the environment every
-    training engine steps. ``filter``: "none"/None, a name of :data:`~c3bf_gym.safety.FILTERS`
-    or a :class:`~c3bf_gym.safety.FilterConfig`; ``guard_gamma``: the guard's gains where it has
-    one (None: the default); ``env_kwargs`` go to ``gym.make`` (:func:`env_kwargs`).
+    """``ActionPenalty(FilterFeedback(SafetyFilter(CartesianImpedanceAction(C3BFReach-v0))))``,
+    the parts the options ask for (``ActionPenalty`` when ``action_weight > 0``,
+    ``FilterFeedback`` with ``observe_correction``): the environment every training engine
+    steps. ``filter``: "none"/None, a name of :data:`~c3bf_gym.safety.FILTERS` or a
+    :class:`~c3bf_gym.safety.FilterConfig`; ``guard_gamma``: the guard's gains where it has one
+    (None: the default); ``env_kwargs`` go to ``gym.make`` (:func:`env_kwargs`).
 
     Raises:
-        ValueError: an unknown filter or action mode, or bad environment keywords.
+        ValueError: an unknown filter or action mode, ``observe_correction`` without a filter, or
+            bad environment keywords.
     """
     config = filter_config(filter, guard_gamma)
     validation.choice("action", action, ACTIONS)
@@ -357,6 +370,8 @@ def build_env(
         env = CartesianImpedanceAction(env, residual=action == "residual")
     if config is not None:
         env = SafetyFilter(env, config)
+    if observe_correction:
+        env = FilterFeedback(env)  # refuses an environment without a filter
     if action_weight:
         env = ActionPenalty(env, action_weight)
     return env
@@ -370,6 +385,7 @@ def make_env(
     monitor_file: str | None = None,
     action_weight: float = 0.0,
     guard_gamma: float | None = None,
+    observe_correction: bool = False,
     **env_kwargs: Any,
 ) -> Callable[[], gym.Env]:
     """A thunk building ``Monitor(build_env(...))`` (:func:`build_env`) for SB3 vector envs,
@@ -380,7 +396,7 @@ def make_env(
     validation.choice("action", action, ACTIONS)
 
     def thunk() -> gym.Env:
-        env = build_env(scenario, config, action, action_weight, **env_kwargs)
+        env = build_env(scenario, config, action, action_weight, observe_correction=observe_correction, **env_kwargs)
         env = Monitor(env, monitor_file, info_keywords=info_keywords(config))
         env.reset(seed=seed)
         env.action_space.seed(seed)
@@ -478,7 +494,7 @@ def train(config: TrainConfig, address: str | None = None) -> Path:
     venv = training_envs(config)
     eval_env = DummyVecEnv(
         [make_env(config.evaluated_scenario, filter_, config.action, seed=10_000 + config.seed, action_weight=penalty,
-                  **rate)]
+                  observe_correction=config.observe_correction, **rate)]
     )
     if config.normalize_obs:
         # Running mean/std of the observations (not of the rewards); EvalCallback copies the
@@ -523,7 +539,8 @@ def training_envs(config: TrainConfig):
 
     filter_ = filter_config(config.filter, config.guard_gamma)
     thunks = [make_env(config.scenario, filter_, config.action, seed=config.seed * 1000 + i,
-                       action_weight=config.action_weight, **config.env_kwargs())
+                       action_weight=config.action_weight, observe_correction=config.observe_correction,
+                       **config.env_kwargs())
               for i in range(config.n_envs)]  # fmt: skip
     return SubprocVecEnv(thunks) if config.n_envs > 1 else DummyVecEnv(thunks)
 
@@ -561,7 +578,9 @@ def sb3_model(config: TrainConfig, venv, hyper: dict[str, Any], **kwargs: Any):
     if config.obstacle_encoder == "set":
         from c3bf_gym.policies import ObstacleSetExtractor
 
-        hyper = {**hyper, "policy_kwargs": {**hyper.get("policy_kwargs", {}), "features_extractor_class": ObstacleSetExtractor}}
+        extra = {"features_extractor_kwargs": {"extra_features": ROBOTS[config.robot].n_joints}} if config.observe_correction else {}
+        hyper = {**hyper, "policy_kwargs": {**hyper.get("policy_kwargs", {}), "features_extractor_class": ObstacleSetExtractor,
+                                            **extra}}  # fmt: skip
     return algo("MlpPolicy", venv, seed=config.seed, verbose=0, **hyper, **kwargs)
 
 
@@ -670,7 +689,11 @@ def evaluate(
     returns, successes, costs, collided, interventions, infeasible, kinds = [], [], [], [], [], [], []
     run_env = env_kwargs(config.get("policy_hz", DEFAULT_POLICY_HZ), config.get("distance_weight", 0.0),
                          config.get("robot", "ur5e"))
-    env = build_env(scenario, filter_, action, action_weight=config.get("action_weight", 0.0), **run_env)
+    observe = config.get("observe_correction", False)
+    if observe and filter_ is None:
+        raise ValueError("this run observes the filter's correction (observe_correction): evaluate it with a filter")
+    env = build_env(scenario, filter_, action, action_weight=config.get("action_weight", 0.0),
+                    observe_correction=observe, **run_env)  # fmt: skip
     env.reset(seed=seed)  # as a training env starts (make_env); each episode below is reseeded
     for episode in range(episodes):
         obs, _ = env.reset(seed=seed + episode)

@@ -24,6 +24,7 @@ from c3bf_gym.safety import FILTERS, FilterConfig, StepSafety
 __all__ = [
     "ActionPenalty",
     "CartesianImpedanceAction",
+    "FilterFeedback",
     "ImpedanceHook",
     "SafetyFilter",
     "make_reach",
@@ -257,6 +258,62 @@ class ActionPenalty(gym.Wrapper):
         penalty = -self.weight * float(np.mean(np.square(action, dtype=np.float64)))
         info["reward_action"] = penalty
         return obs, float(reward) + penalty, terminated, truncated, info
+
+
+class FilterFeedback(gym.ObservationWrapper):
+    """Appends the safety filter's last correction to the observation, so a policy can see the filter act.
+
+    The entries added, one per arm joint, are ``(τ − clip(τ_nom)) / τ_max`` at the last physics
+    step of the previous policy step: the filtered torque minus the nominal one (clipped to the
+    torque limits, so that saturation alone is not a correction), divided by each joint's torque
+    limit ``τ_max`` [N m] (``env.unwrapped.robot.torque_limit``). Each lies in [−2, 2]; 0 where the
+    filter left the torque alone, and 0 after ``reset``. The observation grows from
+    ``(2 n + 73,)`` to ``(3 n + 73,)`` (the appended part last); everything else is unchanged.
+
+    An observation of the kind the issue on learning under the filter lists as a candidate: the
+    filter's correction, to let an agent anticipate it (the RL results page measures it).
+
+    Args:
+        env: a ``C3BFReach`` environment with a :class:`SafetyFilter` under this wrapper.
+
+    Raises:
+        TypeError: ``env`` is not a ``C3BFReach`` environment, or its observation space is not a
+            ``Box``.
+        ValueError: ``env`` has no safety filter (there would be no correction to observe).
+    """
+
+    def __init__(self, env: gym.Env) -> None:
+        super().__init__(env)
+        base = reach_env(env, "FilterFeedback")
+        if not base.has_torque_hook("filter"):
+            raise ValueError("FilterFeedback observes the safety filter's correction: wrap a SafetyFilter "
+                             "(SafetyFilter(env), then FilterFeedback(...)); this environment has none")  # fmt: skip
+        space = env.observation_space
+        if not isinstance(space, gym.spaces.Box) or len(space.shape) != 1:
+            raise TypeError(f"FilterFeedback needs a flat Box observation space, got {space}")
+        self._base = base
+        self._limit = np.asarray(base.robot.torque_limit, dtype=np.float64)
+        n = self._limit.shape[0]
+        self._correction = np.zeros(n)
+        bound = np.full(n, 2.0, dtype=space.dtype)
+        self.observation_space = gym.spaces.Box(np.concatenate([space.low, -bound]), np.concatenate([space.high, bound]),
+                                                dtype=space.dtype)  # fmt: skip
+
+    def reset(self, **kwargs: Any):
+        obs, info = self.env.reset(**kwargs)
+        self._correction[:] = 0.0
+        return self.observation(obs), info
+
+    def step(self, action: Any):
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        report = self._base.torque_hook("filter").report
+        if report.tau is not None and report.tau_nominal is not None:
+            nominal = np.clip(report.tau_nominal, -self._limit, self._limit)
+            np.divide(report.tau - nominal, self._limit, out=self._correction)
+        return self.observation(obs), reward, terminated, truncated, info
+
+    def observation(self, observation: np.ndarray) -> np.ndarray:
+        return np.concatenate([observation, self._correction.astype(observation.dtype)])
 
 
 def make_reach(safety_filter: FilterConfig | str | None = None, **kwargs: Any) -> gym.Env:

@@ -86,11 +86,30 @@ def test_unsensed_slots_are_ignored(multi_obs):
         ((73,), 64, r"needs a C3BFReach observation .* n >= 1 joints, got \(73,\)"),
         ((85,), 0, "slot_features must be an integer >= 1"),
         ((85,), 8.0, "slot_features must be an integer >= 1"),
+        ((86,), {"extra_features": 6}, r"shape \(2 n \+ 79,\) .* \(6 extra entries appended\), got \(86,\)"),
+        ((85,), {"extra_features": -1}, "extra_features must be an integer >= 0"),
+        ((85,), {"extra_features": True}, "extra_features must be an integer >= 0"),
     ],
 )
 def test_bad_extractor_arguments(shape, slot_features, message):
+    kwargs = slot_features if isinstance(slot_features, dict) else {"slot_features": slot_features}
     with pytest.raises(ValueError, match=message):
-        ObstacleSetExtractor(gym.spaces.Box(-np.inf, np.inf, shape), slot_features=slot_features)
+        ObstacleSetExtractor(gym.spaces.Box(-np.inf, np.inf, shape), **kwargs)
+
+
+def test_extra_entries_pass_through_beside_the_robots_own(multi_obs):
+    """Entries appended after the environment's observation (``FilterFeedback``'s correction) join
+    the robot's own features; the slots are pooled as before."""
+    extra = np.random.default_rng(0).uniform(-1, 1, (len(multi_obs), 6)).astype(np.float32)
+    torch.manual_seed(3)
+    plain = ObstacleSetExtractor(gym.spaces.Box(-np.inf, np.inf, (multi_obs.shape[1],)), slot_features=16)
+    torch.manual_seed(3)
+    wider = ObstacleSetExtractor(gym.spaces.Box(-np.inf, np.inf, (multi_obs.shape[1] + 6,)), slot_features=16,
+                                 extra_features=6)  # fmt: skip
+    assert wider.features_dim == plain.features_dim + 6
+    features = _features(wider, np.concatenate([multi_obs, extra], axis=1))
+    np.testing.assert_array_equal(features[:, : OWN + 6], np.concatenate([multi_obs[:, :OWN], extra], axis=1))
+    np.testing.assert_allclose(features[:, OWN + 6 :], _features(plain, multi_obs)[:, OWN:], rtol=1e-6)
 
 
 def test_extractor_reads_any_arms_observation():

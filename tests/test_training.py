@@ -146,6 +146,26 @@ def test_set_encoder_run_names_itself_reloads_and_evaluates(tmp_path):
 
 
 @pytest.mark.slow
+def test_correction_observing_run_names_itself_reloads_and_evaluates(tmp_path):
+    """``observe_correction``: the run's envs append the filter's correction (FilterFeedback), the
+    set encoder passes it through, and the saved model evaluates on the same observation."""
+    from stable_baselines3 import SAC
+
+    run = train(TrainConfig(timesteps=250, scenario="multi", observe_correction=True, eval_freq=10_000,
+                            final_eval_episodes=0, out=str(tmp_path), progress_bar=False,
+                            hyperparams={"learning_starts": 100}))  # fmt: skip
+    assert run.name == "sac_residual_10hz_dw10_aw3_set_oc_c3bf+hocbf_multi_s0"
+    assert json.loads((run / "config.json").read_text())["observe_correction"] is True
+    model = SAC.load(run / "model.zip", device="cpu")
+    assert model.observation_space.shape == (2 * 6 + 73 + 6,)
+    assert model.actor.features_extractor.features_dim == 21 + 6 + 2 * 64
+    result = evaluate(run / "model.zip", episodes=1)
+    assert result["episodes"] == 1 and result["collision_episodes"] == 0
+    with pytest.raises(ValueError, match="evaluate it with a filter"):
+        evaluate(run / "model.zip", episodes=1, filter="none")
+
+
+@pytest.mark.slow
 def test_panda_run_trains_under_the_filter_names_itself_and_evaluates_on_the_panda(tmp_path):
     """``robot="panda"``: the run's envs are the 7-joint Panda's (its 87-entry observation,
     7-joint torques under the filter), the run name says so, and evaluation rebuilds the Panda from
@@ -324,6 +344,10 @@ def test_make_env_action_modes(action, shape):
         ({"engine": "rllib", "algo": "ppo"}, "the rllib engine supports obstacle_encoder='flat' only, got 'set'"),
         ({"engine": "rllib", "algo": "ppo", "obstacle_encoder": "flat", "normalize_obs": True},
          "the rllib engine supports normalize_obs=False only, got True"),
+        ({"engine": "rllib", "algo": "ppo", "obstacle_encoder": "flat", "observe_correction": True},
+         "the rllib engine supports observe_correction=False only, got True"),
+        ({"observe_correction": 1}, "observe_correction must be True or False"),
+        ({"observe_correction": True, "filter": "none"}, "observe_correction .* needs a filter .* got filter='none'"),
     ],
 )
 def test_bad_training_options(kwargs, message):

@@ -12,6 +12,7 @@ import pytest
 import c3bf_gym
 from c3bf_gym import DEFAULT_FILTER, FILTERS, ActionPenalty, CartesianImpedanceAction, FilterConfig, SafetyFilter
 from c3bf_gym.safety.barriers import C3BF, DistanceHOCBF
+from c3bf_gym.wrappers import FilterFeedback
 from c3bf_gym.safety import GUARD_GAMMA
 
 from conftest import ENV_ID
@@ -498,6 +499,40 @@ def test_action_penalty_passes_bad_actions_to_the_env_check(make_env):
     env.reset(seed=0)
     with pytest.raises(ValueError, match="NaN or inf"):
         env.step(np.array([np.nan, 0.0, 0.0], np.float32))
+
+
+def test_filter_feedback_observes_the_filters_last_correction(make_env):
+    """The appended entries are (τ − clip(τ_nom)) / τ_max of the last physics step, 0 after reset;
+    the environment's own observation and the rollout are unchanged."""
+    plain = SafetyFilter(CartesianImpedanceAction(make_env(scenario="multi"), residual=True))
+    observed = FilterFeedback(SafetyFilter(CartesianImpedanceAction(make_env(scenario="multi"), residual=True)))
+    base = observed.unwrapped
+    n, limit = base.robot.n, base.robot.torque_limit
+    assert observed.observation_space.shape == (plain.observation_space.shape[0] + n,)
+    obs_a, _ = plain.reset(seed=1)
+    obs_b, _ = observed.reset(seed=1)
+    np.testing.assert_array_equal(obs_b[:-n], obs_a)
+    assert (obs_b[-n:] == 0).all()
+    corrected = 0
+    for _ in range(30):
+        obs_a, *_ = plain.step(np.zeros(3, np.float32))
+        obs_b, *_, info = observed.step(np.zeros(3, np.float32))
+        np.testing.assert_array_equal(obs_b[:-n], obs_a)  # the same rollout
+        report = base.torque_hook("filter").report
+        expected = (report.tau - np.clip(report.tau_nominal, -limit, limit)) / limit
+        np.testing.assert_allclose(obs_b[-n:], expected, rtol=1e-6, atol=1e-7)
+        assert observed.observation_space.contains(obs_b)
+        corrected += info["safety"]["correction"] > 1.0
+    assert corrected > 0, "the filter corrected the torque in this multi episode"
+    obs_b, _ = observed.reset(seed=2)
+    assert (obs_b[-n:] == 0).all()  # nothing carried over from the last episode
+
+
+def test_filter_feedback_needs_a_filter(make_env):
+    with pytest.raises(ValueError, match="wrap a SafetyFilter"):
+        FilterFeedback(CartesianImpedanceAction(make_env(), residual=True))
+    with pytest.raises(TypeError, match="C3BFReach environment"):
+        FilterFeedback(gym.make("Pendulum-v1"))
 
 
 _ROLLOUT_HASH = """
