@@ -87,6 +87,12 @@ TRAINING_TABLES = (
     # an attempt on the Panda: training on random_multi (multi in half the episodes), evaluated on random
     ("training_table_sets_panda_random_multi.md", "sets/panda_sac_residual_10hz_dw10_aw3_set_c3bf+hocbf_random_multi_*",
      "final_eval.json", "training_curves_sets_panda_random_multi.png"),
+    # an attempt on the Panda: quieter exploration (SAC's target entropy -6 instead of -3), 2 seeds
+    ("training_table_sets_panda_entropy.md", "sets_entropy/panda_sac_*", "final_eval.json",
+     "training_curves_sets_panda_entropy.png"),
+    # an attempt on the Panda: the filter's last correction in the observation (--observe-correction), 2 seeds
+    ("training_table_sets_panda_oc.md", "sets_oc/panda_sac_*", "final_eval.json",
+     "training_curves_sets_panda_oc.png"),
 )
 
 
