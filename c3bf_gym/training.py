@@ -34,7 +34,7 @@ import numpy as np
 from c3bf_gym import validation
 from c3bf_gym.envs.reach import ROBOTS
 from c3bf_gym.safety import DEFAULT_FILTER, FILTERS, FilterConfig
-from c3bf_gym.wrappers import ActionPenalty, CartesianImpedanceAction, FilterFeedback, SafetyFilter
+from c3bf_gym.wrappers import ActionPenalty, CartesianImpedanceAction, FilterFeedback, SafetyFilter, default_impedance
 
 __all__ = [
     "ACTIONS",
@@ -210,6 +210,10 @@ class TrainConfig:
     scenario): a run trained on a weighted mixture such as ``random_multi`` is evaluated on the
     same episodes as every other run (``random``).
 
+    ``posture_stiffness`` is the nominal impedance controller's null-space pull to home [N m/rad]
+    for the Cartesian action modes (None: the arm's own,
+    :attr:`~c3bf_gym.envs.reach.ReachRobot.posture_stiffness`).
+
     ``observe_correction`` appends the filter's last correction to the observation
     (:class:`~c3bf_gym.wrappers.FilterFeedback`; SB3 and a filter only).
 
@@ -240,6 +244,7 @@ class TrainConfig:
     action_weight: float = 3.0
     obstacle_encoder: Literal["flat", "set"] = "set"
     observe_correction: bool = False
+    posture_stiffness: float | None = None
     hyperparams: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
@@ -272,6 +277,11 @@ class TrainConfig:
         filter_config(self.filter, self.guard_gamma)  # the filter's own checks, guard_gamma's included
         for name in ("distance_weight", "action_weight"):
             validation.number(name, getattr(self, name), low=0.0)
+        if self.posture_stiffness is not None:
+            validation.number("posture_stiffness", self.posture_stiffness, low=0.0)
+            if self.action == "torque":
+                raise ValueError("posture_stiffness sets the impedance controller of the Cartesian action modes "
+                                 "('impedance', 'residual'); this run's action is 'torque'")  # fmt: skip
         if not (isinstance(self.hyperparams, dict) and all(isinstance(key, str) for key in self.hyperparams)):
             raise ValueError(f"hyperparams must be a dict of keyword arguments, got {self.hyperparams!r}")
         for name in ("normalize_obs", "observe_correction"):
@@ -297,6 +307,7 @@ class TrainConfig:
         penalty = f"_aw{self.action_weight:g}" if self.action_weight else ""
         encoder = "" if self.obstacle_encoder == "flat" else f"_{self.obstacle_encoder}"
         encoder += "_oc" if self.observe_correction else ""
+        encoder += "" if self.posture_stiffness is None else f"_ps{self.posture_stiffness:g}"
         robot = "" if self.robot == "ur5e" else f"{self.robot}_"  # UR5e runs keep their earlier names
         engine = "" if self.engine == "sb3" else f"{self.engine}_"
         return (
@@ -350,6 +361,7 @@ def build_env(
     action_weight: float = 0.0,
     guard_gamma: float | None = None,
     observe_correction: bool = False,
+    posture_stiffness: float | None = None,
     **env_kwargs: Any,
 ) -> gym.Env:
     """``ActionPenalty(FilterFeedback(SafetyFilter(CartesianImpedanceAction(C3BFReach-v0))))``,
@@ -357,17 +369,22 @@ def build_env(
     ``FilterFeedback`` with ``observe_correction``): the environment every training engine
     steps. ``filter``: "none"/None, a name of :data:`~c3bf_gym.safety.FILTERS` or a
     :class:`~c3bf_gym.safety.FilterConfig`; ``guard_gamma``: the guard's gains where it has one
-    (None: the default); ``env_kwargs`` go to ``gym.make`` (:func:`env_kwargs`).
+    (None: the default); ``posture_stiffness``: the impedance controller's null-space pull
+    [N m/rad] (None: the arm's own, :func:`~c3bf_gym.wrappers.default_impedance`); ``env_kwargs``
+    go to ``gym.make`` (:func:`env_kwargs`).
 
     Raises:
-        ValueError: an unknown filter or action mode, ``observe_correction`` without a filter, or
-            bad environment keywords.
+        ValueError: an unknown filter or action mode, ``observe_correction`` without a filter,
+            ``posture_stiffness`` with torque actions, or bad environment keywords.
     """
     config = filter_config(filter, guard_gamma)
     validation.choice("action", action, ACTIONS)
     env = gym.make("C3BFReach-v0", scenario=scenario, **env_kwargs)
     if action in ("impedance", "residual"):
-        env = CartesianImpedanceAction(env, residual=action == "residual")
+        controller = None if posture_stiffness is None else default_impedance(env.unwrapped, posture_stiffness)
+        env = CartesianImpedanceAction(env, controller=controller, residual=action == "residual")
+    elif posture_stiffness is not None:
+        raise ValueError(f"posture_stiffness sets the impedance controller of the Cartesian action modes; action={action!r}")
     if config is not None:
         env = SafetyFilter(env, config)
     if observe_correction:
@@ -386,6 +403,7 @@ def make_env(
     action_weight: float = 0.0,
     guard_gamma: float | None = None,
     observe_correction: bool = False,
+    posture_stiffness: float | None = None,
     **env_kwargs: Any,
 ) -> Callable[[], gym.Env]:
     """A thunk building ``Monitor(build_env(...))`` (:func:`build_env`) for SB3 vector envs,
@@ -396,7 +414,8 @@ def make_env(
     validation.choice("action", action, ACTIONS)
 
     def thunk() -> gym.Env:
-        env = build_env(scenario, config, action, action_weight, observe_correction=observe_correction, **env_kwargs)
+        env = build_env(scenario, config, action, action_weight, observe_correction=observe_correction,
+                        posture_stiffness=posture_stiffness, **env_kwargs)
         env = Monitor(env, monitor_file, info_keywords=info_keywords(config))
         env.reset(seed=seed)
         env.action_space.seed(seed)
@@ -494,7 +513,7 @@ def train(config: TrainConfig, address: str | None = None) -> Path:
     venv = training_envs(config)
     eval_env = DummyVecEnv(
         [make_env(config.evaluated_scenario, filter_, config.action, seed=10_000 + config.seed, action_weight=penalty,
-                  observe_correction=config.observe_correction, **rate)]
+                  observe_correction=config.observe_correction, posture_stiffness=config.posture_stiffness, **rate)]
     )
     if config.normalize_obs:
         # Running mean/std of the observations (not of the rewards); EvalCallback copies the
@@ -540,7 +559,7 @@ def training_envs(config: TrainConfig):
     filter_ = filter_config(config.filter, config.guard_gamma)
     thunks = [make_env(config.scenario, filter_, config.action, seed=config.seed * 1000 + i,
                        action_weight=config.action_weight, observe_correction=config.observe_correction,
-                       **config.env_kwargs())
+                       posture_stiffness=config.posture_stiffness, **config.env_kwargs())
               for i in range(config.n_envs)]  # fmt: skip
     return SubprocVecEnv(thunks) if config.n_envs > 1 else DummyVecEnv(thunks)
 
@@ -693,7 +712,7 @@ def evaluate(
     if observe and filter_ is None:
         raise ValueError("this run observes the filter's correction (observe_correction): evaluate it with a filter")
     env = build_env(scenario, filter_, action, action_weight=config.get("action_weight", 0.0),
-                    observe_correction=observe, **run_env)  # fmt: skip
+                    observe_correction=observe, posture_stiffness=config.get("posture_stiffness"), **run_env)  # fmt: skip
     env.reset(seed=seed)  # as a training env starts (make_env); each episode below is reseeded
     for episode in range(episodes):
         obs, _ = env.reset(seed=seed + episode)

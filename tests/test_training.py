@@ -18,6 +18,7 @@ from c3bf_gym.training import (
     NORMALIZATION_FILE,
     TrainConfig,
     _load_normalizer,
+    build_env,
     by_scenario,
     evaluate,
     make_env,
@@ -143,6 +144,20 @@ def test_set_encoder_run_names_itself_reloads_and_evaluates(tmp_path):
     assert isinstance(model.critic.features_extractor, ObstacleSetExtractor)
     result = evaluate(run / "model.zip", episodes=1)
     assert result["episodes"] == 1 and result["collision_episodes"] == 0
+
+
+def test_posture_stiffness_sets_the_nominal_controllers_pull_and_names_the_run():
+    """``posture_stiffness`` reaches the impedance controller the run's envs step (None: the arm's
+    own), and the run's name carries it."""
+    assert TrainConfig(posture_stiffness=2.0).name == "sac_residual_10hz_dw10_aw3_set_ps2_c3bf+hocbf_random_s0"
+    for stiffness, expected in ((None, 20.0), (2.0, 2.0), (0.0, 0.0)):
+        env = build_env("static", "c3bf+hocbf", "residual", posture_stiffness=stiffness, **policy_rate_kwargs(10))
+        try:
+            assert float(env.unwrapped.torque_hook("nominal").controller.Kq) == expected
+        finally:
+            env.close()
+    with pytest.raises(ValueError, match="posture_stiffness sets the impedance controller"):
+        build_env("static", "none", "torque", posture_stiffness=2.0)
 
 
 @pytest.mark.slow
@@ -348,6 +363,9 @@ def test_make_env_action_modes(action, shape):
          "the rllib engine supports observe_correction=False only, got True"),
         ({"observe_correction": 1}, "observe_correction must be True or False"),
         ({"observe_correction": True, "filter": "none"}, "observe_correction .* needs a filter .* got filter='none'"),
+        ({"posture_stiffness": -1.0}, "posture_stiffness must be a finite number >= 0"),
+        ({"posture_stiffness": float("nan")}, "posture_stiffness must be a finite number >= 0"),
+        ({"posture_stiffness": 2.0, "action": "torque"}, "posture_stiffness sets the impedance controller .* 'torque'"),
     ],
 )
 def test_bad_training_options(kwargs, message):
