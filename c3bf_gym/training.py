@@ -686,7 +686,9 @@ def evaluate(
     with the default filter on (its guard then has the default gains). The action mode,
     policy rate and reward (``distance_weight``, ``action_weight``) are the run's too (also for
     ``best/`` and ``checkpoints/`` models), so returns compare only between runs with the same
-    reward; success and collisions do not depend on it. A run
+    reward; success and collisions do not depend on it. So are the nominal controller's
+    ``posture_stiffness`` and ``observe_correction`` (such a run needs a filter: ValueError
+    otherwise). A run
     trained with ``normalize_obs`` has its final observation statistics in the run directory;
     they are applied (to a ``best/`` or checkpoint model too, an approximation).
     """
@@ -702,15 +704,15 @@ def evaluate(
         filter = config.get("filter", "none")
         guard_gamma = config.get("guard_gamma") if guard_gamma is None else guard_gamma
     filter_ = filter_config(filter, guard_gamma)  # checked before the model loads
+    observe = config.get("observe_correction", False)
+    if observe and filter_ is None:
+        raise ValueError("this run observes the filter's correction (observe_correction): evaluate it with a filter")
     if scenario is None:
         scenario = config.get("eval_scenario") or config.get("scenario", "random")
     policy = _load_policy(model_path, config, run_dir, deterministic)
     returns, successes, costs, collided, interventions, infeasible, kinds = [], [], [], [], [], [], []
     run_env = env_kwargs(config.get("policy_hz", DEFAULT_POLICY_HZ), config.get("distance_weight", 0.0),
                          config.get("robot", "ur5e"))
-    observe = config.get("observe_correction", False)
-    if observe and filter_ is None:
-        raise ValueError("this run observes the filter's correction (observe_correction): evaluate it with a filter")
     env = build_env(scenario, filter_, action, action_weight=config.get("action_weight", 0.0),
                     observe_correction=observe, posture_stiffness=config.get("posture_stiffness"), **run_env)  # fmt: skip
     env.reset(seed=seed)  # as a training env starts (make_env); each episode below is reseeded
