@@ -93,6 +93,8 @@ TRAINING_TABLES = (
     # an attempt on the Panda: the filter's last correction in the observation (--observe-correction), 2 seeds
     ("training_table_sets_panda_oc.md", "sets_oc/panda_sac_*", "final_eval.json",
      "training_curves_sets_panda_oc.png"),
+    # an attempt on the UR5e: the Panda's softer posture pull (--posture-stiffness 2), its two weakest seeds
+    ("training_table_sets_ur5e_ps2.md", "sets_ps/sac_*", "final_eval.json", "training_curves_sets_ur5e_ps2.png"),
 )
 
 
