@@ -264,14 +264,16 @@ class FilterFeedback(gym.ObservationWrapper):
     """Appends the safety filter's last correction to the observation, so a policy can see the filter act.
 
     The entries added, one per arm joint, are ``(τ − clip(τ_nom)) / τ_max`` at the last physics
-    step of the previous policy step: the filtered torque minus the nominal one (clipped to the
-    torque limits, so that saturation alone is not a correction), divided by each joint's torque
-    limit ``τ_max`` [N m] (``env.unwrapped.robot.torque_limit``). Each lies in [−2, 2]; 0 where the
-    filter left the torque alone, and 0 after ``reset``. The observation grows from
-    ``(2 n + 73,)`` to ``(3 n + 73,)`` (the appended part last); everything else is unchanged.
+    step of the policy step that produced the observation: the filtered torque minus the nominal
+    one (clipped to the torque limits, so that saturation alone is not a correction), divided by
+    each joint's torque limit ``τ_max`` [N m] (``env.unwrapped.robot.torque_limit``). Each lies
+    in [−2, 2]; 0 where the filter left the torque alone, and 0 after ``reset``. The observation
+    grows from ``(2 n + 73,)`` to ``(3 n + 73,)`` (the appended part last); everything else is
+    unchanged.
 
-    An observation of the kind the issue on learning under the filter lists as a candidate: the
-    filter's correction, to let an agent anticipate it (the RL results page measures it).
+    With it an agent can see the filter act and learn to anticipate it. Training with it did not
+    raise the Panda's success (the RL results page, ``docs/results/rl.md``), so it is an option
+    (``TrainConfig.observe_correction``), off by default.
 
     Args:
         env: a ``C3BFReach`` environment with a :class:`SafetyFilter` under this wrapper.
