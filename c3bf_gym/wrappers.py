@@ -271,9 +271,8 @@ class FilterFeedback(gym.ObservationWrapper):
     grows from ``(2 n + 73,)`` to ``(3 n + 73,)`` (the appended part last); everything else is
     unchanged.
 
-    With it an agent can see the filter act and learn to anticipate it. Training with it did not
-    raise the Panda's success (the RL results page, ``docs/results/rl.md``), so it is an option
-    (``TrainConfig.observe_correction``), off by default.
+    With it an agent can see the filter act and learn to anticipate it; the training option
+    ``TrainConfig.observe_correction`` (off by default) puts it in a run's environments.
 
     Args:
         env: a ``C3BFReach`` environment with a :class:`SafetyFilter` under this wrapper.
