@@ -274,7 +274,7 @@ class TrainConfig:
         if self.eval_scenario is not None:
             get_scenario(self.eval_scenario)
         policy_rate_kwargs(self.policy_hz)
-        filter_config(self.filter, self.guard_gamma)  # the filter's own checks, guard_gamma's included
+        filter_ = filter_config(self.filter, self.guard_gamma)  # the filter's own checks, guard_gamma's included
         for name in ("distance_weight", "action_weight"):
             validation.number(name, getattr(self, name), low=0.0)
         if self.posture_stiffness is not None:
@@ -287,7 +287,7 @@ class TrainConfig:
         for name in ("normalize_obs", "observe_correction"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"{name} must be True or False, got {getattr(self, name)!r}")
-        if self.observe_correction and filter_config(self.filter, self.guard_gamma) is None:
+        if self.observe_correction and filter_ is None:
             raise ValueError("observe_correction observes the safety filter's correction: it needs a filter "
                              f"(one of {', '.join(map(repr, FILTERS))}), got filter={self.filter!r}")  # fmt: skip
         for name in ("timesteps", "n_envs", "eval_freq", "eval_episodes", "checkpoint_freq"):

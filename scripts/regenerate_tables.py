@@ -81,7 +81,7 @@ TRAINING_TABLES = (
      "training_curves_sets_rllib_ur5e.png"),
     ("training_table_sets_rllib_panda.md", "sets_rllib/rllib_panda_ppo_residual_10hz_dw10_aw3_*", "final_eval.json",
      "training_curves_sets_rllib_panda.png"),
-    # an attempt on the Panda: a dearer correction (--action-weight 10), 2 seeds
+    # an attempt on the Panda: a dearer correction (--action-weight 10), 5 seeds and one unfiltered run
     ("training_table_sets_panda_aw10.md", "sets/panda_sac_residual_10hz_dw10_aw10_set_*", "final_eval.json",
      "training_curves_sets_panda_aw10.png"),
     # an attempt on the Panda: training on random_multi (multi in half the episodes), evaluated on random
