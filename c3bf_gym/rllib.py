@@ -94,7 +94,8 @@ def _ppo_config(config: TrainConfig, hyper: dict[str, Any]):
     per_env = hyper.pop("train_batch_size_per_env")
     env_config = dict(
         scenario=config.scenario, filter=filter_config(config.filter, config.guard_gamma), action=config.action,
-        action_weight=config.action_weight, posture_stiffness=config.posture_stiffness, **config.env_kwargs(),
+        action_weight=config.action_weight, posture_stiffness=config.posture_stiffness,
+        residual_fade=config.residual_fade, **config.env_kwargs(),
     )  # fmt: skip
     ppo = PPOConfig()
     try:

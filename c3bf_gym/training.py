@@ -217,6 +217,10 @@ class TrainConfig:
     ``observe_correction`` appends the filter's last correction to the observation
     (:class:`~c3bf_gym.wrappers.FilterFeedback`; SB3 and a filter only).
 
+    ``residual_fade`` [m] shrinks the residual correction within that distance of the goal
+    (:class:`~c3bf_gym.wrappers.CartesianImpedanceAction`'s ``fade``; residual actions only;
+    None: never).
+
     ``engine="rllib"`` trains with Ray RLlib instead (:func:`c3bf_gym.rllib.train_rllib`): PPO
     only, the flat encoder only, no ``normalize_obs``; ``n_envs`` env runners, one env each.
     """
@@ -245,6 +249,7 @@ class TrainConfig:
     obstacle_encoder: Literal["flat", "set"] = "set"
     observe_correction: bool = False
     posture_stiffness: float | None = None
+    residual_fade: float | None = None
     hyperparams: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
@@ -282,6 +287,11 @@ class TrainConfig:
             if self.action == "torque":
                 raise ValueError("posture_stiffness sets the impedance controller of the Cartesian action modes "
                                  "('impedance', 'residual'); this run's action is 'torque'")  # fmt: skip
+        if self.residual_fade is not None:
+            validation.number("residual_fade", self.residual_fade, low=0.0, low_open=True, unit="m")
+            if self.action != "residual":
+                raise ValueError(f"residual_fade shrinks the residual correction near the goal; this run's action is "
+                                 f"{self.action!r} (valid with 'residual' only)")  # fmt: skip
         if not (isinstance(self.hyperparams, dict) and all(isinstance(key, str) for key in self.hyperparams)):
             raise ValueError(f"hyperparams must be a dict of keyword arguments, got {self.hyperparams!r}")
         for name in ("normalize_obs", "observe_correction"):
@@ -308,6 +318,7 @@ class TrainConfig:
         encoder = "" if self.obstacle_encoder == "flat" else f"_{self.obstacle_encoder}"
         encoder += "_oc" if self.observe_correction else ""
         encoder += "" if self.posture_stiffness is None else f"_ps{self.posture_stiffness:g}"
+        encoder += "" if self.residual_fade is None else f"_fade{self.residual_fade:g}"
         robot = "" if self.robot == "ur5e" else f"{self.robot}_"  # UR5e runs keep their earlier names
         engine = "" if self.engine == "sb3" else f"{self.engine}_"
         return (
@@ -362,6 +373,7 @@ def build_env(
     guard_gamma: float | None = None,
     observe_correction: bool = False,
     posture_stiffness: float | None = None,
+    residual_fade: float | None = None,
     **env_kwargs: Any,
 ) -> gym.Env:
     """``ActionPenalty(FilterFeedback(SafetyFilter(CartesianImpedanceAction(C3BFReach-v0))))``,
@@ -370,19 +382,21 @@ def build_env(
     steps. ``filter``: "none"/None, a name of :data:`~c3bf_gym.safety.FILTERS` or a
     :class:`~c3bf_gym.safety.FilterConfig`; ``guard_gamma``: the guard's gains where it has one
     (None: the default); ``posture_stiffness``: the impedance controller's null-space pull
-    [N m/rad] (None: the arm's own, :func:`~c3bf_gym.wrappers.default_impedance`); ``env_kwargs``
-    go to ``gym.make`` (:func:`env_kwargs`).
+    [N m/rad] (None: the arm's own, :func:`~c3bf_gym.wrappers.default_impedance`);
+    ``residual_fade``: the residual action's ``fade`` [m] (None: none); ``env_kwargs`` go to
+    ``gym.make`` (:func:`env_kwargs`).
 
     Raises:
         ValueError: an unknown filter or action mode, ``observe_correction`` without a filter,
-            ``posture_stiffness`` with torque actions, or bad environment keywords.
+            ``posture_stiffness`` with torque actions, ``residual_fade`` with other than residual
+            actions, or bad environment keywords.
     """
     config = filter_config(filter, guard_gamma)
     validation.choice("action", action, ACTIONS)
     env = gym.make("C3BFReach-v0", scenario=scenario, **env_kwargs)
     if action in ("impedance", "residual"):
         controller = None if posture_stiffness is None else default_impedance(env.unwrapped, posture_stiffness)
-        env = CartesianImpedanceAction(env, controller=controller, residual=action == "residual")
+        env = CartesianImpedanceAction(env, controller=controller, residual=action == "residual", fade=residual_fade)
     elif posture_stiffness is not None:
         raise ValueError(f"posture_stiffness sets the impedance controller of the Cartesian action modes; action={action!r}")
     if config is not None:
@@ -404,6 +418,7 @@ def make_env(
     guard_gamma: float | None = None,
     observe_correction: bool = False,
     posture_stiffness: float | None = None,
+    residual_fade: float | None = None,
     **env_kwargs: Any,
 ) -> Callable[[], gym.Env]:
     """A thunk building ``Monitor(build_env(...))`` (:func:`build_env`) for SB3 vector envs,
@@ -415,7 +430,7 @@ def make_env(
 
     def thunk() -> gym.Env:
         env = build_env(scenario, config, action, action_weight, observe_correction=observe_correction,
-                        posture_stiffness=posture_stiffness, **env_kwargs)
+                        posture_stiffness=posture_stiffness, residual_fade=residual_fade, **env_kwargs)
         env = Monitor(env, monitor_file, info_keywords=info_keywords(config))
         env.reset(seed=seed)
         env.action_space.seed(seed)
@@ -513,7 +528,8 @@ def train(config: TrainConfig, address: str | None = None) -> Path:
     venv = training_envs(config)
     eval_env = DummyVecEnv(
         [make_env(config.evaluated_scenario, filter_, config.action, seed=10_000 + config.seed, action_weight=penalty,
-                  observe_correction=config.observe_correction, posture_stiffness=config.posture_stiffness, **rate)]
+                  observe_correction=config.observe_correction, posture_stiffness=config.posture_stiffness,
+                  residual_fade=config.residual_fade, **rate)]
     )
     if config.normalize_obs:
         # Running mean/std of the observations (not of the rewards); EvalCallback copies the
@@ -559,7 +575,8 @@ def training_envs(config: TrainConfig):
     filter_ = filter_config(config.filter, config.guard_gamma)
     thunks = [make_env(config.scenario, filter_, config.action, seed=config.seed * 1000 + i,
                        action_weight=config.action_weight, observe_correction=config.observe_correction,
-                       posture_stiffness=config.posture_stiffness, **config.env_kwargs())
+                       posture_stiffness=config.posture_stiffness, residual_fade=config.residual_fade,
+                       **config.env_kwargs())
               for i in range(config.n_envs)]  # fmt: skip
     return SubprocVecEnv(thunks) if config.n_envs > 1 else DummyVecEnv(thunks)
 
@@ -687,8 +704,8 @@ def evaluate(
     policy rate and reward (``distance_weight``, ``action_weight``) are the run's too (also for
     ``best/`` and ``checkpoints/`` models), so returns compare only between runs with the same
     reward; success and collisions do not depend on it. So are the nominal controller's
-    ``posture_stiffness`` and ``observe_correction`` (such a run needs a filter: ValueError
-    otherwise). A run
+    ``posture_stiffness``, the residual action's ``residual_fade`` and ``observe_correction`` (such
+    a run needs a filter: ValueError otherwise). A run
     trained with ``normalize_obs`` has its final observation statistics in the run directory;
     they are applied (to a ``best/`` or checkpoint model too, an approximation).
     """
@@ -714,7 +731,8 @@ def evaluate(
     run_env = env_kwargs(config.get("policy_hz", DEFAULT_POLICY_HZ), config.get("distance_weight", 0.0),
                          config.get("robot", "ur5e"))
     env = build_env(scenario, filter_, action, action_weight=config.get("action_weight", 0.0),
-                    observe_correction=observe, posture_stiffness=config.get("posture_stiffness"), **run_env)  # fmt: skip
+                    observe_correction=observe, posture_stiffness=config.get("posture_stiffness"),
+                    residual_fade=config.get("residual_fade"), **run_env)  # fmt: skip
     env.reset(seed=seed)  # as a training env starts (make_env); each episode below is reseeded
     for episode in range(episodes):
         obs, _ = env.reset(seed=seed + episode)

@@ -11,6 +11,7 @@ wrapping order: the impedance controller is always the ``nominal`` stage and the
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import gymnasium as gym
@@ -163,12 +164,22 @@ class CartesianImpedanceAction(gym.ActionWrapper, gym.utils.RecordConstructorArg
     (Johannink et al., ICRA 2019): the policy only has to learn what the straight line gets
     wrong, such as going around an obstacle at rest on it. The task itself does not change.
 
+    With ``fade`` (residual only) the correction's reach shrinks near the goal: it is scaled by
+    ``min(1, d / fade)``, ``d`` [m] being the tool's distance to the goal when the step begins.
+    Within ``min(fade, max_offset)`` of the goal the target is ``goal + (d / fade) max_offset a``,
+    so for an action of Euclidean norm below ``fade / max_offset`` the only target the tool can
+    rest at is the goal itself: a policy's small bias near the goal, where the reward hardly tells
+    actions apart, cannot hold the tool off it. Measured in the docs' RL results page ("Holding
+    the goal").
+
     Args:
         env: a ``C3BFReach-v0`` environment (possibly wrapped, e.g. by :class:`SafetyFilter`).
         max_offset: the target's largest distance from the tool per axis (per part with
             ``residual``) [m].
         controller: a custom :class:`CartesianImpedance`.
         residual: actions correct a straight step for the goal instead of being the whole offset.
+        fade: with ``residual``, the goal distance [m] below which the correction shrinks in
+            proportion (None: never).
 
     ``gym.make(wrapped.spec)`` rebuilds the same stack (the wrapper records its arguments).
     Pickling rebuilds the wrapper, and so its controller hook, around the unpickled environment
@@ -181,9 +192,11 @@ class CartesianImpedanceAction(gym.ActionWrapper, gym.utils.RecordConstructorArg
         max_offset: float = 0.1,
         controller: CartesianImpedance | None = None,
         residual: bool = False,
+        fade: float | None = None,
     ) -> None:
-        gym.utils.RecordConstructorArgs.__init__(self, max_offset=max_offset, controller=controller, residual=residual)
-        gym.utils.EzPickle.__init__(self, env, max_offset, controller, residual)
+        gym.utils.RecordConstructorArgs.__init__(self, max_offset=max_offset, controller=controller, residual=residual,
+                                                 fade=fade)  # fmt: skip
+        gym.utils.EzPickle.__init__(self, env, max_offset, controller, residual, fade)
         super().__init__(env)
         base = reach_env(env, "CartesianImpedanceAction")
         if base.has_torque_hook("nominal"):
@@ -192,6 +205,12 @@ class CartesianImpedanceAction(gym.ActionWrapper, gym.utils.RecordConstructorArg
             raise ValueError(f"max_offset must be a finite number > 0 (m), got {max_offset!r}")
         if not isinstance(residual, (bool, np.bool_)):
             raise ValueError(f"residual must be True or False, got {residual!r}")
+        if fade is not None:
+            if not residual:
+                raise ValueError("fade shrinks the residual correction near the goal: it needs residual=True")
+            if isinstance(fade, bool) or not (isinstance(fade, (int, float)) and np.isfinite(fade) and fade > 0):
+                raise ValueError(f"fade must be None or a finite number > 0 (m), got {fade!r}")
+        self.fade = None if fade is None else float(fade)
         self.max_offset = float(max_offset)
         self.residual = bool(residual)
         self.hook = ImpedanceHook(base, controller or default_impedance(base))
@@ -218,9 +237,12 @@ class CartesianImpedanceAction(gym.ActionWrapper, gym.utils.RecordConstructorArg
         tool = self._tool
         offset = self.max_offset * a
         if self.residual:  # + clip(goal − tool, ±max_offset), per axis
-            m, straight = self.max_offset, self._straight
+            m, straight, squared = self.max_offset, self._straight, 0.0
             for i, (g, x) in enumerate(zip(self._goal.tolist(), tool.tolist())):
                 straight[i] = min(max(g - x, -m), m)
+                squared += (g - x) * (g - x)
+            if self.fade is not None and squared < self.fade * self.fade:
+                offset = offset * (math.sqrt(squared) / self.fade)
             offset = offset + straight
         self.hook.set_target(tool + offset)
         return self._zero  # the torque action underneath is replaced by the controller's
