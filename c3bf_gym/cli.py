@@ -175,6 +175,8 @@ def _add_evaluate(sub: argparse._SubParsersAction) -> None:
                    help="the guard's gains with filter c3bf+hocbf (default: the run's own, or the default gains with "
                         "--filter)")  # fmt: skip
     p.add_argument("--scenario", choices=list(SCENARIOS), default=None, help="default: the run's own")
+    p.add_argument("--residual-fade", type=_nonnegative_float, default=None, metavar="M",
+                   help="the residual action's fade [m] (default: the run's own; 0: none)")
     p.add_argument("--seed", type=_nonnegative_int, default=FINAL_EVAL_SEED, help="seed of the first episode")
     p.add_argument("--json", dest="json_out", default=None, help="also write the result to this JSON file")
     p.set_defaults(func=_run_evaluate)
@@ -183,7 +185,8 @@ def _add_evaluate(sub: argparse._SubParsersAction) -> None:
 def _run_evaluate(args: argparse.Namespace) -> int:
     from c3bf_gym.training import evaluate
 
-    result = evaluate(args.model, args.episodes, args.filter, args.scenario, args.seed, guard_gamma=args.guard_gamma)
+    result = evaluate(args.model, args.episodes, args.filter, args.scenario, args.seed, guard_gamma=args.guard_gamma,
+                      residual_fade=args.residual_fade)  # fmt: skip
     text = json.dumps(result, indent=2)
     print(text)
     if args.json_out:

@@ -393,6 +393,9 @@ def build_env(
     """
     config = filter_config(filter, guard_gamma)
     validation.choice("action", action, ACTIONS)
+    if residual_fade is not None and action != "residual":
+        raise ValueError(f"residual_fade shrinks the residual correction near the goal; action={action!r} (valid with "
+                         "'residual' only)")  # fmt: skip
     env = gym.make("C3BFReach-v0", scenario=scenario, **env_kwargs)
     if action in ("impedance", "residual"):
         controller = None if posture_stiffness is None else default_impedance(env.unwrapped, posture_stiffness)
@@ -692,6 +695,7 @@ def evaluate(
     seed: int = FINAL_EVAL_SEED,
     deterministic: bool = True,
     guard_gamma: float | None = None,
+    residual_fade: float | None = None,
 ) -> dict[str, float]:
     """Roll out a saved model for ``episodes`` seeded episodes (``seed``, ``seed + 1``, ...).
 
@@ -704,10 +708,15 @@ def evaluate(
     policy rate and reward (``distance_weight``, ``action_weight``) are the run's too (also for
     ``best/`` and ``checkpoints/`` models), so returns compare only between runs with the same
     reward; success and collisions do not depend on it. So are the nominal controller's
-    ``posture_stiffness``, the residual action's ``residual_fade`` and ``observe_correction`` (such
-    a run needs a filter: ValueError otherwise). A run
+    ``posture_stiffness``, the residual action's ``residual_fade`` (unless ``residual_fade`` is
+    given: 0 for none) and ``observe_correction`` (such a run needs a filter: ValueError
+    otherwise). A run
     trained with ``normalize_obs`` has its final observation statistics in the run directory;
     they are applied (to a ``best/`` or checkpoint model too, an approximation).
+
+    Besides the success rate (the tool within the tolerance at the episode's last step) the result
+    counts ``reached_not_held_episodes``: episodes whose tool was within the tolerance at some
+    earlier policy step but not at the last.
     """
     model_path = Path(model_path)
     if not model_path.exists():
@@ -726,22 +735,29 @@ def evaluate(
         raise ValueError("this run observes the filter's correction (observe_correction): evaluate it with a filter")
     if scenario is None:
         scenario = config.get("eval_scenario") or config.get("scenario", "random")
+    if residual_fade is None:
+        residual_fade = config.get("residual_fade")
+    else:
+        residual_fade = validation.number("residual_fade", residual_fade, low=0.0, unit="m") or None
     policy = _load_policy(model_path, config, run_dir, deterministic)
     returns, successes, costs, collided, interventions, infeasible, kinds = [], [], [], [], [], [], []
+    not_held = 0
     run_env = env_kwargs(config.get("policy_hz", DEFAULT_POLICY_HZ), config.get("distance_weight", 0.0),
                          config.get("robot", "ur5e"))
     env = build_env(scenario, filter_, action, action_weight=config.get("action_weight", 0.0),
                     observe_correction=observe, posture_stiffness=config.get("posture_stiffness"),
-                    residual_fade=config.get("residual_fade"), **run_env)  # fmt: skip
+                    residual_fade=residual_fade, **run_env)  # fmt: skip
     env.reset(seed=seed)  # as a training env starts (make_env); each episode below is reseeded
     for episode in range(episodes):
         obs, _ = env.reset(seed=seed + episode)
         kinds.append(env.unwrapped.episode_scenario.name)
-        total, done, info = 0.0, False, {}
+        total, done, info, reached = 0.0, False, {}, False
         while not done:
             obs, reward, terminated, truncated, info = env.step(policy(obs))
             total += float(reward)
             done = terminated or truncated
+            reached = reached or bool(info.get("is_success", False))
+        not_held += reached and not info.get("is_success", False)
         returns.append(total)
         successes.append(float(info.get("is_success", False)))
         costs.append(float(info.get("episode_cost", 0.0)))
@@ -762,6 +778,7 @@ def evaluate(
         "collision_steps": float(np.sum(costs)),
         "interventions_per_episode": float(np.mean(interventions)),
         "infeasible_steps": float(np.sum(infeasible)),
+        "reached_not_held_episodes": int(not_held),
         "by_scenario": by_scenario(kinds, successes, collided),
     }
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import importlib.util
 import json
+import re
 import sys
 from pathlib import Path
 
@@ -158,6 +159,44 @@ def test_posture_stiffness_sets_the_nominal_controllers_pull_and_names_the_run()
             env.close()
     with pytest.raises(ValueError, match="posture_stiffness sets the impedance controller"):
         build_env("static", "none", "torque", posture_stiffness=2.0)
+
+
+def test_residual_fade_reaches_the_action_names_the_run_and_is_evaluated_with(tmp_path, monkeypatch):
+    """``residual_fade`` reaches the residual action of the run's envs and its name; ``evaluate``
+    rebuilds a run's envs with the run's own (None for runs from before the option)."""
+    import c3bf_gym.training as training
+
+    assert TrainConfig(residual_fade=0.1).name == "sac_residual_10hz_dw10_aw3_set_fade0.1_c3bf+hocbf_random_s0"
+    for fade in (None, 0.1):
+        env = build_env("static", "c3bf+hocbf", "residual", residual_fade=fade, **policy_rate_kwargs(10))
+        try:
+            assert env.get_wrapper_attr("fade") == fade
+        finally:
+            env.close()
+    for action in ("impedance", "torque"):
+        with pytest.raises(ValueError, match=f"residual_fade shrinks the residual correction near the goal; action='{action}'"):
+            build_env("static", "none", action, residual_fade=0.1)
+    built = []
+    monkeypatch.setattr(training, "build_env", lambda *args, **kwargs: built.append(kwargs) or build_env(*args, **kwargs))
+    monkeypatch.setattr(training, "_load_policy", lambda *args: lambda obs: np.zeros(3, np.float32))
+    (tmp_path / "model.zip").touch()
+    for saved, given, expected in (({"residual_fade": 0.1}, None, 0.1), ({}, None, None), ({"residual_fade": 0.1}, 0.0, None),
+                                   ({}, 0.2, 0.2)):  # fmt: skip
+        config = {"algo": "sac", "action": "residual", "filter": "none", "policy_hz": 10, **saved}
+        (tmp_path / "config.json").write_text(json.dumps(config))
+        result = evaluate(tmp_path / "model.zip", episodes=1, residual_fade=given)
+        assert built.pop()["residual_fade"] == expected
+        assert 0 <= result["reached_not_held_episodes"] <= 1 - result["success_rate"]
+    with pytest.raises(ValueError, match="residual_fade must be a finite number >= 0"):
+        evaluate(tmp_path / "model.zip", episodes=1, residual_fade=-0.1)
+
+    # a policy that reaches the goal (zero residual) and then leaves it (full correction away): not held
+    steps = iter(range(10**6))
+    monkeypatch.setattr(training, "_load_policy",
+                        lambda *args: lambda obs: np.zeros(3, np.float32) if next(steps) % 50 < 35 else np.ones(3, np.float32))
+    (tmp_path / "config.json").write_text(json.dumps({"algo": "sac", "action": "residual", "filter": "none", "policy_hz": 10}))
+    result = evaluate(tmp_path / "model.zip", episodes=2, scenario="none")
+    assert (result["success_rate"], result["reached_not_held_episodes"]) == (0.0, 2)
 
 
 @pytest.mark.slow
@@ -366,6 +405,9 @@ def test_make_env_action_modes(action, shape):
         ({"posture_stiffness": -1.0}, "posture_stiffness must be a finite number >= 0"),
         ({"posture_stiffness": float("nan")}, "posture_stiffness must be a finite number >= 0"),
         ({"posture_stiffness": 2.0, "action": "torque"}, "posture_stiffness sets the impedance controller .* 'torque'"),
+        ({"residual_fade": 0.0}, re.escape("residual_fade must be a finite number > 0 [m], got 0.0")),
+        ({"residual_fade": float("inf")}, "residual_fade must be a finite number > 0"),
+        ({"residual_fade": 0.1, "action": "impedance"}, "residual_fade shrinks .* action is 'impedance' .*'residual' only"),
     ],
 )
 def test_bad_training_options(kwargs, message):

@@ -3,6 +3,7 @@ input, and hook lifetime."""
 
 from __future__ import annotations
 
+import re
 import warnings
 
 import gymnasium as gym
@@ -390,6 +391,50 @@ def test_residual_zero_action_reaches_the_goal(make_env):
     for _ in range(150):
         _, _, _, _, info = env.step(np.zeros(3, np.float32))
     assert info["is_success"], info["distance"]
+
+
+def test_residual_fade_shrinks_the_correction_near_the_goal(make_env):
+    """fade: within fade of the goal the correction is scaled by d / fade (the target is
+    goal + (d / fade) max_offset a there); beyond it the action is as without fade."""
+    env = CartesianImpedanceAction(make_env(scenario="none"), max_offset=0.1, residual=True, fade=0.1)
+    env.reset(seed=3)
+    base = env.unwrapped
+    tool = base.data.site_xpos[base.ee_site_id]
+    a = np.array([1.0, -1.0, 0.5], np.float32)
+    env.action(a)  # goals start >= 0.3 m away: no fade
+    np.testing.assert_allclose(env.hook.target_pos, tool + np.clip(base.goal - tool, -0.1, 0.1) + 0.1 * a, atol=1e-7)
+    base.goal[:] = tool + [0.02, 0.0, -0.03]  # d = 0.036 m
+    d = float(np.linalg.norm(base.goal - tool))
+    env.action(a)
+    np.testing.assert_allclose(env.hook.target_pos, base.goal + (d / 0.1) * 0.1 * a, atol=1e-7)
+
+
+def test_residual_fade_lets_no_small_bias_hold_the_tool_off_the_goal(make_env):
+    """A constant action of norm < 1 rests the tool that far off the goal without fade, and on
+    it with fade = max_offset (what TrainConfig.residual_fade is for)."""
+    bias = np.array([0.3, -0.3, 0.2], np.float32)  # 0.047 m of target offset, inside the 0.05 m tolerance's rim
+    final = {}
+    for fade in (None, 0.1):
+        env = CartesianImpedanceAction(make_env(scenario="none", frame_skip=50), residual=True, fade=fade)
+        env.reset(seed=5)
+        for _ in range(50):  # 5 s at 10 Hz, an episode of the training recipe
+            _, _, _, _, info = env.step(bias)
+        final[fade] = info["distance"]
+    assert final[None] == pytest.approx(0.1 * np.linalg.norm(bias), abs=0.004)
+    assert final[0.1] < 0.002
+
+
+@pytest.mark.parametrize(("kwargs", "message"), [
+    ({"fade": 0.1}, "fade shrinks the residual correction near the goal: it needs residual=True"),
+    ({"residual": True, "fade": 0.0}, "fade must be None or a finite number > 0"),
+    ({"residual": True, "fade": float("nan")}, "fade must be None or a finite number > 0"),
+    ({"residual": True, "fade": True}, "fade must be None or a finite number > 0"),
+])  # fmt: skip
+def test_bad_fade_rejected(make_env, kwargs, message):
+    env = make_env(scenario="none")
+    with pytest.raises(ValueError, match=re.escape(message)):
+        CartesianImpedanceAction(env, **kwargs)
+    assert not env.unwrapped.has_torque_hook("nominal")
 
 
 @pytest.mark.parametrize("residual", [1, "yes", None])

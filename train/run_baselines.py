@@ -43,6 +43,8 @@ def main() -> int:
                         help="the reward's dense -distance term (default %(default)s)")
     parser.add_argument("--action-weight", type=float, default=d.action_weight,
                         help="the reward's -mean(action^2) term (default %(default)s)")
+    parser.add_argument("--residual-fade", type=float, default=d.residual_fade, metavar="M",
+                        help="shrink the residual correction within M metres of the goal (default: TrainConfig's)")
     parser.add_argument("--obstacle-encoder", choices=OBSTACLE_ENCODERS, default=d.obstacle_encoder,
                         help="flat MLP or a shared per-obstacle encoder (set)")
     parser.add_argument("--hyperparams", default=None, help="JSON overriding the defaults (passed to every run)")
@@ -65,7 +67,7 @@ def main() -> int:
         name = TrainConfig(
             algo=args.algo, robot=args.robot, action=args.action, filter=filter_name, guard_gamma=gains(filter_name), scenario=args.scenario, seed=seed,
             policy_hz=args.policy_hz, normalize_obs=args.normalize_obs, distance_weight=args.distance_weight,
-            action_weight=args.action_weight, obstacle_encoder=args.obstacle_encoder,
+            action_weight=args.action_weight, obstacle_encoder=args.obstacle_encoder, residual_fade=args.residual_fade,
         ).name  # fmt: skip
         if (out / name / "summary.json").exists():
             print(f"skip {name}: finished")
@@ -79,6 +81,7 @@ def main() -> int:
             "--distance-weight", str(args.distance_weight), "--action-weight", str(args.action_weight),
             "--obstacle-encoder", args.obstacle_encoder, "--n-envs", str(args.n_envs),
             "--final-eval-episodes", str(args.final_eval_episodes),
+            *(["--residual-fade", str(args.residual_fade)] if args.residual_fade is not None else []),
         ] + (["--normalize-obs"] if args.normalize_obs else []) + (["--hyperparams", args.hyperparams] if args.hyperparams else [])  # fmt: skip
         jobs.append((name, command))
 
