@@ -71,7 +71,7 @@ def _add_train(sub: argparse._SubParsersAction) -> None:
     from c3bf_gym.scenarios import SCENARIOS
     from c3bf_gym.safety import GUARD_GAMMA
     from c3bf_gym.training import (ACTIONS, ALGORITHMS, DEFAULT_TIMESTEPS, ENGINE_DEFAULTS, ENGINES, OBSTACLE_ENCODERS,
-                                   POLICY_RATES, TRAIN_FILTERS, TrainConfig)  # fmt: skip
+                                   POLICY_RATES, RESIDUAL_FADE, TRAIN_FILTERS, TrainConfig)  # fmt: skip
 
     d = TrainConfig()  # the defaults live there
 
@@ -129,9 +129,9 @@ def _add_train(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--posture-stiffness", type=_nonnegative_float, default=d.posture_stiffness,
                    help="the impedance controller's null-space pull to home [N m/rad] (default: the arm's own, "
                         "20 on the UR5e, 2 on the Panda)")  # fmt: skip
-    p.add_argument("--residual-fade", type=_positive_float, default=d.residual_fade, metavar="M",
+    p.add_argument("--residual-fade", type=_nonnegative_float, default=None, metavar="M",
                    help="shrink the residual correction within M metres of the goal, in proportion to the distance "
-                        "(residual actions only; default: never)")  # fmt: skip
+                        f"(residual actions only; 0: never; default: {RESIDUAL_FADE:g})")  # fmt: skip
     p.add_argument("--observe-correction", action="store_true",
                    help="append the filter's last correction to the observation (c3bf_gym.wrappers.FilterFeedback; "
                         "SB3 and a filter only)")  # fmt: skip

@@ -81,6 +81,11 @@ ALGORITHMS = ("sac", "ppo")
 #: from every sample through its replay buffer, PPO's samples are cheap and it needs more of
 #: them. Why these (measured): the docs' RL results page, "PPO: its own budget".
 DEFAULT_TIMESTEPS = {"sac": 25_000, "ppo": 100_000}
+#: The residual action's fade [m] when a run names none: the correction shrinks in proportion
+#: within this distance of the goal (:class:`~c3bf_gym.wrappers.CartesianImpedanceAction`'s
+#: ``fade``, here its ``max_offset``), so a policy's small bias cannot hold the tool off the goal.
+#: Why (measured): the docs' RL results page, "Holding the goal".
+RESIDUAL_FADE = 0.1
 #: Training engines: Stable-Baselines3 on one machine, or Ray RLlib (PPO on its new API stack,
 #: env runners on a local Ray instance or a cluster; :mod:`c3bf_gym.rllib`, the ``rllib`` extra).
 ENGINES = ("sb3", "rllib")
@@ -218,8 +223,9 @@ class TrainConfig:
     (:class:`~c3bf_gym.wrappers.FilterFeedback`; SB3 and a filter only).
 
     ``residual_fade`` [m] shrinks the residual correction within that distance of the goal
-    (:class:`~c3bf_gym.wrappers.CartesianImpedanceAction`'s ``fade``; residual actions only;
-    None: never).
+    (:class:`~c3bf_gym.wrappers.CartesianImpedanceAction`'s ``fade``; residual actions only, 0:
+    never). None (the default) is :data:`RESIDUAL_FADE` for residual actions, resolved when the
+    config is made like ``timesteps``; runs from before the option had none (0).
 
     ``engine="rllib"`` trains with Ray RLlib instead (:func:`c3bf_gym.rllib.train_rllib`): PPO
     only, the flat encoder only, no ``normalize_obs``; ``n_envs`` env runners, one env each.
@@ -255,6 +261,8 @@ class TrainConfig:
     def __post_init__(self) -> None:
         if self.timesteps is None and self.algo in DEFAULT_TIMESTEPS:  # an unknown algo: validate() names it
             self.timesteps = DEFAULT_TIMESTEPS[self.algo]
+        if self.residual_fade is None and self.action == "residual":
+            self.residual_fade = RESIDUAL_FADE
 
     def validate(self) -> None:
         from c3bf_gym.scenarios import get_scenario
@@ -288,8 +296,8 @@ class TrainConfig:
                 raise ValueError("posture_stiffness sets the impedance controller of the Cartesian action modes "
                                  "('impedance', 'residual'); this run's action is 'torque'")  # fmt: skip
         if self.residual_fade is not None:
-            validation.number("residual_fade", self.residual_fade, low=0.0, low_open=True, unit="m")
-            if self.action != "residual":
+            validation.number("residual_fade", self.residual_fade, low=0.0, unit="m")
+            if self.residual_fade and self.action != "residual":
                 raise ValueError(f"residual_fade shrinks the residual correction near the goal; this run's action is "
                                  f"{self.action!r} (valid with 'residual' only)")  # fmt: skip
         if not (isinstance(self.hyperparams, dict) and all(isinstance(key, str) for key in self.hyperparams)):
@@ -318,7 +326,7 @@ class TrainConfig:
         encoder = "" if self.obstacle_encoder == "flat" else f"_{self.obstacle_encoder}"
         encoder += "_oc" if self.observe_correction else ""
         encoder += "" if self.posture_stiffness is None else f"_ps{self.posture_stiffness:g}"
-        encoder += "" if self.residual_fade is None else f"_fade{self.residual_fade:g}"
+        encoder += f"_fade{self.residual_fade:g}" if self.residual_fade else ""
         robot = "" if self.robot == "ur5e" else f"{self.robot}_"  # UR5e runs keep their earlier names
         engine = "" if self.engine == "sb3" else f"{self.engine}_"
         return (
@@ -383,7 +391,7 @@ def build_env(
     :class:`~c3bf_gym.safety.FilterConfig`; ``guard_gamma``: the guard's gains where it has one
     (None: the default); ``posture_stiffness``: the impedance controller's null-space pull
     [N m/rad] (None: the arm's own, :func:`~c3bf_gym.wrappers.default_impedance`);
-    ``residual_fade``: the residual action's ``fade`` [m] (None: none); ``env_kwargs`` go to
+    ``residual_fade``: the residual action's ``fade`` [m] (None or 0: none); ``env_kwargs`` go to
     ``gym.make`` (:func:`env_kwargs`).
 
     Raises:
@@ -393,13 +401,13 @@ def build_env(
     """
     config = filter_config(filter, guard_gamma)
     validation.choice("action", action, ACTIONS)
-    if residual_fade is not None and action != "residual":
+    if residual_fade and action != "residual":
         raise ValueError(f"residual_fade shrinks the residual correction near the goal; action={action!r} (valid with "
                          "'residual' only)")  # fmt: skip
     env = gym.make("C3BFReach-v0", scenario=scenario, **env_kwargs)
     if action in ("impedance", "residual"):
         controller = None if posture_stiffness is None else default_impedance(env.unwrapped, posture_stiffness)
-        env = CartesianImpedanceAction(env, controller=controller, residual=action == "residual", fade=residual_fade)
+        env = CartesianImpedanceAction(env, controller=controller, residual=action == "residual", fade=residual_fade or None)
     elif posture_stiffness is not None:
         raise ValueError(f"posture_stiffness sets the impedance controller of the Cartesian action modes; action={action!r}")
     if config is not None:
@@ -736,7 +744,7 @@ def evaluate(
     if scenario is None:
         scenario = config.get("eval_scenario") or config.get("scenario", "random")
     if residual_fade is None:
-        residual_fade = config.get("residual_fade")
+        residual_fade = config.get("residual_fade") or None  # absent from runs before the option: none
     else:
         residual_fade = validation.number("residual_fade", residual_fade, low=0.0, unit="m") or None
     policy = _load_policy(model_path, config, run_dir, deterministic)

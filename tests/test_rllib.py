@@ -30,7 +30,7 @@ def test_rllib_ppo_trains_under_the_filter_on_two_env_runners_and_evaluates(tmp_
                          checkpoint_freq=200, final_eval_episodes=2, out=str(tmp_path), progress_bar=False,
                          hyperparams=SMOKE)  # fmt: skip
     run = train(config)
-    assert run.name == "rllib_ppo_residual_10hz_dw10_aw3_c3bf+hocbf_random_s0"
+    assert run.name == "rllib_ppo_residual_10hz_dw10_aw3_fade0.1_c3bf+hocbf_random_s0"
     assert (run / "checkpoint").is_dir() and (run / "checkpoints" / "200").is_dir()
     saved = json.loads((run / "config.json").read_text())
     assert saved["engine"] == "rllib" and saved["resolved_hyperparams"]["minibatch_size"] == 50

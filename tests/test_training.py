@@ -17,6 +17,7 @@ from c3bf_gym.safety import GUARD_GAMMA, FilterConfig
 from c3bf_gym.plots import plot_training
 from c3bf_gym.training import (
     NORMALIZATION_FILE,
+    RESIDUAL_FADE,
     TrainConfig,
     _load_normalizer,
     build_env,
@@ -138,7 +139,7 @@ def test_set_encoder_run_names_itself_reloads_and_evaluates(tmp_path):
     run = train(TrainConfig(timesteps=250, action="residual", scenario="multi", policy_hz=10, obstacle_encoder="set",
                             eval_freq=10_000, final_eval_episodes=0, out=str(tmp_path), progress_bar=False,
                             hyperparams={"learning_starts": 100}))  # fmt: skip
-    assert run.name == "sac_residual_10hz_dw10_aw3_set_c3bf+hocbf_multi_s0"
+    assert run.name == "sac_residual_10hz_dw10_aw3_set_fade0.1_c3bf+hocbf_multi_s0"
     assert json.loads((run / "config.json").read_text())["obstacle_encoder"] == "set"
     model = SAC.load(run / "model.zip", device="cpu")
     assert isinstance(model.actor.features_extractor, ObstacleSetExtractor)
@@ -150,7 +151,7 @@ def test_set_encoder_run_names_itself_reloads_and_evaluates(tmp_path):
 def test_posture_stiffness_sets_the_nominal_controllers_pull_and_names_the_run():
     """``posture_stiffness`` reaches the impedance controller the run's envs step (None: the arm's
     own), and the run's name carries it."""
-    assert TrainConfig(posture_stiffness=2.0).name == "sac_residual_10hz_dw10_aw3_set_ps2_c3bf+hocbf_random_s0"
+    assert TrainConfig(posture_stiffness=2.0).name == "sac_residual_10hz_dw10_aw3_set_ps2_fade0.1_c3bf+hocbf_random_s0"
     for stiffness, expected in ((None, 20.0), (2.0, 2.0), (0.0, 0.0)):
         env = build_env("static", "c3bf+hocbf", "residual", posture_stiffness=stiffness, **policy_rate_kwargs(10))
         try:
@@ -166,7 +167,9 @@ def test_residual_fade_reaches_the_action_names_the_run_and_is_evaluated_with(tm
     rebuilds a run's envs with the run's own (None for runs from before the option)."""
     import c3bf_gym.training as training
 
-    assert TrainConfig(residual_fade=0.1).name == "sac_residual_10hz_dw10_aw3_set_fade0.1_c3bf+hocbf_random_s0"
+    assert TrainConfig(residual_fade=0.2).name == "sac_residual_10hz_dw10_aw3_set_fade0.2_c3bf+hocbf_random_s0"
+    assert TrainConfig(residual_fade=0.0).name == "sac_residual_10hz_dw10_aw3_set_c3bf+hocbf_random_s0"  # as before it
+    assert TrainConfig().residual_fade == RESIDUAL_FADE and TrainConfig(action="torque").residual_fade is None
     for fade in (None, 0.1):
         env = build_env("static", "c3bf+hocbf", "residual", residual_fade=fade, **policy_rate_kwargs(10))
         try:
@@ -208,7 +211,7 @@ def test_correction_observing_run_names_itself_reloads_and_evaluates(tmp_path):
     run = train(TrainConfig(timesteps=250, scenario="multi", observe_correction=True, eval_freq=10_000,
                             final_eval_episodes=0, out=str(tmp_path), progress_bar=False,
                             hyperparams={"learning_starts": 100}))  # fmt: skip
-    assert run.name == "sac_residual_10hz_dw10_aw3_set_oc_c3bf+hocbf_multi_s0"
+    assert run.name == "sac_residual_10hz_dw10_aw3_set_oc_fade0.1_c3bf+hocbf_multi_s0"
     assert json.loads((run / "config.json").read_text())["observe_correction"] is True
     model = SAC.load(run / "model.zip", device="cpu")
     assert model.observation_space.shape == (2 * 6 + 73 + 6,)
@@ -226,7 +229,7 @@ def test_panda_run_trains_under_the_filter_names_itself_and_evaluates_on_the_pan
     the run's config."""
     run = train(TrainConfig(robot="panda", timesteps=250, scenario="multi", eval_freq=10_000, final_eval_episodes=0,
                             out=str(tmp_path), progress_bar=False, hyperparams={"learning_starts": 100}))  # fmt: skip
-    assert run.name == "panda_sac_residual_10hz_dw10_aw3_set_c3bf+hocbf_multi_s0"
+    assert run.name == "panda_sac_residual_10hz_dw10_aw3_set_fade0.1_c3bf+hocbf_multi_s0"
     assert json.loads((run / "config.json").read_text())["robot"] == "panda"
     summary = json.loads((run / "summary.json").read_text())
     assert summary["training_cost"] == 0.0
@@ -258,7 +261,7 @@ def test_policy_rate_keeps_five_second_episodes(hz):
 
 def test_distance_weight_reaches_the_env_and_names_the_run():
     config = TrainConfig(action="residual", distance_weight=5.0, action_weight=0.0, obstacle_encoder="flat", policy_hz=10)
-    assert config.name == "sac_residual_10hz_dw5_c3bf+hocbf_random_s0"
+    assert config.name == "sac_residual_10hz_dw5_fade0.1_c3bf+hocbf_random_s0"
     assert TrainConfig(action="residual", policy_hz=10, distance_weight=0.0).env_kwargs() == policy_rate_kwargs(10)
     env = make_env("none", "none", "residual", seed=0, **config.env_kwargs())()
     _, reward, *_, info = env.step(np.zeros(3, np.float32))
@@ -272,10 +275,10 @@ def test_filter_names_reach_the_filter_and_name_the_run():
     name says which, and the guard's gains when they are not the default."""
     from c3bf_gym.safety.barriers import DistanceHOCBF
 
-    assert TrainConfig(filter="c3bf").name == "sac_residual_10hz_dw10_aw3_set_c3bf_random_s0"
-    assert TrainConfig(filter="hocbf").name == "sac_residual_10hz_dw10_aw3_set_hocbf_random_s0"
-    assert TrainConfig().name == "sac_residual_10hz_dw10_aw3_set_c3bf+hocbf_random_s0"
-    assert TrainConfig(guard_gamma=5.0).name == "sac_residual_10hz_dw10_aw3_set_c3bf+hocbf5_random_s0"
+    assert TrainConfig(filter="c3bf").name == "sac_residual_10hz_dw10_aw3_set_fade0.1_c3bf_random_s0"
+    assert TrainConfig(filter="hocbf").name == "sac_residual_10hz_dw10_aw3_set_fade0.1_hocbf_random_s0"
+    assert TrainConfig().name == "sac_residual_10hz_dw10_aw3_set_fade0.1_c3bf+hocbf_random_s0"
+    assert TrainConfig(guard_gamma=5.0).name == "sac_residual_10hz_dw10_aw3_set_fade0.1_c3bf+hocbf5_random_s0"
     for name, expected in (("c3bf+hocbf", DistanceHOCBF), ("c3bf", type(None))):
         env = make_env("none", name, "residual", seed=0)()
         assert type(env.get_wrapper_attr("hook").guard) is expected
@@ -296,7 +299,7 @@ def test_filter_names_reach_the_filter_and_name_the_run():
 
 def test_action_weight_penalises_the_policy_action_and_names_the_run():
     config = TrainConfig(action="residual", distance_weight=10.0, action_weight=0.5, obstacle_encoder="flat", policy_hz=10)
-    assert config.name == "sac_residual_10hz_dw10_aw0.5_c3bf+hocbf_random_s0"
+    assert config.name == "sac_residual_10hz_dw10_aw0.5_fade0.1_c3bf+hocbf_random_s0"
     env = make_env("none", "c3bf+hocbf", "residual", seed=0, action_weight=0.5, **config.env_kwargs())()
     assert [type(w).__name__ for w in (env, env.env)] == ["Monitor", "ActionPenalty"]
     _, reward, *_, info = env.step(np.ones(3, np.float32))
@@ -310,7 +313,7 @@ def test_defaults_are_the_readme_recipe_on_every_entry_point(monkeypatch, tmp_pa
     defaults are the recipe of the README's RL table (its run names say so)."""
     import c3bf_gym.training
 
-    assert TrainConfig().name == "sac_residual_10hz_dw10_aw3_set_c3bf+hocbf_random_s0"
+    assert TrainConfig().name == "sac_residual_10hz_dw10_aw3_set_fade0.1_c3bf+hocbf_random_s0"
     assert TrainConfig().timesteps == 25_000 and TrainConfig(algo="ppo").timesteps == 100_000  # each its budget
     assert TrainConfig(algo="ppo", timesteps=7).timesteps == 7
     seen = []
@@ -340,7 +343,7 @@ def test_the_rllib_engine_has_its_own_defaults_and_refuses_what_it_cannot_train(
     assert main(["train", "--engine", "rllib", "--n-envs", "2", "--address", "auto"]) == 0
     config, address = seen[0]
     assert config == TrainConfig(engine="rllib", algo="ppo", obstacle_encoder="flat", n_envs=2) and address == "auto"
-    assert config.name == "rllib_ppo_residual_10hz_dw10_aw3_c3bf+hocbf_random_s0" and config.timesteps == 100_000
+    assert config.name == "rllib_ppo_residual_10hz_dw10_aw3_fade0.1_c3bf+hocbf_random_s0" and config.timesteps == 100_000
     assert config.resolved_hyperparams()["train_batch_size_per_env"] == 1024
     assert main(["train", "--engine", "rllib", "--algo", "sac"]) == 0  # the CLI passes it on; validate() refuses
     with pytest.raises(ValueError, match="the rllib engine supports algo='ppo' only, got 'sac'"):
@@ -405,8 +408,8 @@ def test_make_env_action_modes(action, shape):
         ({"posture_stiffness": -1.0}, "posture_stiffness must be a finite number >= 0"),
         ({"posture_stiffness": float("nan")}, "posture_stiffness must be a finite number >= 0"),
         ({"posture_stiffness": 2.0, "action": "torque"}, "posture_stiffness sets the impedance controller .* 'torque'"),
-        ({"residual_fade": 0.0}, re.escape("residual_fade must be a finite number > 0 [m], got 0.0")),
-        ({"residual_fade": float("inf")}, "residual_fade must be a finite number > 0"),
+        ({"residual_fade": -0.1}, re.escape("residual_fade must be a finite number >= 0 [m], got -0.1")),
+        ({"residual_fade": float("inf")}, "residual_fade must be a finite number >= 0"),
         ({"residual_fade": 0.1, "action": "impedance"}, "residual_fade shrinks .* action is 'impedance' .*'residual' only"),
     ],
 )

@@ -43,8 +43,8 @@ def main() -> int:
                         help="the reward's dense -distance term (default %(default)s)")
     parser.add_argument("--action-weight", type=float, default=d.action_weight,
                         help="the reward's -mean(action^2) term (default %(default)s)")
-    parser.add_argument("--residual-fade", type=float, default=d.residual_fade, metavar="M",
-                        help="shrink the residual correction within M metres of the goal (default: TrainConfig's)")
+    parser.add_argument("--residual-fade", type=float, default=None, metavar="M",
+                        help="shrink the residual correction within M metres of the goal (0: never; default: TrainConfig's)")
     parser.add_argument("--obstacle-encoder", choices=OBSTACLE_ENCODERS, default=d.obstacle_encoder,
                         help="flat MLP or a shared per-obstacle encoder (set)")
     parser.add_argument("--hyperparams", default=None, help="JSON overriding the defaults (passed to every run)")
