@@ -178,6 +178,9 @@ def _add_evaluate(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--residual-fade", type=_nonnegative_float, default=None, metavar="M",
                    help="the residual action's fade [m] (default: the run's own; 0: none)")
     p.add_argument("--seed", type=_nonnegative_int, default=FINAL_EVAL_SEED, help="seed of the first episode")
+    p.add_argument("--per-episode", action="store_true",
+                   help="add one record per episode: scenario, success, the tool's closest and final distance to the "
+                        "goal, the nearest obstacle's clearance to the goal at the end")  # fmt: skip
     p.add_argument("--json", dest="json_out", default=None, help="also write the result to this JSON file")
     p.set_defaults(func=_run_evaluate)
 
@@ -186,7 +189,7 @@ def _run_evaluate(args: argparse.Namespace) -> int:
     from c3bf_gym.training import evaluate
 
     result = evaluate(args.model, args.episodes, args.filter, args.scenario, args.seed, guard_gamma=args.guard_gamma,
-                      residual_fade=args.residual_fade)  # fmt: skip
+                      residual_fade=args.residual_fade, per_episode=args.per_episode)  # fmt: skip
     text = json.dumps(result, indent=2)
     print(text)
     if args.json_out:

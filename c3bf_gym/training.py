@@ -21,6 +21,7 @@ import csv
 import importlib
 import inspect
 import json
+import math
 import os
 import sys
 import time
@@ -704,7 +705,8 @@ def evaluate(
     deterministic: bool = True,
     guard_gamma: float | None = None,
     residual_fade: float | None = None,
-) -> dict[str, float]:
+    per_episode: bool = False,
+) -> dict[str, Any]:
     """Roll out a saved model for ``episodes`` seeded episodes (``seed``, ``seed + 1``, ...).
 
     ``model_path`` is an SB3 ``model.zip`` (or one in ``best/`` or ``checkpoints/``) or an RLlib
@@ -724,7 +726,11 @@ def evaluate(
 
     Besides the success rate (the tool within the tolerance at the episode's last step) the result
     counts ``reached_not_held_episodes``: episodes whose tool was within the tolerance at some
-    earlier policy step but not at the last.
+    earlier policy step but not at the last. ``per_episode`` adds ``per_episode``, one record per
+    episode: ``scenario``, ``success``, ``collided``, ``closest_distance`` and ``final_distance``
+    (the tool's distance to the goal, its least over the policy steps and at the last one, m) and
+    ``goal_clearance`` (the nearest obstacle's surface distance to the goal at the last step, m;
+    None with no obstacle).
     """
     model_path = Path(model_path)
     if not model_path.exists():
@@ -749,7 +755,7 @@ def evaluate(
         residual_fade = validation.number("residual_fade", residual_fade, low=0.0, unit="m") or None
     policy = _load_policy(model_path, config, run_dir, deterministic)
     returns, successes, costs, collided, interventions, infeasible, kinds = [], [], [], [], [], [], []
-    not_held = 0
+    not_held, records = 0, []
     run_env = env_kwargs(config.get("policy_hz", DEFAULT_POLICY_HZ), config.get("distance_weight", 0.0),
                          config.get("robot", "ur5e"))
     env = build_env(scenario, filter_, action, action_weight=config.get("action_weight", 0.0),
@@ -759,13 +765,18 @@ def evaluate(
     for episode in range(episodes):
         obs, _ = env.reset(seed=seed + episode)
         kinds.append(env.unwrapped.episode_scenario.name)
-        total, done, info, reached = 0.0, False, {}, False
+        total, done, info, reached, closest = 0.0, False, {}, False, math.inf
         while not done:
             obs, reward, terminated, truncated, info = env.step(policy(obs))
             total += float(reward)
             done = terminated or truncated
             reached = reached or bool(info.get("is_success", False))
+            closest = min(closest, float(info["distance"]))
         not_held += reached and not info.get("is_success", False)
+        if per_episode:
+            records.append({"scenario": kinds[-1], "success": bool(info.get("is_success", False)),
+                            "collided": info.get("episode_cost", 0.0) > 0, "closest_distance": closest,
+                            "final_distance": float(info["distance"]), "goal_clearance": _goal_clearance(env.unwrapped)})  # fmt: skip
         returns.append(total)
         successes.append(float(info.get("is_success", False)))
         costs.append(float(info.get("episode_cost", 0.0)))
@@ -788,7 +799,18 @@ def evaluate(
         "infeasible_steps": float(np.sum(infeasible)),
         "reached_not_held_episodes": int(not_held),
         "by_scenario": by_scenario(kinds, successes, collided),
+        **({"per_episode": records} if per_episode else {}),
     }
+
+
+def _goal_clearance(env) -> float | None:
+    """The nearest active obstacle's surface distance to the goal [m] (negative: the goal inside
+    it), or None with no obstacle active."""
+    active = env.obstacle_active
+    if not active.any():
+        return None
+    gaps = np.linalg.norm(env.obstacle_pos[active] - env.goal, axis=1) - env.obstacle_radius[active]
+    return float(gaps.min())
 
 
 def by_scenario(kinds: list[str], successes: list[float], collided: list[float]) -> dict[str, dict[str, float]]:

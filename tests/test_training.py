@@ -198,8 +198,13 @@ def test_residual_fade_reaches_the_action_names_the_run_and_is_evaluated_with(tm
     monkeypatch.setattr(training, "_load_policy",
                         lambda *args: lambda obs: np.zeros(3, np.float32) if next(steps) % 50 < 35 else np.ones(3, np.float32))
     (tmp_path / "config.json").write_text(json.dumps({"algo": "sac", "action": "residual", "filter": "none", "policy_hz": 10}))
-    result = evaluate(tmp_path / "model.zip", episodes=2, scenario="none")
+    result = evaluate(tmp_path / "model.zip", episodes=2, scenario="none", per_episode=True)
     assert (result["success_rate"], result["reached_not_held_episodes"]) == (0.0, 2)
+    for record in result["per_episode"]:
+        assert record["scenario"] == "none" and not record["success"] and not record["collided"]
+        assert record["closest_distance"] < 0.05 < record["final_distance"] and record["goal_clearance"] is None
+    record = evaluate(tmp_path / "model.zip", episodes=1, scenario="static", per_episode=True)["per_episode"][0]
+    assert record["goal_clearance"] is not None and record["goal_clearance"] > 0.0  # the sphere at rest, off the goal
 
 
 @pytest.mark.slow
