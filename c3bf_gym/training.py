@@ -202,11 +202,12 @@ class TrainConfig:
     guard's gains where the filter has one (None: :data:`~c3bf_gym.safety.GUARD_GAMMA`).
 
     The defaults are the recipe of the README's RL table (the one place they are kept; the
-    command line takes them from here): SAC, residual Cartesian actions at 10 Hz, the reward's
-    distance term (``distance_weight=10``) and action penalty (``action_weight=3``), the set
-    encoder for the obstacle slots, 25k steps. Each was chosen by measured runs (the docs' RL
-    results page, ``docs/results/rl.md``). PPO shares the actions, reward and encoder, with
-    RL-Zoo's MuJoCo settings (:data:`HYPERPARAMS`) and its own budget.
+    command line takes them from here): SAC, residual Cartesian actions at 10 Hz that fade within
+    0.1 m of the goal (``residual_fade``), the reward's distance term (``distance_weight=10``) and
+    action penalty (``action_weight=3``), the set encoder for the obstacle slots, 25k steps. Each
+    was chosen by measured runs (the docs' RL results page, ``docs/results/rl.md``). PPO shares
+    the actions, reward and encoder, with RL-Zoo's MuJoCo settings (:data:`HYPERPARAMS`) and its
+    own budget (the README's PPO sets were trained before the fade).
 
     ``timesteps`` None (the default) is the algorithm's budget, :data:`DEFAULT_TIMESTEPS`
     (SAC 25k, PPO 100k); it is resolved when the config is made, so ``config.timesteps`` and the

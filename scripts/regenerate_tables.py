@@ -95,6 +95,11 @@ TRAINING_TABLES = (
      "training_curves_sets_panda_oc.png"),
     # an attempt on the UR5e: the Panda's softer posture pull (--posture-stiffness 2), its two weakest seeds
     ("training_table_sets_ur5e_ps2.md", "sets_ps/sac_*", "final_eval.json", "training_curves_sets_ur5e_ps2.png"),
+    # the SAC sets of the README's table: the residual action's fade (--residual-fade 0.1, the default since),
+    # the default filter on seeds 0-4 and no filter on seeds 0 and 1, both arms (code 045e7f0)
+    ("training_table_sets_fade_ur5e.md", "sets_fade/sac_*", "final_eval.json", "training_curves_sets_fade_ur5e.png"),
+    ("training_table_sets_fade_panda.md", "sets_fade/panda_sac_*", "final_eval.json",
+     "training_curves_sets_fade_panda.png"),
 )
 
 
