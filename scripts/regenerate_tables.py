@@ -98,8 +98,11 @@ TRAINING_TABLES = (
     # the SAC sets of the README's table: the residual action's fade (--residual-fade 0.1, the default since),
     # the default filter on seeds 0-4 and no filter on seeds 0 and 1, both arms (code 045e7f0)
     ("training_table_sets_fade_ur5e.md", "sets_fade/sac_*", "final_eval.json", "training_curves_sets_fade_ur5e.png"),
-    ("training_table_sets_fade_panda.md", "sets_fade/panda_sac_*", "final_eval.json",
+    ("training_table_sets_fade_panda.md", "sets_fade/panda_sac_residual_10hz_dw10_aw3_*", "final_eval.json",
      "training_curves_sets_fade_panda.png"),
+    # an attempt on the Panda: the dearer correction (--action-weight 10) with the fade, 5 seeds (code 045e7f0)
+    ("training_table_sets_fade_panda_aw10.md", "sets_fade/panda_sac_residual_10hz_dw10_aw10_*", "final_eval.json",
+     "training_curves_sets_fade_panda_aw10.png"),
 )
 
 
