@@ -297,11 +297,7 @@ class TrainConfig:
             if self.action == "torque":
                 raise ValueError("posture_stiffness sets the impedance controller of the Cartesian action modes "
                                  "('impedance', 'residual'); this run's action is 'torque'")  # fmt: skip
-        if self.residual_fade is not None:
-            validation.number("residual_fade", self.residual_fade, low=0.0, unit="m")
-            if self.residual_fade and self.action != "residual":
-                raise ValueError(f"residual_fade shrinks the residual correction near the goal; this run's action is "
-                                 f"{self.action!r} (valid with 'residual' only)")  # fmt: skip
+        _residual_fade_or_none(self.residual_fade, self.action)
         if not (isinstance(self.hyperparams, dict) and all(isinstance(key, str) for key in self.hyperparams)):
             raise ValueError(f"hyperparams must be a dict of keyword arguments, got {self.hyperparams!r}")
         for name in ("normalize_obs", "observe_correction"):
@@ -375,6 +371,21 @@ def info_keywords(filter: str | FilterConfig | None) -> tuple[str, ...]:
     return keys + ("episode_interventions", "episode_infeasible") if filter_config(filter) else keys
 
 
+def _residual_fade_or_none(value: float | None, action: str) -> float | None:
+    """``value`` as the residual action's fade [m], None for none (None or 0).
+
+    Raises:
+        ValueError: not a finite number >= 0, or a fade with another action mode than residual.
+    """
+    if value is None:
+        return None
+    fade = validation.number("residual_fade", value, low=0.0, unit="m")
+    if fade and action != "residual":
+        raise ValueError(f"residual_fade shrinks the residual correction near the goal; action={action!r} "
+                         "(valid with 'residual' only)")  # fmt: skip
+    return fade or None
+
+
 def build_env(
     scenario: str = "random",
     filter: str | FilterConfig | None = DEFAULT_FILTER,
@@ -398,18 +409,16 @@ def build_env(
 
     Raises:
         ValueError: an unknown filter or action mode, ``observe_correction`` without a filter,
-            ``posture_stiffness`` with torque actions, ``residual_fade`` with other than residual
-            actions, or bad environment keywords.
+            ``posture_stiffness`` with torque actions, a ``residual_fade`` that is not a finite
+            number >= 0 or is given with other than residual actions, or bad environment keywords.
     """
     config = filter_config(filter, guard_gamma)
     validation.choice("action", action, ACTIONS)
-    if residual_fade and action != "residual":
-        raise ValueError(f"residual_fade shrinks the residual correction near the goal; action={action!r} (valid with "
-                         "'residual' only)")  # fmt: skip
+    fade = _residual_fade_or_none(residual_fade, action)
     env = gym.make("C3BFReach-v0", scenario=scenario, **env_kwargs)
     if action in ("impedance", "residual"):
         controller = None if posture_stiffness is None else default_impedance(env.unwrapped, posture_stiffness)
-        env = CartesianImpedanceAction(env, controller=controller, residual=action == "residual", fade=residual_fade or None)
+        env = CartesianImpedanceAction(env, controller=controller, residual=action == "residual", fade=fade)
     elif posture_stiffness is not None:
         raise ValueError(f"posture_stiffness sets the impedance controller of the Cartesian action modes; action={action!r}")
     if config is not None:
@@ -751,9 +760,8 @@ def evaluate(
     if scenario is None:
         scenario = config.get("eval_scenario") or config.get("scenario", "random")
     if residual_fade is None:
-        residual_fade = config.get("residual_fade") or None  # absent from runs before the option: none
-    else:
-        residual_fade = validation.number("residual_fade", residual_fade, low=0.0, unit="m") or None
+        residual_fade = config.get("residual_fade")  # absent from runs before the option: none
+    residual_fade = _residual_fade_or_none(residual_fade, action)
     policy = _load_policy(model_path, config, run_dir, deterministic)
     returns, successes, costs, collided, interventions, infeasible, kinds = [], [], [], [], [], [], []
     not_held, records = 0, []
@@ -773,13 +781,14 @@ def evaluate(
             done = terminated or truncated
             reached = reached or bool(info.get("is_success", False))
             closest = min(closest, float(info["distance"]))
-        not_held += reached and not info.get("is_success", False)
+        success = bool(info.get("is_success", False))
+        not_held += reached and not success
         if per_episode:
-            records.append({"scenario": kinds[-1], "success": bool(info.get("is_success", False)),
+            records.append({"scenario": kinds[-1], "success": success,
                             "collided": info.get("episode_cost", 0.0) > 0, "closest_distance": closest,
                             "final_distance": float(info["distance"]), "goal_clearance": _goal_clearance(env.unwrapped)})  # fmt: skip
         returns.append(total)
-        successes.append(float(info.get("is_success", False)))
+        successes.append(float(success))
         costs.append(float(info.get("episode_cost", 0.0)))
         collided.append(float(info.get("episode_cost", 0.0) > 0))
         interventions.append(float(info.get("episode_interventions", 0)))

@@ -415,7 +415,7 @@ def test_make_env_action_modes(action, shape):
         ({"posture_stiffness": 2.0, "action": "torque"}, "posture_stiffness sets the impedance controller .* 'torque'"),
         ({"residual_fade": -0.1}, re.escape("residual_fade must be a finite number >= 0 [m], got -0.1")),
         ({"residual_fade": float("inf")}, "residual_fade must be a finite number >= 0"),
-        ({"residual_fade": 0.1, "action": "impedance"}, "residual_fade shrinks .* action is 'impedance' .*'residual' only"),
+        ({"residual_fade": 0.1, "action": "impedance"}, "residual_fade shrinks .* action='impedance' .*'residual' only"),
     ],
 )
 def test_bad_training_options(kwargs, message):
