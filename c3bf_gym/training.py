@@ -735,11 +735,13 @@ def evaluate(
     they are applied (to a ``best/`` or checkpoint model too, an approximation).
 
     Besides the success rate (the tool within the tolerance at the episode's last step) the result
-    counts ``reached_not_held_episodes``: episodes whose tool was within the tolerance at some
-    earlier policy step but not at the last. ``per_episode`` adds ``per_episode``, one record per
-    episode: ``scenario``, ``success``, ``collided``, ``closest_distance`` and ``final_distance``
-    (the tool's distance to the goal, its least over the policy steps and at the last one, m) and
-    ``goal_clearance`` (the nearest obstacle's surface distance to the goal at the last step, m;
+    has ``collision_free_success_rate`` (the share of episodes that succeeded with no collision at
+    any step: an unfiltered agent may reach the goal through an obstacle; also per scenario in
+    ``by_scenario``) and counts ``reached_not_held_episodes``: episodes whose tool was within the
+    tolerance at some earlier policy step but not at the last. ``per_episode`` adds
+    ``per_episode``, one record per episode: ``scenario``, ``success``, ``collided``,
+    ``closest_distance`` and ``final_distance`` (the tool's distance to the goal, its least over
+    the policy steps and at the last one, m) and ``goal_clearance`` (the nearest obstacle's surface distance to the goal at the last step, m;
     None with no obstacle).
     """
     model_path = Path(model_path)
@@ -801,6 +803,7 @@ def evaluate(
         "scenario": scenario,
         "episodes": episodes,
         "success_rate": float(np.mean(successes)),
+        "collision_free_success_rate": float(np.mean(np.multiply(successes, np.logical_not(collided)))),
         "return_mean": float(np.mean(returns)),
         "return_std": float(np.std(returns)),
         "collision_episodes": int(np.sum(collided)),
@@ -824,14 +827,18 @@ def _goal_clearance(env) -> float | None:
 
 
 def by_scenario(kinds: list[str], successes: list[float], collided: list[float]) -> dict[str, dict[str, float]]:
-    """Episodes, success rate and collision episodes per concrete scenario (the components of a
+    """Episodes, success rate, collision episodes and collision-free success rate (the share of
+    episodes that succeeded without any collision) per concrete scenario (the components of a
     ``random`` evaluation), in order of first appearance."""
     table: dict[str, dict[str, float]] = {}
     for kind, success, collision in zip(kinds, successes, collided):
-        row = table.setdefault(kind, {"episodes": 0, "success_rate": 0.0, "collision_episodes": 0})
+        row = table.setdefault(kind, {"episodes": 0, "success_rate": 0.0, "collision_episodes": 0,
+                                      "collision_free_success_rate": 0.0})  # fmt: skip
         row["episodes"] += 1
         row["success_rate"] += success
         row["collision_episodes"] += int(collision)
+        row["collision_free_success_rate"] += success * (not collision)
     for row in table.values():
         row["success_rate"] /= row["episodes"]
+        row["collision_free_success_rate"] /= row["episodes"]
     return table

@@ -77,9 +77,10 @@ def test_train_save_reload_evaluate(algo, filter_name, tmp_path):
     assert list(final["by_scenario"]) == ["head_on"] and final["by_scenario"]["head_on"]["episodes"] == 2
     best = evaluate(run / "best" / "best_model.zip", episodes=1)  # the run's config from one level up
     assert best["filter"] == filter_name and best["scenario"] == "head_on"
-    assert 0.0 <= result["success_rate"] <= 1.0
+    assert 0.0 <= result["collision_free_success_rate"] <= result["success_rate"] <= 1.0
     if filter_name != "none":
         assert result["collision_episodes"] == 0
+        assert result["collision_free_success_rate"] == result["success_rate"]
 
 
 @pytest.mark.slow
@@ -360,10 +361,14 @@ def test_the_rllib_engine_has_its_own_defaults_and_refuses_what_it_cannot_train(
 
 
 def test_by_scenario_splits_an_evaluation_by_its_concrete_scenarios():
-    table = by_scenario(["multi", "static", "multi", "multi"], [1.0, 0.0, 0.0, 1.0], [0.0, 1.0, 0.0, 0.0])
+    table = by_scenario(["multi", "static", "multi", "multi", "static"], [1.0, 0.0, 0.0, 1.0, 1.0],
+                        [0.0, 1.0, 0.0, 0.0, 1.0])  # fmt: skip
     assert list(table) == ["multi", "static"]
-    assert table["multi"] == {"episodes": 3, "success_rate": pytest.approx(2 / 3), "collision_episodes": 0}
-    assert table["static"] == {"episodes": 1, "success_rate": 0.0, "collision_episodes": 1}
+    assert table["multi"] == {"episodes": 3, "success_rate": pytest.approx(2 / 3), "collision_episodes": 0,
+                              "collision_free_success_rate": pytest.approx(2 / 3)}  # fmt: skip
+    # a success through an obstacle is a success, but not a collision-free one
+    assert table["static"] == {"episodes": 2, "success_rate": 0.5, "collision_episodes": 2,
+                               "collision_free_success_rate": 0.0}  # fmt: skip
 
 
 def test_make_env_puts_monitor_outside_the_filter():
