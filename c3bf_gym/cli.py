@@ -70,7 +70,7 @@ def add_robot(parser: argparse.ArgumentParser, default: str) -> None:
 def _add_train(sub: argparse._SubParsersAction) -> None:
     from c3bf_gym.scenarios import SCENARIOS
     from c3bf_gym.safety import GUARD_GAMMA
-    from c3bf_gym.training import (ACTIONS, ALGORITHMS, DEFAULT_TIMESTEPS, ENGINE_DEFAULTS, ENGINES, OBSTACLE_ENCODERS,
+    from c3bf_gym.training import (ACTION_WEIGHTS, ACTIONS, ALGORITHMS, DEFAULT_TIMESTEPS, ENGINE_DEFAULTS, ENGINES, OBSTACLE_ENCODERS,
                                    POLICY_RATES, RESIDUAL_FADE, TRAIN_FILTERS, TrainConfig)  # fmt: skip
 
     d = TrainConfig()  # the defaults live there
@@ -118,8 +118,9 @@ def _add_train(sub: argparse._SubParsersAction) -> None:
                    help="actions per second (the physics and the filter stay at 500 Hz; episodes stay 5 s)")  # fmt: skip
     p.add_argument("--distance-weight", type=_nonnegative_float, default=d.distance_weight,
                    help="weight of the reward's dense -distance term (C3BFReachEnv's distance_weight; 0: off)")  # fmt: skip
-    p.add_argument("--action-weight", type=_nonnegative_float, default=d.action_weight,
-                   help="weight of a -mean(action^2) reward term (ActionPenalty; keeps a residual policy near its prior; 0: off)")  # fmt: skip
+    p.add_argument("--action-weight", type=_nonnegative_float, default=None,
+                   help="weight of a -mean(action^2) reward term (ActionPenalty; keeps a residual policy near its prior; "
+                        f"0: off; default by robot: {', '.join(f'{r}: {w:g}' for r, w in ACTION_WEIGHTS.items())})")  # fmt: skip
     p.add_argument("--obstacle-encoder", choices=OBSTACLE_ENCODERS, default=None,
                    help="how the policy reads the obstacle slots: flat (an MLP on the whole observation) or set "
                         "(one shared encoder per slot, pooled: c3bf_gym.policies.ObstacleSetExtractor; SB3 only) "

@@ -100,9 +100,13 @@ TRAINING_TABLES = (
     ("training_table_sets_fade_ur5e.md", "sets_fade/sac_*", "final_eval.json", "training_curves_sets_fade_ur5e.png"),
     ("training_table_sets_fade_panda.md", "sets_fade/panda_sac_residual_10hz_dw10_aw3_*", "final_eval.json",
      "training_curves_sets_fade_panda.png"),
-    # an attempt on the Panda: the dearer correction (--action-weight 10) with the fade, 5 seeds (code 045e7f0)
+    # the Panda's SAC sets of the README's table: its dearer correction (action weight 10, ACTION_WEIGHTS) with
+    # the fade, the default filter on seeds 0-4 (code 045e7f0) and no filter on seeds 0 and 1 (code dad7383)
     ("training_table_sets_fade_panda_aw10.md", "sets_fade/panda_sac_residual_10hz_dw10_aw10_*", "final_eval.json",
      "training_curves_sets_fade_panda_aw10.png"),
+    # an attempt on the UR5e: the Panda's dearer correction, stopped after 2 seeds (code dad7383)
+    ("training_table_sets_fade_ur5e_aw10.md", "sets_fade_ur5e_aw10/sac_*", "final_eval.json",
+     "training_curves_sets_fade_ur5e_aw10.png"),
 )
 
 

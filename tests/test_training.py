@@ -16,6 +16,7 @@ from c3bf_gym.cli import main
 from c3bf_gym.safety import GUARD_GAMMA, FilterConfig
 from c3bf_gym.plots import plot_training
 from c3bf_gym.training import (
+    ACTION_WEIGHTS,
     NORMALIZATION_FILE,
     RESIDUAL_FADE,
     TrainConfig,
@@ -235,7 +236,7 @@ def test_panda_run_trains_under_the_filter_names_itself_and_evaluates_on_the_pan
     the run's config."""
     run = train(TrainConfig(robot="panda", timesteps=250, scenario="multi", eval_freq=10_000, final_eval_episodes=0,
                             out=str(tmp_path), progress_bar=False, hyperparams={"learning_starts": 100}))  # fmt: skip
-    assert run.name == "panda_sac_residual_10hz_dw10_aw3_set_fade0.1_c3bf+hocbf_multi_s0"
+    assert run.name == "panda_sac_residual_10hz_dw10_aw10_set_fade0.1_c3bf+hocbf_multi_s0"
     assert json.loads((run / "config.json").read_text())["robot"] == "panda"
     summary = json.loads((run / "summary.json").read_text())
     assert summary["training_cost"] == 0.0
@@ -336,6 +337,16 @@ def test_defaults_are_the_readme_recipe_on_every_entry_point(monkeypatch, tmp_pa
     assert module.main() == 0 and len(commands) == 1 and commands[0][1:4] == ["-m", "c3bf_gym.cli", "train"]
     assert main(commands[0][3:]) == 0
     assert seen[1] == TrainConfig(out=str(tmp_path), progress_bar=False)
+    # the Panda's own action weight, through both entry points
+    panda = TrainConfig(robot="panda")
+    assert panda.action_weight == ACTION_WEIGHTS["panda"] == 10.0 and TrainConfig().action_weight == 3.0
+    assert panda.name == "panda_sac_residual_10hz_dw10_aw10_set_fade0.1_c3bf+hocbf_random_s0"
+    assert TrainConfig(robot="panda", action_weight=3.0).action_weight == 3.0  # a given weight is kept
+    assert main(["train", "--robot", "panda"]) == 0 and seen[2] == panda
+    monkeypatch.setattr(sys, "argv", ["run_baselines.py", "--robot", "panda", "--filters", "none", "--seeds", "0",
+                                      "--out", str(tmp_path)])  # fmt: skip
+    assert module.main() == 0 and main(commands[1][3:]) == 0
+    assert seen[3] == TrainConfig(robot="panda", filter="none", out=str(tmp_path), progress_bar=False)
 
 
 def test_the_rllib_engine_has_its_own_defaults_and_refuses_what_it_cannot_train(monkeypatch, tmp_path):

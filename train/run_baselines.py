@@ -41,8 +41,8 @@ def main() -> int:
     parser.add_argument("--normalize-obs", action="store_true")
     parser.add_argument("--distance-weight", type=float, default=d.distance_weight,
                         help="the reward's dense -distance term (default %(default)s)")
-    parser.add_argument("--action-weight", type=float, default=d.action_weight,
-                        help="the reward's -mean(action^2) term (default %(default)s)")
+    parser.add_argument("--action-weight", type=float, default=None,
+                        help="the reward's -mean(action^2) term (default: the robot's, TrainConfig)")
     parser.add_argument("--residual-fade", type=float, default=None, metavar="M",
                         help="shrink the residual correction within M metres of the goal (0: never; default: TrainConfig's)")
     parser.add_argument("--obstacle-encoder", choices=OBSTACLE_ENCODERS, default=d.obstacle_encoder,
@@ -78,7 +78,8 @@ def main() -> int:
             "--scenario", args.scenario, "--seed", str(seed),
             *(["--eval-scenario", args.eval_scenario] if args.eval_scenario else []),
             *(["--timesteps", str(args.timesteps)] if args.timesteps is not None else []), "--out", str(out), "--no-progress", "--policy-hz", str(args.policy_hz),
-            "--distance-weight", str(args.distance_weight), "--action-weight", str(args.action_weight),
+            "--distance-weight", str(args.distance_weight),
+            *(["--action-weight", str(args.action_weight)] if args.action_weight is not None else []),
             "--obstacle-encoder", args.obstacle_encoder, "--n-envs", str(args.n_envs),
             "--final-eval-episodes", str(args.final_eval_episodes),
             *(["--residual-fade", str(args.residual_fade)] if args.residual_fade is not None else []),
