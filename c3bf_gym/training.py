@@ -213,9 +213,9 @@ class TrainConfig:
     0.1 m of the goal (``residual_fade``), the reward's distance term (``distance_weight=10``) and
     action penalty (``action_weight``: the arm's, :data:`ACTION_WEIGHTS`), the set encoder for the
     obstacle slots, 25k steps. Each was chosen by measured runs (the docs' RL results page,
-    ``docs/results/rl.md``). PPO shares
-    the actions, reward and encoder, with RL-Zoo's MuJoCo settings (:data:`HYPERPARAMS`) and its
-    own budget (the README's PPO sets were trained before the fade and the Panda's weight).
+    ``docs/results/rl.md``). PPO shares the actions, reward and encoder, with RL-Zoo's MuJoCo
+    settings (:data:`HYPERPARAMS`) and its own budget (the README's RLlib PPO sets were trained
+    before the fade and the Panda's weight).
 
     ``timesteps`` None (the default) is the algorithm's budget, :data:`DEFAULT_TIMESTEPS`
     (SAC 25k, PPO 100k); it is resolved when the config is made, so ``config.timesteps`` and the
@@ -754,8 +754,8 @@ def evaluate(
     tolerance at some earlier policy step but not at the last. ``per_episode`` adds
     ``per_episode``, one record per episode: ``scenario``, ``success``, ``collided``,
     ``closest_distance`` and ``final_distance`` (the tool's distance to the goal, its least over
-    the policy steps and at the last one, m) and ``goal_clearance`` (the nearest obstacle's surface distance to the goal at the last step, m;
-    None with no obstacle).
+    the policy steps and at the last one, m) and ``goal_clearance`` (the nearest obstacle's
+    surface distance to the goal at the last step, m; None with no obstacle).
     """
     model_path = Path(model_path)
     if not model_path.exists():
