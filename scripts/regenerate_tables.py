@@ -107,6 +107,12 @@ TRAINING_TABLES = (
     # an attempt on the UR5e: the Panda's dearer correction, stopped after 2 seeds (code dad7383)
     ("training_table_sets_fade_ur5e_aw10.md", "sets_fade_ur5e_aw10/sac_*", "final_eval.json",
      "training_curves_sets_fade_ur5e_aw10.png"),
+    # SB3 PPO on today's recipe (the fade; the Panda's action weight 10), the default filter on seeds 0-4 and
+    # no filter on seeds 0 and 1, both arms (code 3c4666a)
+    ("training_table_sets_ppo_fade_ur5e.md", "sets_ppo_fade/ppo_*", "final_eval.json",
+     "training_curves_sets_ppo_fade_ur5e.png"),
+    ("training_table_sets_ppo_fade_panda.md", "sets_ppo_fade/panda_ppo_*", "final_eval.json",
+     "training_curves_sets_ppo_fade_panda.png"),
 )
 
 
