@@ -572,6 +572,40 @@ def test_joint_speed_fraction_sets_the_speed_rows(env):
         np.testing.assert_array_equal(hook.joint_limits.q_hi, u.joint_range[:, 1])
 
 
+def test_joint_range_reserve_draws_the_position_rows_inside_the_range(env):
+    """The reserve moves the filter's position limits inside the range (at most a quarter of it)
+    and hands the QP the rows' offset back to the range, γ₁γ₂δ per position row."""
+    u = env
+    lo, hi = u.joint_range.T
+    hook = hook_for(u, joint_range_reserve=0.3)
+    delta = np.minimum(0.3, 0.25 * (hi - lo))
+    np.testing.assert_allclose(hook.joint_limits.q_lo, lo + delta)
+    np.testing.assert_allclose(hook.joint_limits.q_hi, hi - delta)
+    g1, g2, _ = hook.joint_limits.gains
+    np.testing.assert_allclose(hook.qp.buffers.reserve, np.concatenate([g1 * g2 * delta] * 2))
+    assert hook_for(u).qp.buffers.reserve.shape == (0,)  # the default keeps none
+
+
+def test_joint_range_reserve_keeps_the_joints_inside_their_range_until_a_guard_needs_it():
+    """Random torques on the Panda, nothing to avoid: with a 0.3 rad reserve no joint comes within
+    0.3 rad of a limit, and no step counts as giving way; without one they come closer."""
+    closest = {}
+    for reserve in (0.0, 0.3):
+        env = SafetyFilter(gym.make("C3BFReachPanda-v0", scenario="none"), joint_range_reserve=reserve)
+        env.reset(seed=0)
+        u = env.unwrapped
+        lo, hi = u.joint_range.T
+        rng = np.random.default_rng(0)
+        closest[reserve] = np.inf
+        for _ in range(250):
+            _, _, _, _, info = env.step(rng.uniform(-1, 1, env.action_space.shape).astype(np.float32))
+            q = u.data.qpos[:7]
+            closest[reserve] = min(closest[reserve], float(np.min(np.minimum(q - lo, hi - q))))
+            assert info["safety"]["gain_raised_steps"] == 0 and info["safety"]["infeasible_steps"] == 0
+        env.close()
+    assert closest[0.0] < 0.3 <= closest[0.3] + 1e-6, closest
+
+
 def test_gamma_reaches_the_barrier(env):
     u = env
     assert hook_for(u, gamma=2.5).barrier.gamma == 2.5

@@ -146,6 +146,50 @@ def test_stride_marks_every_other_obstacle_row_as_the_barriers():
     assert result.status == "relaxed" and result.tau[0] == pytest.approx(0.2, abs=1e-9)
 
 
+def _reserve_problem(guard, barrier):
+    """Two joints, one obstacle (barrier row 0, guard row 1: ``u0 >= guard``, ``u0 >= barrier``),
+    then the joint limits' 8 rows: joint 0's upper position row ``u0 <= 0.2`` drawn 0.3 inside
+    its range (``u0 <= 0.5``); the other rows do not bind."""
+    A = np.array([[1.0, 0.0], [1.0, 0.0],
+                  [-1.0, 0.0], [0.0, -1.0], [1.0, 0.0], [0.0, 1.0],  # position: upper, lower
+                  [-1.0, 0.0], [0.0, -1.0], [1.0, 0.0], [0.0, 1.0]])  # speed: upper, lower
+    b = np.array([barrier, guard, -0.2, -1.0, -1.0, -1.0, -1.0, -1.0, -1.0, -1.0])
+    return A, b
+
+
+def test_the_joint_range_reserve_gives_way_after_the_barrier_and_before_the_range():
+    """With a reserve the position rows inside the range are a level of their own: the guard takes
+    the joint into its reserve (and the report counts that as held), the range itself holds at
+    the guard's priority, and the barrier's rows still give way first."""
+    qp = PriorityQP(2, -np.ones(2), np.ones(2), 9, 1, reserve=np.full(4, 0.3))
+    ones = np.ones(2)
+    A, b = _reserve_problem(guard=0.4, barrier=-1.0)  # the guard needs 0.2 of the 0.3 reserve
+    into = qp.solve_scaled(np.zeros(2), A, b, ones, n_obstacle_rows=2, stride=2)
+    assert into.status == "relaxed" and into.tau[0] == pytest.approx(0.4, abs=1e-9)
+    assert into.slack == pytest.approx(0.0, abs=1e-9)  # the reserve was used, no row lost
+    assert qp.buffers.residual[2] == pytest.approx(0.0, abs=1e-9)
+    A, b = _reserve_problem(guard=0.7, barrier=-1.0)  # beyond the range: the guard and the range share level 1
+    beyond = qp.solve_scaled(np.zeros(2), A, b, ones, n_obstacle_rows=2, stride=2)
+    assert beyond.tau[0] == pytest.approx(0.6, abs=1e-6)
+    assert beyond.slack == pytest.approx(0.1, abs=1e-6)  # guard and range each 0.1 off, the reserve's 0.3 reported
+    assert qp.buffers.residual[2] == pytest.approx(-0.1, abs=1e-6)
+    A, b = _reserve_problem(guard=-1.0, barrier=0.4)  # the barrier's row against the reserve: the barrier gives way
+    first = qp.solve_scaled(np.zeros(2), A, b, ones, n_obstacle_rows=2, stride=2)
+    assert first.tau[0] == pytest.approx(0.2, abs=1e-9) and first.slack == pytest.approx(0.2, abs=1e-9)
+    # without a reserve the position row is the range itself: the guard gives way with it
+    plain = PriorityQP(2, -np.ones(2), np.ones(2), 9, 1).solve_scaled(
+        np.zeros(2), *_reserve_problem(guard=0.4, barrier=-1.0), ones, n_obstacle_rows=2, stride=2)
+    assert plain.tau[0] == pytest.approx(0.3, abs=1e-6) and plain.slack == pytest.approx(0.1, abs=1e-6)
+
+
+@pytest.mark.parametrize("reserve, level1, message", [
+    (np.full(3, 0.3), 9, r"reserve must be \(4,\)"), (np.array([0.3, -0.1, 0.3, 0.3]), 9, "finite and >= 0"),
+    (np.full(4, np.nan), 9, "finite and >= 0"), (np.full(4, 0.3), 7, "at least 8 priority-1 rows")])
+def test_a_bad_reserve_is_refused(reserve, level1, message):
+    with pytest.raises(ValueError, match=message):
+        PriorityQP(2, -np.ones(2), np.ones(2), level1, 1, reserve=reserve)
+
+
 def test_random_infeasible_problems_keep_priority_one_where_the_box_allows():
     """Random conflicts: whenever the priority-1 rows can hold within the box (proxsuite finds a
     point), the solution holds them, and the barrier's rows' violation is no more than needed by

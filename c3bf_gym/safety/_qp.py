@@ -15,7 +15,14 @@ of the level's violations), and only then minimises the cost. The levels:
 
 0. the torque box: hard;
 1. the joint position and speed limits, the floor and the distance guard;
-2. the barrier's rows beside a guard (the C3BF's in the default filter), which give way first.
+2. the joint range's reserve, when the filter keeps one (``FilterConfig.joint_range_reserve``):
+   the joint position rows drawn that far inside the range, whose copies at the range itself are
+   level 1's;
+3. the barrier's rows beside a guard (the C3BF's in the default filter), which give way first.
+
+A level with no rows is left out. So with a reserve the rows of level 1, the guard among them, can
+take a joint into the last of its range, and the barrier's rows cannot; without one the levels are
+0, 1 and 3, named 1 and 2 below.
 
 So with a guard the joint-speed bound holds whenever some torque within the limits can hold it
 together with the floor and the guard. A filter without a guard has no level 2: its barrier's
@@ -72,18 +79,24 @@ class QPBuffers(NamedTuple):
     Attributes:
         plain: the one-level workspace (every row hard), warm-started call to call.
         hier: the prioritised workspace, solved when ``plain`` is infeasible, warm-started from
-            its own previous solve's working set: level 1's rows first, then level 2's (the
-            barrier's), its problem and break points sized to the rows in use at every solve.
-        capacity: int64 (2,) the row capacity of the two levels (0: the workspace has no such
-            level).
+            its own previous solve's working set: level 1's rows first (with the copies of the
+            reserve's rows at the range), then the reserve's, then the barrier's, its problem and
+            break points sized to the rows in use at every solve.
+        capacity: int64 (3,) the row capacity of level 1, the reserve's level and the barrier's
+            (0: the workspace has no such level).
         lo, hi: (n,) the box of ``u``.
         u: (n,) the solution.
         norm: (rows,) each row's norm ``‖A_k s‖`` (0: left out).
         residual: (rows,) each row's normalised residual ``â_k u − b̂_k`` at the solution (> −tol:
-            held); for a zero row, ``−b_k``.
+            held); for a zero row, ``−b_k``; for a row of the reserve that gave way, the residual
+            of its copy at the range when that is violated, else 0 (the reserve used, no row lost).
         cold: int64 (2,) 1: the next solve of ``plain`` (``cold[0]``) or ``hier`` (``cold[1]``)
             starts from an empty working set (then 0).
         last: int64 (1,) the previous call's status (:data:`SOLVED`, :data:`RELAXED`, ...).
+        reserve: (r,) the joint range's reserve (``r = 2n`` for ``n`` joints, or empty: none). The
+            last ``2r`` rows of a call are then the joint limits' (position upper and lower, then
+            speed upper and lower); position row ``i`` is drawn inside the range, and its copy at
+            the range has its ``b`` lowered by ``reserve[i]`` (``γ₁γ₂ δ``).
     """
 
     plain: DaqpBuffers
@@ -96,6 +109,7 @@ class QPBuffers(NamedTuple):
     residual: np.ndarray
     cold: np.ndarray
     last: np.ndarray
+    reserve: np.ndarray
 
 
 @njit(**STEP_KERNEL_OPTIONS)
@@ -178,11 +192,12 @@ def solve_rows(tau_nom, A, b, scale, cols, n_obstacle_rows, stride, qp):
        them), warm-started from its previous solve's working set. If DAQP finds the optimum and
        every row holds within :data:`ACTIVE_TOL`, that is the answer (:data:`SOLVED`).
     3. Otherwise, by priority (:data:`RELAXED`, ``qp.hier``): level 1 holds the rows that are not
-       the barrier's (the guard's, the floor's, the joint limits'), level 2 the barrier's: rows
-       ``k < n_obstacle_rows`` with ``k % stride == 0``; its problem too is sized to the rows in
-       use. Warm-started from its own previous solve's working set, and once more from an empty
-       one if that fails. If it fails too, ``u`` is the box projection of ``u_nom``
-       (:data:`FAILED`).
+       the barrier's (the guard's, the floor's, the joint limits'), then the joint range's reserve
+       (``qp.reserve``: the position rows inside the range, their copies at the range in level 1),
+       then the barrier's: rows ``k < n_obstacle_rows`` with ``k % stride == 0``; its problem too
+       is sized to the rows in use. Warm-started from its own previous solve's working set, and
+       once more from an empty one if that fails. If it fails too, ``u`` is the box projection of
+       ``u_nom`` (:data:`FAILED`).
 
     Right after a call that was not solved, step 3 comes first: if its answer violates some row
     by more than :data:`INFEASIBLE_TOL`, no torque satisfies every row (else both levels would
@@ -240,14 +255,33 @@ def solve_rows(tau_nom, A, b, scale, cols, n_obstacle_rows, stride, qp):
         elif impossible > 0.0:
             status = RELAXED
     qp.last[0] = status
+    if status != SOLVED:
+        _reserve_residuals(qp, m)
     n_active, slack = _active_and_slack(qp, b, status, impossible)
     return status, iterations, n_active, slack
 
 
 @njit(**STEP_KERNEL_OPTIONS)
-def _barrier_row(k, n_obstacle_rows, stride):
-    """Whether row ``k`` is the barrier's, of priority 2 (:func:`solve_rows`, step 3)."""
-    return k < n_obstacle_rows and k % stride == 0
+def _row_level(k, m, n_obstacle_rows, stride, r):
+    """The level of row ``k`` of ``m`` in the prioritised solve (:func:`solve_rows`, step 3): 0
+    (level 1), 1 (the joint range's reserve: rows ``m − 2r`` … ``m − r − 1``, with ``r`` the
+    length of ``qp.reserve``) or 2 (the barrier's: ``k < n_obstacle_rows``, ``k % stride == 0``)."""
+    if k < n_obstacle_rows and k % stride == 0:
+        return 2
+    if m - 2 * r <= k < m - r:
+        return 1
+    return 0
+
+
+@njit(**STEP_KERNEL_OPTIONS)
+def _reserve_residuals(qp, m):
+    """After a solve that was not :data:`SOLVED`: a reserve row (:func:`_row_level` 1) that gave
+    way reports its copy at the range instead, ``min(residual + reserve / norm, 0)``: 0 when the
+    joint only went into its reserve, the copy's violation when it went past the range."""
+    r = qp.reserve.shape[0]
+    for k in range(m - 2 * r, m - r):
+        if qp.norm[k] != 0.0 and qp.residual[k] < 0.0:
+            qp.residual[k] = min(qp.residual[k] + qp.reserve[k - (m - 2 * r)] / qp.norm[k], 0.0)
 
 
 @njit(**STEP_KERNEL_OPTIONS)
@@ -257,40 +291,57 @@ def _solve_by_priority(qp, m, n_obstacle_rows, stride):
     to the box."""
     plain, hier = qp.plain, qp.hier
     n = plain.x.shape[0]
+    r = qp.reserve.shape[0]
     # The problem is sized to the rows in use, level by level (DAQP reads its break_points, hier.levels,
-    # at every solve): level 1's rows first, then level 2's. A level the workspace has keeps at least
-    # one row, a zero one (which DAQP ignores) when it has none this call.
-    count1 = count2 = 0
+    # at every solve): level 1's rows first (a reserve row's copy at the range among them), then the
+    # reserve's, then the barrier's. A level the workspace has keeps at least one row, a zero one
+    # (which DAQP ignores) when it has none this call.
+    count1 = count2 = count3 = 0
     for k in range(m):
         if qp.norm[k] != 0.0:
-            if _barrier_row(k, n_obstacle_rows, stride):
+            row_level = _row_level(k, m, n_obstacle_rows, stride, r)
+            if row_level == 0:
+                count1 += 1
+            elif row_level == 1:
+                count1 += 1
                 count2 += 1
             else:
-                count1 += 1
+                count3 += 1
     size1 = max(count1, 1) if qp.capacity[0] > 0 else 0
     size2 = max(count2, 1) if qp.capacity[1] > 0 else 0
+    size3 = max(count3, 1) if qp.capacity[2] > 0 else 0
     _clear(hier, count1, size1)
     _clear(hier, size1 + count2, size1 + size2)
+    _clear(hier, size1 + size2 + count3, size1 + size2 + size3)
     level, end = 1, n
-    for size in (size1, size2):
+    for size in (size1, size2, size3):
         if size > 0:
             end += size
             hier.levels[level] = end
             level += 1
     hier.problem[PROBLEM_M] = end
-    i1, i2 = 0, size1
+    i1, i2, i3 = 0, size1, size1 + size2
     for k in range(m):
         if qp.norm[k] == 0.0:
             continue
-        if _barrier_row(k, n_obstacle_rows, stride):
+        row_level = _row_level(k, m, n_obstacle_rows, stride, r)
+        if row_level == 0:
+            i = i1
+            i1 += 1
+        elif row_level == 1:
             i = i2
             i2 += 1
         else:
-            i = i1
-            i1 += 1
+            i = i3
+            i3 += 1
         for j in range(n):
             hier.A[i, j] = plain.A[k, j]
         hier.lower[n + i] = plain.lower[n + k]
+        if row_level == 1:  # its copy at the range, in level 1
+            for j in range(n):
+                hier.A[i1, j] = plain.A[k, j]
+            hier.lower[n + i1] = plain.lower[n + k] - qp.reserve[k - (m - 2 * r)] / qp.norm[k]
+            i1 += 1
     for j in range(n):
         hier.f[j] = plain.f[j]
     flag, iterations = 0, 0

@@ -59,6 +59,13 @@ class FilterConfig:
         joint_limits: add the ``4 n`` joint position and speed rows.
         joint_speed_fraction: the joint speed bound as a fraction of the robot's own
             (:attr:`~c3bf_gym.safety.RobotDescription.joint_speed_limit`), in (0, 1].
+        joint_range_reserve: [rad or m] keep every joint this far inside its range (at most a
+            quarter of the range), >= 0; 0 (the default): no reserve, the joints may run to their
+            limits. The reserve is a level of priority of its own, below the guard, the floor
+            and the joint limits at the range itself, above the barrier's rows: in a pinch the
+            guard (and the other rows of that level) can take a joint into the last of its
+            range, which an escape may need; the barrier's rows and the nominal torque cannot.
+            Needs ``joint_limits``.
         floor_gamma: gain [1/s] of the floor rows' second-order barrier, > 0: every capsule end
             that can move vertically keeps ``margin`` above an upright world plane.
         weight: the QP metric: ``"limits"`` (W = diag(1/τ_max²): relative changes weigh the same
@@ -74,7 +81,8 @@ class FilterConfig:
     Raises:
         ValueError: on an unknown name or choice (the message lists the valid ones), a value
             out of its range, or inconsistent settings (a gain beside a Barrier instance, a
-            ``guard_gamma`` without a named guard).
+            ``guard_gamma`` without a named guard, a ``joint_range_reserve`` without
+            ``joint_limits``).
     """
 
     barrier: str | Barrier = "c3bf"
@@ -87,6 +95,7 @@ class FilterConfig:
     ee_radius: float = 0.05
     joint_limits: bool = True
     joint_speed_fraction: float = 0.5
+    joint_range_reserve: float = 0.0
     floor_gamma: float = 10.0
     weight: Literal["limits", "identity"] = "limits"
     on_infeasible: Literal["relax", "raise"] = "relax"
@@ -124,6 +133,10 @@ class FilterConfig:
         set_(self, "joint_limits", check.boolean("joint_limits", self.joint_limits))
         set_(self, "joint_speed_fraction", check.number("joint_speed_fraction", self.joint_speed_fraction, low=0.0,
                                                         low_open=True, high=1.0))  # fmt: skip
+        set_(self, "joint_range_reserve", check.number("joint_range_reserve", self.joint_range_reserve, low=0.0))
+        if self.joint_range_reserve > 0.0 and not self.joint_limits:
+            raise ValueError(f"joint_range_reserve={self.joint_range_reserve!r} needs joint_limits=True: the "
+                             "reserve is kept by the joint limits' rows")
         set_(self, "floor_gamma", check.number("floor_gamma", self.floor_gamma, low=0.0, low_open=True, unit="1/s"))
         check.choice("weight", self.weight, WEIGHTS)
         check.choice("on_infeasible", self.on_infeasible, ON_INFEASIBLE)

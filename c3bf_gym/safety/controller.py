@@ -17,15 +17,19 @@ configurations the project compares. At every physics step (between ``mj_step1``
    ``z_min`` the floor plus the capsule radius plus ``margin``. Contact forces are not in the
    model ``ẍ = G τ + c``, so the arm must not lean on the floor;
 4. joint position and velocity limits contribute ``4 n`` rows
-   (:class:`~c3bf_gym.safety.barriers.JointLimits`). The obstacle and floor rows are tightened for
+   (:class:`~c3bf_gym.safety.barriers.JointLimits`), the position rows drawn
+   ``joint_range_reserve`` inside the range when the config keeps a reserve. The obstacle and floor rows are tightened for
    the forces the filter cannot predict, each bounded
    (:attr:`~c3bf_gym.safety.RobotDescription.unmodelled_force`: joint dry friction, the actuators of
    dofs that are not the arm's, such as a gripper's): :func:`~c3bf_gym.safety._rows.unmodelled_margin`;
 5. :class:`~c3bf_gym.safety.priority_qp.PriorityQP` (DAQP) returns the torque closest to the
    nominal one (in the metric ``weight``) that satisfies every row within the actuator limits.
    When none does, the rows give way by priority: the barrier's rows first, while the joint
-   limits, the floor and the guard hold as well as the torque limits allow. The step is then
-   reported infeasible, with the largest violation of each kind of row
+   limits, the floor and the guard hold as well as the torque limits allow (with a reserve, the
+   position rows inside the range give way after the barrier's and before the rows at the range
+   itself: :mod:`c3bf_gym.safety._qp`). The step is then reported infeasible, unless only the
+   barrier's rows within a raised gain or the reserve gave way, with the largest violation of
+   each kind of row
    (:attr:`StepSafety.violation`); ``on_infeasible="raise"`` raises instead.
 
 Steps 1–4 with the built-in barriers (:class:`~c3bf_gym.safety.barriers.C3BF`,
@@ -125,7 +129,9 @@ class StepSafety:
             :func:`~c3bf_gym.safety._step.beyond_allowance`). On these steps the guarantee does
             not hold.
         gain_raised_steps: number of physics steps where only barrier rows gave way, each within
-            that allowance: every row held, the barrier's with a gain between γ and ``γ_max``.
+            that allowance, or joint position rows within the joint range's reserve
+            (``FilterConfig.joint_range_reserve``): every row held, the barrier's with a gain
+            between γ and ``γ_max``, the joints within their range.
         min_constraint: the smallest row residual ``A τ − b`` at the applied torque (the QP
             constraint value: >= 0 when every row holds) [row units]; inf with no row. Taken
             from the QP's row-normalised residuals times the rows' norms
@@ -275,10 +281,19 @@ class SafetyController:
         self._envelope_seen = (0.0, 0.0)  # the largest obstacle speed and radius checked so far
         self._envelope_warned = False
         joint_limits = None
+        reserve = None
         if config.joint_limits:
             robot.require_joint_limits(model)
             q_lo, q_hi = robot.joint_range.T
+            if config.joint_range_reserve > 0.0:
+                # the position rows δ inside the range; the QP holds their copies at the range above them
+                delta = np.minimum(config.joint_range_reserve, 0.25 * (q_hi - q_lo))
+                delta = np.where(np.isfinite(delta), delta, 0.0)  # a joint without limits has no rows to draw in
+                q_lo, q_hi = q_lo + delta, q_hi - delta
             joint_limits = JointLimits(q_lo, q_hi, config.joint_speed_fraction * robot.joint_speed_limit)
+            if config.joint_range_reserve > 0.0:
+                gain_1, gain_2, _ = joint_limits.gains
+                reserve = np.concatenate([gain_1 * gain_2 * delta] * 2)  # b lowered by γ₁γ₂δ: the row at the range
         self.joint_limits = joint_limits
         self._check_timestep(model.opt.timestep)
         weight = config.weight
@@ -304,7 +319,8 @@ class SafetyController:
         # The QP runs in normalised torque u = τ / s with s = τ_max ("limits": W = diag(1/τ_max²)
         # becomes the identity, box ±1) or s = 1 ("identity"): a well-conditioned problem either way.
         self._scale = limit.copy() if weight == "limits" else np.ones(n)
-        self.qp = PriorityQP(n, -limit / self._scale, limit / self._scale, max_rows - barrier_rows, barrier_rows)
+        self.qp = PriorityQP(n, -limit / self._scale, limit / self._scale, max_rows - barrier_rows, barrier_rows,
+                             reserve)
         self._limit = limit
         # rows on the generalised force of every dof (the QP reads the arm's columns, self._dofs)
         self._A = np.zeros((max_rows, model.nv))

@@ -54,27 +54,46 @@ class PriorityQP:
         tau_min, tau_max: (n,) box of the scaled torque ``u``.
         level1_rows: the largest number of priority-1 rows (guard, floor, joint limits).
         level2_rows: the largest number of priority-2 rows (the barrier's).
+        reserve: the joint range's reserve for ``n`` joints, (2n,) ``γ₁γ₂ δ`` per position row
+            (upper, then lower), or None: none (:class:`~c3bf_gym.safety._qp.QPBuffers`). The
+            last ``4n`` rows of every solve are then the joint limits' (position upper and lower,
+            drawn ``δ`` inside the range, then speed upper and lower), among the priority-1 rows.
 
     Which row is which is given per solve: of the rows, those with index ``k <
     n_obstacle_rows`` and ``k % stride == 0`` are the barrier's (``stride`` 2 when each barrier
-    row is followed by its guard's, else 1); every other row is priority 1.
+    row is followed by its guard's, else 1); with a reserve, the joint position rows form a
+    level between priority 1, which holds their copies at the range, and the barrier's; every
+    other row is priority 1.
+
+    Raises:
+        ValueError: a reserve that is not (2n,), finite and >= 0, or one with fewer than 4n
+            priority-1 rows.
     """
 
-    def __init__(self, n: int, tau_min: np.ndarray, tau_max: np.ndarray, level1_rows: int, level2_rows: int) -> None:
+    def __init__(self, n: int, tau_min: np.ndarray, tau_max: np.ndarray, level1_rows: int, level2_rows: int,
+                 reserve: np.ndarray | None = None) -> None:
         self.n = int(n)
         self._cols = np.arange(self.n, dtype=np.int64)  # the rows' columns are the torque's, in order
         self.tau_min = np.array(tau_min, dtype=np.float64)
         self.tau_max = np.array(tau_max, dtype=np.float64)
         self._levels = (int(level1_rows), int(level2_rows))
+        self._reserve = np.zeros(0) if reserve is None else np.array(reserve, dtype=np.float64)
+        if reserve is not None and (self._reserve.shape != (2 * self.n,) or not np.all(np.isfinite(self._reserve))
+                                    or np.any(self._reserve < 0.0) or 2 * len(self._reserve) > level1_rows):
+            raise ValueError(f"reserve must be ({2 * self.n},), finite and >= 0, with at least {4 * self.n} "
+                             f"priority-1 rows; got {self._reserve!r} and {level1_rows}")
         rows = sum(self._levels)
-        points = [n] + [n + level1_rows] * (level1_rows > 0) + [n + rows] * (level2_rows > 0)
+        # the prioritised workspace's levels: priority 1 (with the reserve rows' copies), the reserve, the barrier's
+        capacity = [self._levels[0], len(self._reserve), self._levels[1]]
+        points = [n + sum(capacity[: i + 1]) for i in range(3) if capacity[i] > 0]
         self._plain = _daqp.DaqpWorkspace(n, rows, self.tau_min, self.tau_max)
-        self._hier = _daqp.DaqpWorkspace(n, rows, self.tau_min, self.tau_max, break_points=points)
+        self._hier = _daqp.DaqpWorkspace(n, rows + len(self._reserve), self.tau_min, self.tau_max,
+                                         break_points=[n] + points)
         self.max_rows = rows
         self.buffers = _qp.QPBuffers(self._plain.buffers, self._hier.buffers,
-                                     np.array([level1_rows, level2_rows], np.int64), self.tau_min, self.tau_max,
+                                     np.array(capacity, np.int64), self.tau_min, self.tau_max,
                                      np.zeros(n), np.zeros(max(rows, 1)), np.zeros(max(rows, 1)),
-                                     np.ones(2, np.int64), np.zeros(1, np.int64))
+                                     np.ones(2, np.int64), np.zeros(1, np.int64), self._reserve)
 
     def reset(self) -> None:
         """Forget the warm start: the next solve starts from an empty working set, so a sequence
@@ -84,7 +103,8 @@ class PriorityQP:
 
     def __reduce__(self):
         """Pickled as its arguments: the copy sets up its own DAQP workspaces (cold)."""
-        return PriorityQP, (self.n, self.tau_min, self.tau_max, *self._levels)
+        return PriorityQP, (self.n, self.tau_min, self.tau_max, *self._levels,
+                            self._reserve if len(self._reserve) else None)
 
     def solve_scaled(self, tau_nom: np.ndarray, A: np.ndarray, b: np.ndarray, scale: np.ndarray,
                      n_obstacle_rows: int | None = None, stride: int = 1) -> QPResult:
@@ -98,8 +118,8 @@ class PriorityQP:
                 rows when the QP has barrier rows (``level2_rows > 0``), else none.
 
         Raises:
-            ValueError: wrong shapes, more rows of either priority than the capacity, a stride
-                below 1, NaN or inf in the input.
+            ValueError: wrong shapes, more rows of either priority than the capacity, fewer than
+                the joint limits' ``4n`` with a reserve, a stride below 1, NaN or inf in the input.
         """
         start = time.perf_counter()
         tau_nom = np.ascontiguousarray(tau_nom, dtype=np.float64)
@@ -118,6 +138,9 @@ class PriorityQP:
         if barrier > self._levels[1] or m - barrier > self._levels[0]:
             raise ValueError(f"{barrier} barrier rows and {m - barrier} others exceed the {self._levels[1]} and "
                              f"{self._levels[0]} this QP was built for")
+        if m - barrier < 2 * len(self._reserve):
+            raise ValueError(f"this QP keeps a joint range reserve: its last {2 * len(self._reserve)} rows must be "
+                             f"the joint limits', got {m - barrier} rows besides the barrier's")
         code, iterations, active, slack = _qp.solve_rows(tau_nom, A, b, scale, self._cols, int(n_obstacle_rows),
                                                          int(stride), self.buffers)
         error = bad_input_error(code)
