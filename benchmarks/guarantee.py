@@ -29,6 +29,7 @@ Usage::
     python benchmarks/guarantee.py --episodes 200 --out results/guarantee
     python benchmarks/guarantee.py --episodes 200 --filters c3bf+hocbf/whole_arm --margin 0.03   # a wider margin
     python benchmarks/guarantee.py --episodes 200 --filters c3bf/whole_arm                       # the C3BF alone
+    python benchmarks/guarantee.py --episodes 600 --filters c3bf+hocbf/whole_arm --joint-range-reserve 0.3 --untimed
     python benchmarks/guarantee.py --episodes 600 --ray --address auto                           # on a Ray cluster
 """
 
@@ -115,8 +116,8 @@ def adversarial_action(u) -> np.ndarray:
 # ----------------------------------------------------------------------------- one episode
 
 
-def run_episode(task: tuple[str, str, str, str, int, int, float | None, float | None, str, bool]) -> Episode:
-    scenario, policy, name, points, seed, steps, margin, guard_gamma, env_id, timed = task
+def run_episode(task: tuple[str, str, str, str, int, int, float | None, float | None, str, bool, float | None]) -> Episode:
+    scenario, policy, name, points, seed, steps, margin, guard_gamma, env_id, timed, reserve = task
     import gymnasium as gym
 
     import c3bf_gym  # noqa: F401  (registers C3BFReach-v0)
@@ -129,6 +130,8 @@ def run_episode(task: tuple[str, str, str, str, int, int, float | None, float | 
         settings = {"points": points, **({} if margin is None else {"margin": margin})}
         if guard_gamma is not None and name == "c3bf+hocbf":  # the filter here with a named guard
             settings["guard_gamma"] = guard_gamma
+        if reserve is not None:
+            settings["joint_range_reserve"] = reserve
         env = SafetyFilter(env, name, **settings)
         if timed:  # every call timed (max_filter_ms), so through the hook's __call__: the same torques as the
             env.hook.record_times()  # env's compiled policy step, bit for bit (tests/test_filter.py)
@@ -263,6 +266,8 @@ def main(argv: list[str] | None = None) -> list[dict]:
     parser.add_argument("--margin", type=float, help=f"the filters' margin [m] (default {FilterConfig.margin})")
     parser.add_argument("--guard-gamma", type=float,
                         help=f"the gains [1/s] of c3bf+hocbf's guard (default {GUARD_GAMMA:g})")
+    parser.add_argument("--joint-range-reserve", type=float,
+                        help="the filters' joint range reserve [rad] (default 0: none; FilterConfig.joint_range_reserve)")
     parser.add_argument("--env", choices=ENVS, default=ENVS[0], help="the environment (robot)")
     parser.add_argument("--out", type=Path, default=Path("benchmarks/results/guarantee"), help="output directory")
     parser.add_argument("--untimed", action="store_true",
@@ -276,6 +281,8 @@ def main(argv: list[str] | None = None) -> list[dict]:
         parser.error("--episodes, --steps and --workers must be >= 1")
     if args.margin is not None and not (np.isfinite(args.margin) and args.margin >= 0):
         parser.error(f"--margin must be a finite number >= 0 (m), got {args.margin}")
+    if args.joint_range_reserve is not None and not (np.isfinite(args.joint_range_reserve) and args.joint_range_reserve >= 0):
+        parser.error(f"--joint-range-reserve must be a finite number >= 0 (rad), got {args.joint_range_reserve}")
     if args.guard_gamma is not None and not (np.isfinite(args.guard_gamma) and args.guard_gamma > 0):
         parser.error(f"--guard-gamma must be a finite number > 0 (1/s), got {args.guard_gamma}")
     if args.address is not None and not args.ray:
@@ -289,12 +296,14 @@ def main(argv: list[str] | None = None) -> list[dict]:
         parser.error("--guard-gamma sets the gains of c3bf+hocbf's guard; --filters has no c3bf+hocbf")
 
     filters = [tuple(f.split("/")) if f != "none" else ("none", "-") for f in args.filters]
-    tasks = [(s, p, b, pts, args.seed + i, args.steps, args.margin, args.guard_gamma, args.env, not args.untimed)
+    tasks = [(s, p, b, pts, args.seed + i, args.steps, args.margin, args.guard_gamma, args.env, not args.untimed,
+              args.joint_range_reserve)
              for s in args.scenarios for p in args.policies for b, pts in filters for i in range(args.episodes)]  # fmt: skip
     where = (f"Ray at {args.address}" if args.address else f"a local Ray instance of {args.workers} CPUs") if args.ray else f"{args.workers} workers"
     print(f"{args.env}: {len(tasks)} episodes ({args.episodes} per configuration, {args.steps} steps) on {where}"
           + ("" if args.margin is None else f", filter margin {args.margin} m")
-          + ("" if args.guard_gamma is None else f", guard gains {args.guard_gamma:g}"))
+          + ("" if args.guard_gamma is None else f", guard gains {args.guard_gamma:g}")
+          + ("" if args.joint_range_reserve is None else f", joint range reserve {args.joint_range_reserve:g} rad"))
     start = time.perf_counter()
     episodes = []
     for done, episode in enumerate(run_tasks(tasks, args.workers, args.ray, args.address), 1):
@@ -312,7 +321,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
         for e in sorted(episodes, key=lambda e: (e.scenario, e.policy, e.filter, e.points, e.seed)):
             writer.writerow(asdict(e))
     meta = {"episodes_per_configuration": args.episodes, "steps": args.steps, "seed": args.seed, "margin": args.margin,
-            "guard_gamma": args.guard_gamma, "env": args.env, "workers": args.workers, "ray": args.address or args.ray, "quick": args.quick, "cpu_count": os.cpu_count()}  # fmt: skip
+            "guard_gamma": args.guard_gamma, "joint_range_reserve": args.joint_range_reserve, "env": args.env, "workers": args.workers, "ray": args.address or args.ray, "quick": args.quick, "cpu_count": os.cpu_count()}  # fmt: skip
     with open(args.out / "summary.json", "w") as f:
         json.dump({"settings": meta, "configurations": rows}, f, indent=2)
     print(f"wrote {args.out / 'episodes.csv'} and {args.out / 'summary.json'}")
