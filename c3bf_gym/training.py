@@ -214,8 +214,8 @@ class TrainConfig:
     action penalty (``action_weight``: the arm's, :data:`ACTION_WEIGHTS`), the set encoder for the
     obstacle slots, 25k steps. Each was chosen by measured runs (the docs' RL results page,
     ``docs/results/rl.md``). PPO shares the actions, reward and encoder, with RL-Zoo's MuJoCo
-    settings (:data:`HYPERPARAMS`) and its own budget (the README's RLlib PPO sets were trained
-    before the fade and the Panda's weight).
+    settings (:data:`HYPERPARAMS`) and its own budget (of the README's RLlib PPO rows, the Panda's
+    and the UR5e's unfiltered one were trained before the fade and the Panda's weight).
 
     ``timesteps`` None (the default) is the algorithm's budget, :data:`DEFAULT_TIMESTEPS`
     (SAC 25k, PPO 100k); it is resolved when the config is made, so ``config.timesteps`` and the

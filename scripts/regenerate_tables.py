@@ -113,6 +113,10 @@ TRAINING_TABLES = (
      "training_curves_sets_ppo_fade_ur5e.png"),
     ("training_table_sets_ppo_fade_panda.md", "sets_ppo_fade/panda_ppo_*", "final_eval.json",
      "training_curves_sets_ppo_fade_panda.png"),
+    # RLlib PPO on today's recipe (the fade), the UR5e's default filter on seeds 0-4, 2 env runners, one run at a
+    # time (code c96e7f6, the filter unchanged since a082084)
+    ("training_table_sets_rllib_fade_ur5e.md", "sets_rllib_fade/rllib_ppo_residual_10hz_dw10_aw3_fade0.1_*",
+     "final_eval.json", "training_curves_sets_rllib_fade_ur5e.png"),
 )
 
 
