@@ -18,8 +18,8 @@ configurations the project compares. At every physics step (between ``mj_step1``
    model ``ẍ = G τ + c``, so the arm must not lean on the floor;
 4. joint position and velocity limits contribute ``4 n`` rows
    (:class:`~c3bf_gym.safety.barriers.JointLimits`), the position rows drawn
-   ``joint_range_reserve`` inside the range when the config keeps a reserve. The obstacle and floor rows are tightened for
-   the forces the filter cannot predict, each bounded
+   ``joint_range_reserve`` inside the range when the config keeps a reserve. The obstacle and
+   floor rows are tightened for the forces the filter cannot predict, each bounded
    (:attr:`~c3bf_gym.safety.RobotDescription.unmodelled_force`: joint dry friction, the actuators of
    dofs that are not the arm's, such as a gripper's): :func:`~c3bf_gym.safety._rows.unmodelled_margin`;
 5. :class:`~c3bf_gym.safety.priority_qp.PriorityQP` (DAQP) returns the torque closest to the
@@ -27,10 +27,10 @@ configurations the project compares. At every physics step (between ``mj_step1``
    When none does, the rows give way by priority: the barrier's rows first, while the joint
    limits, the floor and the guard hold as well as the torque limits allow (with a reserve, the
    position rows inside the range give way after the barrier's and before the rows at the range
-   itself: :mod:`c3bf_gym.safety._qp`). The step is then reported infeasible, unless only the
-   barrier's rows within a raised gain or the reserve gave way, with the largest violation of
-   each kind of row
-   (:attr:`StepSafety.violation`); ``on_infeasible="raise"`` raises instead.
+   itself: :mod:`c3bf_gym.safety._qp`). The step is reported with the largest violation of each
+   kind of row (:attr:`StepSafety.violation`), and as infeasible unless only the barrier's rows
+   within a raised gain or the reserve gave way; with ``on_infeasible="raise"`` any call where
+   rows gave way raises instead.
 
 Steps 1–4 with the built-in barriers (:class:`~c3bf_gym.safety.barriers.C3BF`,
 :class:`~c3bf_gym.safety.barriers.DistanceHOCBF`, and a distance-HOCBF guard or none), for either
@@ -287,8 +287,8 @@ class SafetyController:
             q_lo, q_hi = robot.joint_range.T
             if config.joint_range_reserve > 0.0:
                 # the position rows δ inside the range; the QP holds their copies at the range above them
+                # (an infinite limit stays infinite: that side has no row to draw in)
                 delta = np.minimum(config.joint_range_reserve, 0.25 * (q_hi - q_lo))
-                delta = np.where(np.isfinite(delta), delta, 0.0)  # a joint without limits has no rows to draw in
                 q_lo, q_hi = q_lo + delta, q_hi - delta
             joint_limits = JointLimits(q_lo, q_hi, config.joint_speed_fraction * robot.joint_speed_limit)
             if config.joint_range_reserve > 0.0:
