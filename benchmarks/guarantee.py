@@ -30,6 +30,7 @@ Usage::
     python benchmarks/guarantee.py --episodes 200 --filters c3bf+hocbf/whole_arm --margin 0.03   # a wider margin
     python benchmarks/guarantee.py --episodes 200 --filters c3bf/whole_arm                       # the C3BF alone
     python benchmarks/guarantee.py --episodes 600 --filters c3bf+hocbf/whole_arm --joint-range-reserve 0.3 --untimed
+    python benchmarks/guarantee.py --episodes 600 --filters c3bf+hocbf/whole_arm --allowance-level --untimed
     python benchmarks/guarantee.py --episodes 600 --ray --address auto                           # on a Ray cluster
 """
 
@@ -116,8 +117,10 @@ def adversarial_action(u) -> np.ndarray:
 # ----------------------------------------------------------------------------- one episode
 
 
-def run_episode(task: tuple[str, str, str, str, int, int, float | None, float | None, str, bool, float | None]) -> Episode:
-    scenario, policy, name, points, seed, steps, margin, guard_gamma, env_id, timed, reserve = task
+def run_episode(task: tuple[str, str, str, str, int, int, str, bool, dict]) -> Episode:
+    """One seeded episode: ``(scenario, policy, filter name, points, seed, steps, env id, timed,
+    the filter's other FilterConfig settings)``."""
+    scenario, policy, name, points, seed, steps, env_id, timed, settings = task
     import gymnasium as gym
 
     import c3bf_gym  # noqa: F401  (registers C3BFReach-v0)
@@ -127,12 +130,7 @@ def run_episode(task: tuple[str, str, str, str, int, int, float | None, float | 
     env = gym.make(env_id, scenario=scenario)
     filtered = name != "none"
     if filtered:
-        settings = {"points": points, **({} if margin is None else {"margin": margin})}
-        if guard_gamma is not None and name == "c3bf+hocbf":  # the filter here with a named guard
-            settings["guard_gamma"] = guard_gamma
-        if reserve is not None:
-            settings["joint_range_reserve"] = reserve
-        env = SafetyFilter(env, name, **settings)
+        env = SafetyFilter(env, name, points=points, **settings)
         if timed:  # every call timed (max_filter_ms), so through the hook's __call__: the same torques as the
             env.hook.record_times()  # env's compiled policy step, bit for bit (tests/test_filter.py)
     u = env.unwrapped
@@ -268,6 +266,9 @@ def main(argv: list[str] | None = None) -> list[dict]:
                         help=f"the gains [1/s] of c3bf+hocbf's guard (default {GUARD_GAMMA:g})")
     parser.add_argument("--joint-range-reserve", type=float,
                         help="the filters' joint range reserve [rad] (default 0: none; FilterConfig.joint_range_reserve)")
+    parser.add_argument("--allowance-level", action="store_true",
+                        help="the barrier's rows held within their allowance before the reserve "
+                             "(FilterConfig.allowance_level; needs a guard: c3bf+hocbf)")  # fmt: skip
     parser.add_argument("--env", choices=ENVS, default=ENVS[0], help="the environment (robot)")
     parser.add_argument("--out", type=Path, default=Path("benchmarks/results/guarantee"), help="output directory")
     parser.add_argument("--untimed", action="store_true",
@@ -292,18 +293,27 @@ def main(argv: list[str] | None = None) -> list[dict]:
             import ray  # noqa: F401
         except ImportError:
             parser.error('--ray needs Ray: pip install "c3bf-gym[rllib]"')
-    if args.guard_gamma is not None and not any(f.startswith("c3bf+hocbf/") for f in args.filters):
-        parser.error("--guard-gamma sets the gains of c3bf+hocbf's guard; --filters has no c3bf+hocbf")
+    guarded = {"guard_gamma": args.guard_gamma, "allowance_level": args.allowance_level or None}
+    for key, value in guarded.items():
+        if value is not None and not any(f.startswith("c3bf+hocbf/") for f in args.filters):
+            parser.error(f"--{key.replace('_', '-')} is a setting of c3bf+hocbf's guard; --filters has no c3bf+hocbf")
 
     filters = [tuple(f.split("/")) if f != "none" else ("none", "-") for f in args.filters]
-    tasks = [(s, p, b, pts, args.seed + i, args.steps, args.margin, args.guard_gamma, args.env, not args.untimed,
-              args.joint_range_reserve)
+    common = {"margin": args.margin, "joint_range_reserve": args.joint_range_reserve}
+
+    def settings(name: str) -> dict:
+        """The FilterConfig settings given for filter ``name`` (the guard's only where it has one)."""
+        chosen = {**common, **(guarded if name == "c3bf+hocbf" else {})}
+        return {key: value for key, value in chosen.items() if value is not None}
+
+    tasks = [(s, p, b, pts, args.seed + i, args.steps, args.env, not args.untimed, settings(b))
              for s in args.scenarios for p in args.policies for b, pts in filters for i in range(args.episodes)]  # fmt: skip
     where = (f"Ray at {args.address}" if args.address else f"a local Ray instance of {args.workers} CPUs") if args.ray else f"{args.workers} workers"
     print(f"{args.env}: {len(tasks)} episodes ({args.episodes} per configuration, {args.steps} steps) on {where}"
           + ("" if args.margin is None else f", filter margin {args.margin} m")
           + ("" if args.guard_gamma is None else f", guard gains {args.guard_gamma:g}")
-          + ("" if args.joint_range_reserve is None else f", joint range reserve {args.joint_range_reserve:g} rad"))
+          + ("" if args.joint_range_reserve is None else f", joint range reserve {args.joint_range_reserve:g} rad")
+          + (", the barrier's allowance level" if args.allowance_level else ""))
     start = time.perf_counter()
     episodes = []
     for done, episode in enumerate(run_tasks(tasks, args.workers, args.ray, args.address), 1):
@@ -321,7 +331,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
         for e in sorted(episodes, key=lambda e: (e.scenario, e.policy, e.filter, e.points, e.seed)):
             writer.writerow(asdict(e))
     meta = {"episodes_per_configuration": args.episodes, "steps": args.steps, "seed": args.seed, "margin": args.margin,
-            "guard_gamma": args.guard_gamma, "joint_range_reserve": args.joint_range_reserve, "env": args.env, "workers": args.workers, "ray": args.address or args.ray, "quick": args.quick, "cpu_count": os.cpu_count()}  # fmt: skip
+            "guard_gamma": args.guard_gamma, "joint_range_reserve": args.joint_range_reserve, "allowance_level": args.allowance_level, "env": args.env, "workers": args.workers, "ray": args.address or args.ray, "quick": args.quick, "cpu_count": os.cpu_count()}  # fmt: skip
     with open(args.out / "summary.json", "w") as f:
         json.dump({"settings": meta, "configurations": rows}, f, indent=2)
     print(f"wrote {args.out / 'episodes.csv'} and {args.out / 'summary.json'}")

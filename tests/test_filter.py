@@ -606,6 +606,28 @@ def test_joint_range_reserve_keeps_the_joints_inside_their_range_until_a_guard_n
     assert closest[0.0] < 0.3 <= closest[0.3] + 1e-6, closest
 
 
+def test_allowance_level_holds_the_barriers_rows_within_their_allowance():
+    """The Panda in ``multi`` under random actions (seed 1): with one level for the barrier's rows,
+    least squares spreads the conflicts over all of them and some give way beyond their allowance;
+    with ``allowance_level`` the same episode holds every row, the barrier's within a raised gain."""
+    counts = {}
+    for level in (False, True):
+        env = SafetyFilter(gym.make("C3BFReachPanda-v0", scenario="multi"), allowance_level=level)
+        env.reset(seed=1)
+        hook = env.hook
+        assert (hook.qp.buffers.capacity[3] > 0) == level
+        rng = np.random.default_rng(1)
+        infeasible = raised = 0
+        for _ in range(250):
+            _, _, _, _, info = env.step(rng.uniform(-1, 1, env.action_space.shape).astype(np.float32))
+            infeasible += info["safety"]["infeasible_steps"]
+            raised += info["safety"]["gain_raised_steps"]
+        counts[level] = (infeasible, raised)
+        env.close()
+    assert counts[False][0] > 0 and counts[True][0] == 0, counts
+    assert counts[True][1] > 0, counts
+
+
 def test_gamma_reaches_the_barrier(env):
     u = env
     assert hook_for(u, gamma=2.5).barrier.gamma == 2.5

@@ -456,3 +456,20 @@ def test_a_barrier_row_may_give_way_only_within_its_raised_gain():
     assert not beyond([-5e-7, -5e-7, -5e-7])  # within the solver's tolerance
     norm[0] = 0.0  # an unmovable row
     assert beyond([-0.001, 0.0, 0.0])
+
+
+def test_the_allowance_the_qp_gets_is_the_one_the_report_accepts():
+    """set_allowances (the allowance level's input) gives each barrier row at h > 0 exactly what
+    beyond_allowance accepts, (γ_max − γ) h, and every other row 0."""
+    from c3bf_gym.safety._step import beyond_allowance, set_allowances
+
+    gains = np.array([5.0, 25.0])
+    row_h = np.array([0.01, 9.9, -0.02, 9.9, 9.9])  # barrier, guard, barrier (inside its cone), guard, floor
+    allowance = np.full(5, np.nan)
+    set_allowances(allowance, row_h, gains, 4, 2)
+    np.testing.assert_allclose(allowance, [0.2, 0.0, 0.0, 0.0, 0.0])
+    norm = np.full(5, 2.0)
+    at = -allowance / norm  # each row given way by exactly its allowance
+    assert not beyond_allowance(at, norm, row_h, gains, 4, 2)
+    at[0] -= 1e-3  # the first row a little further
+    assert beyond_allowance(at, norm, row_h, gains, 4, 2)

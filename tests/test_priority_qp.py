@@ -182,6 +182,61 @@ def test_the_joint_range_reserve_gives_way_after_the_barrier_and_before_the_rang
     assert plain.tau[0] == pytest.approx(0.3, abs=1e-6) and plain.slack == pytest.approx(0.1, abs=1e-6)
 
 
+def test_the_allowance_level_holds_the_barriers_rows_within_their_allowance_first():
+    """Two barrier rows in conflict, one with an allowance: the allowance level holds the other
+    as written and lets the first give way within its allowance, where one level of least squares
+    over both rows violates each by half the conflict."""
+    A = np.array([[1.0], [-1.0]])  # u >= 0.5 (no allowance), u <= 0.2 (allowance 0.4: u <= 0.6)
+    b = np.array([0.5, -0.2])
+    spread = PriorityQP(1, -np.ones(1), np.ones(1), 1, 2).solve_scaled(np.zeros(1), A, b, np.ones(1), 2)
+    assert spread.status == "relaxed" and spread.tau[0] == pytest.approx(0.35, abs=1e-9)
+    qp = PriorityQP(1, -np.ones(1), np.ones(1), 1, 2, allowance_level=True)
+    ranked = qp.solve_scaled(np.zeros(1), A, b, np.ones(1), 2, allowance=np.array([0.0, 0.4]))
+    assert ranked.status == "relaxed" and ranked.tau[0] == pytest.approx(0.5, abs=1e-9)
+    np.testing.assert_allclose(qp.buffers.residual[:2], [0.0, -0.3], atol=1e-9)  # within its 0.4
+    # an allowance too small for the conflict: the loosened rows share it by least squares, and the
+    # rows as written come only after them
+    short = qp.solve_scaled(np.zeros(1), A, b, np.ones(1), 2, allowance=np.array([0.0, 0.1]))
+    assert short.tau[0] == pytest.approx(0.4, abs=1e-9)  # u >= 0.5 and u <= 0.3 split the 0.2
+    # with no allowance the level is empty and the answer is the one-level QP's, bit for bit
+    none = qp.solve_scaled(np.zeros(1), A, b, np.ones(1), 2)
+    assert none.tau[0] == spread.tau[0] and none.slack == spread.slack
+    # with nothing in conflict the allowance changes nothing
+    free = qp.solve_scaled(np.array([0.3]), A[:1], np.array([0.1]), np.ones(1), 1, allowance=np.array([0.4]))
+    assert free.feasible and free.tau[0] == pytest.approx(0.3)
+
+
+def test_the_allowance_level_comes_after_the_joint_range_reserve():
+    """Below the reserve: a barrier row within its allowance does not take a joint into its
+    reserve, and the rows give way as without the level; a reserve the barrier does not need
+    leaves the barrier's row held within its allowance."""
+    qp = PriorityQP(2, -np.ones(2), np.ones(2), 9, 1, reserve=np.full(4, 0.3), allowance_level=True)
+    A, b = _reserve_problem(guard=-1.0, barrier=0.4)  # the barrier's row wants 0.2 of the 0.3 reserve
+    short = qp.solve_scaled(np.zeros(2), A, b, np.ones(2), n_obstacle_rows=2, stride=2,
+                            allowance=np.array([0.1] + [0.0] * 9))
+    assert short.tau[0] == pytest.approx(0.2, abs=1e-9)  # loosened to u0 >= 0.3: the reserve holds it at 0.2
+    assert short.slack == pytest.approx(0.2, abs=1e-9)  # the barrier's row as written, 0.2 off
+    within = qp.solve_scaled(np.zeros(2), A, b, np.ones(2), n_obstacle_rows=2, stride=2,
+                             allowance=np.array([0.3] + [0.0] * 9))
+    assert within.tau[0] == pytest.approx(0.2, abs=1e-9)  # loosened to u0 >= 0.1: held
+    assert qp.buffers.residual[0] == pytest.approx(-0.2, abs=1e-9)  # within its 0.3
+
+
+@pytest.mark.parametrize("allowance, message", [
+    (np.array([-0.1, 0.0]), "allowance must be finite, >= 0"), (np.array([np.nan, 0.0]), "allowance must be finite"),
+    (np.zeros(3), r"of shape \(2,\)")])
+def test_a_bad_allowance_is_refused(allowance, message):
+    qp = PriorityQP(1, -np.ones(1), np.ones(1), 1, 2, allowance_level=True)
+    with pytest.raises(ValueError, match=message):
+        qp.solve_scaled(np.zeros(1), np.array([[1.0], [-1.0]]), np.array([0.5, -0.2]), np.ones(1), 2,
+                        allowance=allowance)
+    with pytest.raises(ValueError, match="built without allowance_level"):
+        PriorityQP(1, -np.ones(1), np.ones(1), 1, 2).solve_scaled(
+            np.zeros(1), np.array([[1.0]]), np.array([0.5]), np.ones(1), 1, allowance=np.zeros(1))
+    with pytest.raises(ValueError, match="allowance_level needs barrier rows"):
+        PriorityQP(1, -np.ones(1), np.ones(1), 1, 0, allowance_level=True)
+
+
 @pytest.mark.parametrize("reserve, level1, message", [
     (np.full(3, 0.3), 9, r"reserve must be \(4,\)"), (np.array([0.3, -0.1, 0.3, 0.3]), 9, "finite and >= 0"),
     (np.full(4, np.nan), 9, "finite and >= 0"), (np.full(4, 0.3), 7, "at least 8 priority-1 rows")])

@@ -18,11 +18,17 @@ of the level's violations), and only then minimises the cost. The levels:
 2. the joint range's reserve, when the filter keeps one (``FilterConfig.joint_range_reserve``):
    the joint position rows drawn that far inside the range, whose copies at the range itself are
    level 1's;
-3. the barrier's rows beside a guard (the C3BF's in the default filter), which give way first.
+3. with an allowance level (``FilterConfig.allowance_level``): the barrier's rows, each loosened
+   by its allowance (``QPBuffers.allowance``: how far it may give way and still hold the barrier
+   condition with a raised gain, :func:`c3bf_gym.safety._step.set_allowances`);
+4. the barrier's rows beside a guard (the C3BF's in the default filter) as written, which give
+   way first.
 
 A level with no rows is left out. So with a reserve the rows of level 1, the guard among them, can
-take a joint into the last of its range, and the barrier's rows cannot; without one the levels are
-0, 1 and 3, named 1 and 2 below.
+take a joint into the last of its range, and the barrier's rows cannot; with an allowance level
+the barrier's rows give way beyond their allowance only where the rows above leave no torque that
+holds them within it, instead of a conflict being spread over all of them (least squares) while
+some have room to spare. Without either the levels are 0, 1 and 4, named 1 and 2 below.
 
 So with a guard the joint-speed bound holds whenever some torque within the limits can hold it
 together with the floor and the guard. A filter without a guard has no level 2: its barrier's
@@ -80,10 +86,11 @@ class QPBuffers(NamedTuple):
         plain: the one-level workspace (every row hard), warm-started call to call.
         hier: the prioritised workspace, solved when ``plain`` is infeasible, warm-started from
             its own previous solve's working set: level 1's rows first (with the copies of the
-            reserve's rows at the range), then the reserve's, then the barrier's, its problem and
-            break points sized to the rows in use at every solve.
-        capacity: int64 (3,) the row capacity of level 1, the reserve's level and the barrier's
-            (0: the workspace has no such level).
+            reserve's rows at the range), then the reserve's, the barrier's loosened by their
+            allowance and the barrier's as written, its problem and break points sized to the
+            rows in use at every solve.
+        capacity: int64 (4,) the row capacity of level 1, the reserve's level, the barrier's and
+            the barrier's loosened by their allowance (0: the workspace has no such level).
         lo, hi: (n,) the box of ``u``.
         u: (n,) the solution.
         norm: (rows,) each row's norm ``‖A_k s‖`` (0: left out).
@@ -97,6 +104,10 @@ class QPBuffers(NamedTuple):
             last ``2r`` rows of a call are then the joint limits' (position upper and lower, then
             speed upper and lower); position row ``i`` is drawn inside the range, and its copy at
             the range has its ``b`` lowered by ``reserve[i]`` (``γ₁γ₂ δ``).
+        allowance: (rows,) how far each of the barrier's rows may give way [its ``b``'s units,
+            ≥ 0], set by the caller before each solve when ``capacity[3] > 0`` (read only then;
+            other rows' entries are ignored): the allowance level holds ``A_k τ ≥ b_k −
+            allowance[k]``.
     """
 
     plain: DaqpBuffers
@@ -110,6 +121,7 @@ class QPBuffers(NamedTuple):
     cold: np.ndarray
     last: np.ndarray
     reserve: np.ndarray
+    allowance: np.ndarray
 
 
 @njit(**STEP_KERNEL_OPTIONS)
@@ -192,10 +204,11 @@ def solve_rows(tau_nom, A, b, scale, cols, n_obstacle_rows, stride, qp):
        them), warm-started from its previous solve's working set. If DAQP finds the optimum and
        every row holds within :data:`ACTIVE_TOL`, that is the answer (:data:`SOLVED`).
     3. Otherwise, by priority (:data:`RELAXED`, ``qp.hier``): level 1 holds the rows that are not
-       the barrier's (the guard's, the floor's, the joint limits'), then the joint range's reserve
-       (``qp.reserve``: the position rows inside the range, their copies at the range in level 1),
-       then the barrier's: rows ``k < n_obstacle_rows`` with ``k % stride == 0``; its problem too
-       is sized to the rows in use. Warm-started from its own previous solve's working set, and
+       the barrier's (the guard's, the floor's, the joint limits'), then the joint range's
+       reserve (``qp.reserve``: the position rows inside the range, their copies at the range in
+       level 1), then (with ``capacity[3] > 0`` and some allowance above 0) the barrier's rows
+       loosened by ``qp.allowance``, then the barrier's as written: rows ``k < n_obstacle_rows``
+       with ``k % stride == 0``; its problem too is sized to the rows in use. Warm-started from its own previous solve's working set, and
        once more from an empty one if that fails. If it fails too, ``u`` is the box projection of
        ``u_nom`` (:data:`FAILED`).
 
@@ -262,11 +275,18 @@ def solve_rows(tau_nom, A, b, scale, cols, n_obstacle_rows, stride, qp):
 
 
 @njit(**STEP_KERNEL_OPTIONS)
+def barrier_row(k, n_obstacle_rows, stride):
+    """Whether row ``k`` is the barrier's: ``k < n_obstacle_rows`` and ``k % stride == 0`` (the
+    obstacle rows come first, each barrier row followed by its guard's when ``stride`` is 2)."""
+    return k < n_obstacle_rows and k % stride == 0
+
+
+@njit(**STEP_KERNEL_OPTIONS)
 def _row_level(k, m, n_obstacle_rows, stride, r):
     """The level of row ``k`` of ``m`` in the prioritised solve (:func:`solve_rows`, step 3): 0
     (level 1), 1 (the joint range's reserve: rows ``m − 2r`` … ``m − r − 1``, with ``r`` the
-    length of ``qp.reserve``) or 2 (the barrier's: ``k < n_obstacle_rows``, ``k % stride == 0``)."""
-    if k < n_obstacle_rows and k % stride == 0:
+    length of ``qp.reserve``) or 2 (the barrier's, :func:`barrier_row`)."""
+    if barrier_row(k, n_obstacle_rows, stride):
         return 2
     if m - 2 * r <= k < m - r:
         return 1
@@ -281,7 +301,22 @@ def _reserve_residuals(qp, m):
     r = qp.reserve.shape[0]
     for k in range(m - 2 * r, m - r):
         if qp.norm[k] != 0.0 and qp.residual[k] < 0.0:
-            qp.residual[k] = min(qp.residual[k] + qp.reserve[k - (m - 2 * r)] / qp.norm[k], 0.0)
+            qp.residual[k] = min(qp.residual[k] + _reserve_offset(qp, k, m), 0.0)
+
+
+@njit(**STEP_KERNEL_OPTIONS)
+def _reserve_offset(qp, k, m):
+    """How far reserve row ``k`` (of ``m``) lies inside its copy at the range [row-normalised]."""
+    return qp.reserve[k - (m - 2 * qp.reserve.shape[0])] / qp.norm[k]
+
+
+@njit(**STEP_KERNEL_OPTIONS)
+def _put_row(plain, hier, k, i, lower):
+    """Row ``k`` of ``plain`` (scaled and normalised) as row ``i`` of ``hier``, bounded below by ``lower``."""
+    n = plain.x.shape[0]
+    for j in range(n):
+        hier.A[i, j] = plain.A[k, j]
+    hier.lower[n + i] = lower
 
 
 @njit(**STEP_KERNEL_OPTIONS)
@@ -294,9 +329,10 @@ def _solve_by_priority(qp, m, n_obstacle_rows, stride):
     r = qp.reserve.shape[0]
     # The problem is sized to the rows in use, level by level (DAQP reads its break_points, hier.levels,
     # at every solve): level 1's rows first (a reserve row's copy at the range among them), then the
-    # reserve's, then the barrier's. A level the workspace has keeps at least one row, a zero one
-    # (which DAQP ignores) when it has none this call.
-    count1 = count2 = count3 = 0
+    # reserve's, the barrier's loosened by their allowance, and the barrier's as written. A level the
+    # workspace has keeps at least one row, a zero one (which DAQP ignores) when it has none this call.
+    count1 = count_reserve = count_barrier = 0
+    loosened = False
     for k in range(m):
         if qp.norm[k] != 0.0:
             row_level = _row_level(k, m, n_obstacle_rows, stride, r)
@@ -304,44 +340,45 @@ def _solve_by_priority(qp, m, n_obstacle_rows, stride):
                 count1 += 1
             elif row_level == 1:
                 count1 += 1
-                count2 += 1
+                count_reserve += 1
             else:
-                count3 += 1
-    size1 = max(count1, 1) if qp.capacity[0] > 0 else 0
-    size2 = max(count2, 1) if qp.capacity[1] > 0 else 0
-    size3 = max(count3, 1) if qp.capacity[2] > 0 else 0
-    _clear(hier, count1, size1)
-    _clear(hier, size1 + count2, size1 + size2)
-    _clear(hier, size1 + size2 + count3, size1 + size2 + size3)
-    level, end = 1, n
-    for size in (size1, size2, size3):
-        if size > 0:
-            end += size
-            hier.levels[level] = end
+                count_barrier += 1
+                loosened = loosened or (qp.capacity[3] > 0 and qp.allowance[k] > 0.0)
+    count_loose = count_barrier if loosened else 0
+    i1, i_reserve = 0, max(count1, 1) if qp.capacity[0] > 0 else 0
+    i_loose = i_reserve + (max(count_reserve, 1) if qp.capacity[1] > 0 else 0)
+    i_barrier = i_loose + (max(count_loose, 1) if qp.capacity[3] > 0 else 0)
+    end_barrier = i_barrier + (max(count_barrier, 1) if qp.capacity[2] > 0 else 0)
+    _clear(hier, count1, i_reserve)
+    _clear(hier, i_reserve + count_reserve, i_loose)
+    _clear(hier, i_loose + count_loose, i_barrier)
+    _clear(hier, i_barrier + count_barrier, end_barrier)
+    level, last = 1, 0
+    for end in (i_reserve, i_loose, i_barrier, end_barrier):
+        if end > last:
+            hier.levels[level] = n + end
             level += 1
-    hier.problem[PROBLEM_M] = end
-    i1, i2, i3 = 0, size1, size1 + size2
+            last = end
+    hier.problem[PROBLEM_M] = n + end_barrier
     for k in range(m):
         if qp.norm[k] == 0.0:
             continue
+        lower = plain.lower[n + k]
         row_level = _row_level(k, m, n_obstacle_rows, stride, r)
         if row_level == 0:
-            i = i1
+            _put_row(plain, hier, k, i1, lower)
             i1 += 1
-        elif row_level == 1:
-            i = i2
-            i2 += 1
+        elif row_level == 1:  # drawn inside the range; its copy at the range in level 1
+            _put_row(plain, hier, k, i_reserve, lower)
+            i_reserve += 1
+            _put_row(plain, hier, k, i1, lower - _reserve_offset(qp, k, m))
+            i1 += 1
         else:
-            i = i3
-            i3 += 1
-        for j in range(n):
-            hier.A[i, j] = plain.A[k, j]
-        hier.lower[n + i] = plain.lower[n + k]
-        if row_level == 1:  # its copy at the range, in level 1
-            for j in range(n):
-                hier.A[i1, j] = plain.A[k, j]
-            hier.lower[n + i1] = plain.lower[n + k] - qp.reserve[k - (m - 2 * r)] / qp.norm[k]
-            i1 += 1
+            _put_row(plain, hier, k, i_barrier, lower)
+            i_barrier += 1
+            if loosened:
+                _put_row(plain, hier, k, i_loose, lower - qp.allowance[k] / qp.norm[k])
+                i_loose += 1
     for j in range(n):
         hier.f[j] = plain.f[j]
     flag, iterations = 0, 0

@@ -32,7 +32,7 @@ from c3bf_gym._capi import unpack
 
 # filter_substep compiles _rows.filter_rows and _qp.solve_rows into itself: _compile_cache keys
 # the on-disk cache of every kernel file's functions on all of them.
-from c3bf_gym.safety._qp import ACTIVE_TOL, RELAXED, SOLVED, solve_rows
+from c3bf_gym.safety._qp import ACTIVE_TOL, RELAXED, SOLVED, barrier_row, solve_rows
 from c3bf_gym.safety._rows import filter_rows
 
 _opts = STEP_KERNEL_OPTIONS
@@ -150,6 +150,17 @@ TALLY_START.flags.writeable = False
 
 
 @njit(**_opts)
+def set_allowances(allowance, row_h, gains, n_obstacle, stride):
+    """Each row's allowance into ``allowance`` (m,), in its ``b``'s units: ``(γ_max − γ) h`` for a
+    barrier row at ``h > 0`` (:func:`beyond_allowance`), 0 for every other row. The allowance
+    level of the QP (``QPBuffers.allowance``, :mod:`c3bf_gym.safety._qp`) holds the barrier's
+    rows loosened by it."""
+    raise_by = max(gains[G_LIMIT] - gains[G_BARRIER], 0.0)
+    for k in range(allowance.shape[0]):
+        allowance[k] = raise_by * max(row_h[k], 0.0) if barrier_row(k, n_obstacle, stride) else 0.0
+
+
+@njit(**_opts)
 def beyond_allowance(residual, norm, row_h, gains, n_obstacle, stride):
     """Whether some row of a call that gave way (``residual`` (m,), ``norm`` (m,): the QP's
     normalised residuals and row norms) gave way beyond its allowance.
@@ -169,7 +180,7 @@ def beyond_allowance(residual, norm, row_h, gains, n_obstacle, stride):
         violation = -residual[k]
         if violation <= ACTIVE_TOL:
             continue
-        if norm[k] == 0.0 or k >= n_obstacle or k % stride != 0:
+        if norm[k] == 0.0 or not barrier_row(k, n_obstacle, stride):
             return True
         if violation * norm[k] > raise_by * max(row_h[k], 0.0) + ACTIVE_TOL * norm[k]:
             return True
@@ -313,6 +324,8 @@ def filter_substep(stage, tau_nom, tau, buffers):
     n_fixed = n_floor + (4 * params.dofs.shape[0] if params.joint_rows else 0)
     guarded = params.guard.present
     stride = 2 if guarded else 1  # obstacle rows: barrier, guard, barrier, guard, ... beside a guard
+    if qp.capacity[3] > 0:
+        set_allowances(qp.allowance[:m], tally.row_h, tally.gains, m - n_fixed, stride)
     status, iterations, n_active, slack = solve_rows(tau_nom, A[:m], b[:m], scale, params.dofs,
                                                      low_priority_span(m, n_fixed, guarded), stride, qp)
     if status < 0:

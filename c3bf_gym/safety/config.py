@@ -66,6 +66,14 @@ class FilterConfig:
             guard (and the other rows of that level) can take a joint into the last of its
             range, which an escape may need; the barrier's rows and the nominal torque cannot.
             Needs ``joint_limits``.
+        allowance_level: when the rows conflict, hold the barrier's rows first loosened by their
+            allowance (the barrier condition ``ḣ ≥ −γ' h`` with the gain raised up to
+            ``γ_max`` = 0.5/Δt where ``h > 0``; as written where ``h ≤ 0``), in a level of priority
+            below the guard's and the joint range's reserve, and as written only last. The
+            QP then lets a barrier row give way beyond its allowance (an infeasible step) only
+            where no torque the levels above allow holds it within, instead of spreading a conflict
+            over all of the barrier's rows by least squares. False (the default): one level for
+            the barrier's rows. Needs a guard (without one the barrier's rows share level 1).
         floor_gamma: gain [1/s] of the floor rows' second-order barrier, > 0: every capsule end
             that can move vertically keeps ``margin`` above an upright world plane.
         weight: the QP metric: ``"limits"`` (W = diag(1/τ_max²): relative changes weigh the same
@@ -82,7 +90,7 @@ class FilterConfig:
         ValueError: on an unknown name or choice (the message lists the valid ones), a value
             out of its range, or inconsistent settings (a gain beside a Barrier instance, a
             ``guard_gamma`` without a named guard, a ``joint_range_reserve`` without
-            ``joint_limits``).
+            ``joint_limits``, an ``allowance_level`` without a guard).
     """
 
     barrier: str | Barrier = "c3bf"
@@ -96,6 +104,7 @@ class FilterConfig:
     joint_limits: bool = True
     joint_speed_fraction: float = 0.5
     joint_range_reserve: float = 0.0
+    allowance_level: bool = False
     floor_gamma: float = 10.0
     weight: Literal["limits", "identity"] = "limits"
     on_infeasible: Literal["relax", "raise"] = "relax"
@@ -137,6 +146,10 @@ class FilterConfig:
         if self.joint_range_reserve > 0.0 and not self.joint_limits:
             raise ValueError(f"joint_range_reserve={self.joint_range_reserve!r} needs joint_limits=True: the "
                              "reserve is kept by the joint limits' rows")
+        set_(self, "allowance_level", check.boolean("allowance_level", self.allowance_level))
+        if self.allowance_level and self.resolved_guard() is None:
+            raise ValueError(f"allowance_level=True needs a guard beside the barrier (guard={self.guard!r}): "
+                             "without one the barrier's rows share level 1 with the joint limits and the floor")
         set_(self, "floor_gamma", check.number("floor_gamma", self.floor_gamma, low=0.0, low_open=True, unit="1/s"))
         check.choice("weight", self.weight, WEIGHTS)
         check.choice("on_infeasible", self.on_infeasible, ON_INFEASIBLE)

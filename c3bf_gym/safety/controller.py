@@ -27,7 +27,8 @@ configurations the project compares. At every physics step (between ``mj_step1``
    When none does, the rows give way by priority: the barrier's rows first, while the joint
    limits, the floor and the guard hold as well as the torque limits allow (with a reserve, the
    position rows inside the range give way after the barrier's and before the rows at the range
-   itself: :mod:`c3bf_gym.safety._qp`). The step is reported with the largest violation of each
+   itself; with ``allowance_level``, the barrier's rows hold within their allowance before they
+   give way beyond it: :mod:`c3bf_gym.safety._qp`). The step is reported with the largest violation of each
    kind of row (:attr:`StepSafety.violation`), and as infeasible unless only the barrier's rows
    within a raised gain or the reserve gave way; with ``on_infeasible="raise"`` any call where
    rows gave way raises instead.
@@ -320,7 +321,7 @@ class SafetyController:
         # becomes the identity, box ±1) or s = 1 ("identity"): a well-conditioned problem either way.
         self._scale = limit.copy() if weight == "limits" else np.ones(n)
         self.qp = PriorityQP(n, -limit / self._scale, limit / self._scale, max_rows - barrier_rows, barrier_rows,
-                             reserve)
+                             reserve, config.allowance_level and barrier_rows > 0)
         self._limit = limit
         # rows on the generalised force of every dof (the QP reads the arm's columns, self._dofs)
         self._A = np.zeros((max_rows, model.nv))
@@ -668,6 +669,9 @@ class SafetyController:
             A, b, min_h, inside, n_sensed = self.rows()
             m = len(b)
             qp = self.qp.buffers
+            if qp.capacity[3] > 0:
+                _step.set_allowances(qp.allowance[:m], self._tally.row_h, self._tally.gains,
+                                     m - self.floor.n_rows - self._n_joint_rows, self._stride)
             status, iterations, active, slack = _qp.solve_rows(
                 tau_nom, A, b, self._scale, self._dofs, self._low_priority_span(m), self._stride, qp)
             if status >= 0:

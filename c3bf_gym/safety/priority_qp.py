@@ -58,6 +58,8 @@ class PriorityQP:
             (upper, then lower), or None: none (:class:`~c3bf_gym.safety._qp.QPBuffers`). The
             last ``4n`` rows of every solve are then the joint limits' (position upper and lower,
             drawn ``δ`` inside the range, then speed upper and lower), among the priority-1 rows.
+        allowance_level: hold the barrier's rows in two levels below the reserve: loosened by the
+            allowance each solve gives them (:meth:`solve_scaled`), then as written.
 
     Which row is which is given per solve: of the rows, those with index ``k <
     n_obstacle_rows`` and ``k % stride == 0`` are the barrier's (``stride`` 2 when each barrier
@@ -67,11 +69,11 @@ class PriorityQP:
 
     Raises:
         ValueError: a reserve that is not (2n,), finite and >= 0, or one with fewer than 4n
-            priority-1 rows.
+            priority-1 rows; an allowance level without barrier rows.
     """
 
     def __init__(self, n: int, tau_min: np.ndarray, tau_max: np.ndarray, level1_rows: int, level2_rows: int,
-                 reserve: np.ndarray | None = None) -> None:
+                 reserve: np.ndarray | None = None, allowance_level: bool = False) -> None:
         self.n = int(n)
         self._cols = np.arange(self.n, dtype=np.int64)  # the rows' columns are the torque's, in order
         self.tau_min = np.array(tau_min, dtype=np.float64)
@@ -82,18 +84,23 @@ class PriorityQP:
                                     or np.any(self._reserve < 0.0) or 2 * len(self._reserve) > level1_rows):
             raise ValueError(f"reserve must be ({2 * self.n},), finite and >= 0, with at least {4 * self.n} "
                              f"priority-1 rows; got {self._reserve!r} and {level1_rows}")
+        if allowance_level and self._levels[1] == 0:
+            raise ValueError("allowance_level needs barrier rows (level2_rows > 0): it splits them in two levels")
+        self._allowance_level = bool(allowance_level)
         rows = sum(self._levels)
-        # the prioritised workspace's levels: priority 1 (with the reserve rows' copies), the reserve, the barrier's
-        capacity = [self._levels[0], len(self._reserve), self._levels[1]]
-        points = [n + sum(capacity[: i + 1]) for i in range(3) if capacity[i] > 0]
+        # the prioritised workspace's levels, in order: priority 1 (with the reserve rows' copies), the reserve,
+        # the barrier's loosened by their allowance, the barrier's as written (capacity: QPBuffers' order)
+        capacity = [self._levels[0], len(self._reserve), self._levels[1], self._levels[1] * self._allowance_level]
+        sizes = [capacity[i] for i in (0, 1, 3, 2)]
+        points = [n + sum(sizes[: i + 1]) for i in range(4) if sizes[i] > 0]
         self._plain = _daqp.DaqpWorkspace(n, rows, self.tau_min, self.tau_max)
-        self._hier = _daqp.DaqpWorkspace(n, rows + len(self._reserve), self.tau_min, self.tau_max,
-                                         break_points=[n] + points)
+        self._hier = _daqp.DaqpWorkspace(n, sum(sizes), self.tau_min, self.tau_max, break_points=[n] + points)
         self.max_rows = rows
         self.buffers = _qp.QPBuffers(self._plain.buffers, self._hier.buffers,
                                      np.array(capacity, np.int64), self.tau_min, self.tau_max,
                                      np.zeros(n), np.zeros(max(rows, 1)), np.zeros(max(rows, 1)),
-                                     np.ones(2, np.int64), np.zeros(1, np.int64), self._reserve)
+                                     np.ones(2, np.int64), np.zeros(1, np.int64), self._reserve,
+                                     np.zeros(max(rows, 1)))
 
     def reset(self) -> None:
         """Forget the warm start: the next solve starts from an empty working set, so a sequence
@@ -104,10 +111,11 @@ class PriorityQP:
     def __reduce__(self):
         """Pickled as its arguments: the copy sets up its own DAQP workspaces (cold)."""
         return PriorityQP, (self.n, self.tau_min, self.tau_max, *self._levels,
-                            self._reserve if len(self._reserve) else None)
+                            self._reserve if len(self._reserve) else None, self._allowance_level)
 
     def solve_scaled(self, tau_nom: np.ndarray, A: np.ndarray, b: np.ndarray, scale: np.ndarray,
-                     n_obstacle_rows: int | None = None, stride: int = 1) -> QPResult:
+                     n_obstacle_rows: int | None = None, stride: int = 1,
+                     allowance: np.ndarray | None = None) -> QPResult:
         """Solve for ``u`` with rows ``(A s) u ≥ b``; ``tau_nom`` in torque units.
 
         Args:
@@ -116,10 +124,16 @@ class PriorityQP:
             scale: (n,) ``s``.
             n_obstacle_rows, stride: which rows are the barrier's (class docstring); None: all m
                 rows when the QP has barrier rows (``level2_rows > 0``), else none.
+            allowance: (m,) how far each of the barrier's rows may give way [``b``'s units, ≥ 0],
+                with an allowance level: when the rows conflict, the barrier's rows are held
+                loosened by it (after the rows of priority 1 and the reserve), and as written only
+                after that (entries of the other rows are ignored). None: 0 for every row.
 
         Raises:
             ValueError: wrong shapes, more rows of either priority than the capacity, fewer than
-                the joint limits' ``4n`` with a reserve, a stride below 1, NaN or inf in the input.
+                the joint limits' ``4n`` with a reserve, a stride below 1, NaN or inf in the input,
+                an allowance that is negative, not finite, not (m,), or given to a QP without an
+                allowance level.
         """
         start = time.perf_counter()
         tau_nom = np.ascontiguousarray(tau_nom, dtype=np.float64)
@@ -141,6 +155,13 @@ class PriorityQP:
         if m - barrier < 2 * len(self._reserve):
             raise ValueError(f"this QP keeps a joint range reserve: its last {2 * len(self._reserve)} rows must be "
                              f"the joint limits', got {m - barrier} rows besides the barrier's")
+        if allowance is not None:
+            allowance = np.asarray(allowance, dtype=np.float64)
+            if not self._allowance_level:
+                raise ValueError("an allowance was given to a QP built without allowance_level=True")
+            if allowance.shape != (m,) or not np.all(np.isfinite(allowance)) or np.any(allowance < 0.0):
+                raise ValueError(f"allowance must be finite, >= 0 and of shape ({m},), got {allowance!r}")
+        self.buffers.allowance[:m] = 0.0 if allowance is None else allowance
         code, iterations, active, slack = _qp.solve_rows(tau_nom, A, b, scale, self._cols, int(n_obstacle_rows),
                                                          int(stride), self.buffers)
         error = bad_input_error(code)
