@@ -117,6 +117,10 @@ TRAINING_TABLES = (
     # time (code c96e7f6, the filter unchanged since a082084)
     ("training_table_sets_rllib_fade_ur5e.md", "sets_rllib_fade/rllib_ppo_residual_10hz_dw10_aw3_fade0.1_*",
      "final_eval.json", "training_curves_sets_rllib_fade_ur5e.png"),
+    # the Panda's SAC sets on the candidate filter: the default's rows with joint_range_reserve=0.3 and
+    # allowance_level=True (code 431540c with docs/runs/sets_candidate/variant.patch), seeds 0-4
+    ("training_table_sets_candidate_panda.md", "sets_candidate/panda_sac_*", "final_eval.json",
+     "training_curves_sets_candidate_panda.png"),
 )
 
 
