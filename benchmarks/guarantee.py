@@ -267,7 +267,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     parser.add_argument("--joint-range-reserve", type=float,
                         help="the filters' joint range reserve [rad] (default 0: none; FilterConfig.joint_range_reserve)")
     parser.add_argument("--allowance-level", action="store_true",
-                        help="the barrier's rows held within their allowance before the reserve "
+                        help="the barrier's rows held within their allowance before any gives way beyond it "
                              "(FilterConfig.allowance_level; needs a guard: c3bf+hocbf)")  # fmt: skip
     parser.add_argument("--env", choices=ENVS, default=ENVS[0], help="the environment (robot)")
     parser.add_argument("--out", type=Path, default=Path("benchmarks/results/guarantee"), help="output directory")

@@ -208,9 +208,9 @@ def solve_rows(tau_nom, A, b, scale, cols, n_obstacle_rows, stride, qp):
        reserve (``qp.reserve``: the position rows inside the range, their copies at the range in
        level 1), then (with ``capacity[3] > 0`` and some allowance above 0) the barrier's rows
        loosened by ``qp.allowance``, then the barrier's as written: rows ``k < n_obstacle_rows``
-       with ``k % stride == 0``; its problem too is sized to the rows in use. Warm-started from its own previous solve's working set, and
-       once more from an empty one if that fails. If it fails too, ``u`` is the box projection of
-       ``u_nom`` (:data:`FAILED`).
+       with ``k % stride == 0``; its problem too is sized to the rows in use. Warm-started from
+       its own previous solve's working set, and once more from an empty one if that fails. If
+       it fails too, ``u`` is the box projection of ``u_nom`` (:data:`FAILED`).
 
     Right after a call that was not solved, step 3 comes first: if its answer violates some row
     by more than :data:`INFEASIBLE_TOL`, no torque satisfies every row (else both levels would

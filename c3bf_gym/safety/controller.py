@@ -28,10 +28,10 @@ configurations the project compares. At every physics step (between ``mj_step1``
    limits, the floor and the guard hold as well as the torque limits allow (with a reserve, the
    position rows inside the range give way after the barrier's and before the rows at the range
    itself; with ``allowance_level``, the barrier's rows hold within their allowance before they
-   give way beyond it: :mod:`c3bf_gym.safety._qp`). The step is reported with the largest violation of each
-   kind of row (:attr:`StepSafety.violation`), and as infeasible unless only the barrier's rows
-   within a raised gain or the reserve gave way; with ``on_infeasible="raise"`` any call where
-   rows gave way raises instead.
+   give way beyond it: :mod:`c3bf_gym.safety._qp`). The step is reported with the largest
+   violation of each kind of row (:attr:`StepSafety.violation`), and as infeasible unless only
+   the barrier's rows within a raised gain or the reserve gave way; with
+   ``on_infeasible="raise"`` any call where rows gave way raises instead.
 
 Steps 1–4 with the built-in barriers (:class:`~c3bf_gym.safety.barriers.C3BF`,
 :class:`~c3bf_gym.safety.barriers.DistanceHOCBF`, and a distance-HOCBF guard or none), for either
