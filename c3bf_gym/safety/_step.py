@@ -150,12 +150,19 @@ TALLY_START.flags.writeable = False
 
 
 @njit(**_opts)
+def _gain_room(gains):
+    """``γ_max − γ`` (at least 0) of ``gains`` (:attr:`Tally.gains`): a barrier row at ``h > 0``
+    may give way by this times ``h`` (:func:`beyond_allowance`)."""
+    return max(gains[G_LIMIT] - gains[G_BARRIER], 0.0)
+
+
+@njit(**_opts)
 def set_allowances(allowance, row_h, gains, n_obstacle, stride):
     """Each row's allowance into ``allowance`` (m,), in its ``b``'s units: ``(γ_max − γ) h`` for a
     barrier row at ``h > 0`` (:func:`beyond_allowance`), 0 for every other row. The allowance
     level of the QP (``QPBuffers.allowance``, :mod:`c3bf_gym.safety._qp`) holds the barrier's
     rows loosened by it."""
-    raise_by = max(gains[G_LIMIT] - gains[G_BARRIER], 0.0)
+    raise_by = _gain_room(gains)
     for k in range(allowance.shape[0]):
         allowance[k] = raise_by * max(row_h[k], 0.0) if barrier_row(k, n_obstacle, stride) else 0.0
 
@@ -175,7 +182,7 @@ def beyond_allowance(residual, norm, row_h, gains, n_obstacle, stride):
     row's allowance is ``(γ_max − γ) h`` for ``h > 0`` and none for ``h ≤ 0``; every other row
     (the guard's, the floor's, the joint limits', an unmovable one) has none. Both are taken
     beyond :data:`~c3bf_gym.safety._qp.ACTIVE_TOL` (row-normalised)."""
-    raise_by = max(gains[G_LIMIT] - gains[G_BARRIER], 0.0)
+    raise_by = _gain_room(gains)
     for k in range(residual.shape[0]):
         violation = -residual[k]
         if violation <= ACTIVE_TOL:

@@ -670,8 +670,8 @@ class SafetyController:
             m = len(b)
             qp = self.qp.buffers
             if qp.capacity[3] > 0:
-                _step.set_allowances(qp.allowance[:m], self._tally.row_h, self._tally.gains,
-                                     m - self.floor.n_rows - self._n_joint_rows, self._stride)
+                _step.set_allowances(qp.allowance[:m], self._tally.row_h, self._tally.gains, self._n_obstacle_rows(m),
+                                     self._stride)
             status, iterations, active, slack = _qp.solve_rows(
                 tau_nom, A, b, self._scale, self._dofs, self._low_priority_span(m), self._stride, qp)
             if status >= 0:
@@ -695,7 +695,7 @@ class SafetyController:
         does the same in compiled code). Returns the status as the fused kernel does: a call
         that held every row with the barrier's gain raised as solved."""
         call = _step.CallSummary(status, m, min_h, inside, n_sensed, iterations, active, slack, residual, correction)
-        layout = _step.RowLayout(m - self.floor.n_rows - self._n_joint_rows, self._stride, self.floor.n_rows)
+        layout = _step.RowLayout(self._n_obstacle_rows(m), self._stride, self.floor.n_rows)
         outcome = _step.record(self._tally, call, tau_nom, tau, self.qp.buffers, layout, self.intervention_tol)
         return _qp.SOLVED if outcome == _step.GAIN_RAISED else outcome
 
@@ -744,14 +744,18 @@ class SafetyController:
             violation=dict(zip(ROW_KINDS, values[_step.T_VIOLATION:])),
         )
 
+    def _n_obstacle_rows(self, m: int) -> int:
+        """How many of :meth:`rows`' ``m`` rows are the obstacles' (the barrier's and the guard's):
+        the rest are the floor's and the joint limits'."""
+        return m - self.floor.n_rows - self._n_joint_rows
+
     def _low_priority_span(self, m: int) -> int:
         """:func:`~c3bf_gym.safety._step.low_priority_span` of :meth:`rows`' ``m`` rows."""
         return _step.low_priority_span(m, self.floor.n_rows + self._n_joint_rows, self.guard is not None)
 
     def row_kinds(self, m: int) -> list[str]:
         """The kind (:data:`ROW_KINDS`, "unmovable" aside) of each of :meth:`rows`' ``m`` rows."""
-        n_obstacle = m - self.floor.n_rows - self._n_joint_rows
-        kinds = ["barrier" if k % self._stride == 0 else "guard" for k in range(n_obstacle)]
+        kinds = ["barrier" if k % self._stride == 0 else "guard" for k in range(self._n_obstacle_rows(m))]
         return kinds + ["floor"] * self.floor.n_rows + ["joint_limits"] * self._n_joint_rows
 
     @staticmethod
