@@ -25,7 +25,11 @@ from round to round, so that machine noise hits all alike), the median over roun
   with random residual actions: its ratio to ``filtered random`` (the filtered torque env) is the
   one the design targets (≤ 1.2), printed on its own line as the median of the rounds' ratios;
 * ``Pusher-v5``: Gymnasium's MuJoCo arm, for reference (5 physics steps of 10 ms per step,
-  against our 10 of 2 ms, so its steps are not the same amount of physics).
+  against our 10 of 2 ms, so its steps are not the same amount of physics);
+* with ``--compare SETTING=VALUE ...``: ``filtered random``, ``filtered adversarial`` and
+  ``recipe`` again, under the default filter with those settings changed (``FilterConfig``
+  fields, e.g. ``allowance_level=true``), in the same rounds; their cost against the default
+  filter's is printed on its own line, as medians of the rounds' ratios.
 
 Only ``step`` calls are timed; episodes are reset between them, untimed. Resets are timed apart,
 per scenario (``--reset-samples`` each): the median and p99, in ms. A breakdown line estimates
@@ -39,6 +43,7 @@ Usage::
     python benchmarks/env_speed.py                              # 5 rounds x 1000 steps, scenario multi
     python benchmarks/env_speed.py --rounds 9 --profile --json results/env_speed.json
     python benchmarks/env_speed.py --points ee                  # the filter protecting the tool sphere only
+    python benchmarks/env_speed.py --compare allowance_level=true   # a filter option's cost, side by side
 """
 
 from __future__ import annotations
@@ -57,7 +62,8 @@ import mujoco
 import numpy as np
 
 import c3bf_gym  # noqa: F401  (registers C3BFReach-v0)
-from c3bf_gym import CartesianImpedanceAction, SafetyFilter
+from c3bf_gym import CartesianImpedanceAction, FilterConfig, SafetyFilter
+from c3bf_gym.cli import add_filter_settings
 from c3bf_gym.scenarios import SCENARIOS
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -65,6 +71,8 @@ from guarantee import adversarial_action  # noqa: E402  (the sweep's adversary)
 
 CONFIGS = ("bare", "bare, reset states", "bare, parked", "unfiltered", "filtered random", "filtered adversarial",
            "impedance", "recipe", "Pusher-v5")
+#: The configurations ``--compare`` times again under the changed filter (names suffixed by " *").
+COMPARED = ("filtered random", "filtered adversarial", "recipe")
 
 
 def _policy_runner(env: gym.Env, steps: int, seed: int, adversarial: bool):
@@ -217,44 +225,64 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--profile", action="store_true", help="print the cProfile breakdown of unfiltered and filtered steps")
     parser.add_argument("--json", type=Path, help="also write the results as JSON here")
+    add_filter_settings(parser, "--compare", note=": times the filtered configurations again with them, side by side")
     args = parser.parse_args(argv)
     if args.rounds < 1 or args.steps < 1 or args.reset_samples < 0:
         parser.error("--rounds and --steps must be >= 1, --reset-samples >= 0")
+    default = FilterConfig(points=args.points)
+    try:
+        compared = default.replace(**dict(args.compare)) if args.compare else None
+    except (TypeError, ValueError) as error:
+        parser.error(f"--compare: {error}")
 
     bare_env, run_bare = _replay_runner(args.env, args.scenario, args.steps, args.seed)
     reset_env, run_reset = _bare_runner(args.env, args.scenario, args.steps, args.seed)
     parked_env, run_parked = _bare_runner(args.env, args.scenario, args.steps, args.seed, parked=True)
     envs = {
         "unfiltered": gym.make(args.env, scenario=args.scenario),
-        "filtered random": SafetyFilter(gym.make(args.env, scenario=args.scenario), points=args.points),
-        "filtered adversarial": SafetyFilter(gym.make(args.env, scenario=args.scenario), points=args.points),
+        "filtered random": SafetyFilter(gym.make(args.env, scenario=args.scenario), default),
+        "filtered adversarial": SafetyFilter(gym.make(args.env, scenario=args.scenario), default),
         "impedance": CartesianImpedanceAction(gym.make(args.env, scenario=args.scenario), residual=True),
         "recipe": SafetyFilter(CartesianImpedanceAction(gym.make(args.env, scenario=args.scenario), residual=True),
-                               points=args.points),
+                               default),  # fmt: skip
         "Pusher-v5": gym.make("Pusher-v5"),
     }
+    configs = CONFIGS
+    if compared is not None:
+        envs["filtered random *"] = SafetyFilter(gym.make(args.env, scenario=args.scenario), compared)
+        envs["filtered adversarial *"] = SafetyFilter(gym.make(args.env, scenario=args.scenario), compared)
+        envs["recipe *"] = SafetyFilter(CartesianImpedanceAction(gym.make(args.env, scenario=args.scenario),
+                                                                 residual=True), compared)  # fmt: skip
+        configs = CONFIGS + tuple(f"{name} *" for name in COMPARED)
     runs = {"bare": run_bare, "bare, reset states": run_reset, "bare, parked": run_parked}
     for name, env in envs.items():
-        runs[name] = _policy_runner(env, args.steps, args.seed, adversarial=name == "filtered adversarial")
+        runs[name] = _policy_runner(env, args.steps, args.seed, adversarial=name.startswith("filtered adversarial"))
     frame_skip, dt = bare_env.unwrapped.frame_skip, bare_env.unwrapped.dt
     print(f"{args.env}, scenario {args.scenario}: {frame_skip} physics steps ({dt * 1e3:.0f} ms) per policy step; "
           f"{args.rounds} rounds x {args.steps} steps per configuration, interleaved")  # fmt: skip
-    per_step: dict[str, list[float]] = {name: [] for name in CONFIGS}
+    per_step: dict[str, list[float]] = {name: [] for name in configs}
     for r in range(args.rounds):
-        order = CONFIGS[r % len(CONFIGS):] + CONFIGS[: r % len(CONFIGS)]
+        order = configs[r % len(configs):] + configs[: r % len(configs)]
         for name in order:
             per_step[name].append(1e6 * runs[name]() / args.steps)
-    ratios = {name: [t / b for t, b in zip(per_step[name], per_step["bare"])] for name in CONFIGS}
+    ratios = {name: [t / b for t, b in zip(per_step[name], per_step["bare"])] for name in configs}
     header = f"{'configuration':<22} | {'µs/step median':>14} {'min':>8} {'max':>8} | {'× bare (median of rounds)':>26}"
     print(header)
     print("-" * len(header))
-    for name in CONFIGS:
+    for name in configs:
         t = per_step[name]
         print(f"{name:<22} | {statistics.median(t):>14.0f} {min(t):>8.0f} {max(t):>8.0f} | {statistics.median(ratios[name]):>26.2f}")
     recipe = statistics.median(r / f for r, f in zip(per_step["recipe"], per_step["filtered random"]))
     impedance = statistics.median(i / u for i, u in zip(per_step["impedance"], per_step["unfiltered"]))
     print(f"\nthe recipe's stack (residual impedance + filter) ÷ the filtered torque env: {recipe:.2f} "
           f"(target <= 1.2); the impedance controller alone ÷ the unfiltered env: {impedance:.2f} (medians of the rounds' ratios)")
+    changed = {}
+    if compared is not None:
+        changed = {name: statistics.median(a / b for a, b in zip(per_step[f"{name} *"], per_step[name]))
+                   for name in COMPARED}  # fmt: skip
+        settings = ", ".join(f"{k}={v}" for k, v in args.compare)
+        print(f"with {settings} (*) ÷ the default filter: "
+              + ", ".join(f"{name} {ratio:.2f}" for name, ratio in changed.items()) + " (medians of the rounds' ratios)")
     breakdown = _breakdown(per_step, frame_skip)
     print(f"\nbreakdown (medians of the rounds' differences): the bare physics {breakdown['physics_us']:.1f} µs per "
           f"physics step; the environment's own work {breakdown['env_us']:.0f} µs per policy step (unfiltered − bare); "
@@ -271,6 +299,7 @@ def main(argv: list[str] | None = None) -> dict:
         "env": args.env, "scenario": args.scenario, "rounds": args.rounds, "steps": args.steps, "frame_skip": frame_skip,
         "us_per_step": per_step, "ratio_to_bare": {k: statistics.median(v) for k, v in ratios.items()}, "reset_ms": resets,
         "breakdown": breakdown, "recipe_to_filtered": recipe, "impedance_to_unfiltered": impedance,
+        "compared": {"settings": dict(args.compare), "to_default": changed} if compared is not None else None,
     }  # fmt: skip
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)

@@ -80,6 +80,7 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
+from c3bf_gym.cli import add_filter_settings
 from c3bf_gym.safety import (
     FilterConfig,
     FilterEnvelope,
@@ -555,22 +556,6 @@ def _check_arm(assets: Path, arm: str, config: FilterConfig) -> tuple[str | None
     return None, notes, envelope
 
 
-def _setting(item: str) -> tuple[str, object]:
-    """``"name=value"`` as ``(name, value)``: a number, true/false, none, or the text."""
-    name, sep, text = item.partition("=")
-    if not sep or not name:
-        raise ValueError(f"expected SETTING=VALUE, got {item!r}")
-    words = {"true": True, "false": False, "none": None}
-    if text.lower() in words:
-        return name, words[text.lower()]
-    for kind in (int, float):
-        try:
-            return name, kind(text)
-        except ValueError:
-            pass
-    return name, text
-
-
 def _choices(values: list[str], valid, what: str, parser: argparse.ArgumentParser) -> list[str]:
     unknown = [v for v in values if v not in valid]
     if unknown:
@@ -596,15 +581,13 @@ def main(argv: list[str] | None = None) -> dict:
                         f"~/.cache/c3bf-gym/robosuite-{ROBOSUITE_VERSION})")  # fmt: skip
     parser.add_argument("--quick", action="store_true", help="smoke run: 1 episode of 1 s, by default on iiwa "
                         "in static and head_on")  # fmt: skip
-    parser.add_argument("--set", nargs="+", default=[], metavar="SETTING=VALUE",
-                        help="change the filter's settings (FilterConfig fields; numbers, true/false, none or "
-                             "names), e.g. --set joint_speed_fraction=1.0 guard_gamma=20")  # fmt: skip
+    add_filter_settings(parser, "--set")
     parser.add_argument("--no-unfiltered", action="store_true", help="skip the unfiltered twin of each episode")
     parser.add_argument("--ignore-envelope", action="store_true", help=f"spheres at {SPEED[0]}-{SPEED[1]} m/s on "
                         "every arm, not capped by the filter's envelope")  # fmt: skip
     args = parser.parse_args(argv)
     try:
-        config = CONFIG.replace(**dict(_setting(item) for item in args.set))
+        config = CONFIG.replace(**dict(args.set))
     except (TypeError, ValueError) as error:
         parser.error(f"--set: {error}")
     if args.quick:

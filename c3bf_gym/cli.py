@@ -44,6 +44,37 @@ _positive_float = _number(float, 0.0, strict=True)
 _nonnegative_float = _number(float, 0.0, strict=False)
 
 
+def filter_setting(text: str) -> tuple[str, object]:
+    """An argparse type: ``"NAME=VALUE"``, a change to a
+    :class:`~c3bf_gym.safety.FilterConfig` field, as ``(name, value)``. The value is read as
+    true/false, none, a whole number, a number, or else as text; the filter checks the name and
+    the value when it is built."""
+    name, sep, value = text.partition("=")
+    if not sep or not name:
+        raise argparse.ArgumentTypeError(f"expected SETTING=VALUE (a FilterConfig field), got {text!r}")
+    words = {"true": True, "false": False, "none": None}
+    if value.lower() in words:
+        return name, words[value.lower()]
+    for kind in (int, float):
+        try:
+            return name, kind(value)
+        except ValueError:
+            pass
+    return name, value
+
+
+filter_setting.__name__ = "SETTING=VALUE"  # argparse names the type in its messages
+
+
+def add_filter_settings(parser: argparse.ArgumentParser, flag: str = "--filter-set", default: object = (),
+                        note: str = "") -> None:
+    """The option that changes the filter's settings: ``flag NAME=VALUE ...``
+    (:func:`filter_setting`), collected as a list of ``(name, value)`` pairs; ``note`` ends its help."""
+    parser.add_argument(flag, nargs="+", type=filter_setting, default=default, metavar="SETTING=VALUE",
+                        help="change the filter's settings (FilterConfig fields: numbers, true/false, none or "
+                             f"names), e.g. allowance_level=true joint_range_reserve=0.3{note}")  # fmt: skip
+
+
 def subcommand(sub: argparse._SubParsersAction, name: str, summary: str, description: str, *,
                defaults: type | None = None) -> argparse.ArgumentParser:
     """Add the subcommand ``name`` (``summary`` in ``c3bf-gym --help``, ``description`` in its own).
@@ -99,6 +130,7 @@ def _add_train(sub: argparse._SubParsersAction) -> None:
                         "distance-HOCBF guard), 'c3bf' (the paper's C3BF alone), 'hocbf' or 'none'")  # fmt: skip
     p.add_argument("--guard-gamma", type=_positive_float, default=d.guard_gamma,
                    help=f"the guard's gains, gamma1 = gamma2 [1/s], with filter c3bf+hocbf (None: {GUARD_GAMMA:g})")
+    add_filter_settings(p)
     p.add_argument("--scenario", choices=list(SCENARIOS), default=d.scenario, help="obstacle scenario")
     p.add_argument("--eval-scenario", choices=list(SCENARIOS), default=d.eval_scenario,
                    help="scenario of the periodic and final evaluations (default: the training scenario)")
@@ -146,7 +178,7 @@ def _run_train(args: argparse.Namespace) -> int:
 
     defaults = ENGINE_DEFAULTS[args.engine]
     config = TrainConfig(
-        engine=args.engine, algo=args.algo or defaults["algo"], robot=args.robot, action=args.action, filter=args.filter, guard_gamma=args.guard_gamma, scenario=args.scenario,
+        engine=args.engine, algo=args.algo or defaults["algo"], robot=args.robot, action=args.action, filter=args.filter, guard_gamma=args.guard_gamma, filter_settings=dict(args.filter_set), scenario=args.scenario,
         eval_scenario=args.eval_scenario, timesteps=args.timesteps, seed=args.seed, n_envs=args.n_envs, eval_freq=args.eval_freq,
         eval_episodes=args.eval_episodes, final_eval_episodes=args.final_eval_episodes, checkpoint_freq=args.checkpoint_freq, out=args.out,
         progress_bar=not args.no_progress, normalize_obs=args.normalize_obs, policy_hz=args.policy_hz, distance_weight=args.distance_weight, action_weight=args.action_weight, obstacle_encoder=args.obstacle_encoder or defaults["obstacle_encoder"], hyperparams=args.hyperparams,
@@ -175,6 +207,7 @@ def _add_evaluate(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--guard-gamma", type=_positive_float, default=None,
                    help="the guard's gains with filter c3bf+hocbf (default: the run's own, or the default gains with "
                         "--filter)")  # fmt: skip
+    add_filter_settings(p, default=None, note=" (default: the run's own, or none with --filter)")
     p.add_argument("--scenario", choices=list(SCENARIOS), default=None, help="default: the run's own")
     p.add_argument("--residual-fade", type=_nonnegative_float, default=None, metavar="M",
                    help="the residual action's fade [m] (default: the run's own; 0: none)")
@@ -190,7 +223,8 @@ def _run_evaluate(args: argparse.Namespace) -> int:
     from c3bf_gym.training import evaluate
 
     result = evaluate(args.model, args.episodes, args.filter, args.scenario, args.seed, guard_gamma=args.guard_gamma,
-                      residual_fade=args.residual_fade, per_episode=args.per_episode)  # fmt: skip
+                      residual_fade=args.residual_fade, per_episode=args.per_episode,
+                      filter_settings=None if args.filter_set is None else dict(args.filter_set))  # fmt: skip
     text = json.dumps(result, indent=2)
     print(text)
     if args.json_out:

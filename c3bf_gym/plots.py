@@ -36,17 +36,30 @@ _GUARDED = "c3bf+hocbf"
 
 def _label(name: str) -> str:
     """A filter's legend label; ``"c3bf+hocbf5"`` (a guard with other gains) reads "C3BF + distance
-    guard (γ 5)"."""
-    if name.startswith(_GUARDED) and name != _GUARDED:
-        return f"{LABELS[_GUARDED]} (γ {name[len(_GUARDED):]})"
-    return LABELS.get(name, name)
+    guard (γ 5)", and other settings follow in brackets as the run's label lists them."""
+    rows, settings = _split(name)
+    if rows.startswith(_GUARDED) and rows != _GUARDED:
+        label = f"{LABELS[_GUARDED]} (γ {rows[len(_GUARDED):]})"
+    else:
+        label = LABELS.get(rows, rows)
+    return label + (f" [{settings}]" if settings else "")
 
 
-def _order(name: str) -> tuple[int, float]:
-    """Table and legend order: no filter, HOCBF, C3BF, then the guarded C3BF by its gains."""
-    if name.startswith(_GUARDED):
-        return 3, float(name[len(_GUARDED):] or GUARD_GAMMA)
-    return {"none": 0, "hocbf": 1, "c3bf": 2}.get(name, 4), 0.0
+def _order(name: str) -> tuple[int, float, str]:
+    """Table and legend order: no filter, HOCBF, C3BF, then the guarded C3BF by its gains; a
+    filter with other settings after the same rows without."""
+    rows, settings = _split(name)
+    if rows.startswith(_GUARDED):
+        return 3, float(rows[len(_GUARDED):] or GUARD_GAMMA), settings
+    return {"none": 0, "hocbf": 1, "c3bf": 2}.get(rows, 4), 0.0, settings
+
+
+def _split(name: str) -> tuple[str, str]:
+    """A run's filter label (:func:`~c3bf_gym.training.filter_label`) as its rows' name and its
+    other settings (``"c3bf+hocbf[allowance_level=true]"``: ``"c3bf+hocbf"``,
+    ``"allowance_level=true"``)."""
+    rows, _, settings = name.partition("[")
+    return rows, settings.removesuffix("]")
 
 
 def _pyplot():
@@ -341,7 +354,7 @@ def _run_groups(runs: Sequence[Path], evaluation: str) -> dict[tuple[str, str, s
         config["_final"], config["_by_scenario"] = _final_evaluation(run, evaluation)
         config["_run"] = str(run)
         # the C3BF with its guard is its own group per guard gain ("c3bf+hocbf", "c3bf+hocbf5")
-        name = filter_label(config["filter"], config.get("guard_gamma"))
+        name = filter_label(config["filter"], config.get("guard_gamma"), config.get("filter_settings"))
         groups.setdefault((config["algo"], config["action"], name), []).append((config, data))
     if not groups:
         raise ValueError("no run has a finished training episode to plot")

@@ -38,7 +38,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from c3bf_gym.training import TrainConfig, build_env, filter_config, finish_run, start_run
+from c3bf_gym.training import TrainConfig, build_env, finish_run, start_run
 
 __all__ = ["ENV_NAME", "load_policy", "safety_metrics", "train_rllib"]
 
@@ -93,7 +93,7 @@ def _ppo_config(config: TrainConfig, hyper: dict[str, Any]):
     hidden = hyper.pop("fcnet_hiddens")
     per_env = hyper.pop("train_batch_size_per_env")
     env_config = dict(
-        scenario=config.scenario, filter=filter_config(config.filter, config.guard_gamma), action=config.action,
+        scenario=config.scenario, filter=config.filter_config(), action=config.action,
         action_weight=config.action_weight, posture_stiffness=config.posture_stiffness,
         residual_fade=config.residual_fade, **config.env_kwargs(),
     )  # fmt: skip

@@ -25,7 +25,7 @@ import math
 import os
 import sys
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any, Callable, Literal
 
@@ -134,26 +134,72 @@ def _require_train_extra(*modules: str, purpose: str = "training with Stable-Bas
         raise ImportError(f"{purpose} needs {', '.join(missing)}, not installed here: {_TRAIN_EXTRA}")
 
 
-def filter_config(filter: str | FilterConfig | None, guard_gamma: float | None = None) -> FilterConfig | None:
+#: The FilterConfig fields a run's ``filter_settings`` may not change: the filter's name says them,
+#: and ``guard_gamma`` has its own option.
+_NAMED_SETTINGS = ("barrier", "guard", "guard_gamma")
+
+
+def filter_config(filter: str | FilterConfig | None, guard_gamma: float | None = None,
+                  settings: dict[str, Any] | None = None) -> FilterConfig | None:
     """The :class:`~c3bf_gym.safety.FilterConfig` a run's filter names (None for ``"none"`` or
-    None), with ``guard_gamma`` the guard's gains (None: the default; only with a guard)."""
+    None), with ``guard_gamma`` the guard's gains (None: the default; only with a guard) and
+    ``settings`` changes to its other fields (e.g. ``{"allowance_level": True}``; None or empty:
+    none).
+
+    Raises:
+        ValueError: an unknown filter name; ``guard_gamma`` or ``settings`` without a filter;
+            a setting that is not a FilterConfig field, names the filter's rows (``barrier``,
+            ``guard``: choose the filter; ``guard_gamma``: its own argument), is not a JSON
+            scalar (a run records its settings in ``config.json``), or that the filter refuses.
+    """
+    settings = dict(settings or {})
+    if not (all(isinstance(key, str) for key in settings)
+            and all(value is None or isinstance(value, (bool, int, float, str)) for value in settings.values())):
+        raise ValueError(f"filter settings must map FilterConfig field names to numbers, booleans, text or None, "
+                         f"got {settings!r}")  # fmt: skip
+    named = sorted(set(settings) & set(_NAMED_SETTINGS))
+    if named:
+        raise ValueError(f"filter setting(s) {', '.join(map(repr, named))} are chosen by the filter's name "
+                         f"({', '.join(map(repr, FILTERS))}) and guard_gamma, not by the filter's settings")  # fmt: skip
     if isinstance(filter, FilterConfig):
-        return filter if guard_gamma is None else filter.replace(guard_gamma=guard_gamma)
+        changes = settings | ({} if guard_gamma is None else {"guard_gamma": guard_gamma})
+        return filter.replace(**changes)
     if filter in (None, "none"):
-        if guard_gamma is not None:
-            raise ValueError(f"guard_gamma was given without a filter (filter={filter!r})")
+        for what, given in (("guard_gamma was", guard_gamma is not None), ("filter settings were", bool(settings))):
+            if given:
+                raise ValueError(f"{what} given without a filter (filter={filter!r})")
         return None
     if not (isinstance(filter, str) and filter in FILTERS):
         raise ValueError(f"unknown filter {filter!r}; valid choices: {', '.join(map(repr, TRAIN_FILTERS))}")
-    return FilterConfig.named(filter, guard_gamma=guard_gamma)
+    return FilterConfig.named(filter, guard_gamma=guard_gamma, **settings)
 
 
-def filter_label(filter: str | FilterConfig | None, guard_gamma: float | None = None) -> str:
-    """A run's filter as its name and the training tables spell it: ``"none"`` or the
+def filter_label(filter: str | FilterConfig | None, guard_gamma: float | None = None,
+                 settings: dict[str, Any] | None = None) -> str:
+    """A run's filter as its name and the training tables spell it: ``"none"``, or the
     configuration's :attr:`~c3bf_gym.safety.FilterConfig.name` (``"c3bf+hocbf20"`` for the guard
-    with gains 20)."""
-    config = filter_config(filter, guard_gamma)
-    return "none" if config is None else config.name
+    with gains 20) followed by the settings that differ from that named filter's, in brackets, in
+    the fields' order (``"c3bf+hocbf[joint_range_reserve=0.3,allowance_level=true]"``).
+
+    Raises:
+        ValueError: as :func:`filter_config`, or for a filter built on Barrier instances (it has
+            no name)."""
+    config = filter_config(filter, guard_gamma, settings)
+    if config is None:
+        return "none"
+    if config.name is None:
+        raise ValueError("a filter built on Barrier instances has no name to label a run with")
+    rows = FilterConfig(barrier=config.barrier, guard=config.guard, guard_gamma=config.guard_gamma)
+    changed = [f"{field.name}={_setting_text(getattr(config, field.name))}" for field in fields(config)
+               if getattr(config, field.name) != getattr(rows, field.name)]  # fmt: skip
+    return config.name + (f"[{','.join(changed)}]" if changed else "")
+
+
+def _setting_text(value: Any) -> str:
+    """A filter setting's value as a label spells it (and ``--filter-set`` reads it back)."""
+    if isinstance(value, bool) or value is None:
+        return str(value).lower()
+    return f"{value:g}" if isinstance(value, float) else str(value)
 
 
 #: How the policy network reads the obstacle slots: ``flat`` (SB3's MLP on the whole
@@ -205,8 +251,11 @@ RLLIB_PPO_HYPERPARAMS: dict[str, Any] = dict(
 
 @dataclass
 class TrainConfig:
-    """One training run. ``filter`` is one of :data:`TRAIN_FILTERS` and ``guard_gamma`` the
-    guard's gains where the filter has one (None: :data:`~c3bf_gym.safety.GUARD_GAMMA`).
+    """One training run. ``filter`` is one of :data:`TRAIN_FILTERS`, ``guard_gamma`` the
+    guard's gains where the filter has one (None: :data:`~c3bf_gym.safety.GUARD_GAMMA`) and
+    ``filter_settings`` changes to the filter's other :class:`~c3bf_gym.safety.FilterConfig`
+    fields (e.g. ``{"allowance_level": True}``; recorded in ``config.json``, named in the run's
+    name and rebuilt by :func:`evaluate`).
 
     The defaults are the recipe of the README's RL table (the one place they are kept; the
     command line takes them from here): SAC, residual Cartesian actions at 10 Hz that fade within
@@ -250,6 +299,7 @@ class TrainConfig:
     action: Literal["impedance", "residual", "torque"] = "residual"
     filter: str = DEFAULT_FILTER
     guard_gamma: float | None = None
+    filter_settings: dict[str, Any] = field(default_factory=dict)
     scenario: str = "random"
     eval_scenario: str | None = None
     timesteps: int | None = None
@@ -302,7 +352,7 @@ class TrainConfig:
         if self.eval_scenario is not None:
             get_scenario(self.eval_scenario)
         policy_rate_kwargs(self.policy_hz)
-        filter_ = filter_config(self.filter, self.guard_gamma)  # the filter's own checks, guard_gamma's included
+        filter_ = self.filter_config()  # the filter's own checks, guard_gamma's and the settings' included
         for name in ("distance_weight", "action_weight"):
             validation.number(name, getattr(self, name), low=0.0)
         if self.posture_stiffness is not None:
@@ -341,9 +391,14 @@ class TrainConfig:
         robot = "" if self.robot == "ur5e" else f"{self.robot}_"  # UR5e runs keep their earlier names
         engine = "" if self.engine == "sb3" else f"{self.engine}_"
         return (
-            f"{engine}{robot}{self.algo}_{self.action}{norm}{rate}{dense}{penalty}{encoder}_{filter_label(self.filter, self.guard_gamma)}"
+            f"{engine}{robot}{self.algo}_{self.action}{norm}{rate}{dense}{penalty}{encoder}_{filter_label(self.filter, self.guard_gamma, self.filter_settings)}"
             f"_{self.scenario}_s{self.seed}"
         )
+
+    def filter_config(self) -> FilterConfig | None:
+        """The run's safety filter: ``filter`` with ``guard_gamma`` and ``filter_settings``
+        (:func:`filter_config`); None for ``"none"``."""
+        return filter_config(self.filter, self.guard_gamma, self.filter_settings)
 
     @property
     def evaluated_scenario(self) -> str:
@@ -558,7 +613,7 @@ def train(config: TrainConfig, address: str | None = None) -> Path:
     _check_sb3_hyperparams(config)
     torch.set_num_threads(1)  # one core per run: the machine runs several runs side by side
     run_dir, hyper = start_run(config)
-    filter_ = filter_config(config.filter, config.guard_gamma)
+    filter_ = config.filter_config()
     rate, penalty = config.env_kwargs(), config.action_weight
     venv = training_envs(config)
     eval_env = DummyVecEnv(
@@ -607,7 +662,7 @@ def training_envs(config: TrainConfig):
     (:func:`make_env`, seeds ``1000 * seed + i``), in subprocesses when more than one."""
     from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
 
-    filter_ = filter_config(config.filter, config.guard_gamma)
+    filter_ = config.filter_config()
     thunks = [make_env(config.scenario, filter_, config.action, seed=config.seed * 1000 + i,
                        action_weight=config.action_weight, observe_correction=config.observe_correction,
                        posture_stiffness=config.posture_stiffness, residual_fade=config.residual_fade,
@@ -729,15 +784,18 @@ def evaluate(
     guard_gamma: float | None = None,
     residual_fade: float | None = None,
     per_episode: bool = False,
+    filter_settings: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Roll out a saved model for ``episodes`` seeded episodes (``seed``, ``seed + 1``, ...).
 
     ``model_path`` is an SB3 ``model.zip`` (or one in ``best/`` or ``checkpoints/``) or an RLlib
     checkpoint directory (``checkpoint/`` of a run trained with ``engine="rllib"``).
-    ``filter`` (one of :data:`TRAIN_FILTERS`) and ``guard_gamma`` default to the run's own (from
-    its ``config.json``), ``scenario`` to the run's evaluation scenario (its ``eval_scenario``,
-    else its training scenario); pass a filter to evaluate, e.g., an unfiltered agent
-    with the default filter on (its guard then has the default gains). The action mode,
+    ``filter`` (one of :data:`TRAIN_FILTERS`), ``guard_gamma`` and ``filter_settings`` (changes
+    to the filter's other settings, as :func:`filter_config` takes them) default to the run's own
+    (from its ``config.json``; runs from before the settings had none), ``scenario`` to the run's
+    evaluation scenario (its ``eval_scenario``, else its training scenario); pass a filter to
+    evaluate, e.g., an unfiltered agent with the default filter on (its guard then has the
+    default gains and its other settings their defaults, unless given). The action mode,
     policy rate and reward (``distance_weight``, ``action_weight``) are the run's too (also for
     ``best/`` and ``checkpoints/`` models), so returns compare only between runs with the same
     reward; success and collisions do not depend on it. So are the nominal controller's
@@ -768,7 +826,8 @@ def evaluate(
     if filter is None:
         filter = config.get("filter", "none")
         guard_gamma = config.get("guard_gamma") if guard_gamma is None else guard_gamma
-    filter_ = filter_config(filter, guard_gamma)  # checked before the model loads
+        filter_settings = config.get("filter_settings") if filter_settings is None else filter_settings
+    filter_ = filter_config(filter, guard_gamma, filter_settings)  # checked before the model loads
     observe = config.get("observe_correction", False)
     if observe and filter_ is None:
         raise ValueError("this run observes the filter's correction (observe_correction): evaluate it with a filter")
@@ -813,6 +872,7 @@ def evaluate(
         "model": str(model_path),
         "filter": filter_label(filter_),
         "guard_gamma": None if filter_ is None else filter_.resolved_guard_gamma(),
+        "filter_settings": dict(filter_settings or {}),
         "scenario": scenario,
         "episodes": episodes,
         "success_rate": float(np.mean(successes)),

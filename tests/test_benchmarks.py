@@ -37,6 +37,22 @@ def test_env_speed_times_every_configuration_against_the_bare_physics(tmp_path):
     assert refused.returncode == 2 and "--rounds and --steps must be >= 1" in refused.stderr
 
 
+def test_env_speed_compares_a_filter_option_side_by_side(tmp_path):
+    out = tmp_path / "env_speed.json"
+    done = subprocess.run([sys.executable, str(BENCHMARKS / "env_speed.py"), "--rounds", "2", "--steps", "5",
+                           "--reset-samples", "0", "--compare", "allowance_level=true", "--json", str(out)],
+                          capture_output=True, text=True, timeout=600)  # fmt: skip
+    assert done.returncode == 0, done.stderr[-2000:]
+    result = json.loads(out.read_text())
+    assert result["compared"]["settings"] == {"allowance_level": True}
+    assert set(result["compared"]["to_default"]) == {"filtered random", "filtered adversarial", "recipe"}
+    assert all(len(result["us_per_step"][f"{name} *"]) == 2 for name in result["compared"]["to_default"])
+    assert "with allowance_level=True (*) ÷ the default filter" in done.stdout
+    refused = subprocess.run([sys.executable, str(BENCHMARKS / "env_speed.py"), "--compare", "allowance_level=maybe"],
+                             capture_output=True, text=True, timeout=300)  # fmt: skip
+    assert refused.returncode == 2 and "--compare: allowance_level must be True or False" in refused.stderr
+
+
 def test_filter_speed_times_the_hook_latency(tmp_path):
     out = tmp_path / "filter_speed.json"
     done = subprocess.run([sys.executable, str(BENCHMARKS / "filter_speed.py"), "--calls", "40", "--obstacles", "1", "4",

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import csv
 import importlib.util
 import json
@@ -12,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from c3bf_gym.cli import main
+from c3bf_gym.cli import filter_setting, main
 from c3bf_gym.safety import GUARD_GAMMA, FilterConfig
 from c3bf_gym.plots import plot_training
 from c3bf_gym.training import (
@@ -24,6 +25,7 @@ from c3bf_gym.training import (
     build_env,
     by_scenario,
     evaluate,
+    filter_label,
     make_env,
     policy_rate_kwargs,
     train,
@@ -103,6 +105,15 @@ def test_evaluate_command_with_another_filter(tmp_path, capsys):
     config.update(filter="c3bf+hocbf", guard_gamma=20.0)
     (run / "config.json").write_text(json.dumps(config))
     assert evaluate(run / "model.zip", episodes=1)["filter"] == "c3bf+hocbf20"
+    # ... and with its own filter settings, unless it is given others
+    config.update(filter_settings={"allowance_level": True})
+    (run / "config.json").write_text(json.dumps(config))
+    result = evaluate(run / "model.zip", episodes=1)
+    assert (result["filter"], result["filter_settings"]) == ("c3bf+hocbf20[allowance_level=true]", {"allowance_level": True})
+    assert main(["evaluate", str(run / "model.zip"), "--episodes", "1", "--filter-set", "joint_range_reserve=0.2",
+                 "--json", str(out_json)]) == 0  # fmt: skip
+    assert json.loads(out_json.read_text())["filter"] == "c3bf+hocbf20[joint_range_reserve=0.2]"
+    assert evaluate(run / "model.zip", episodes=1, filter="c3bf+hocbf")["filter"] == "c3bf+hocbf"
 
 
 @pytest.mark.slow
@@ -302,6 +313,45 @@ def test_filter_names_reach_the_filter_and_name_the_run():
             TrainConfig(filter=name, guard_gamma=7.0).validate()
     with pytest.raises(ValueError, match=r"unknown filter 'cbf'; valid choices: 'none', 'c3bf\+hocbf', 'c3bf', 'hocbf'"):
         make_env("none", "cbf", "residual")
+
+
+def test_filter_settings_build_the_run_filter_and_name_it():
+    """A run's filter_settings change the named filter's other fields: the env is built with them,
+    the run's name and the tables' label list the ones that differ from the named filter, and
+    anything the filter cannot take, or that a name already says, is refused by name."""
+    config = TrainConfig(filter_settings={"allowance_level": True, "joint_range_reserve": 0.3})
+    config.validate()
+    assert config.filter_config() == FilterConfig.named("c3bf+hocbf", allowance_level=True, joint_range_reserve=0.3)
+    assert config.name == ("sac_residual_10hz_dw10_aw3_set_fade0.1_c3bf+hocbf[joint_range_reserve=0.3,"
+                           "allowance_level=true]_random_s0")  # fmt: skip
+    assert filter_label("c3bf+hocbf", 20.0, {"margin": 0.02}) == "c3bf+hocbf20"  # a default is no change
+    assert filter_label("c3bf", None, {"gamma": 2, "weight": "identity"}) == "c3bf[gamma=2,weight=identity]"
+    env = make_env("none", config.filter_config(), "residual", seed=0)()
+    assert env.get_wrapper_attr("config").allowance_level
+    env.close()
+    for settings, match in (
+        ({"allowance_level": 1}, "allowance_level must be True or False"),
+        ({"foo": 1}, "unknown filter setting.*'foo'.*valid settings: barrier, gamma"),
+        ({"guard": None}, "'guard' are chosen by the filter's name"),
+        ({"guard_gamma": 5.0}, "'guard_gamma' are chosen by the filter's name"),
+        ({"margin": [0.1]}, "filter settings must map FilterConfig field names to numbers"),
+    ):
+        with pytest.raises(ValueError, match=match):
+            TrainConfig(filter_settings=settings).validate()
+    with pytest.raises(ValueError, match="allowance_level=True needs a guard"):
+        TrainConfig(filter="c3bf", filter_settings={"allowance_level": True}).validate()
+    with pytest.raises(ValueError, match=r"filter settings were given without a filter \(filter='none'\)"):
+        TrainConfig(filter="none", filter_settings={"margin": 0.05}).validate()
+
+
+def test_filter_setting_reads_values_as_the_command_line_spells_them():
+    assert [filter_setting(text) for text in ("allowance_level=true", "sensing_radius=none", "margin=0.05",
+                                              "joint_range_reserve=1", "weight=identity")] == [  # fmt: skip
+        ("allowance_level", True), ("sensing_radius", None), ("margin", 0.05), ("joint_range_reserve", 1),
+        ("weight", "identity")]  # fmt: skip
+    for bad in ("allowance_level", "=true"):
+        with pytest.raises(argparse.ArgumentTypeError, match="expected SETTING=VALUE"):
+            filter_setting(bad)
 
 
 def test_action_weight_penalises_the_policy_action_and_names_the_run():
@@ -542,6 +592,12 @@ def test_plot_training_keeps_the_guarded_c3bf_apart(tmp_path):
     assert "| sac | residual | c3bf+hocbf5 | 1 | 500 | 0 (0) | 1 (1) | 0.60 (0.60) | 5.0 | 50 |" in rows
     assert "| sac | residual | c3bf+hocbf | 1 | 500 | 0 (0) | 1 (1) | 1.00 (1.00) | 5.0 | 50 |" in rows
     assert "| sac | residual | hocbf | 2 | 500 | 0 (0, 0) | 2 (1, 1) | 0.80 (0.70, 0.90) | 5.0 | 50 |" in rows
+    # and a run with other filter settings is its own row, labelled with them
+    runs.append(_fake_run(tmp_path, "allow", "c3bf+hocbf", "residual", [0, 0], final=0.7, guard_gamma=None,
+                          filter_settings={"allowance_level": True}))  # fmt: skip
+    rows = plot_training(runs, tmp_path / "c.png").splitlines()
+    assert "| sac | residual | c3bf+hocbf[allowance_level=true] | 1 | 500 | 0 (0) | 1 (1) | 0.70 (0.70) | 5.0 | 50 |" in rows
+    assert "| sac | residual | c3bf+hocbf | 1 | 500 | 0 (0) | 1 (1) | 1.00 (1.00) | 5.0 | 50 |" in rows
 
 
 def test_plot_training_refuses_to_average_different_recipes(tmp_path):

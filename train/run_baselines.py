@@ -19,6 +19,7 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
+from c3bf_gym.cli import filter_setting
 from c3bf_gym.envs.reach import ROBOTS
 from c3bf_gym.training import ACTIONS, ALGORITHMS, OBSTACLE_ENCODERS, POLICY_RATES, TRAIN_FILTERS, TrainConfig
 
@@ -32,6 +33,9 @@ def main() -> int:
     parser.add_argument("--filters", nargs="+", choices=TRAIN_FILTERS, default=["none", d.filter, "hocbf"])
     parser.add_argument("--guard-gamma", type=float, default=d.guard_gamma,
                         help="the gains of c3bf+hocbf's guard (default: the filter's)")
+    parser.add_argument("--filter-set", nargs="+", default=[], metavar="SETTING=VALUE",
+                        help="change the filter's settings in every filtered run (c3bf-gym train --filter-set), "
+                             "e.g. allowance_level=true")  # fmt: skip
     parser.add_argument("--scenario", default=d.scenario)
     parser.add_argument("--eval-scenario", default=d.eval_scenario,
                         help="scenario of the evaluations (default: the training scenario)")
@@ -55,6 +59,14 @@ def main() -> int:
     parser.add_argument("--jobs", type=int, default=2)
     parser.add_argument("--out", default="runs")
     args = parser.parse_args()
+    try:
+        settings = dict(filter_setting(item) for item in args.filter_set)
+    except argparse.ArgumentTypeError as error:
+        parser.error(f"--filter-set: {error}")
+
+    def changes(filter_name: str) -> dict:
+        """--filter-set for the filtered runs, nothing for the unfiltered ones."""
+        return {} if filter_name == "none" else settings
 
     def gains(filter_name: str) -> float | None:
         """--guard-gamma for the filters with a guard (c3bf+hocbf), None for the others."""
@@ -65,7 +77,7 @@ def main() -> int:
     jobs = []
     for seed, filter_name in itertools.product(args.seeds, args.filters):
         name = TrainConfig(
-            algo=args.algo, robot=args.robot, action=args.action, filter=filter_name, guard_gamma=gains(filter_name), scenario=args.scenario, seed=seed,
+            algo=args.algo, robot=args.robot, action=args.action, filter=filter_name, guard_gamma=gains(filter_name), filter_settings=changes(filter_name), scenario=args.scenario, seed=seed,
             policy_hz=args.policy_hz, normalize_obs=args.normalize_obs, distance_weight=args.distance_weight,
             action_weight=args.action_weight, obstacle_encoder=args.obstacle_encoder, residual_fade=args.residual_fade,
         ).name  # fmt: skip
@@ -75,6 +87,7 @@ def main() -> int:
         command = [
             sys.executable, "-m", "c3bf_gym.cli", "train", "--algo", args.algo, "--robot", args.robot, "--action", args.action,
             "--filter", filter_name, *(["--guard-gamma", str(gains(filter_name))] if gains(filter_name) else []),
+            *(["--filter-set", *args.filter_set] if changes(filter_name) else []),
             "--scenario", args.scenario, "--seed", str(seed),
             *(["--eval-scenario", args.eval_scenario] if args.eval_scenario else []),
             *(["--timesteps", str(args.timesteps)] if args.timesteps is not None else []), "--out", str(out), "--no-progress", "--policy-hz", str(args.policy_hz),
