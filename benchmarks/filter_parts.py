@@ -5,7 +5,7 @@ The script copies the ``c3bf_gym`` package it imports into a temporary folder on
 and edits the copy's :func:`c3bf_gym.safety._step.filter_substep`, the filter's call at every
 physics step (the package itself is not touched):
 
-* ``no QP``: the QP (``solve_rows``) is replaced by the nominal torque clipped to the torque
+* ``no QP``: the QP (``solve_call``) is replaced by the nominal torque clipped to the torque
   limits. The rows are built as always (the arm's dynamics, the capsule ends, every barrier,
   guard, floor and joint-limit row), then reported as held.
 * ``no rows, no QP``: the rows are left out too (``filter_rows``, which also computes the
@@ -50,8 +50,8 @@ KERNELS = Path("safety") / "_step.py"
 #: the text of filter_substep each edit replaces, and its replacement
 _ROWS = "    m, min_h, inside, n_sensed = filter_rows(stage, arm, obstacles, params, A, b, tally.row_h)\n"
 _NO_ROWS = "    m, min_h, inside, n_sensed = 0, np.inf, False, 0\n"
-_QP = ("    status, iterations, n_active, slack = solve_rows(tau_nom, A[:m], b[:m], scale, params.dofs,\n"
-       "                                                     low_priority_span(m, n_fixed, guarded), stride, qp)\n")
+_QP = ("    status, iterations, n_active, slack = solve_call(tau_nom, A[:m], b[:m], scale, params.dofs, n_fixed, guarded,\n"
+       "                                                     tally.row_h, tally.gains, qp)\n")
 _NO_QP = ("    for j in range(tau_nom.shape[0]):\n"
           "        qp.u[j] = min(max(tau_nom[j] / scale[j], qp.lo[j]), qp.hi[j])\n"
           "    for k in range(m):\n"

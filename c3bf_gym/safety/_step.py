@@ -168,6 +168,24 @@ def set_allowances(allowance, row_h, gains, n_obstacle, stride):
 
 
 @njit(**_opts)
+def solve_call(tau_nom, A, b, scale, dofs, n_fixed, guarded, row_h, gains, qp):
+    """The filter's QP on one call's ``m`` rows ``A τ ≥ b`` (``A`` (m, n), ``b`` (m,)), the last
+    ``n_fixed`` of them the floor's and the joint limits' and the rest the obstacles' (barrier,
+    guard, barrier, guard, ... when ``guarded``): the allowances when the QP has an allowance
+    level (:func:`set_allowances` from ``row_h`` (m,) and ``gains``, :attr:`Tally.gains`), then
+    :func:`c3bf_gym.safety._qp.solve_rows` with the filter's priorities
+    (:func:`low_priority_span`). ``scale`` (n,) is the torque scale and ``dofs`` the arm's
+    columns. Returns ``solve_rows``' ``(status, iterations, n_active, slack)``; the solution is
+    in ``qp`` (``QPBuffers``). Both the fused step (:func:`filter_substep`) and the controller's
+    Python path for custom barriers call this, so they solve the same problem."""
+    m = b.shape[0]
+    stride = 2 if guarded else 1
+    if qp.capacity[3] > 0:
+        set_allowances(qp.allowance[:m], row_h, gains, m - n_fixed, stride)
+    return solve_rows(tau_nom, A, b, scale, dofs, low_priority_span(m, n_fixed, guarded), stride, qp)
+
+
+@njit(**_opts)
 def beyond_allowance(residual, norm, row_h, gains, n_obstacle, stride):
     """Whether some row of a call that gave way (``residual`` (m,), ``norm`` (m,): the QP's
     normalised residuals and row norms) gave way beyond its allowance.
@@ -316,8 +334,7 @@ def filter_substep(stage, tau_nom, tau, buffers):
     environment's compiled policy step, and :meth:`~c3bf_gym.safety.SafetyController.__call__`
     through :func:`filter_substep_at`): the rows
     (:func:`~c3bf_gym.safety._rows.filter_rows`, whose arguments ``stage`` … ``b`` are),
-    the QP (:func:`c3bf_gym.safety._qp.solve_rows` on ``qp``, priorities by
-    :func:`low_priority_span`) in the scaled torque ``τ / scale``, :func:`hook_post`, which writes
+    the QP (:func:`solve_call` on ``qp``) in the scaled torque ``τ / scale``, :func:`hook_post`, which writes
     the torque into ``tau``, and :func:`record` of the outcome into ``tally``.
 
     Returns the status, one of :func:`~c3bf_gym.safety._qp.solve_rows`' codes (invalid input, < 0,
@@ -331,10 +348,8 @@ def filter_substep(stage, tau_nom, tau, buffers):
     n_fixed = n_floor + (4 * params.dofs.shape[0] if params.joint_rows else 0)
     guarded = params.guard.present
     stride = 2 if guarded else 1  # obstacle rows: barrier, guard, barrier, guard, ... beside a guard
-    if qp.capacity[3] > 0:
-        set_allowances(qp.allowance[:m], tally.row_h, tally.gains, m - n_fixed, stride)
-    status, iterations, n_active, slack = solve_rows(tau_nom, A[:m], b[:m], scale, params.dofs,
-                                                     low_priority_span(m, n_fixed, guarded), stride, qp)
+    status, iterations, n_active, slack = solve_call(tau_nom, A[:m], b[:m], scale, params.dofs, n_fixed, guarded,
+                                                     tally.row_h, tally.gains, qp)
     if status < 0:
         return status
     residual, correction = hook_post(b[:m], qp.norm[:m], qp.residual[:m], qp.u, scale, tau_nom, limit, tau)

@@ -669,11 +669,9 @@ class SafetyController:
             A, b, min_h, inside, n_sensed = self.rows()
             m = len(b)
             qp = self.qp.buffers
-            if qp.capacity[3] > 0:
-                _step.set_allowances(qp.allowance[:m], self._tally.row_h, self._tally.gains, self._n_obstacle_rows(m),
-                                     self._stride)
-            status, iterations, active, slack = _qp.solve_rows(
-                tau_nom, A, b, self._scale, self._dofs, self._low_priority_span(m), self._stride, qp)
+            status, iterations, active, slack = _step.solve_call(
+                tau_nom, A, b, self._scale, self._dofs, self.floor.n_rows + self._n_joint_rows, self.guard is not None,
+                self._tally.row_h, self._tally.gains, qp)  # fmt: skip
             if status >= 0:
                 # τ = u s, the smallest row residual A τ − b and ‖τ − clip(τ_nom)‖ (the filter's change)
                 residual, correction = _step.hook_post(b, qp.norm[:m], qp.residual[:m], qp.u, self._scale, tau_nom,
