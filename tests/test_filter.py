@@ -615,7 +615,7 @@ def test_allowance_level_holds_the_barriers_rows_within_their_allowance():
         env = SafetyFilter(gym.make("C3BFReachPanda-v0", scenario="multi"), allowance_level=level)
         env.reset(seed=1)
         hook = env.hook
-        assert (hook.qp.buffers.capacity[3] > 0) == level
+        assert (hook.qp.buffers.capacity[2] > 0) == level
         rng = np.random.default_rng(1)
         infeasible = raised = 0
         for _ in range(250):

@@ -89,8 +89,9 @@ class QPBuffers(NamedTuple):
             reserve's rows at the range), then the reserve's, the barrier's loosened by their
             allowance and the barrier's as written, its problem and break points sized to the
             rows in use at every solve.
-        capacity: int64 (4,) the row capacity of level 1, the reserve's level, the barrier's and
-            the barrier's loosened by their allowance (0: the workspace has no such level).
+        capacity: int64 (4,) the row capacity of each of ``hier``'s levels, in its order: level 1,
+            the reserve's, the barrier's loosened by their allowance and the barrier's as written
+            (0: the workspace has no such level).
         lo, hi: (n,) the box of ``u``.
         u: (n,) the solution.
         norm: (rows,) each row's norm ``‖A_k s‖`` (0: left out).
@@ -105,7 +106,7 @@ class QPBuffers(NamedTuple):
             speed upper and lower); position row ``i`` is drawn inside the range, and its copy at
             the range has its ``b`` lowered by ``reserve[i]`` (``γ₁γ₂ δ``).
         allowance: (rows,) how far each of the barrier's rows may give way [its ``b``'s units,
-            ≥ 0], set by the caller before each solve when ``capacity[3] > 0`` (read only then;
+            ≥ 0], set by the caller before each solve when ``capacity[2] > 0`` (read only then;
             other rows' entries are ignored): the allowance level holds ``A_k τ ≥ b_k −
             allowance[k]``.
     """
@@ -206,7 +207,7 @@ def solve_rows(tau_nom, A, b, scale, cols, n_obstacle_rows, stride, qp):
     3. Otherwise, by priority (:data:`RELAXED`, ``qp.hier``): level 1 holds the rows that are not
        the barrier's (the guard's, the floor's, the joint limits'), then the joint range's
        reserve (``qp.reserve``: the position rows inside the range, their copies at the range in
-       level 1), then (with ``capacity[3] > 0`` and some allowance above 0) the barrier's rows
+       level 1), then (with ``capacity[2] > 0`` and some allowance above 0) the barrier's rows
        loosened by ``qp.allowance``, then the barrier's as written: rows ``k < n_obstacle_rows``
        with ``k % stride == 0``; its problem too is sized to the rows in use. Warm-started from
        its own previous solve's working set, and once more from an empty one if that fails. If
@@ -343,12 +344,12 @@ def _solve_by_priority(qp, m, n_obstacle_rows, stride):
                 count_reserve += 1
             else:
                 count_barrier += 1
-                loosened = loosened or (qp.capacity[3] > 0 and qp.allowance[k] > 0.0)
+                loosened = loosened or (qp.capacity[2] > 0 and qp.allowance[k] > 0.0)
     count_loose = count_barrier if loosened else 0
     i1, i_reserve = 0, max(count1, 1) if qp.capacity[0] > 0 else 0
     i_loose = i_reserve + (max(count_reserve, 1) if qp.capacity[1] > 0 else 0)
-    i_barrier = i_loose + (max(count_loose, 1) if qp.capacity[3] > 0 else 0)
-    end_barrier = i_barrier + (max(count_barrier, 1) if qp.capacity[2] > 0 else 0)
+    i_barrier = i_loose + (max(count_loose, 1) if qp.capacity[2] > 0 else 0)
+    end_barrier = i_barrier + (max(count_barrier, 1) if qp.capacity[3] > 0 else 0)
     _clear(hier, count1, i_reserve)
     _clear(hier, i_reserve + count_reserve, i_loose)
     _clear(hier, i_loose + count_loose, i_barrier)

@@ -180,7 +180,7 @@ def solve_call(tau_nom, A, b, scale, dofs, n_fixed, guarded, row_h, gains, qp):
     Python path for custom barriers call this, so they solve the same problem."""
     m = b.shape[0]
     stride = 2 if guarded else 1
-    if qp.capacity[3] > 0:
+    if qp.capacity[2] > 0:
         set_allowances(qp.allowance[:m], row_h, gains, m - n_fixed, stride)
     return solve_rows(tau_nom, A, b, scale, dofs, low_priority_span(m, n_fixed, guarded), stride, qp)
 

@@ -89,12 +89,11 @@ class PriorityQP:
         self._allowance_level = bool(allowance_level)
         rows = sum(self._levels)
         # the prioritised workspace's levels, in order: priority 1 (with the reserve rows' copies), the reserve,
-        # the barrier's loosened by their allowance, the barrier's as written (capacity: QPBuffers' order)
-        capacity = [self._levels[0], len(self._reserve), self._levels[1], self._levels[1] * self._allowance_level]
-        sizes = [capacity[i] for i in (0, 1, 3, 2)]
-        points = [n + sum(sizes[: i + 1]) for i in range(4) if sizes[i] > 0]
+        # the barrier's loosened by their allowance, the barrier's as written
+        capacity = [self._levels[0], len(self._reserve), self._levels[1] * self._allowance_level, self._levels[1]]
+        points = [n + sum(capacity[: i + 1]) for i in range(4) if capacity[i] > 0]
         self._plain = _daqp.DaqpWorkspace(n, rows, self.tau_min, self.tau_max)
-        self._hier = _daqp.DaqpWorkspace(n, sum(sizes), self.tau_min, self.tau_max, break_points=[n] + points)
+        self._hier = _daqp.DaqpWorkspace(n, sum(capacity), self.tau_min, self.tau_max, break_points=[n] + points)
         self.max_rows = rows
         self.buffers = _qp.QPBuffers(self._plain.buffers, self._hier.buffers,
                                      np.array(capacity, np.int64), self.tau_min, self.tau_max,
