@@ -121,6 +121,10 @@ TRAINING_TABLES = (
     # allowance_level=True (code 431540c with docs/runs/sets_candidate/variant.patch), seeds 0-4
     ("training_table_sets_candidate_panda.md", "sets_candidate/panda_sac_*", "final_eval.json",
      "training_curves_sets_candidate_panda.png"),
+    # the Panda's SAC sets on the allowance level alone: c3bf-gym train --filter-set allowance_level=true
+    # (code 930948d), seeds 0-4
+    ("training_table_sets_allowance_level_panda.md", "sets_allowance_level/panda_sac_*", "final_eval.json",
+     "training_curves_sets_allowance_level_panda.png"),
 )
 
 
