@@ -199,7 +199,10 @@ def _setting_text(value: Any) -> str:
     """A filter setting's value as a label spells it (and ``--filter-set`` reads it back)."""
     if isinstance(value, bool) or value is None:
         return str(value).lower()
-    return f"{value:g}" if isinstance(value, float) else str(value)
+    if isinstance(value, float):
+        short = f"{value:g}"
+        return short if float(short) == value else repr(value)  # exact, where 6 digits are not
+    return str(value)
 
 
 #: How the policy network reads the obstacle slots: ``flat`` (SB3's MLP on the whole

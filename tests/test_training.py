@@ -326,6 +326,7 @@ def test_filter_settings_build_the_run_filter_and_name_it():
                            "allowance_level=true]_random_s0")  # fmt: skip
     assert filter_label("c3bf+hocbf", 20.0, {"margin": 0.02}) == "c3bf+hocbf20"  # a default is no change
     assert filter_label("c3bf", None, {"gamma": 2, "weight": "identity"}) == "c3bf[gamma=2,weight=identity]"
+    assert filter_label("c3bf", None, {"margin": 0.0123456789}) == "c3bf[margin=0.0123456789]"  # exact
     env = make_env("none", config.filter_config(), "residual", seed=0)()
     assert env.get_wrapper_attr("config").allowance_level
     env.close()
