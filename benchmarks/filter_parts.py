@@ -50,8 +50,7 @@ KERNELS = Path("safety") / "_step.py"
 #: the text of filter_substep each edit replaces, and its replacement
 _ROWS = "    m, min_h, inside, n_sensed = filter_rows(stage, arm, obstacles, params, A, b, tally.row_h)\n"
 _NO_ROWS = "    m, min_h, inside, n_sensed = 0, np.inf, False, 0\n"
-_QP = ("    status, iterations, n_active, slack = solve_call(tau_nom, A[:m], b[:m], scale, params.dofs, n_fixed, guarded,\n"
-       "                                                     tally.row_h, tally.gains, qp)\n")
+_QP = "    status, iterations, n_active, slack = solve_call(tau_nom, A[:m], b[:m], scale, params.dofs, layout, tally, qp)\n"
 _NO_QP = ("    for j in range(tau_nom.shape[0]):\n"
           "        qp.u[j] = min(max(tau_nom[j] / scale[j], qp.lo[j]), qp.hi[j])\n"
           "    for k in range(m):\n"

@@ -168,21 +168,21 @@ def set_allowances(allowance, row_h, gains, n_obstacle, stride):
 
 
 @njit(**_opts)
-def solve_call(tau_nom, A, b, scale, dofs, n_fixed, guarded, row_h, gains, qp):
-    """The filter's QP on one call's ``m`` rows ``A τ ≥ b`` (``A`` (m, n), ``b`` (m,)), the last
-    ``n_fixed`` of them the floor's and the joint limits' and the rest the obstacles' (barrier,
-    guard, barrier, guard, ... when ``guarded``): the allowances when the QP has an allowance
-    level (:func:`set_allowances` from ``row_h`` (m,) and ``gains``, :attr:`Tally.gains`), then
+def solve_call(tau_nom, A, b, scale, dofs, layout, tally, qp):
+    """The filter's QP on one call's ``m`` rows ``A τ ≥ b`` (``A`` (m, n), ``b`` (m,)), laid out
+    as ``layout`` (:class:`RowLayout`) says: the allowances when the QP has an allowance level
+    (:func:`set_allowances`, from ``tally``'s row ``h`` and gains, :class:`Tally`), then
     :func:`c3bf_gym.safety._qp.solve_rows` with the filter's priorities
-    (:func:`low_priority_span`). ``scale`` (n,) is the torque scale and ``dofs`` the arm's
-    columns. Returns ``solve_rows``' ``(status, iterations, n_active, slack)``; the solution is
-    in ``qp`` (``QPBuffers``). Both the fused step (:func:`filter_substep`) and the controller's
-    Python path for custom barriers call this, so they solve the same problem."""
+    (:func:`low_priority_span`; a stride of 2 means a guard beside the barrier). ``scale`` (n,)
+    is the torque scale and ``dofs`` the arm's columns. Returns ``solve_rows``' ``(status,
+    iterations, n_active, slack)``; the solution is in ``qp`` (``QPBuffers``). The fused step
+    (:func:`filter_substep`) and the controller's Python path for custom barriers both call
+    this, so they solve the same problem."""
     m = b.shape[0]
-    stride = 2 if guarded else 1
     if qp.capacity[2] > 0:
-        set_allowances(qp.allowance[:m], row_h, gains, m - n_fixed, stride)
-    return solve_rows(tau_nom, A, b, scale, dofs, low_priority_span(m, n_fixed, guarded), stride, qp)
+        set_allowances(qp.allowance[:m], tally.row_h, tally.gains, layout.n_obstacle, layout.stride)
+    span = low_priority_span(m, m - layout.n_obstacle, layout.stride == 2)
+    return solve_rows(tau_nom, A, b, scale, dofs, span, layout.stride, qp)
 
 
 @njit(**_opts)
@@ -346,15 +346,14 @@ def filter_substep(stage, tau_nom, tau, buffers):
     m, min_h, inside, n_sensed = filter_rows(stage, arm, obstacles, params, A, b, tally.row_h)
     n_floor = params.floor_ends.shape[0]
     n_fixed = n_floor + (4 * params.dofs.shape[0] if params.joint_rows else 0)
-    guarded = params.guard.present
-    stride = 2 if guarded else 1  # obstacle rows: barrier, guard, barrier, guard, ... beside a guard
-    status, iterations, n_active, slack = solve_call(tau_nom, A[:m], b[:m], scale, params.dofs, n_fixed, guarded,
-                                                     tally.row_h, tally.gains, qp)
+    stride = 2 if params.guard.present else 1  # obstacle rows: barrier, guard, barrier, guard, ... beside a guard
+    layout = RowLayout(m - n_fixed, stride, n_floor)
+    status, iterations, n_active, slack = solve_call(tau_nom, A[:m], b[:m], scale, params.dofs, layout, tally, qp)
     if status < 0:
         return status
     residual, correction = hook_post(b[:m], qp.norm[:m], qp.residual[:m], qp.u, scale, tau_nom, limit, tau)
     call = CallSummary(status, m, min_h, inside, n_sensed, iterations, n_active, slack, residual, correction)
-    outcome = record(tally, call, tau_nom, tau, qp, RowLayout(m - n_fixed, stride, n_floor), intervention_tol)
+    outcome = record(tally, call, tau_nom, tau, qp, layout, intervention_tol)
     return SOLVED if outcome == GAIN_RAISED else outcome
 
 

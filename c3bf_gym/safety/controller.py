@@ -669,9 +669,8 @@ class SafetyController:
             A, b, min_h, inside, n_sensed = self.rows()
             m = len(b)
             qp = self.qp.buffers
-            status, iterations, active, slack = _step.solve_call(
-                tau_nom, A, b, self._scale, self._dofs, self.floor.n_rows + self._n_joint_rows, self.guard is not None,
-                self._tally.row_h, self._tally.gains, qp)  # fmt: skip
+            status, iterations, active, slack = _step.solve_call(tau_nom, A, b, self._scale, self._dofs,
+                                                                 self._layout(m), self._tally, qp)  # fmt: skip
             if status >= 0:
                 # τ = u s, the smallest row residual A τ − b and ‖τ − clip(τ_nom)‖ (the filter's change)
                 residual, correction = _step.hook_post(b, qp.norm[:m], qp.residual[:m], qp.u, self._scale, tau_nom,
@@ -693,8 +692,7 @@ class SafetyController:
         does the same in compiled code). Returns the status as the fused kernel does: a call
         that held every row with the barrier's gain raised as solved."""
         call = _step.CallSummary(status, m, min_h, inside, n_sensed, iterations, active, slack, residual, correction)
-        layout = _step.RowLayout(self._n_obstacle_rows(m), self._stride, self.floor.n_rows)
-        outcome = _step.record(self._tally, call, tau_nom, tau, self.qp.buffers, layout, self.intervention_tol)
+        outcome = _step.record(self._tally, call, tau_nom, tau, self.qp.buffers, self._layout(m), self.intervention_tol)
         return _qp.SOLVED if outcome == _step.GAIN_RAISED else outcome
 
     def _settle(self, status: int, elapsed: float) -> None:
@@ -746,6 +744,10 @@ class SafetyController:
         """How many of :meth:`rows`' ``m`` rows are the obstacles' (the barrier's and the guard's):
         the rest are the floor's and the joint limits'."""
         return m - self.floor.n_rows - self._n_joint_rows
+
+    def _layout(self, m: int) -> _step.RowLayout:
+        """Where each kind of row sits among :meth:`rows`' ``m`` rows (:class:`~c3bf_gym.safety._step.RowLayout`)."""
+        return _step.RowLayout(self._n_obstacle_rows(m), self._stride, self.floor.n_rows)
 
     def _low_priority_span(self, m: int) -> int:
         """:func:`~c3bf_gym.safety._step.low_priority_span` of :meth:`rows`' ``m`` rows."""
