@@ -353,7 +353,8 @@ def _run_groups(runs: Sequence[Path], evaluation: str) -> dict[tuple[str, str, s
         config["_summary"] = json.loads(summary.read_text()) if summary.exists() else {}
         config["_final"], config["_by_scenario"] = _final_evaluation(run, evaluation)
         config["_run"] = str(run)
-        # the C3BF with its guard is its own group per guard gain ("c3bf+hocbf", "c3bf+hocbf5")
+        # the C3BF with its guard is its own group per guard gain ("c3bf+hocbf", "c3bf+hocbf5"), and each
+        # filter per set of other settings ("c3bf+hocbf[allowance_level=true]")
         name = filter_label(config["filter"], config.get("guard_gamma"), config.get("filter_settings"))
         groups.setdefault((config["algo"], config["action"], name), []).append((config, data))
     if not groups:

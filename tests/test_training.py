@@ -398,6 +398,19 @@ def test_defaults_are_the_readme_recipe_on_every_entry_point(monkeypatch, tmp_pa
                                       "--out", str(tmp_path)])  # fmt: skip
     assert module.main() == 0 and main(commands[1][3:]) == 0
     assert seen[3] == TrainConfig(robot="panda", filter="none", out=str(tmp_path), progress_bar=False)
+    # --filter-set reaches the filtered runs only, and a setting the filter refuses stops the set before it starts
+    monkeypatch.setattr(sys, "argv", ["run_baselines.py", "--filters", "none", "c3bf+hocbf", "--filter-set",
+                                      "allowance_level=true", "--seeds", "0", "--out", str(tmp_path)])  # fmt: skip
+    assert module.main() == 0
+    by_filter = {command[command.index("--filter") + 1]: command for command in commands[2:]}
+    assert "--filter-set" not in by_filter["none"]
+    assert by_filter["c3bf+hocbf"][by_filter["c3bf+hocbf"].index("--filter-set") + 1] == "allowance_level=true"
+    assert main(by_filter["c3bf+hocbf"][3:]) == 0 and seen[-1].filter_settings == {"allowance_level": True}
+    monkeypatch.setattr(sys, "argv", ["run_baselines.py", "--filters", "c3bf", "--filter-set", "allowance_level=true",
+                                      "--seeds", "0", "--out", str(tmp_path)])  # fmt: skip
+    with pytest.raises(SystemExit):
+        module.main()
+    assert len(commands) == 4  # nothing ran
 
 
 def test_the_rllib_engine_has_its_own_defaults_and_refuses_what_it_cannot_train(monkeypatch, tmp_path):

@@ -76,11 +76,14 @@ def main() -> int:
     (out / "logs").mkdir(parents=True, exist_ok=True)
     jobs = []
     for seed, filter_name in itertools.product(args.seeds, args.filters):
-        name = TrainConfig(
-            algo=args.algo, robot=args.robot, action=args.action, filter=filter_name, guard_gamma=gains(filter_name), filter_settings=changes(filter_name), scenario=args.scenario, seed=seed,
-            policy_hz=args.policy_hz, normalize_obs=args.normalize_obs, distance_weight=args.distance_weight,
-            action_weight=args.action_weight, obstacle_encoder=args.obstacle_encoder, residual_fade=args.residual_fade,
-        ).name  # fmt: skip
+        try:  # the name builds the run's filter: a setting it refuses is an error here, before any run starts
+            name = TrainConfig(
+                algo=args.algo, robot=args.robot, action=args.action, filter=filter_name, guard_gamma=gains(filter_name), filter_settings=changes(filter_name), scenario=args.scenario, seed=seed,
+                policy_hz=args.policy_hz, normalize_obs=args.normalize_obs, distance_weight=args.distance_weight,
+                action_weight=args.action_weight, obstacle_encoder=args.obstacle_encoder, residual_fade=args.residual_fade,
+            ).name  # fmt: skip
+        except ValueError as error:
+            parser.error(f"{filter_name}: {error}")
         if (out / name / "summary.json").exists():
             print(f"skip {name}: finished")
             continue
