@@ -238,21 +238,21 @@ def main(argv: list[str] | None = None) -> dict:
     bare_env, run_bare = _replay_runner(args.env, args.scenario, args.steps, args.seed)
     reset_env, run_reset = _bare_runner(args.env, args.scenario, args.steps, args.seed)
     parked_env, run_parked = _bare_runner(args.env, args.scenario, args.steps, args.seed, parked=True)
-    envs = {
-        "unfiltered": gym.make(args.env, scenario=args.scenario),
-        "filtered random": SafetyFilter(gym.make(args.env, scenario=args.scenario), default),
-        "filtered adversarial": SafetyFilter(gym.make(args.env, scenario=args.scenario), default),
-        "impedance": CartesianImpedanceAction(gym.make(args.env, scenario=args.scenario), residual=True),
-        "recipe": SafetyFilter(CartesianImpedanceAction(gym.make(args.env, scenario=args.scenario), residual=True),
-                               default),  # fmt: skip
-        "Pusher-v5": gym.make("Pusher-v5"),
-    }
+    def make(residual: bool = False) -> gym.Env:
+        env = gym.make(args.env, scenario=args.scenario)
+        return CartesianImpedanceAction(env, residual=True) if residual else env
+
+    def filtered(config: FilterConfig, suffix: str = "") -> dict[str, gym.Env]:
+        """The configurations of :data:`COMPARED` under the filter ``config``, named with ``suffix``."""
+        return {f"filtered random{suffix}": SafetyFilter(make(), config),
+                f"filtered adversarial{suffix}": SafetyFilter(make(), config),
+                f"recipe{suffix}": SafetyFilter(make(residual=True), config)}  # fmt: skip
+
+    envs = {"unfiltered": make(), **filtered(default), "impedance": make(residual=True),
+            "Pusher-v5": gym.make("Pusher-v5")}  # fmt: skip
     configs = CONFIGS
     if compared is not None:
-        envs["filtered random *"] = SafetyFilter(gym.make(args.env, scenario=args.scenario), compared)
-        envs["filtered adversarial *"] = SafetyFilter(gym.make(args.env, scenario=args.scenario), compared)
-        envs["recipe *"] = SafetyFilter(CartesianImpedanceAction(gym.make(args.env, scenario=args.scenario),
-                                                                 residual=True), compared)  # fmt: skip
+        envs |= filtered(compared, " *")
         configs = CONFIGS + tuple(f"{name} *" for name in COMPARED)
     runs = {"bare": run_bare, "bare, reset states": run_reset, "bare, parked": run_parked}
     for name, env in envs.items():
