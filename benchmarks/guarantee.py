@@ -31,6 +31,7 @@ Usage::
     python benchmarks/guarantee.py --episodes 200 --filters c3bf/whole_arm                       # the C3BF alone
     python benchmarks/guarantee.py --episodes 600 --filters c3bf+hocbf/whole_arm --joint-range-reserve 0.3 --untimed
     python benchmarks/guarantee.py --episodes 600 --filters c3bf+hocbf/whole_arm --allowance-level --untimed
+    python benchmarks/guarantee.py --episodes 600 --filters c3bf+hocbf/whole_arm --untimed --set joint_speed_fraction=0.4
     python benchmarks/guarantee.py --episodes 600 --ray --address auto                           # on a Ray cluster
 """
 
@@ -47,7 +48,9 @@ from pathlib import Path
 
 import numpy as np
 
+from c3bf_gym.cli import add_filter_settings
 from c3bf_gym.safety import GUARD_GAMMA, FilterConfig
+from c3bf_gym.training import filter_config
 
 SCENARIOS = ("static", "head_on", "crossing", "multi")
 #: The rows that give way last (priority 1): ``hard`` counts policy steps where any of them did.
@@ -269,6 +272,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     parser.add_argument("--allowance-level", action="store_true",
                         help="the barrier's rows held within their allowance before any gives way beyond it "
                              "(FilterConfig.allowance_level; needs a guard: c3bf+hocbf)")  # fmt: skip
+    add_filter_settings(parser, "--set", note=" (every filtered configuration; see also the options above)")
     parser.add_argument("--env", choices=ENVS, default=ENVS[0], help="the environment (robot)")
     parser.add_argument("--out", type=Path, default=Path("benchmarks/results/guarantee"), help="output directory")
     parser.add_argument("--untimed", action="store_true",
@@ -304,7 +308,14 @@ def main(argv: list[str] | None = None) -> list[dict]:
     def settings(name: str) -> dict:
         """The FilterConfig settings given for filter ``name`` (the guard's only where it has one)."""
         chosen = {**common, **(guarded if name == "c3bf+hocbf" else {})}
-        return {key: value for key, value in chosen.items() if value is not None}
+        return {**{key: value for key, value in chosen.items() if value is not None}, **dict(args.set)}
+
+    for name in sorted({b for b, _ in filters if b != "none"}):
+        try:
+            filter_config(name, None, dict(args.set))  # refuses the settings that name the filter's rows
+            FilterConfig.named(name, **settings(name))
+        except ValueError as error:
+            parser.error(f"--set for filter {name}: {error}")
 
     tasks = [(s, p, b, pts, args.seed + i, args.steps, args.env, not args.untimed, settings(b))
              for s in args.scenarios for p in args.policies for b, pts in filters for i in range(args.episodes)]  # fmt: skip
@@ -313,7 +324,8 @@ def main(argv: list[str] | None = None) -> list[dict]:
           + ("" if args.margin is None else f", filter margin {args.margin} m")
           + ("" if args.guard_gamma is None else f", guard gains {args.guard_gamma:g}")
           + ("" if args.joint_range_reserve is None else f", joint range reserve {args.joint_range_reserve:g} rad")
-          + (", the barrier's allowance level" if args.allowance_level else ""))
+          + (", the barrier's allowance level" if args.allowance_level else "")
+          + "".join(f", {key}={value!r}" for key, value in args.set))
     start = time.perf_counter()
     episodes = []
     for done, episode in enumerate(run_tasks(tasks, args.workers, args.ray, args.address), 1):
@@ -331,7 +343,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
         for e in sorted(episodes, key=lambda e: (e.scenario, e.policy, e.filter, e.points, e.seed)):
             writer.writerow(asdict(e))
     meta = {"episodes_per_configuration": args.episodes, "steps": args.steps, "seed": args.seed, "margin": args.margin,
-            "guard_gamma": args.guard_gamma, "joint_range_reserve": args.joint_range_reserve, "allowance_level": args.allowance_level, "env": args.env, "workers": args.workers, "ray": args.address or args.ray, "quick": args.quick, "cpu_count": os.cpu_count()}  # fmt: skip
+            "guard_gamma": args.guard_gamma, "joint_range_reserve": args.joint_range_reserve, "allowance_level": args.allowance_level, "set": dict(args.set), "env": args.env, "workers": args.workers, "ray": args.address or args.ray, "quick": args.quick, "cpu_count": os.cpu_count()}  # fmt: skip
     with open(args.out / "summary.json", "w") as f:
         json.dump({"settings": meta, "configurations": rows}, f, indent=2)
     print(f"wrote {args.out / 'episodes.csv'} and {args.out / 'summary.json'}")

@@ -327,15 +327,19 @@ def test_guarantee_benchmark_passes_the_guard_gains(tmp_path):
                               capture_output=True, text=True, timeout=300)  # fmt: skip
 
     done = run("--scenarios", "static", "--policies", "adversarial", "--filters", "c3bf+hocbf/whole_arm", "--workers",
-               "1", "--guard-gamma", "7", "--allowance-level")  # fmt: skip
+               "1", "--guard-gamma", "7", "--allowance-level", "--set", "joint_speed_fraction=0.4")  # fmt: skip
     assert done.returncode == 0, done.stderr
-    assert "allowance level" in done.stdout
+    assert "allowance level" in done.stdout and "joint_speed_fraction=0.4" in done.stdout
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert summary["settings"]["guard_gamma"] == 7.0 and summary["settings"]["allowance_level"] is True
+    assert summary["settings"]["set"] == {"joint_speed_fraction": 0.4}
     assert [(c["filter"], c["collision_episodes"]) for c in summary["configurations"]] == [("c3bf+hocbf", 0)]
     for argv, message in ((["--guard-gamma", "0"], "finite number > 0"),
                           (["--filters", "c3bf/whole_arm", "--guard-gamma", "7"], "no c3bf+hocbf"),
                           (["--filters", "hocbf/whole_arm", "--allowance-level"], "no c3bf+hocbf"),
+                          (["--set", "joint_speed_fraction=2"], "joint_speed_fraction must be"),
+                          (["--set", "bogus=1"], "unknown filter setting"),
+                          (["--set", "guard=none"], "chosen by the filter's name"),
                           (["--filters", "c3bf+guard/ee"], "invalid choice")):  # fmt: skip
         refused = run(*argv)
         assert refused.returncode == 2 and message in refused.stderr
