@@ -310,6 +310,12 @@ def main(argv: list[str] | None = None) -> list[dict]:
         chosen = {**common, **(guarded if name == "c3bf+hocbf" else {})}
         return {**{key: value for key, value in chosen.items() if value is not None}, **dict(args.set)}
 
+    options = {key for key, value in {**common, **guarded}.items() if value is not None}
+    twice = sorted(options & {key for key, _ in args.set})
+    if twice:
+        parser.error(f"--set gives {', '.join(twice)}, which its own option gives too: give each setting once")
+    if args.set and all(b == "none" for b, _ in filters):
+        parser.error("--set changes the filters' settings; --filters has no filter")
     for name in sorted({b for b, _ in filters if b != "none"}):
         try:
             filter_config(name, None, dict(args.set))  # refuses the settings that name the filter's rows

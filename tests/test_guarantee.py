@@ -340,6 +340,8 @@ def test_guarantee_benchmark_passes_the_guard_gains(tmp_path):
                           (["--set", "joint_speed_fraction=2"], "joint_speed_fraction must be"),
                           (["--set", "bogus=1"], "unknown filter setting"),
                           (["--set", "guard=none"], "chosen by the filter's name"),
+                          (["--joint-range-reserve", "0.3", "--set", "joint_range_reserve=0.2"], "give each setting once"),
+                          (["--filters", "none", "--set", "margin=0.03"], "--filters has no filter"),
                           (["--filters", "c3bf+guard/ee"], "invalid choice")):  # fmt: skip
         refused = run(*argv)
         assert refused.returncode == 2 and message in refused.stderr
