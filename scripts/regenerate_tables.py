@@ -128,6 +128,10 @@ TRAINING_TABLES = (
     # (code 930948d), seeds 0-4
     ("training_table_sets_allowance_level_panda.md", "sets_allowance_level/panda_sac_*", "final_eval.json",
      "training_curves_sets_allowance_level_panda.png"),
+    # an attempt on the UR5e: training on random_multi (multi in half the episodes), evaluated on random, the
+    # default filter, seeds 0 and 1 (code 441059c)
+    ("training_table_sets_ur5e_random_multi.md", "sets_ur5e_random_multi/sac_*", "final_eval.json",
+     "training_curves_sets_ur5e_random_multi.png"),
 )
 
 
