@@ -117,7 +117,8 @@ TRAINING_TABLES = (
     # time (code c96e7f6, the filter unchanged since a082084), and no filter on seeds 0 and 1 (code 5c384a8)
     ("training_table_sets_rllib_fade_ur5e.md", "sets_rllib_fade/rllib_ppo_residual_10hz_dw10_aw3_fade0.1_*",
      "final_eval.json", "training_curves_sets_rllib_fade_ur5e.png"),
-    # the Panda's unfiltered RLlib pair on today's recipe (the fade, action weight 10), seeds 0 and 1 (code 09d39d8)
+    # the Panda's RLlib sets on today's recipe (the fade, action weight 10): no filter on seeds 0 and 1 (code
+    # 09d39d8), the default filter on seeds 0-4 (code 441059c)
     ("training_table_sets_rllib_fade_panda.md", "sets_rllib_fade/rllib_panda_ppo_*", "final_eval.json",
      "training_curves_sets_rllib_fade_panda.png"),
     # the Panda's SAC sets on the candidate filter: the default's rows with joint_range_reserve=0.3 and
