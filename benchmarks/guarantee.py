@@ -138,7 +138,7 @@ def run_episode(task: tuple[str, str, str, str, int, int, str, bool, dict]) -> E
             env.hook.record_times()  # env's compiled policy step, bit for bit (tests/test_filter.py)
     u = env.unwrapped
     out = Episode(scenario, policy, name, points, seed)
-    speed_bound = env.hook.joint_limits.qd_max if filtered and env.hook.joint_limits is not None else None
+    speed_bound = env.hook.joint_speed_bound if filtered else None
     if filtered and not timed:
         out.max_filter_ms = np.nan  # the compiled policy step does not time the filter
     env.reset(seed=seed)

@@ -582,8 +582,27 @@ def test_joint_range_reserve_draws_the_position_rows_inside_the_range(env):
     np.testing.assert_allclose(hook.joint_limits.q_lo, lo + delta)
     np.testing.assert_allclose(hook.joint_limits.q_hi, hi - delta)
     g1, g2, _ = hook.joint_limits.gains
-    np.testing.assert_allclose(hook.qp.buffers.reserve, np.concatenate([g1 * g2 * delta] * 2))
+    n = len(lo)
+    np.testing.assert_allclose(hook.qp.buffers.reserve, np.concatenate([g1 * g2 * delta] * 2 + [np.zeros(2 * n)]))
     assert hook_for(u).qp.buffers.reserve.shape == (0,)  # the default keeps none
+
+
+def test_nominal_speed_fraction_lowers_the_speed_rows_below_their_copies_at_the_bound(env):
+    """A lower bound for the nominal torque draws the speed rows there and hands the QP their
+    offset to the filter's bound, γ_v (bound − nominal) per speed row; the position rows keep
+    none, and the filter's bound is still ``joint_speed_fraction``."""
+    u = env
+    hook = hook_for(u, nominal_speed_fraction=0.4)
+    n = len(u.joint_range)
+    np.testing.assert_allclose(hook.joint_limits.qd_max, 0.4 * UR5E_JOINT_SPEED)
+    np.testing.assert_allclose(hook.joint_speed_bound, 0.5 * UR5E_JOINT_SPEED)
+    gamma_v = hook.joint_limits.gains[2]
+    np.testing.assert_allclose(hook.qp.buffers.reserve,
+                               np.concatenate([np.zeros(2 * n)] + [np.full(n, gamma_v * 0.1 * UR5E_JOINT_SPEED)] * 2))
+    assert hook.qp.buffers.capacity[4] == 2 * n
+    default = hook_for(u)
+    assert default.qp.buffers.capacity[4] == 0 and default.qp.buffers.reserve.shape == (0,)
+    np.testing.assert_allclose(default.joint_speed_bound, default.joint_limits.qd_max)
 
 
 def test_joint_range_reserve_keeps_the_joints_inside_their_range_until_a_guard_needs_it():
@@ -604,6 +623,36 @@ def test_joint_range_reserve_keeps_the_joints_inside_their_range_until_a_guard_n
             assert info["safety"]["gain_raised_steps"] == 0 and info["safety"]["infeasible_steps"] == 0
         env.close()
     assert closest[0.0] < 0.3 <= closest[0.3] + 1e-6, closest
+
+
+def _largest_speed_ratio(scenario, seed, **settings):
+    """The Panda under random actions for 250 policy steps: the largest ``|q̇| / q̇_nominal``
+    over its policy steps (the nominal torque's bound, ``joint_limits.qd_max``), and the physics
+    steps counted as giving way within an allowance or beyond."""
+    env = SafetyFilter(gym.make("C3BFReachPanda-v0", scenario=scenario), **settings)
+    env.reset(seed=seed)
+    u, bound = env.unwrapped, env.hook.joint_limits.qd_max
+    rng = np.random.default_rng(seed)
+    largest, raised, infeasible = 0.0, 0, 0
+    for _ in range(250):
+        _, _, _, _, info = env.step(rng.uniform(-1, 1, env.action_space.shape).astype(np.float32))
+        largest = max(largest, float(np.max(np.abs(u.data.qvel[:7]) / bound)))
+        raised += info["safety"]["gain_raised_steps"]
+        infeasible += info["safety"]["infeasible_steps"]
+    env.close()
+    return largest, raised, infeasible
+
+
+def test_the_speed_reserve_above_the_nominal_bound_is_for_the_barriers_rows_alone():
+    """Random torques on the Panda with the nominal torque held to 0.4 of the robot's speed and
+    the filter's bound at 0.5: with nothing to avoid the joints keep the nominal bound; in
+    ``multi`` (seed 2) the barrier's rows take some joint past it, never past the filter's bound
+    (1.25 times the nominal one), and no step counts as giving way beyond an allowance."""
+    settings = dict(joint_speed_fraction=0.5, nominal_speed_fraction=0.4)
+    largest, raised, infeasible = _largest_speed_ratio("none", 0, **settings)
+    assert largest <= 1.0 + 1e-3 and raised == 0 and infeasible == 0, largest
+    largest, raised, infeasible = _largest_speed_ratio("multi", 2, **settings)
+    assert 1.01 < largest <= 1.25 * (1.0 + 1e-3) and raised > 0 and infeasible == 0, (largest, raised, infeasible)
 
 
 def test_allowance_level_holds_the_barriers_rows_within_their_allowance():

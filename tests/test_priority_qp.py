@@ -5,6 +5,8 @@ defect 3)."""
 
 from __future__ import annotations
 
+import pickle
+
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -222,6 +224,59 @@ def test_the_allowance_level_comes_after_the_joint_range_reserve():
     assert qp.buffers.residual[0] == pytest.approx(-0.2, abs=1e-9)  # within its 0.3
 
 
+def _speed_problem(barrier, guard=-1.0):
+    """Two joints, one obstacle (barrier row 0, guard row 1: ``u0 >= barrier``, ``u0 >= guard``),
+    then the joint limits' 8 rows: joint 0's upper speed row ``u0 <= 0.2`` binds, the others do
+    not."""
+    A, b = _reserve_problem(guard=guard, barrier=barrier)
+    b[2] = -1.0  # the position row no longer binds
+    b[6] = -0.2  # speed upper, joint 0: u0 <= 0.2
+    return A, b
+
+
+def test_the_speed_reserve_gives_way_before_the_barrier_and_its_copy_holds_at_level_1():
+    """With a speed reserve the speed rows at the nominal bound are the last level: the barrier's
+    row takes the joint past it into the reserve (the report counts that as held), not past the
+    filter's bound; the guard too cannot take it beyond the filter's bound, which is level 1;
+    without a conflict the nominal bound holds."""
+    reserve = np.array([0.1, 0.0, 0.1, 0.0])  # speed rows, upper then lower: joint 0's (joint 1 keeps none)
+    qp = PriorityQP(2, -np.ones(2), np.ones(2), 9, 1, speed_reserve=reserve)
+    ones = np.ones(2)
+    into = qp.solve_scaled(np.zeros(2), *_speed_problem(barrier=0.25), ones, n_obstacle_rows=2, stride=2)
+    assert into.status == "relaxed" and into.tau[0] == pytest.approx(0.25, abs=1e-9)
+    assert into.slack == pytest.approx(0.0, abs=1e-9)  # within the speed reserve: no row lost
+    assert qp.buffers.residual[6] == pytest.approx(0.0, abs=1e-9)
+    past = qp.solve_scaled(np.zeros(2), *_speed_problem(barrier=0.4), ones, n_obstacle_rows=2, stride=2)
+    assert past.tau[0] == pytest.approx(0.3, abs=1e-9) and past.slack == pytest.approx(0.1, abs=1e-9)
+    assert qp.buffers.residual[0] == pytest.approx(-0.1, abs=1e-9)  # the barrier gave way, the filter's bound held
+    guard = qp.solve_scaled(np.zeros(2), *_speed_problem(barrier=-1.0, guard=0.4), ones, n_obstacle_rows=2,
+                            stride=2)
+    assert guard.tau[0] == pytest.approx(0.35, abs=1e-6)  # the guard and the filter's bound share level 1
+    free = qp.solve_scaled(np.array([0.5, 0.0]), *_speed_problem(barrier=-1.0), ones, n_obstacle_rows=2, stride=2)
+    assert free.feasible and free.tau[0] == pytest.approx(0.2, abs=1e-9)  # the nominal torque keeps the nominal bound
+    # without a speed reserve the speed bound is level 1: the barrier gives way at the bound
+    plain = PriorityQP(2, -np.ones(2), np.ones(2), 9, 1).solve_scaled(
+        np.zeros(2), *_speed_problem(barrier=0.25), ones, n_obstacle_rows=2, stride=2)
+    assert plain.tau[0] == pytest.approx(0.2, abs=1e-9) and plain.slack == pytest.approx(0.05, abs=1e-9)
+
+
+def test_the_speed_reserve_and_the_range_reserve_keep_their_levels_together():
+    """Both at once: the position rows' reserve above the barrier, the speed rows' reserve below
+    it, in one workspace of five levels (pickled as built)."""
+    qp = PriorityQP(2, -np.ones(2), np.ones(2), 9, 1, reserve=np.full(4, 0.3), allowance_level=True,
+                    speed_reserve=np.full(4, 0.1))
+    assert qp.buffers.capacity.tolist() == [9, 4, 1, 1, 4]
+    A, b = _reserve_problem(guard=-1.0, barrier=0.4)  # the barrier's row against the range's reserve
+    b[6] = -0.3
+    first = qp.solve_scaled(np.zeros(2), A, b, np.ones(2), n_obstacle_rows=2, stride=2)
+    assert first.tau[0] == pytest.approx(0.2, abs=1e-9) and first.slack == pytest.approx(0.2, abs=1e-9)
+    A, b = _speed_problem(barrier=0.25)
+    b[2] = -0.3  # the range's reserve does not bind
+    b[6] = -0.2
+    into = pickle.loads(pickle.dumps(qp)).solve_scaled(np.zeros(2), A, b, np.ones(2), n_obstacle_rows=2, stride=2)
+    assert into.tau[0] == pytest.approx(0.25, abs=1e-9) and into.slack == pytest.approx(0.0, abs=1e-9)
+
+
 @pytest.mark.parametrize("allowance, message", [
     (np.array([-0.1, 0.0]), "allowance must be finite, >= 0"), (np.array([np.nan, 0.0]), "allowance must be finite"),
     (np.zeros(3), r"of shape \(2,\)")])
@@ -243,6 +298,8 @@ def test_a_bad_allowance_is_refused(allowance, message):
 def test_a_bad_reserve_is_refused(reserve, level1, message):
     with pytest.raises(ValueError, match=message):
         PriorityQP(2, -np.ones(2), np.ones(2), level1, 1, reserve=reserve)
+    with pytest.raises(ValueError, match=message.replace("reserve", "speed_reserve")):
+        PriorityQP(2, -np.ones(2), np.ones(2), level1, 1, speed_reserve=reserve)
 
 
 def test_random_infeasible_problems_keep_priority_one_where_the_box_allows():

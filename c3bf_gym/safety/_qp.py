@@ -21,14 +21,18 @@ of the level's violations), and only then minimises the cost. The levels:
 3. with an allowance level (``FilterConfig.allowance_level``): the barrier's rows, each loosened
    by its allowance (``QPBuffers.allowance``: how far it may give way and still hold the barrier
    condition with a raised gain, :func:`c3bf_gym.safety._step.set_allowances`);
-4. the barrier's rows beside a guard (the C3BF's in the default filter) as written, which give
-   way first.
+4. the barrier's rows beside a guard (the C3BF's in the default filter) as written;
+5. with a speed reserve (``FilterConfig.nominal_speed_fraction`` below ``joint_speed_fraction``):
+   the joint speed rows at the nominal torque's bound, whose copies at the filter's bound are
+   level 1's. They give way first.
 
 A level with no rows is left out. So with a reserve the rows of level 1, the guard among them, can
 take a joint into the last of its range, and the barrier's rows cannot; with an allowance level
 the barrier's rows give way beyond their allowance only where the rows above leave no torque that
 holds them within it, instead of a conflict being spread over all of them (least squares) while
-some have room to spare. Without either the levels are 0, 1 and 4, named 1 and 2 below.
+some have room to spare; with a speed reserve the barrier's rows may take a joint past the
+nominal torque's speed bound, up to the filter's, before they give way. Without any of them the levels are 0, 1 and 4,
+named 1 and 2 below.
 
 So with a guard the joint-speed bound holds whenever some torque within the limits can hold it
 together with the floor and the guard. A filter without a guard has no level 2: its barrier's
@@ -89,22 +93,27 @@ class QPBuffers(NamedTuple):
             reserve's rows at the range), then the reserve's, the barrier's loosened by their
             allowance and the barrier's as written, its problem and break points sized to the
             rows in use at every solve.
-        capacity: int64 (4,) the row capacity of each of ``hier``'s levels, in its order: level 1,
-            the reserve's, the barrier's loosened by their allowance and the barrier's as written
-            (0: the workspace has no such level).
+        capacity: int64 (5,) the row capacity of each of ``hier``'s levels, in its order: level 1,
+            the range's reserve, the barrier's loosened by their allowance, the barrier's as written
+            and the nominal speed bound (0: the workspace has no such level).
         lo, hi: (n,) the box of ``u``.
         u: (n,) the solution.
         norm: (rows,) each row's norm ``‖A_k s‖`` (0: left out).
         residual: (rows,) each row's normalised residual ``â_k u − b̂_k`` at the solution (> −tol:
-            held); for a zero row, ``−b_k``; for a row of the reserve that gave way, the residual
-            of its copy at the range when that is violated, else 0 (the reserve used, no row lost).
+            held); for a zero row, ``−b_k``; for a joint row with a reserve that gave way, the
+            residual of its copy in level 1 when that is violated, else 0 (the reserve used, no
+            row lost).
         cold: int64 (2,) 1: the next solve of ``plain`` (``cold[0]``) or ``hier`` (``cold[1]``)
             starts from an empty working set (then 0).
         last: int64 (1,) the previous call's status (:data:`SOLVED`, :data:`RELAXED`, ...).
-        reserve: (r,) the joint range's reserve (``r = 2n`` for ``n`` joints, or empty: none). The
-            last ``2r`` rows of a call are then the joint limits' (position upper and lower, then
-            speed upper and lower); position row ``i`` is drawn inside the range, and its copy at
-            the range has its ``b`` lowered by ``reserve[i]`` (``γ₁γ₂ δ``).
+        reserve: (4n,) for ``n`` joints, or empty: none. The last ``4n`` rows of a call are then
+            the joint limits' (position upper and lower, then speed upper and lower, as
+            :class:`~c3bf_gym.safety.barriers.JointLimits` orders them), and joint row ``i`` with
+            ``reserve[i] > 0`` is held in a level of its own, with a copy in level 1 whose ``b``
+            is lowered by ``reserve[i]``: a position row is drawn inside the range by the range's
+            reserve (``γ₁γ₂ δ``; its level above the barrier's), a speed row lies at the nominal
+            torque's bound below its copy at the filter's bound (``γ_v (q̇_max − q̇_nominal)``;
+            its level below the barrier's). A zero entry: the row is level 1's alone.
         allowance: (rows,) how far each of the barrier's rows may give way [its ``b``'s units,
             ≥ 0], set by the caller before each solve when ``capacity[2] > 0`` (read only then;
             other rows' entries are ignored): the allowance level holds ``A_k τ ≥ b_k −
@@ -209,7 +218,8 @@ def solve_rows(tau_nom, A, b, scale, cols, n_obstacle_rows, stride, qp):
        reserve (``qp.reserve``: the position rows inside the range, their copies at the range in
        level 1), then (with ``capacity[2] > 0`` and some allowance above 0) the barrier's rows
        loosened by ``qp.allowance``, then the barrier's as written: rows ``k < n_obstacle_rows``
-       with ``k % stride == 0``; its problem too is sized to the rows in use. Warm-started from
+       with ``k % stride == 0``, then the speed rows at the nominal torque's bound (their copies at
+       the filter's bound in level 1); its problem too is sized to the rows in use. Warm-started from
        its own previous solve's working set, and once more from an empty one if that fails. If
        it fails too, ``u`` is the box projection of ``u_nom`` (:data:`FAILED`).
 
@@ -282,33 +292,41 @@ def barrier_row(k, n_obstacle_rows, stride):
     return k < n_obstacle_rows and k % stride == 0
 
 
+#: :func:`_row_level`'s levels of the prioritised solve: level 1, the joint range's reserve, the
+#: barrier's (loosened by their allowance, then as written) and the nominal speed bound
+LEVEL_1, LEVEL_RANGE, LEVEL_BARRIER, LEVEL_SPEED = range(4)
+
+
 @njit(**STEP_KERNEL_OPTIONS)
-def _row_level(k, m, n_obstacle_rows, stride, r):
-    """The level of row ``k`` of ``m`` in the prioritised solve (:func:`solve_rows`, step 3): 0
-    (level 1), 1 (the joint range's reserve: rows ``m − 2r`` … ``m − r − 1``, with ``r`` the
-    length of ``qp.reserve``) or 2 (the barrier's, :func:`barrier_row`)."""
+def _row_level(k, m, n_obstacle_rows, stride, reserve):
+    """The level of row ``k`` of ``m`` in the prioritised solve (:func:`solve_rows`, step 3):
+    :data:`LEVEL_BARRIER` for the barrier's (:func:`barrier_row`); for joint row ``i`` (the last
+    ``4n`` rows, ``reserve`` (4n,) non-empty) with ``reserve[i] > 0``, :data:`LEVEL_RANGE` (a
+    position row, ``i < 2n``) or :data:`LEVEL_SPEED` (a speed row); else :data:`LEVEL_1`."""
     if barrier_row(k, n_obstacle_rows, stride):
-        return 2
-    if m - 2 * r <= k < m - r:
-        return 1
-    return 0
+        return LEVEL_BARRIER
+    r = reserve.shape[0]
+    i = k - (m - r)
+    if r > 0 and i >= 0 and reserve[i] > 0.0:
+        return LEVEL_RANGE if 2 * i < r else LEVEL_SPEED
+    return LEVEL_1
 
 
 @njit(**STEP_KERNEL_OPTIONS)
 def _reserve_residuals(qp, m):
-    """After a solve that was not :data:`SOLVED`: a reserve row (:func:`_row_level` 1) that gave
-    way reports its copy at the range instead, ``min(residual + reserve / norm, 0)``: 0 when the
-    joint only went into its reserve, the copy's violation when it went past the range."""
+    """After a solve that was not :data:`SOLVED`: a joint row with a reserve that gave way reports
+    its copy in level 1 instead, ``min(residual + reserve / norm, 0)``: 0 when the joint only went
+    into its reserve (of range or speed), the copy's violation when it went past it."""
     r = qp.reserve.shape[0]
-    for k in range(m - 2 * r, m - r):
-        if qp.norm[k] != 0.0 and qp.residual[k] < 0.0:
+    for k in range(m - r, m):
+        if qp.norm[k] != 0.0 and qp.residual[k] < 0.0 and qp.reserve[k - (m - r)] > 0.0:
             qp.residual[k] = min(qp.residual[k] + _reserve_offset(qp, k, m), 0.0)
 
 
 @njit(**STEP_KERNEL_OPTIONS)
 def _reserve_offset(qp, k, m):
-    """How far reserve row ``k`` (of ``m``) lies inside its copy at the range [row-normalised]."""
-    return qp.reserve[k - (m - 2 * qp.reserve.shape[0])] / qp.norm[k]
+    """How far joint row ``k`` (of ``m``) lies inside its copy in level 1 [row-normalised]."""
+    return qp.reserve[k - (m - qp.reserve.shape[0])] / qp.norm[k]
 
 
 @njit(**STEP_KERNEL_OPTIONS)
@@ -327,59 +345,66 @@ def _solve_by_priority(qp, m, n_obstacle_rows, stride):
     to the box."""
     plain, hier = qp.plain, qp.hier
     n = plain.x.shape[0]
-    r = qp.reserve.shape[0]
     # The problem is sized to the rows in use, level by level (DAQP reads its break_points, hier.levels,
-    # at every solve): level 1's rows first (a reserve row's copy at the range among them), then the
-    # reserve's, the barrier's loosened by their allowance, and the barrier's as written. A level the
-    # workspace has keeps at least one row, a zero one (which DAQP ignores) when it has none this call.
-    count1 = count_reserve = count_barrier = 0
+    # at every solve): level 1's rows first (a joint row's copy with its reserve among them), then the
+    # range's reserve, the barrier's loosened by their allowance, the barrier's as written and the speed
+    # bound. A level the workspace has keeps at least one row, a zero one (which DAQP ignores) when it
+    # has none this call.
+    count1 = count_range = count_barrier = count_speed = 0
     loosened = False
     for k in range(m):
         if qp.norm[k] != 0.0:
-            row_level = _row_level(k, m, n_obstacle_rows, stride, r)
-            if row_level == 0:
-                count1 += 1
-            elif row_level == 1:
-                count1 += 1
-                count_reserve += 1
-            else:
+            row_level = _row_level(k, m, n_obstacle_rows, stride, qp.reserve)
+            if row_level == LEVEL_BARRIER:
                 count_barrier += 1
                 loosened = loosened or (qp.capacity[2] > 0 and qp.allowance[k] > 0.0)
+            else:
+                count1 += 1
+                if row_level == LEVEL_RANGE:
+                    count_range += 1
+                elif row_level == LEVEL_SPEED:
+                    count_speed += 1
     count_loose = count_barrier if loosened else 0
-    i1, i_reserve = 0, max(count1, 1) if qp.capacity[0] > 0 else 0
-    i_loose = i_reserve + (max(count_reserve, 1) if qp.capacity[1] > 0 else 0)
+    i1, i_range = 0, max(count1, 1) if qp.capacity[0] > 0 else 0
+    i_loose = i_range + (max(count_range, 1) if qp.capacity[1] > 0 else 0)
     i_barrier = i_loose + (max(count_loose, 1) if qp.capacity[2] > 0 else 0)
-    end_barrier = i_barrier + (max(count_barrier, 1) if qp.capacity[3] > 0 else 0)
-    _clear(hier, count1, i_reserve)
-    _clear(hier, i_reserve + count_reserve, i_loose)
+    i_speed = i_barrier + (max(count_barrier, 1) if qp.capacity[3] > 0 else 0)
+    end_speed = i_speed + (max(count_speed, 1) if qp.capacity[4] > 0 else 0)
+    _clear(hier, count1, i_range)
+    _clear(hier, i_range + count_range, i_loose)
     _clear(hier, i_loose + count_loose, i_barrier)
-    _clear(hier, i_barrier + count_barrier, end_barrier)
+    _clear(hier, i_barrier + count_barrier, i_speed)
+    _clear(hier, i_speed + count_speed, end_speed)
     level, last = 1, 0
-    for end in (i_reserve, i_loose, i_barrier, end_barrier):
+    for end in (i_range, i_loose, i_barrier, i_speed, end_speed):
         if end > last:
             hier.levels[level] = n + end
             level += 1
             last = end
-    hier.problem[PROBLEM_M] = n + end_barrier
+    hier.problem[PROBLEM_M] = n + end_speed
     for k in range(m):
         if qp.norm[k] == 0.0:
             continue
         lower = plain.lower[n + k]
-        row_level = _row_level(k, m, n_obstacle_rows, stride, r)
-        if row_level == 0:
+        row_level = _row_level(k, m, n_obstacle_rows, stride, qp.reserve)
+        if row_level == LEVEL_1:
             _put_row(plain, hier, k, i1, lower)
             i1 += 1
-        elif row_level == 1:  # drawn inside the range; its copy at the range in level 1
-            _put_row(plain, hier, k, i_reserve, lower)
-            i_reserve += 1
-            _put_row(plain, hier, k, i1, lower - _reserve_offset(qp, k, m))
-            i1 += 1
-        else:
+        elif row_level == LEVEL_BARRIER:
             _put_row(plain, hier, k, i_barrier, lower)
             i_barrier += 1
             if loosened:
                 _put_row(plain, hier, k, i_loose, lower - qp.allowance[k] / qp.norm[k])
                 i_loose += 1
+        else:  # inside the range, or at the speed bound; its copy with the reserve in level 1
+            if row_level == LEVEL_RANGE:
+                _put_row(plain, hier, k, i_range, lower)
+                i_range += 1
+            else:
+                _put_row(plain, hier, k, i_speed, lower)
+                i_speed += 1
+            _put_row(plain, hier, k, i1, lower - _reserve_offset(qp, k, m))
+            i1 += 1
     for j in range(n):
         hier.f[j] = plain.f[j]
     flag, iterations = 0, 0

@@ -66,6 +66,15 @@ class FilterConfig:
             guard (and the other rows of that level) can take a joint into the last of its
             range, which an escape may need; the barrier's rows and the nominal torque cannot.
             Needs ``joint_limits``.
+        nominal_speed_fraction: the joint speed bound the nominal torque is held to, as a fraction
+            of the robot's own, in (0, ``joint_speed_fraction``]; None (the default): the same as
+            ``joint_speed_fraction``, one bound for every row. Below ``joint_speed_fraction`` the
+            joints keep a speed reserve for escapes: the speed rows at this bound form a level of
+            priority of their own below the barrier's rows, their copies at
+            ``joint_speed_fraction`` stay in level 1. So the nominal torque drives no joint past
+            this bound, while the barrier's rows (turning the arm's velocity out of a collision
+            cone can need a joint to speed up) and the guard may take it up to
+            ``joint_speed_fraction``, never past it. Needs ``joint_limits``.
         allowance_level: when the rows conflict, hold the barrier's rows first loosened by their
             allowance (the barrier condition ``ḣ ≥ −γ' h`` with the gain raised up to
             ``γ_max`` = 0.5/Δt where ``h > 0``; as written where ``h ≤ 0``), in a level of priority
@@ -89,8 +98,9 @@ class FilterConfig:
     Raises:
         ValueError: on an unknown name or choice (the message lists the valid ones), a value
             out of its range, or inconsistent settings (a gain beside a Barrier instance, a
-            ``guard_gamma`` without a named guard, a ``joint_range_reserve`` without
-            ``joint_limits``, an ``allowance_level`` without a guard).
+            ``guard_gamma`` without a named guard, a ``joint_range_reserve`` or
+            ``nominal_speed_fraction`` without ``joint_limits``, a ``nominal_speed_fraction``
+            above ``joint_speed_fraction``, an ``allowance_level`` without a guard).
     """
 
     barrier: str | Barrier = "c3bf"
@@ -104,6 +114,7 @@ class FilterConfig:
     joint_limits: bool = True
     joint_speed_fraction: float = 0.5
     joint_range_reserve: float = 0.0
+    nominal_speed_fraction: float | None = None
     allowance_level: bool = False
     floor_gamma: float = 10.0
     weight: Literal["limits", "identity"] = "limits"
@@ -146,6 +157,16 @@ class FilterConfig:
         if self.joint_range_reserve > 0.0 and not self.joint_limits:
             raise ValueError(f"joint_range_reserve={self.joint_range_reserve!r} needs joint_limits=True: the "
                              "reserve is kept by the joint limits' rows")
+        if self.nominal_speed_fraction is not None:
+            set_(self, "nominal_speed_fraction", check.number("nominal_speed_fraction", self.nominal_speed_fraction,
+                                                              low=0.0, low_open=True, high=1.0))  # fmt: skip
+            if not self.joint_limits:
+                raise ValueError(f"nominal_speed_fraction={self.nominal_speed_fraction!r} needs joint_limits=True: "
+                                 "the speed bound is kept by the joint limits' rows")
+            if self.nominal_speed_fraction > self.joint_speed_fraction:
+                raise ValueError(f"nominal_speed_fraction={self.nominal_speed_fraction!r} is above "
+                                 f"joint_speed_fraction={self.joint_speed_fraction!r}: the nominal torque's bound must "
+                                 "be at most the filter's")
         set_(self, "allowance_level", check.boolean("allowance_level", self.allowance_level))
         if self.allowance_level and self.resolved_guard() is None:
             raise ValueError(f"allowance_level=True needs a guard beside the barrier (guard={self.guard!r}): "

@@ -18,7 +18,9 @@ configurations the project compares. At every physics step (between ``mj_step1``
    model ``ẍ = G τ + c``, so the arm must not lean on the floor;
 4. joint position and velocity limits contribute ``4 n`` rows
    (:class:`~c3bf_gym.safety.barriers.JointLimits`), the position rows drawn
-   ``joint_range_reserve`` inside the range when the config keeps a reserve. The obstacle and
+   ``joint_range_reserve`` inside the range when the config keeps a reserve, the speed rows at
+   ``nominal_speed_fraction`` of the robot's bound with their copies at ``joint_speed_fraction``
+   when the config sets a lower bound for the nominal torque. The obstacle and
    floor rows are tightened for the forces the filter cannot predict, each bounded
    (:attr:`~c3bf_gym.safety.RobotDescription.unmodelled_force`: joint dry friction, the actuators of
    dofs that are not the arm's, such as a gripper's): :func:`~c3bf_gym.safety._rows.unmodelled_margin`;
@@ -27,10 +29,12 @@ configurations the project compares. At every physics step (between ``mj_step1``
    When none does, the rows give way by priority: the barrier's rows first, while the joint
    limits, the floor and the guard hold as well as the torque limits allow (with a reserve, the
    position rows inside the range give way after the barrier's and before the rows at the range
-   itself; with ``allowance_level``, the barrier's rows hold within their allowance before they
-   give way beyond it: :mod:`c3bf_gym.safety._qp`). The step is reported with the largest
-   violation of each kind of row (:attr:`StepSafety.violation`), and as infeasible unless only
-   the barrier's rows within a raised gain or the reserve gave way; with
+   itself; with a nominal speed bound, the speed rows at it give way before the barrier's, their
+   copies at the filter's bound holding with level 1; with ``allowance_level``, the barrier's rows
+   hold within their allowance before they give way beyond it: :mod:`c3bf_gym.safety._qp`). The
+   step is reported with the largest violation of each kind of row
+   (:attr:`StepSafety.violation`), and as infeasible unless only the barrier's rows within a
+   raised gain, the reserve or the nominal speed bound gave way; with
    ``on_infeasible="raise"`` any call where rows gave way raises instead.
 
 Steps 1–4 with the built-in barriers (:class:`~c3bf_gym.safety.barriers.C3BF`,
@@ -131,8 +135,10 @@ class StepSafety:
             not hold.
         gain_raised_steps: number of physics steps where only barrier rows gave way, each within
             that allowance, or joint position rows within the joint range's reserve
-            (``FilterConfig.joint_range_reserve``): every row held, the barrier's with a gain
-            between γ and ``γ_max``, the joints within their range.
+            (``FilterConfig.joint_range_reserve``), or joint speed rows between the nominal
+            torque's bound and the filter's (``FilterConfig.nominal_speed_fraction``): every row
+            held, the barrier's with a gain between γ and ``γ_max``, the joints within their range
+            and the filter's speed bound.
         min_constraint: the smallest row residual ``A τ − b`` at the applied torque (the QP
             constraint value: >= 0 when every row holds) [row units]; inf with no row. Taken
             from the QP's row-normalised residuals times the rows' norms
@@ -256,6 +262,11 @@ class SafetyController:
         envelope: the :class:`~c3bf_gym.safety.FilterEnvelope` the obstacles are checked against
             (None until given, computed or first needed).
         report: the :class:`StepSafety` accumulated since :meth:`begin_step`.
+        joint_limits: the :class:`~c3bf_gym.safety.barriers.JointLimits` whose rows the filter
+            adds (None without ``config.joint_limits``); its ``qd_max`` is the nominal torque's
+            speed bound (``config.nominal_speed_fraction``, else the filter's).
+        joint_speed_bound: (n,) the speed bound the filter holds every joint to [rad/s]:
+            ``config.joint_speed_fraction`` of the robot's own (None without joint limits).
         last: the last call's :class:`~c3bf_gym.safety.priority_qp.QPResult` (None before the first).
         solve_times: when a list (set ``record_times=True``), every call's wall time [s] is
             appended, for latency percentiles.
@@ -282,7 +293,8 @@ class SafetyController:
         self._envelope_seen = (0.0, 0.0)  # the largest obstacle speed and radius checked so far
         self._envelope_warned = False
         joint_limits = None
-        reserve = None
+        reserve = speed_reserve = None
+        self.joint_speed_bound: np.ndarray | None = None
         if config.joint_limits:
             robot.require_joint_limits(model)
             q_lo, q_hi = robot.joint_range.T
@@ -291,10 +303,18 @@ class SafetyController:
                 # (an infinite limit stays infinite: that side has no row to draw in)
                 delta = np.minimum(config.joint_range_reserve, 0.25 * (q_hi - q_lo))
                 q_lo, q_hi = q_lo + delta, q_hi - delta
-            joint_limits = JointLimits(q_lo, q_hi, config.joint_speed_fraction * robot.joint_speed_limit)
+            bound = config.joint_speed_fraction * robot.joint_speed_limit
+            nominal = bound
+            if config.nominal_speed_fraction is not None:
+                nominal = config.nominal_speed_fraction * robot.joint_speed_limit
+            joint_limits = JointLimits(q_lo, q_hi, nominal)
             if config.joint_range_reserve > 0.0:
                 gain_1, gain_2, _ = joint_limits.gains
                 reserve = np.concatenate([gain_1 * gain_2 * delta] * 2)  # b lowered by γ₁γ₂δ: the row at the range
+            if np.any(nominal < bound):
+                # the speed rows at the nominal bound; b lowered by γ_v (bound − nominal): their copies at the bound
+                speed_reserve = np.concatenate([joint_limits.gains[2] * (bound - nominal)] * 2)
+            self.joint_speed_bound = bound
         self.joint_limits = joint_limits
         self._check_timestep(model.opt.timestep)
         weight = config.weight
@@ -321,7 +341,7 @@ class SafetyController:
         # becomes the identity, box ±1) or s = 1 ("identity"): a well-conditioned problem either way.
         self._scale = limit.copy() if weight == "limits" else np.ones(n)
         self.qp = PriorityQP(n, -limit / self._scale, limit / self._scale, max_rows - barrier_rows, barrier_rows,
-                             reserve, config.allowance_level and barrier_rows > 0)
+                             reserve, config.allowance_level and barrier_rows > 0, speed_reserve)
         self._limit = limit
         # rows on the generalised force of every dof (the QP reads the arm's columns, self._dofs)
         self._A = np.zeros((max_rows, model.nv))

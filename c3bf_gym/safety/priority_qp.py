@@ -55,43 +55,55 @@ class PriorityQP:
         level1_rows: the largest number of priority-1 rows (guard, floor, joint limits).
         level2_rows: the largest number of priority-2 rows (the barrier's).
         reserve: the joint range's reserve for ``n`` joints, (2n,) ``γ₁γ₂ δ`` per position row
-            (upper, then lower), or None: none (:class:`~c3bf_gym.safety._qp.QPBuffers`). The
-            last ``4n`` rows of every solve are then the joint limits' (position upper and lower,
-            drawn ``δ`` inside the range, then speed upper and lower), among the priority-1 rows.
+            (upper, then lower), or None: none (:class:`~c3bf_gym.safety._qp.QPBuffers`).
+        speed_reserve: the joint speed reserve, (2n,) ``γ_v (q̇_max − q̇_nominal)`` per speed
+            row (upper, then lower: the speed rows lie at the nominal bound, their copies at the
+            filter's), or None: none.
         allowance_level: hold the barrier's rows in two levels below the reserve: loosened by the
             allowance each solve gives them (:meth:`solve_scaled`), then as written.
 
     Which row is which is given per solve: of the rows, those with index ``k <
     n_obstacle_rows`` and ``k % stride == 0`` are the barrier's (``stride`` 2 when each barrier
-    row is followed by its guard's, else 1); with a reserve, the joint position rows form a
-    level between priority 1, which holds their copies at the range, and the barrier's; every
+    row is followed by its guard's, else 1). With either reserve the last ``4n`` rows of
+    every solve are the joint limits' (position upper and lower, then speed upper and lower):
+    a position row with a reserve (drawn ``δ`` inside the range) forms a level between priority
+    1, which holds its copy at the range, and the barrier's; a speed row with a speed reserve (at
+    the nominal bound) forms a level below the barrier's, its copy at the filter's bound in
+    priority 1. Every
     other row is priority 1.
 
     Raises:
-        ValueError: a reserve that is not (2n,), finite and >= 0, or one with fewer than 4n
-            priority-1 rows; an allowance level without barrier rows.
+        ValueError: a reserve that is not (2n,), finite and >= 0, or one with fewer
+            than 4n priority-1 rows; an allowance level without barrier rows.
     """
 
     def __init__(self, n: int, tau_min: np.ndarray, tau_max: np.ndarray, level1_rows: int, level2_rows: int,
-                 reserve: np.ndarray | None = None, allowance_level: bool = False) -> None:
+                 reserve: np.ndarray | None = None, allowance_level: bool = False,
+                 speed_reserve: np.ndarray | None = None) -> None:
         self.n = int(n)
         self._cols = np.arange(self.n, dtype=np.int64)  # the rows' columns are the torque's, in order
         self.tau_min = np.array(tau_min, dtype=np.float64)
         self.tau_max = np.array(tau_max, dtype=np.float64)
         self._levels = (int(level1_rows), int(level2_rows))
-        self._reserve = np.zeros(0) if reserve is None else np.array(reserve, dtype=np.float64)
-        if reserve is not None and (self._reserve.shape != (2 * self.n,) or not np.all(np.isfinite(self._reserve))
-                                    or np.any(self._reserve < 0.0) or 2 * len(self._reserve) > level1_rows):
-            raise ValueError(f"reserve must be ({2 * self.n},), finite and >= 0, with at least {4 * self.n} "
-                             f"priority-1 rows; got {self._reserve!r} and {level1_rows}")
+        self._given = tuple(None if value is None else np.array(value, dtype=np.float64)
+                            for value in (reserve, speed_reserve))
+        for name, value in (("reserve", reserve), ("speed_reserve", speed_reserve)):
+            array = None if value is None else np.asarray(value, dtype=np.float64)
+            if array is not None and (array.shape != (2 * self.n,) or not np.all(np.isfinite(array))
+                                      or np.any(array < 0.0) or 4 * self.n > level1_rows):
+                raise ValueError(f"{name} must be ({2 * self.n},), finite and >= 0, with at least {4 * self.n} "
+                                 f"priority-1 rows; got {value!r} and {level1_rows}")
+        joint = [np.zeros(2 * self.n) if value is None else value for value in self._given]
+        self._reserve = np.concatenate(joint) if reserve is not None or speed_reserve is not None else np.zeros(0)
         if allowance_level and self._levels[1] == 0:
             raise ValueError("allowance_level needs barrier rows (level2_rows > 0): it splits them in two levels")
         self._allowance_level = bool(allowance_level)
         rows = sum(self._levels)
-        # the prioritised workspace's levels, in order: priority 1 (with the reserve rows' copies), the reserve,
-        # the barrier's loosened by their allowance, the barrier's as written
-        capacity = [self._levels[0], len(self._reserve), self._levels[1] * self._allowance_level, self._levels[1]]
-        points = [n + sum(capacity[: i + 1]) for i in range(4) if capacity[i] > 0]
+        # the prioritised workspace's levels, in order: priority 1 (with the joint rows' copies), the range's
+        # reserve, the barrier's loosened by their allowance, the barrier's as written, the speed bound
+        capacity = [self._levels[0], int(np.count_nonzero(joint[0])), self._levels[1] * self._allowance_level,
+                    self._levels[1], int(np.count_nonzero(joint[1]))]
+        points = [n + sum(capacity[: i + 1]) for i in range(len(capacity)) if capacity[i] > 0]
         self._plain = _daqp.DaqpWorkspace(n, rows, self.tau_min, self.tau_max)
         self._hier = _daqp.DaqpWorkspace(n, sum(capacity), self.tau_min, self.tau_max, break_points=[n] + points)
         self.max_rows = rows
@@ -109,8 +121,8 @@ class PriorityQP:
 
     def __reduce__(self):
         """Pickled as its arguments: the copy sets up its own DAQP workspaces (cold)."""
-        return PriorityQP, (self.n, self.tau_min, self.tau_max, *self._levels,
-                            self._reserve if len(self._reserve) else None, self._allowance_level)
+        return PriorityQP, (self.n, self.tau_min, self.tau_max, *self._levels, self._given[0], self._allowance_level,
+                            self._given[1])
 
     def solve_scaled(self, tau_nom: np.ndarray, A: np.ndarray, b: np.ndarray, scale: np.ndarray,
                      n_obstacle_rows: int | None = None, stride: int = 1,
@@ -151,9 +163,9 @@ class PriorityQP:
         if barrier > self._levels[1] or m - barrier > self._levels[0]:
             raise ValueError(f"{barrier} barrier rows and {m - barrier} others exceed the {self._levels[1]} and "
                              f"{self._levels[0]} this QP was built for")
-        if m - barrier < 2 * len(self._reserve):
-            raise ValueError(f"this QP keeps a joint range reserve: its last {2 * len(self._reserve)} rows must be "
-                             f"the joint limits', got {m - barrier} rows besides the barrier's")
+        if m - barrier < len(self._reserve):
+            raise ValueError(f"this QP keeps a joint range or speed reserve: its last {len(self._reserve)} "
+                             f"rows must be the joint limits', got {m - barrier} rows besides the barrier's")
         if allowance is not None:
             allowance = np.asarray(allowance, dtype=np.float64)
             if not self._allowance_level:
