@@ -31,8 +31,8 @@ take a joint into the last of its range, and the barrier's rows cannot; with an 
 the barrier's rows give way beyond their allowance only where the rows above leave no torque that
 holds them within it, instead of a conflict being spread over all of them (least squares) while
 some have room to spare; with a speed reserve the barrier's rows may take a joint past the
-nominal torque's speed bound, up to the filter's, before they give way. Without any of them the levels are 0, 1 and 4,
-named 1 and 2 below.
+nominal torque's speed bound, up to the filter's, before they give way. Without any of them the
+levels are 0, 1 and 4, named 1 and 2 below.
 
 So with a guard the joint-speed bound holds whenever some torque within the limits can hold it
 together with the floor and the guard. A filter without a guard has no level 2: its barrier's
@@ -219,8 +219,8 @@ def solve_rows(tau_nom, A, b, scale, cols, n_obstacle_rows, stride, qp):
        level 1), then (with ``capacity[2] > 0`` and some allowance above 0) the barrier's rows
        loosened by ``qp.allowance``, then the barrier's as written: rows ``k < n_obstacle_rows``
        with ``k % stride == 0``, then the speed rows at the nominal torque's bound (their copies at
-       the filter's bound in level 1); its problem too is sized to the rows in use. Warm-started from
-       its own previous solve's working set, and once more from an empty one if that fails. If
+       the filter's bound in level 1); its problem too is sized to the rows in use. Warm-started
+       from its own previous solve's working set, and once more from an empty one if that fails. If
        it fails too, ``u`` is the box projection of ``u_nom`` (:data:`FAILED`).
 
     Right after a call that was not solved, step 3 comes first: if its answer violates some row

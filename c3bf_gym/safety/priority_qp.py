@@ -69,12 +69,11 @@ class PriorityQP:
     a position row with a reserve (drawn ``δ`` inside the range) forms a level between priority
     1, which holds its copy at the range, and the barrier's; a speed row with a speed reserve (at
     the nominal bound) forms a level below the barrier's, its copy at the filter's bound in
-    priority 1. Every
-    other row is priority 1.
+    priority 1. Every other row is priority 1.
 
     Raises:
-        ValueError: a reserve that is not (2n,), finite and >= 0, or one with fewer
-            than 4n priority-1 rows; an allowance level without barrier rows.
+        ValueError: a reserve or speed reserve that is not (2n,), finite and >= 0, or one with
+            fewer than 4n priority-1 rows; an allowance level without barrier rows.
     """
 
     def __init__(self, n: int, tau_min: np.ndarray, tau_max: np.ndarray, level1_rows: int, level2_rows: int,
@@ -87,14 +86,13 @@ class PriorityQP:
         self._levels = (int(level1_rows), int(level2_rows))
         self._given = tuple(None if value is None else np.array(value, dtype=np.float64)
                             for value in (reserve, speed_reserve))
-        for name, value in (("reserve", reserve), ("speed_reserve", speed_reserve)):
-            array = None if value is None else np.asarray(value, dtype=np.float64)
+        for name, array in zip(("reserve", "speed_reserve"), self._given):
             if array is not None and (array.shape != (2 * self.n,) or not np.all(np.isfinite(array))
                                       or np.any(array < 0.0) or 4 * self.n > level1_rows):
                 raise ValueError(f"{name} must be ({2 * self.n},), finite and >= 0, with at least {4 * self.n} "
-                                 f"priority-1 rows; got {value!r} and {level1_rows}")
-        joint = [np.zeros(2 * self.n) if value is None else value for value in self._given]
-        self._reserve = np.concatenate(joint) if reserve is not None or speed_reserve is not None else np.zeros(0)
+                                 f"priority-1 rows; got {array!r} and {level1_rows}")
+        joint = [np.zeros(2 * self.n) if array is None else array for array in self._given]
+        self._reserve = np.concatenate(joint) if any(array is not None for array in self._given) else np.zeros(0)
         if allowance_level and self._levels[1] == 0:
             raise ValueError("allowance_level needs barrier rows (level2_rows > 0): it splits them in two levels")
         self._allowance_level = bool(allowance_level)
