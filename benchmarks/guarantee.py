@@ -54,7 +54,7 @@ from c3bf_gym.training import filter_config
 
 SCENARIOS = ("static", "head_on", "crossing", "multi")
 #: The rows that give way last (priority 1): ``hard`` counts policy steps where any of them did.
-HARD_ROWS = ("guard", "floor", "joint_limits", "unmovable")
+HARD_ROWS = ("guard", "floor", "joint_limits", "unmovable", "self_collision")
 ENVS = ("C3BFReach-v0", "C3BFReachPanda-v0")
 POLICIES = ("random", "adversarial")
 #: (filter name, points) in table order; DEFAULT_FILTERS run unless --filters says otherwise.

@@ -228,7 +228,7 @@ EXTRA_MOTOR_TORQUE = 10.0  # [N m] bound of a motor added to a joint the file le
 CUTOFF = 1.0  # [m] distances beyond this are not resolved (the lowest clearance is capped here)
 SENSING_RADIUS = 1.0  # [m] the filter's, as C3BFReach-v0's default
 #: The kinds of rows that give way last (priority 1): the ``hard/1k`` column counts steps where any did.
-HARD_ROWS = ("guard", "floor", "joint_limits")
+HARD_ROWS = ("guard", "floor", "joint_limits", "self_collision")
 CONFIG = FilterConfig(sensing_radius=SENSING_RADIUS)  # the default filter at the env's sensing radius
 _BALL = "c3bf_ball{}"
 

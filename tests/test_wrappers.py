@@ -30,7 +30,8 @@ SAFETY_TYPES = {
     "inside": bool,
     "infeasible_steps": int,
     "gain_raised_steps": int,
-    **{f"violation_{kind}": float for kind in ("barrier", "guard", "floor", "joint_limits", "unmovable")},
+    **{f"violation_{kind}": float
+       for kind in ("barrier", "guard", "floor", "joint_limits", "unmovable", "self_collision")},
 }
 
 
@@ -285,6 +286,7 @@ BAD_FILTER_ARGS = [
     (dict(guard=None, allowance_level=True), r"allowance_level=True needs a guard beside the barrier"),
     (dict(barrier="hocbf", allowance_level=True), r"allowance_level=True needs a guard beside the barrier"),
     (dict(allowance_level=1), r"allowance_level must be True or False"),
+    (dict(self_collision="yes"), r"self_collision must be True or False"),
     (dict(guard="distance"), r"(?s)guard.*'auto'.*None.*'c3bf'.*'hocbf'.*Barrier"),
     (dict(guard=True), r"(?s)guard.*'auto'.*None"),
     (dict(guard_gamma=0.0), r"guard_gamma must be a finite number > 0"),

@@ -226,6 +226,98 @@ def floor_rows(ends, idx, z_min, gamma, A, b):
 
 
 @njit(**_opts)
+def _segment_params(p1, d1, p2, d2):
+    """The parameters ``(s, t)`` in [0, 1] of the closest points ``p1 + s d1`` and ``p2 + t d2`` of
+    two segments (3-tuples: a start and its direction each), as in Ericson, *Real-Time Collision
+    Detection*, 5.1.9; a segment of length 0 is its point."""
+    r = (p1[0] - p2[0], p1[1] - p2[1], p1[2] - p2[2])
+    a, e, f = _dot3(d1, d1), _dot3(d2, d2), _dot3(d2, r)
+    tiny = 1e-12
+    if a <= tiny and e <= tiny:
+        return 0.0, 0.0
+    if a <= tiny:
+        return 0.0, min(max(f / e, 0.0), 1.0)
+    c = _dot3(d1, r)
+    if e <= tiny:
+        return min(max(-c / a, 0.0), 1.0), 0.0
+    bb = _dot3(d1, d2)
+    denom = a * e - bb * bb
+    s = min(max((bb * f - c * e) / denom, 0.0), 1.0) if denom > tiny * a * e else 0.0
+    t = (bb * s + f) / e
+    if t < 0.0:
+        return min(max(-c / a, 0.0), 1.0), 0.0
+    if t > 1.0:
+        return min(max((bb - c) / a, 0.0), 1.0), 1.0
+    return s, t
+
+
+@njit(inline="always", **_opts)
+def _pair_gap(ends, i, j, s, t, axis, col):
+    """Column ``col`` of axis ``axis`` of the packed ends (:func:`floor_rows`' layout) at the point
+    ``s`` along capsule ``i``'s axis less that at ``t`` along capsule ``j``'s (each affine along
+    its capsule: one rigid body)."""
+    half = ends.shape[0] // 2
+    x1 = ends[i, axis, col] + s * (ends[half + i, axis, col] - ends[i, axis, col])
+    return x1 - (ends[j, axis, col] + t * (ends[half + j, axis, col] - ends[j, axis, col]))
+
+
+@njit(**_opts)
+def self_collision_rows(ends, pairs, d_min, gamma, A, b):
+    """Rows keeping pairs of the arm's own capsules apart (:class:`~c3bf_gym.safety.barriers.SelfCollision`),
+    from the packed capsule ends ``ends`` (2S, 3, 3 + nv) (:func:`floor_rows`' layout): for pair
+    ``k``, capsules ``pairs[k, 0]`` and ``pairs[k, 1]``, the distance ``d`` between the closest
+    points ``x₁``, ``x₂`` of their axes (:func:`_segment_params`) stays at ``d ≥ d_min[k]`` as the
+    second-order barrier ``d̈ + 2γ ḋ + γ² (d − d_min) ≥ 0``. With ``p = x₁ − x₂``, ``n = p / d``
+    and the points' relative velocity ``v``, acceleration at zero torque ``c`` and acceleration
+    per unit force ``G`` (each affine along a capsule's axis, one rigid body):
+    ``ḋ = ⟨n, v⟩``, ``d̈ = ⟨n, G τ + c⟩ + (‖v‖² − ḋ²) / d``, so
+    ``A_k = nᵀ G``, ``b_k = −γ² (d − d_min) − 2γ ḋ − ⟨n, c⟩ − (‖v‖² − ḋ²) / d``.
+
+    A closest point inside its axis slides along it as the links move, and the distance then
+    curves less than that of two material points: the curvature term takes the relative velocity
+    across the axes that hold such a point (``v`` less its component along that axis; with both
+    points inside, the term is 0, ``n`` being normal to both axes). The axes' turning rates are
+    left out. Axes that touch (``d`` below 1e-9 m, no direction to part them along) get the row
+    ``0 τ ≥ 0``: no torque can be asked of it, and it is never counted as given way."""
+    s_count = ends.shape[0] // 2
+    nv = A.shape[1]
+    for k in range(pairs.shape[0]):
+        i, j = pairs[k, 0], pairs[k, 1]
+        a1 = (ends[i, 0, 0], ends[i, 1, 0], ends[i, 2, 0])
+        a2 = (ends[j, 0, 0], ends[j, 1, 0], ends[j, 2, 0])
+        b1 = (ends[s_count + i, 0, 0], ends[s_count + i, 1, 0], ends[s_count + i, 2, 0])
+        b2 = (ends[s_count + j, 0, 0], ends[s_count + j, 1, 0], ends[s_count + j, 2, 0])
+        d1 = (b1[0] - a1[0], b1[1] - a1[1], b1[2] - a1[2])
+        d2 = (b2[0] - a2[0], b2[1] - a2[1], b2[2] - a2[2])
+        s, t = _segment_params(a1, d1, a2, d2)
+        # relative position, velocity, acceleration at zero torque (columns 0, 1, 2 of the ends)
+        p = (_pair_gap(ends, i, j, s, t, 0, 0), _pair_gap(ends, i, j, s, t, 1, 0), _pair_gap(ends, i, j, s, t, 2, 0))
+        v = (_pair_gap(ends, i, j, s, t, 0, 1), _pair_gap(ends, i, j, s, t, 1, 1), _pair_gap(ends, i, j, s, t, 2, 1))
+        c = (_pair_gap(ends, i, j, s, t, 0, 2), _pair_gap(ends, i, j, s, t, 1, 2), _pair_gap(ends, i, j, s, t, 2, 2))
+        d = math.sqrt(_dot3(p, p))
+        if d < 1e-9:
+            A[k, :nv] = 0.0
+            b[k] = 0.0
+            continue
+        n = (p[0] / d, p[1] / d, p[2] / d)
+        d_dot = _dot3(n, v)
+        for col in range(nv):
+            A[k, col] = (n[0] * _pair_gap(ends, i, j, s, t, 0, 3 + col) + n[1] * _pair_gap(ends, i, j, s, t, 1, 3 + col)
+                         + n[2] * _pair_gap(ends, i, j, s, t, 2, 3 + col))
+        inner1, inner2 = 0.0 < s < 1.0, 0.0 < t < 1.0  # (a segment of length 0 has s = 0 or t = 0)
+        if inner1 and inner2:
+            curvature = 0.0
+        else:
+            w = v
+            if inner1 or inner2:  # v across the axis that holds the sliding point
+                u = d1 if inner1 else d2
+                along = _dot3(v, u) / _dot3(u, u)
+                w = (v[0] - along * u[0], v[1] - along * u[1], v[2] - along * u[2])
+            curvature = max(_dot3(w, w) - d_dot * d_dot, 0.0) / d
+        b[k] = ((-gamma * gamma) * (d - d_min[k]) - 2.0 * gamma * d_dot - _dot3(n, c)) - curvature
+
+
+@njit(**_opts)
 def unmodelled_margin(A, b, bound):
     """Tighten rows ``A f ≥ b`` (m, nv), written for the generalised force ``f`` on every dof, for
     forces the filter cannot predict: ``b_k += Σ_j |A_kj| bound_j``.
@@ -321,6 +413,8 @@ class RowParams(NamedTuple):
         sensing_radius, margin: [m].
         floor_gamma: the floor rows' gain [1/s]; ``floor_ends`` (F,) the capsule ends that get
             one, ``floor_min`` (F,) their lowest allowed heights [m].
+        self_pairs: (P, 2) the pairs of capsules kept apart (:func:`self_collision_rows`, gain
+            ``floor_gamma``), ``self_min`` (P,) their smallest distances between axes [m].
         joint_rows: add the ``4 n`` joint-limit rows, with ``joint_gains`` (γ₁, γ₂, γ_v) and the
             limits ``q_lo``, ``q_hi``, ``qd_max`` (n,).
         dofs, qpos_ids: (n,) the arm's dofs and their ``qpos`` addresses.
@@ -336,6 +430,8 @@ class RowParams(NamedTuple):
     floor_gamma: float
     floor_ends: np.ndarray
     floor_min: np.ndarray
+    self_pairs: np.ndarray
+    self_min: np.ndarray
     joint_rows: bool
     joint_gains: np.ndarray
     q_lo: np.ndarray
@@ -446,9 +542,10 @@ def filter_rows(stage, arm, obstacles, params, A, b, row_h):
     2. For every sensed obstacle (:func:`_sensed`), the rows at the protected points
        (:func:`_capsule_rows`: one per capsule; :func:`_site_rows`: one at the tool site), each
        followed, with a guard (``params.guard``), by the guard's row for that point.
-    3. The floor rows of the capsule ends ``params.floor_ends`` (:func:`floor_rows`).
+    3. The floor rows of the capsule ends ``params.floor_ends`` (:func:`floor_rows`), then the
+       rows of the capsule pairs ``params.self_pairs`` (:func:`self_collision_rows`).
     4. With ``params.joint_rows``, the ``4 n`` joint-limit rows (:func:`joint_limit_rows`).
-    The obstacle and floor rows are tightened for the forces the filter cannot predict
+    The obstacle, floor and pair rows are tightened for the forces the filter cannot predict
     (:func:`unmodelled_margin`); the joint-limit rows are not.
 
     The rows are written for the generalised force on every dof of the model (``A`` (·, nv)); the
@@ -486,6 +583,10 @@ def filter_rows(stage, arm, obstacles, params, A, b, row_h):
     n_floor = params.floor_ends.shape[0]
     floor_rows(arm.ends, params.floor_ends, params.floor_min, params.floor_gamma, A[m:m + n_floor], b[m:m + n_floor])
     m += n_floor
+    n_self = params.self_pairs.shape[0]
+    self_collision_rows(arm.ends, params.self_pairs, params.self_min, params.floor_gamma, A[m:m + n_self],
+                        b[m:m + n_self])
+    m += n_self
     unmodelled_margin(A[:m], b[:m], params.unmodelled_force)
     if params.joint_rows:
         joint_limit_rows(arm.qpos, arm.qvel, arm.Minv, arm.qacc_free, params, A[m:m + 4 * n], b[m:m + 4 * n])

@@ -74,16 +74,17 @@ def low_priority_span(m, n_fixed, guarded):
 
 
 @njit(**_opts)
-def violations_by_kind(residual, norm, n_obstacle, stride, n_floor, tol, out):
-    """Fold one call's row residuals into ``out`` (5,): for each kind of row, in the order of
+def violations_by_kind(residual, norm, n_obstacle, stride, n_floor, n_self, tol, out):
+    """Fold one call's row residuals into ``out`` (6,): for each kind of row, in the order of
     :data:`~c3bf_gym.safety.controller.ROW_KINDS` (barrier, guard, floor, joint limits,
-    unmovable), the largest violation ``−residual[k]`` above ``tol`` and above what ``out``
-    holds.
+    unmovable, self collision), the largest violation ``−residual[k]`` above ``tol`` and above
+    what ``out`` holds.
 
     The rows are laid out as the filter builds them: the first ``n_obstacle`` are the obstacles'
-    (the barrier's at ``k % stride == 0``, else the guard's), then ``n_floor`` floor rows, then the
-    joint limits'. A row with ``norm[k] == 0`` (no torque can change it) is "unmovable", whatever
-    its place; its residual is then ``−b_k`` (:func:`c3bf_gym.safety._qp.solve_rows`).
+    (the barrier's at ``k % stride == 0``, else the guard's), then ``n_floor`` floor rows, then
+    ``n_self`` rows of the arm's own capsule pairs, then the joint limits'. A row with
+    ``norm[k] == 0`` (no torque can change it) is "unmovable", whatever its place; its residual
+    is then ``−b_k`` (:func:`c3bf_gym.safety._qp.solve_rows`).
     """
     for k in range(residual.shape[0]):
         if norm[k] == 0.0:
@@ -92,6 +93,8 @@ def violations_by_kind(residual, norm, n_obstacle, stride, n_floor, tol, out):
             kind = 0 if k % stride == 0 else 1
         elif k < n_obstacle + n_floor:
             kind = 2
+        elif k < n_obstacle + n_floor + n_self:
+            kind = 5
         else:
             kind = 3
         violation = -residual[k]
@@ -103,10 +106,10 @@ def violations_by_kind(residual, norm, n_obstacle, stride, n_floor, tol, out):
 
 #: Entries of :attr:`Tally.values`, the running values of a :class:`~c3bf_gym.safety.StepSafety`
 #: over a policy step's calls; :data:`T_VIOLATION` starts the largest violation of each of the
-#: five row kinds.
+#: six row kinds.
 (T_SUBSTEPS, T_MIN_CONSTRAINT, T_MIN_H, T_INSIDE, T_SENSED, T_ACTIVE_ROWS, T_CORRECTION, T_INTERVENED,
  T_INFEASIBLE_STEPS, T_SLACK, T_GAIN_RAISED_STEPS, T_VIOLATION) = range(12)
-TALLY_SIZE = T_VIOLATION + 5
+TALLY_SIZE = T_VIOLATION + 6
 #: Entries of :attr:`Tally.last`: the last recorded call's own values
 L_STATUS, L_ITERATIONS, L_ACTIVE, L_SLACK = range(4)
 #: Entries of :attr:`Tally.gains`: the barrier's gain γ and the largest gain γ_max its rows may
@@ -242,11 +245,13 @@ class CallSummary(NamedTuple):
 class RowLayout(NamedTuple):
     """Where each kind of row sits among a call's rows, as the filter builds them: the first
     ``n_obstacle`` are the obstacles' (the barrier's at ``k % stride == 0``, else the guard's),
-    then ``n_floor`` floor rows, then the joint limits'."""
+    then ``n_floor`` floor rows, then ``n_self`` rows of the arm's own capsule pairs, then the
+    joint limits'."""
 
     n_obstacle: int
     stride: int
     n_floor: int
+    n_self: int
 
 
 @njit(**_opts)
@@ -263,7 +268,7 @@ def record(tally, call, tau_nom, tau, qp, layout, intervention_tol):
     Returns the call's outcome: ``call.status``, or :data:`GAIN_RAISED` for a relaxed call within
     the allowance."""
     status, m, min_h, inside, n_sensed, iterations, n_active, slack, residual, correction = call
-    n_obstacle, stride, n_floor = layout
+    n_obstacle, stride, n_floor, n_self = layout
     values = tally.values
     values[T_SUBSTEPS] += 1.0
     if residual < values[T_MIN_CONSTRAINT]:
@@ -286,7 +291,7 @@ def record(tally, call, tau_nom, tau, qp, layout, intervention_tol):
     outcome = status
     if status != SOLVED:
         values[T_SLACK] = max(values[T_SLACK], slack)
-        violations_by_kind(qp.residual[:m], qp.norm[:m], n_obstacle, stride, n_floor, ACTIVE_TOL,
+        violations_by_kind(qp.residual[:m], qp.norm[:m], n_obstacle, stride, n_floor, n_self, ACTIVE_TOL,
                            values[T_VIOLATION:])
         if status == RELAXED and not beyond_allowance(qp.residual[:m], qp.norm[:m], tally.row_h, tally.gains,
                                                       n_obstacle, stride):
@@ -344,10 +349,10 @@ def filter_substep(stage, tau_nom, tau, buffers):
     """
     arm, obstacles, params, A, b, scale, limit, qp, tally, intervention_tol = buffers
     m, min_h, inside, n_sensed = filter_rows(stage, arm, obstacles, params, A, b, tally.row_h)
-    n_floor = params.floor_ends.shape[0]
-    n_fixed = n_floor + (4 * params.dofs.shape[0] if params.joint_rows else 0)
+    n_floor, n_self = params.floor_ends.shape[0], params.self_pairs.shape[0]
+    n_fixed = n_floor + n_self + (4 * params.dofs.shape[0] if params.joint_rows else 0)
     stride = 2 if params.guard.present else 1  # obstacle rows: barrier, guard, barrier, guard, ... beside a guard
-    layout = RowLayout(m - n_fixed, stride, n_floor)
+    layout = RowLayout(m - n_fixed, stride, n_floor, n_self)
     status, iterations, n_active, slack = solve_call(tau_nom, A[:m], b[:m], scale, params.dofs, layout, tally, qp)
     if status < 0:
         return status

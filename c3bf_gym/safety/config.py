@@ -84,7 +84,14 @@ class FilterConfig:
             over all of the barrier's rows by least squares. False (the default): one level for
             the barrier's rows. Needs a guard (without one the barrier's rows share level 1).
         floor_gamma: gain [1/s] of the floor rows' second-order barrier, > 0: every capsule end
-            that can move vertically keeps ``margin`` above an upright world plane.
+            that can move vertically keeps ``margin`` above an upright world plane. The arm's own
+            pairs (``self_collision``) use it too.
+        self_collision: keep the pairs of the arm's protected capsules that the model lets collide
+            ``margin`` apart, each with a second-order barrier row of gain ``floor_gamma``
+            (:class:`~c3bf_gym.safety.barriers.SelfCollision`): contact forces between links are
+            not in the filter's model, so a link pressed against another could be pushed past
+            the rows. True (the default) adds those rows; a model whose links cannot collide with
+            each other (the UR5e's and the Panda's here) has none either way.
         weight: the QP metric: ``"limits"`` (W = diag(1/τ_max²): relative changes weigh the same
             on every joint) or ``"identity"`` (the paper's plain ‖τ − τ_nom‖²).
         on_infeasible: what happens when no torque within the limits satisfies every row:
@@ -117,6 +124,7 @@ class FilterConfig:
     nominal_speed_fraction: float | None = None
     allowance_level: bool = False
     floor_gamma: float = 10.0
+    self_collision: bool = True
     weight: Literal["limits", "identity"] = "limits"
     on_infeasible: Literal["relax", "raise"] = "relax"
     intervention_tol: float = 1e-3
@@ -172,6 +180,7 @@ class FilterConfig:
             raise ValueError(f"allowance_level=True needs a guard beside the barrier (guard={self.guard!r}): "
                              "without one the barrier's rows share level 1 with the joint limits and the floor")
         set_(self, "floor_gamma", check.number("floor_gamma", self.floor_gamma, low=0.0, low_open=True, unit="1/s"))
+        set_(self, "self_collision", check.boolean("self_collision", self.self_collision))
         check.choice("weight", self.weight, WEIGHTS)
         check.choice("on_infeasible", self.on_infeasible, ON_INFEASIBLE)
         set_(self, "intervention_tol", check.number("intervention_tol", self.intervention_tol, low=0.0, unit="N m"))

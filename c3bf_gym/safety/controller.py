@@ -15,19 +15,22 @@ configurations the project compares. At every physics step (between ``mj_step1``
 3. the floor contributes one row per capsule end that can move vertically (``2 S`` at most):
    the second-order barrier ``z̈ + 2γ ż + γ² (z − z_min) ≥ 0`` (γ = ``floor_gamma``), with
    ``z_min`` the floor plus the capsule radius plus ``margin``. Contact forces are not in the
-   model ``ẍ = G τ + c``, so the arm must not lean on the floor;
+   model ``ẍ = G τ + c``, so the arm must not lean on the floor; likewise, with
+   ``self_collision``, every pair of the arm's capsules that the model lets collide gets one row,
+   the same barrier on the distance between their axes
+   (:class:`~c3bf_gym.safety.barriers.SelfCollision`), so that no link leans on another;
 4. joint position and velocity limits contribute ``4 n`` rows
    (:class:`~c3bf_gym.safety.barriers.JointLimits`), the position rows drawn
    ``joint_range_reserve`` inside the range when the config keeps a reserve, the speed rows at
    ``nominal_speed_fraction`` of the robot's bound with their copies at ``joint_speed_fraction``
-   when the config sets a lower bound for the nominal torque. The obstacle and
-   floor rows are tightened for the forces the filter cannot predict, each bounded
+   when the config sets a lower bound for the nominal torque. The obstacle, floor and pair
+   rows are tightened for the forces the filter cannot predict, each bounded
    (:attr:`~c3bf_gym.safety.RobotDescription.unmodelled_force`: joint dry friction, the actuators of
    dofs that are not the arm's, such as a gripper's): :func:`~c3bf_gym.safety._rows.unmodelled_margin`;
 5. :class:`~c3bf_gym.safety.priority_qp.PriorityQP` (DAQP) returns the torque closest to the
    nominal one (in the metric ``weight``) that satisfies every row within the actuator limits.
    When none does, the rows give way by priority: the barrier's rows first, while the joint
-   limits, the floor and the guard hold as well as the torque limits allow (with a reserve, the
+   limits, the floor, the arm's own pairs and the guard hold as well as the torque limits allow (with a reserve, the
    position rows inside the range give way after the barrier's and before the rows at the range
    itself; with a nominal speed bound, the speed rows at it give way before the barrier's, their
    copies at the filter's bound holding with level 1; with ``allowance_level``, the barrier's rows
@@ -66,13 +69,13 @@ import numpy as np
 
 from c3bf_gym._capi import pack
 from c3bf_gym.safety import _qp, _rows, _step
-from c3bf_gym.safety.barriers import Floor, JointLimits, Rows
+from c3bf_gym.safety.barriers import Floor, JointLimits, Rows, SelfCollision
 from c3bf_gym.safety.dynamics import ArmModel, segment_closest_points
 from c3bf_gym.safety.envelope import EnvelopeWarning, FilterEnvelope, filter_envelope
 from c3bf_gym.safety.config import FilterConfig
 from c3bf_gym.safety.obstacles import Obstacles
 from c3bf_gym.safety.priority_qp import STATUS, PriorityQP, QPResult, bad_input_error
-from c3bf_gym.safety.robot import RobotDescription, UnsupportedModelError
+from c3bf_gym.safety.robot import RobotDescription, UnprotectedGeometryWarning, UnsupportedModelError
 from c3bf_gym.safety.substep import FilterCall
 
 __all__ = ["MAX_GAIN_STEP", "RAISED_GAIN_STEP", "ROW_KINDS", "SafetyController", "SafetyInfeasibleError", "StepSafety"]
@@ -90,9 +93,9 @@ MAX_GAIN_STEP = 0.05
 RAISED_GAIN_STEP = 0.5
 
 #: The kinds of safety rows, in :attr:`StepSafety.violation`: the barrier's (priority 2: they give
-#: way first), the guard's, the floor's and the joint limits' (priority 1), and rows no torque can
-#: change that an obstacle violates ("unmovable").
-ROW_KINDS = ("barrier", "guard", "floor", "joint_limits", "unmovable")
+#: way first), the guard's, the floor's and the joint limits' (priority 1), rows no torque can
+#: change that an obstacle violates ("unmovable"), and the arm's own capsule pairs' (priority 1).
+ROW_KINDS = ("barrier", "guard", "floor", "joint_limits", "unmovable", "self_collision")
 
 _perf_counter = time.perf_counter
 #: :attr:`SafetyController.last`'s status names: the QP's, and a relaxed call that held every row
@@ -252,6 +255,9 @@ class SafetyController:
     Warns:
         :class:`~c3bf_gym.safety.EnvelopeWarning`: a timestep too coarse for the filter's gains
             (:data:`MAX_GAIN_STEP`); from :meth:`filter`, once, obstacles outside :attr:`envelope`.
+        :class:`~c3bf_gym.safety.UnprotectedGeometryWarning`: a protected geom in contact, at
+            ``data``'s joint positions, with a geom of the same arm that no row keeps it from
+            (its base, or geometry the filter does not protect), naming both.
 
     Raises:
         ValueError / :class:`~c3bf_gym.safety.UnsupportedModelError`: a config that needs what
@@ -331,12 +337,18 @@ class SafetyController:
         self._n_joint_rows = 0 if joint_limits is None else 4 * n
         #: the floor's rows (:class:`~c3bf_gym.safety.barriers.Floor`; none without a floor plane)
         self.floor = Floor.of_model(model, self.arm, self.margin, config.floor_gamma)
+        #: the rows of the arm's own capsule pairs (:class:`~c3bf_gym.safety.barriers.SelfCollision`;
+        #: none without ``config.self_collision`` or when the model lets no two of them collide)
+        self.self_collision = (SelfCollision.of_model(model, self.arm, self.margin, config.floor_gamma)
+                               if config.self_collision else SelfCollision((), (), config.floor_gamma))  # fmt: skip
+        self._n_fixed_rows = self.floor.n_rows + self.self_collision.n_rows + self._n_joint_rows
+        self._check_resting_contacts(model, data)
         self._stride = 1 if guard is None else 2  # obstacle rows: barrier, guard, barrier, guard, ...
         # priority 2 (giving way first) only for the barrier's rows beside a guard: without one, the
         # barrier's rows are the only ones keeping obstacles off, and they share priority 1 with the
         # joint limits and the floor
         barrier_rows = n_obstacles * points_count if guard is not None else 0
-        max_rows = n_obstacles * self._per_obstacle + self.floor.n_rows + self._n_joint_rows
+        max_rows = n_obstacles * self._per_obstacle + self._n_fixed_rows
         # The QP runs in normalised torque u = τ / s with s = τ_max ("limits": W = diag(1/τ_max²)
         # becomes the identity, box ±1) or s = 1 ("identity"): a well-conditioned problem either way.
         self._scale = limit.copy() if weight == "limits" else np.ones(n)
@@ -388,6 +400,7 @@ class SafetyController:
             points=_rows.EE_POINTS if self.points == "ee" else _rows.WHOLE_ARM_POINTS,
             ee_radius=float(self.ee_radius), sensing_radius=float(self.sensing_radius), margin=float(self.margin),
             floor_gamma=self.floor.gamma, floor_ends=self.floor.ends, floor_min=self.floor.min_height,
+            self_pairs=self.self_collision.pairs, self_min=self.self_collision.min_distance,
             joint_rows=joint_limits is not None, joint_gains=joint_gains, q_lo=q_lo, q_hi=q_hi, qd_max=qd_max,
             dofs=self._dofs, qpos_ids=self._qpos_ids, unmodelled_force=self._unmodelled,
         )
@@ -499,6 +512,41 @@ class SafetyController:
             warnings.warn(EnvelopeWarning("the obstacles are outside the filter's envelope, where it guarantees "
                                           "nothing: " + "; ".join(problems)), stacklevel=3)  # fmt: skip
 
+    def _check_resting_contacts(self, model: mujoco.MjModel, data: mujoco.MjData) -> None:
+        """Warn (:class:`~c3bf_gym.safety.UnprotectedGeometryWarning`) for each protected geom in
+        contact, at ``data``'s joint positions, with a geom of the arm's own kinematic tree that
+        no row keeps it from (a base, a geom the filter does not protect): their contact forces
+        are not in the rows' model, and nothing the filter does keeps them apart. Contacts are
+        MuJoCo's own (``mj_forward`` on a copy of the positions; ``data`` is not written)."""
+        scratch = mujoco.MjData(model)
+        scratch.qpos[:] = data.qpos
+        scratch.mocap_pos[:] = data.mocap_pos
+        scratch.mocap_quat[:] = data.mocap_quat
+        mujoco.mj_forward(model, scratch)
+        protected = {int(g): k for k, g in enumerate(self.arm.capsule_ids)}
+        paired = {frozenset(map(int, pair)) for pair in self.self_collision.pairs}
+        root = model.body_rootid[model.geom_bodyid[int(self.arm.capsule_ids[0])]]
+        seen = set()
+        for contact in scratch.contact[: scratch.ncon]:
+            g1, g2 = int(contact.geom1), int(contact.geom2)
+            for mine, other in ((g1, g2), (g2, g1)):
+                if mine not in protected or model.body_rootid[model.geom_bodyid[other]] != root:
+                    continue
+                if other in protected and frozenset((protected[mine], protected[other])) in paired:
+                    continue  # a row of its own pushes them apart
+                key = frozenset((mine, other))
+                if key in seen:
+                    continue
+                seen.add(key)
+                bodies = (model.body(model.geom_bodyid[mine]).name, model.body(model.geom_bodyid[other]).name)
+                names = (model.geom(mine).name, model.geom(other).name)
+                warnings.warn(UnprotectedGeometryWarning(
+                    f"geom {names[0]!r} touches geom {names[1]!r} of the same arm (contact distance "
+                    f"{contact.dist:.3g} m at the joint positions the filter was built at): their contact forces "
+                    "are not in the filter's model and no row keeps them apart, so they can push the arm past its "
+                    "rows; if the contact is an artefact of the collision geometry, exclude it in the model "
+                    f"(<contact><exclude body1=\"{bodies[0]}\" body2=\"{bodies[1]}\"/></contact>)"), stacklevel=3)
+
     def _check_timestep(self, timestep: float) -> None:
         """Warn when a row's gain times ``timestep`` exceeds :data:`MAX_GAIN_STEP`."""
         gains = {"floor_gamma": self.config.floor_gamma}
@@ -583,9 +631,10 @@ class SafetyController:
                     min_h = float(terms.h.min())
                     inside = bool(terms.inside.any())
             m = len(barriers) * len(p)
-        if self.floor.n_rows:
+        if self.floor.n_rows or self.self_collision.n_rows:
             arm.end_dynamics()  # refreshes the packed capsule ends (arm._ends) if stale
             m += len(self.floor.rows(arm._ends, Rows(self._A[m:], self._b[m:])).b)
+            m += len(self.self_collision.rows(arm._ends, Rows(self._A[m:], self._b[m:])).b)
         _rows.unmodelled_margin(self._A[:m], self._b[:m], self._unmodelled)
         if self.joint_limits is not None:
             self.joint_limits.rows(data.qpos, data.qvel, arm.Minv, arm.qacc_free, out=Rows(self._A[m:], self._b[m:]),
@@ -762,21 +811,22 @@ class SafetyController:
 
     def _n_obstacle_rows(self, m: int) -> int:
         """How many of :meth:`rows`' ``m`` rows are the obstacles' (the barrier's and the guard's):
-        the rest are the floor's and the joint limits'."""
-        return m - self.floor.n_rows - self._n_joint_rows
+        the rest are the floor's, the arm's own pairs' and the joint limits'."""
+        return m - self._n_fixed_rows
 
     def _layout(self, m: int) -> _step.RowLayout:
         """Where each kind of row sits among :meth:`rows`' ``m`` rows (:class:`~c3bf_gym.safety._step.RowLayout`)."""
-        return _step.RowLayout(self._n_obstacle_rows(m), self._stride, self.floor.n_rows)
+        return _step.RowLayout(self._n_obstacle_rows(m), self._stride, self.floor.n_rows, self.self_collision.n_rows)
 
     def _low_priority_span(self, m: int) -> int:
         """:func:`~c3bf_gym.safety._step.low_priority_span` of :meth:`rows`' ``m`` rows."""
-        return _step.low_priority_span(m, self.floor.n_rows + self._n_joint_rows, self.guard is not None)
+        return _step.low_priority_span(m, self._n_fixed_rows, self.guard is not None)
 
     def row_kinds(self, m: int) -> list[str]:
         """The kind (:data:`ROW_KINDS`, "unmovable" aside) of each of :meth:`rows`' ``m`` rows."""
         kinds = ["barrier" if k % self._stride == 0 else "guard" for k in range(self._n_obstacle_rows(m))]
-        return kinds + ["floor"] * self.floor.n_rows + ["joint_limits"] * self._n_joint_rows
+        return (kinds + ["floor"] * self.floor.n_rows + ["self_collision"] * self.self_collision.n_rows
+                + ["joint_limits"] * self._n_joint_rows)
 
     @staticmethod
     def _violation_text(violation: dict[str, float]) -> str:

@@ -5,8 +5,8 @@ Obstacle barriers (per arm point, see :mod:`.base`):
 - :class:`C3BF` — collision-cone CBF (``"c3bf"``),
 - :class:`DistanceHOCBF` — second-order CBF on the squared distance (``"hocbf"``),
 
-and :class:`JointLimits` for joint position/velocity boxes and :class:`Floor` for the floor
-under the arm. All produce
+and :class:`JointLimits` for joint position/velocity boxes, :class:`Floor` for the floor
+under the arm and :class:`SelfCollision` for the arm's own links. All produce
 :class:`Rows` ``A @ tau >= b``. The arithmetic runs in compiled kernels
 (:mod:`c3bf_gym.safety._rows`).
 """
@@ -21,6 +21,7 @@ from .c3bf import C3BF
 from .floor import Floor
 from .hocbf import DistanceHOCBF
 from .joint_limits import JointLimits
+from .self_collision import SelfCollision
 
 __all__ = [
     "BARRIERS",
@@ -31,6 +32,7 @@ __all__ = [
     "Floor",
     "JointLimits",
     "Rows",
+    "SelfCollision",
     "distance_barrier",
     "make_barrier",
 ]
