@@ -14,7 +14,7 @@ DAQP's hierarchical mode satisfies each level as well as the levels above it all
 of the level's violations), and only then minimises the cost. The levels:
 
 0. the torque box: hard;
-1. the joint position and speed limits, the floor and the distance guard;
+1. the joint position and speed limits, the floor, the arm's own capsule pairs and the distance guard;
 2. the joint range's reserve, when the filter keeps one (``FilterConfig.joint_range_reserve``):
    the joint position rows drawn that far inside the range, whose copies at the range itself are
    level 1's;

@@ -30,14 +30,14 @@ configurations the project compares. At every physics step (between ``mj_step1``
 5. :class:`~c3bf_gym.safety.priority_qp.PriorityQP` (DAQP) returns the torque closest to the
    nominal one (in the metric ``weight``) that satisfies every row within the actuator limits.
    When none does, the rows give way by priority: the barrier's rows first, while the joint
-   limits, the floor, the arm's own pairs and the guard hold as well as the torque limits allow (with a reserve, the
-   position rows inside the range give way after the barrier's and before the rows at the range
-   itself; with a nominal speed bound, the speed rows at it give way before the barrier's, their
-   copies at the filter's bound holding with level 1; with ``allowance_level``, the barrier's rows
-   hold within their allowance before they give way beyond it: :mod:`c3bf_gym.safety._qp`). The
-   step is reported with the largest violation of each kind of row
-   (:attr:`StepSafety.violation`), and as infeasible unless only the barrier's rows within a
-   raised gain, the reserve or the nominal speed bound gave way; with
+   limits, the floor, the arm's own pairs and the guard hold as well as the torque limits allow
+   (with a reserve, the position rows inside the range give way after the barrier's and before
+   the rows at the range itself; with a nominal speed bound, the speed rows at it give way before
+   the barrier's, their copies at the filter's bound holding with level 1; with
+   ``allowance_level``, the barrier's rows hold within their allowance before they give way
+   beyond it: :mod:`c3bf_gym.safety._qp`). The step is reported with the largest violation of
+   each kind of row (:attr:`StepSafety.violation`), and as infeasible unless only the barrier's
+   rows within a raised gain, the reserve or the nominal speed bound gave way; with
    ``on_infeasible="raise"`` any call where rows gave way raises instead.
 
 Steps 1–4 with the built-in barriers (:class:`~c3bf_gym.safety.barriers.C3BF`,
@@ -131,11 +131,11 @@ class StepSafety:
         intervened: some physics step changed the torque by more than ``intervention_tol``.
         inside: some protected point was already inside an obstacle's (margin-inflated) radius.
         infeasible_steps: number of physics steps where rows gave way beyond their allowance:
-            a guard, floor, joint-limit or unmovable row gave way, or a barrier row at ``h <= 0``,
-            or one at ``h > 0`` by more than ``(γ_max − γ) h`` (the condition ``ḣ ≥ −γ' h`` failed
-            for every gain ``γ'`` up to ``γ_max`` = :data:`RAISED_GAIN_STEP` / Δt;
-            :func:`~c3bf_gym.safety._step.beyond_allowance`). On these steps the guarantee does
-            not hold.
+            a guard, floor, self-collision, joint-limit or unmovable row gave way, or a barrier
+            row at ``h <= 0``, or one at ``h > 0`` by more than ``(γ_max − γ) h`` (the condition
+            ``ḣ ≥ −γ' h`` failed for every gain ``γ'`` up to ``γ_max`` = :data:`RAISED_GAIN_STEP`
+            / Δt; :func:`~c3bf_gym.safety._step.beyond_allowance`). On these steps the guarantee
+            does not hold.
         gain_raised_steps: number of physics steps where only barrier rows gave way, each within
             that allowance, or joint position rows within the joint range's reserve
             (``FilterConfig.joint_range_reserve``), or joint speed rows between the nominal

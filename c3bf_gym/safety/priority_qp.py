@@ -52,7 +52,7 @@ class PriorityQP:
     Args:
         n: number of joints.
         tau_min, tau_max: (n,) box of the scaled torque ``u``.
-        level1_rows: the largest number of priority-1 rows (guard, floor, joint limits).
+        level1_rows: the largest number of priority-1 rows (guard, floor, self-collision, joint limits).
         level2_rows: the largest number of priority-2 rows (the barrier's).
         reserve: the joint range's reserve for ``n`` joints, (2n,) ``γ₁γ₂ δ`` per position row
             (upper, then lower), or None: none (:class:`~c3bf_gym.safety._qp.QPBuffers`).
