@@ -180,3 +180,24 @@ def test_a_protected_geom_resting_on_the_arms_base_is_named():
     with warnings.catch_warnings():
         warnings.simplefilter("error", UnprotectedGeometryWarning)
         SafetyController(model, data, robot, MocapSpheres(model, ["ball"]), FilterConfig(sensing_radius=1.0))
+
+
+@pytest.mark.parametrize("pairs, min_distance, gamma, message", [
+    ([[0, 1, 2]], [0.1], 10.0, r"pairs must have shape \(P, 2\)"),
+    ([[0, 0]], [0.1], 10.0, r"two different capsule indices"),
+    ([[-1, 1]], [0.1], 10.0, r"two different capsule indices"),
+    ([[0, 1]], [[0.1]], 10.0, r"min_distance must have shape \(P,\)"),
+    ([[0, 1]], [0.1, 0.2], 10.0, r"min_distance must have shape \(P,\)"),
+    ([[0, 1]], [float("nan")], 10.0, r"min_distance must be finite and >= 0"),
+    ([[0, 1]], [0.1], 0.0, r"gamma"),
+])
+def test_bad_pairs_are_refused_by_name(pairs, min_distance, gamma, message):
+    with pytest.raises(ValueError, match=message):
+        SelfCollision(pairs, min_distance, gamma)
+
+
+def test_a_pair_beyond_the_arms_capsules_is_refused():
+    rows = SelfCollision([[0, 3]], [0.1], 10.0)
+    with pytest.raises(ValueError, match=r"pairs name capsule 3, but packed_ends holds 3 capsules"):
+        rows.rows(np.zeros((6, 3, 3 + 3)))
+    assert SelfCollision((), (), 10.0).rows(np.zeros((6, 3, 6))).A.shape == (0, 3)

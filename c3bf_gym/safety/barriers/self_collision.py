@@ -38,16 +38,18 @@ class SelfCollision:
     Raises:
         ValueError: ``pairs`` not of shape (P, 2), a negative index or a capsule paired with
             itself, ``min_distance`` not of shape (P,) or not finite and >= 0, or a gain that is
-            not finite and > 0.
+            not finite and > 0 (each message names the value).
     """
 
     def __init__(self, pairs: ArrayLike, min_distance: ArrayLike, gamma: float) -> None:
-        pairs = np.array(pairs, dtype=np.int64).reshape(-1, 2) if np.size(pairs) == 0 else np.array(pairs, np.int64)
-        min_distance = np.array(min_distance, dtype=np.float64).reshape(-1)
+        pairs = np.array(pairs, dtype=np.int64)
+        min_distance = np.array(min_distance, dtype=np.float64)
+        if pairs.size == 0 and min_distance.size == 0:  # no pairs: any empty shape
+            pairs, min_distance = pairs.reshape(0, 2), min_distance.reshape(0)
         if pairs.ndim != 2 or pairs.shape[1] != 2:
             raise ValueError(f"pairs must have shape (P, 2), one capsule pair per row; got {pairs.shape}")
         if min_distance.shape != (pairs.shape[0],):
-            raise ValueError(f"min_distance must have one entry per pair; got {min_distance.shape[0]} for "
+            raise ValueError(f"min_distance must have shape (P,), one entry per pair; got {min_distance.shape} for "
                              f"{pairs.shape[0]} pairs")  # fmt: skip
         if (pairs < 0).any() or (pairs[:, 0] == pairs[:, 1]).any():
             raise ValueError(f"pairs must be two different capsule indices >= 0; got {pairs.tolist()}")
@@ -103,8 +105,14 @@ class SelfCollision:
     def rows(self, packed_ends: np.ndarray, out: Rows | None = None) -> Rows:
         """The rows for the current state, from the arm's packed capsule end dynamics
         ``packed_ends`` (2S, 3, 3 + nv), as :meth:`~c3bf_gym.safety.barriers.Floor.rows` reads
-        them. Written into ``out`` (its first ``P`` rows) when given."""
+        them. Written into ``out`` (its first ``P`` rows) when given.
+
+        Raises:
+            ValueError: a pair names a capsule that ``packed_ends`` does not hold."""
         k = self.n_rows
+        if k and int(self.pairs.max()) >= packed_ends.shape[0] // 2:
+            raise ValueError(f"pairs name capsule {int(self.pairs.max())}, but packed_ends holds "
+                             f"{packed_ends.shape[0] // 2} capsules")  # fmt: skip
         A, b = row_buffers(out, k, packed_ends.shape[2] - 3)
         _rows.self_collision_rows(packed_ends, self.pairs, self.min_distance, self.gamma, A[:k], b[:k])
         return Rows(A[:k], b[:k])
