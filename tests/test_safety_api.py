@@ -202,8 +202,9 @@ def test_standalone_fused_and_per_class_paths_agree(points, barrier, guard, obst
     np.testing.assert_allclose(A1, A2, rtol=0, atol=1e-10)
     np.testing.assert_allclose(b1, b2, rtol=0, atol=1e-10)
     # whole arm: 3 protected geoms (ee: the tool site; with a guard, its row too); floor: both ends
-    # of 2 capsules, 1 of the sphere; 4n
-    assert len(b1) == obstacle_rows + 5 + 12
+    # of 2 capsules, 1 of the sphere; the post on the yaw axis, a fixed part, against the forearm
+    # and the wrist (the upper arm is its body's child); 4n
+    assert len(b1) == obstacle_rows + 5 + 2 + 12
     assert np.abs(A1[:obstacle_rows]).max() > 0.0  # the obstacle rows are there, not zeros on both paths
 
 

@@ -201,3 +201,40 @@ def test_a_pair_beyond_the_arms_capsules_is_refused():
     with pytest.raises(ValueError, match=r"pairs name capsule 3, but packed_ends holds 3 capsules"):
         rows.rows(np.zeros((6, 3, 3 + 3)))
     assert SelfCollision((), (), 10.0).rows(np.zeros((6, 3, 6))).A.shape == (0, 3)
+
+
+def test_the_filter_keeps_the_links_off_a_fixed_part_of_the_arm():
+    """A geom on the arm's base (no joint moves it, so it is not protected against obstacles) is
+    a partner of every capsule MuJoCo collides it with: the folding arm, which sweeps its forearm
+    through it unfiltered, keeps clear of it."""
+    base = ('<body name="base" pos="0 0 0.5"><geom name="knob" type="sphere" size="0.03" pos="0.25 0 0.15"/>'
+            '<body name="upper" pos="0 0 0">')
+    xml = FOLDING.replace('<body name="upper" pos="0 0 0.5">', base)
+    xml = xml.replace('<body name="ball"', '</body><body name="ball"')  # the base's own end
+
+    def lowest(config):
+        model, data, robot = _arm(xml)
+        controller = None
+        if config is not None:
+            controller = SafetyController(model, data, robot, MocapSpheres(model, ["ball"]), config)
+        knob = model.geom("knob").id
+        low = np.inf
+        for _ in range(1500):
+            mujoco.mj_step1(model, data)
+            tau = np.clip(60.0 * (FOLDED - data.qpos) - 5.0 * data.qvel, -robot.torque_limit, robot.torque_limit)
+            if controller is not None:
+                tau, report = controller.filter(tau)
+                assert report.violation["self_collision"] == 0.0
+            robot.write_ctrl(model, data, tau)
+            mujoco.mj_step2(model, data)
+            low = min(low, *(mujoco.mj_geomDistance(model, data, knob, int(g), 1.0, None) for g in robot.geom_ids))
+        return low, controller
+
+    assert lowest(None)[0] < 0.0
+    assert lowest(FilterConfig(sensing_radius=1.0, self_collision=False))[0] < 0.0
+    low, controller = lowest(FilterConfig(sensing_radius=1.0))
+    assert low > 0.01
+    model = controller.model
+    partners = [(model.geom(int(controller.arm.capsule_ids[i])).name, model.geom(int(g)).name)
+                for i, g in zip(controller.self_collision.fixed_capsules, controller.self_collision.fixed_geoms)]
+    assert partners == [("upper", "knob"), ("fore", "knob"), ("hand", "knob")]

@@ -252,13 +252,60 @@ def _segment_params(p1, d1, p2, d2):
 
 
 @njit(inline="always", **_opts)
-def _pair_gap(ends, i, j, s, t, axis, col):
+def _pair_gap(ends, ends2, i, j, s, t, axis, col):
     """Column ``col`` of axis ``axis`` of the packed ends (:func:`floor_rows`' layout) at the point
-    ``s`` along capsule ``i``'s axis less that at ``t`` along capsule ``j``'s (each affine along
-    its capsule: one rigid body)."""
-    half = ends.shape[0] // 2
+    ``s`` along capsule ``i``'s axis of ``ends`` less that at ``t`` along capsule ``j``'s of
+    ``ends2`` (each affine along its capsule: one rigid body)."""
+    half, half2 = ends.shape[0] // 2, ends2.shape[0] // 2
     x1 = ends[i, axis, col] + s * (ends[half + i, axis, col] - ends[i, axis, col])
-    return x1 - (ends[j, axis, col] + t * (ends[half + j, axis, col] - ends[j, axis, col]))
+    return x1 - (ends2[j, axis, col] + t * (ends2[half2 + j, axis, col] - ends2[j, axis, col]))
+
+
+@njit(inline="always", **_opts)
+def _pair_row(ends, i, s, partner, t, seg1, seg2, d_min, gamma, A, b, k):
+    """Row ``k`` of :func:`self_collision_rows` for the point ``s`` along capsule ``i``'s axis of
+    the packed ``ends`` and the point ``t`` along a partner: ``partner`` is ``(ends2, j)``, capsule
+    ``j`` of the packed ``ends2`` (which may be ``ends``). ``seg1``, ``seg2`` are the two axes'
+    directions (3-tuples), for the sliding correction."""
+    ends2, j = partner
+    p = (_pair_gap(ends, ends2, i, j, s, t, 0, 0), _pair_gap(ends, ends2, i, j, s, t, 1, 0),
+         _pair_gap(ends, ends2, i, j, s, t, 2, 0))
+    v = (_pair_gap(ends, ends2, i, j, s, t, 0, 1), _pair_gap(ends, ends2, i, j, s, t, 1, 1),
+         _pair_gap(ends, ends2, i, j, s, t, 2, 1))
+    c = (_pair_gap(ends, ends2, i, j, s, t, 0, 2), _pair_gap(ends, ends2, i, j, s, t, 1, 2),
+         _pair_gap(ends, ends2, i, j, s, t, 2, 2))
+    nv = A.shape[1]
+    d = math.sqrt(_dot3(p, p))
+    if d < 1e-9:
+        A[k, :nv] = 0.0
+        b[k] = 0.0
+        return
+    n = (p[0] / d, p[1] / d, p[2] / d)
+    d_dot = _dot3(n, v)
+    for col in range(nv):
+        A[k, col] = (n[0] * _pair_gap(ends, ends2, i, j, s, t, 0, 3 + col)
+                     + n[1] * _pair_gap(ends, ends2, i, j, s, t, 1, 3 + col)
+                     + n[2] * _pair_gap(ends, ends2, i, j, s, t, 2, 3 + col))
+    inner1, inner2 = 0.0 < s < 1.0, 0.0 < t < 1.0  # (a segment of length 0 has s = 0 or t = 0)
+    if inner1 and inner2:
+        curvature = 0.0
+    else:
+        w = v
+        if inner1 or inner2:  # v across the axis that holds the sliding point
+            u = seg1 if inner1 else seg2
+            along = _dot3(v, u) / _dot3(u, u)
+            w = (v[0] - along * u[0], v[1] - along * u[1], v[2] - along * u[2])
+        curvature = max(_dot3(w, w) - d_dot * d_dot, 0.0) / d
+    b[k] = ((-gamma * gamma) * (d - d_min) - 2.0 * gamma * d_dot - _dot3(n, c)) - curvature
+
+
+@njit(inline="always", **_opts)
+def _axis(ends, i):
+    """Capsule ``i``'s axis in the packed ``ends``: its end ``a`` and its direction ``b − a``
+    (3-tuples)."""
+    half = ends.shape[0] // 2
+    a = (ends[i, 0, 0], ends[i, 1, 0], ends[i, 2, 0])
+    return a, (ends[half + i, 0, 0] - a[0], ends[half + i, 1, 0] - a[1], ends[half + i, 2, 0] - a[2])
 
 
 @njit(**_opts)
@@ -279,42 +326,26 @@ def self_collision_rows(ends, pairs, d_min, gamma, A, b):
     points inside, the term is 0, ``n`` being normal to both axes). The axes' turning rates are
     left out. Axes that touch (``d`` below 1e-9 m, no direction to part them along) get the row
     ``0 τ ≥ 0``: no torque can be asked of it, and it is never counted as given way."""
-    s_count = ends.shape[0] // 2
-    nv = A.shape[1]
     for k in range(pairs.shape[0]):
         i, j = pairs[k, 0], pairs[k, 1]
-        a1 = (ends[i, 0, 0], ends[i, 1, 0], ends[i, 2, 0])
-        a2 = (ends[j, 0, 0], ends[j, 1, 0], ends[j, 2, 0])
-        b1 = (ends[s_count + i, 0, 0], ends[s_count + i, 1, 0], ends[s_count + i, 2, 0])
-        b2 = (ends[s_count + j, 0, 0], ends[s_count + j, 1, 0], ends[s_count + j, 2, 0])
-        d1 = (b1[0] - a1[0], b1[1] - a1[1], b1[2] - a1[2])
-        d2 = (b2[0] - a2[0], b2[1] - a2[1], b2[2] - a2[2])
+        a1, d1 = _axis(ends, i)
+        a2, d2 = _axis(ends, j)
         s, t = _segment_params(a1, d1, a2, d2)
-        # relative position, velocity, acceleration at zero torque (columns 0, 1, 2 of the ends)
-        p = (_pair_gap(ends, i, j, s, t, 0, 0), _pair_gap(ends, i, j, s, t, 1, 0), _pair_gap(ends, i, j, s, t, 2, 0))
-        v = (_pair_gap(ends, i, j, s, t, 0, 1), _pair_gap(ends, i, j, s, t, 1, 1), _pair_gap(ends, i, j, s, t, 2, 1))
-        c = (_pair_gap(ends, i, j, s, t, 0, 2), _pair_gap(ends, i, j, s, t, 1, 2), _pair_gap(ends, i, j, s, t, 2, 2))
-        d = math.sqrt(_dot3(p, p))
-        if d < 1e-9:
-            A[k, :nv] = 0.0
-            b[k] = 0.0
-            continue
-        n = (p[0] / d, p[1] / d, p[2] / d)
-        d_dot = _dot3(n, v)
-        for col in range(nv):
-            A[k, col] = (n[0] * _pair_gap(ends, i, j, s, t, 0, 3 + col) + n[1] * _pair_gap(ends, i, j, s, t, 1, 3 + col)
-                         + n[2] * _pair_gap(ends, i, j, s, t, 2, 3 + col))
-        inner1, inner2 = 0.0 < s < 1.0, 0.0 < t < 1.0  # (a segment of length 0 has s = 0 or t = 0)
-        if inner1 and inner2:
-            curvature = 0.0
-        else:
-            w = v
-            if inner1 or inner2:  # v across the axis that holds the sliding point
-                u = d1 if inner1 else d2
-                along = _dot3(v, u) / _dot3(u, u)
-                w = (v[0] - along * u[0], v[1] - along * u[1], v[2] - along * u[2])
-            curvature = max(_dot3(w, w) - d_dot * d_dot, 0.0) / d
-        b[k] = ((-gamma * gamma) * (d - d_min[k]) - 2.0 * gamma * d_dot - _dot3(n, c)) - curvature
+        _pair_row(ends, i, s, (ends, j), t, d1, d2, d_min[k], gamma, A, b, k)
+
+
+@njit(**_opts)
+def fixed_partner_rows(ends, capsules, fixed, d_min, gamma, A, b):
+    """:func:`self_collision_rows` between capsule ``capsules[k]`` of the packed ``ends`` and
+    capsule ``k`` of ``fixed`` (2K, 3, 3 + nv), parts of the arm that no joint moves (a base, a
+    geom on the axes of the hinges that turn it), packed the same way with zero velocity,
+    acceleration and ``G``."""
+    for k in range(capsules.shape[0]):
+        i = capsules[k]
+        a1, d1 = _axis(ends, i)
+        a2, d2 = _axis(fixed, k)
+        s, t = _segment_params(a1, d1, a2, d2)
+        _pair_row(ends, i, s, (fixed, k), t, d1, d2, d_min[k], gamma, A, b, k)
 
 
 @njit(**_opts)
@@ -414,7 +445,9 @@ class RowParams(NamedTuple):
         floor_gamma: the floor rows' gain [1/s]; ``floor_ends`` (F,) the capsule ends that get
             one, ``floor_min`` (F,) their lowest allowed heights [m].
         self_pairs: (P, 2) the pairs of capsules kept apart (:func:`self_collision_rows`, gain
-            ``floor_gamma``), ``self_min`` (P,) their smallest distances between axes [m].
+            ``floor_gamma``), ``self_min`` (P,) their smallest distances between axes [m];
+            ``fixed_capsules`` (Q,), ``fixed_ends`` (2Q, 3, 3 + nv), ``fixed_min`` (Q,) the pairs
+            of capsules and fixed parts of the arm (:func:`fixed_partner_rows`).
         joint_rows: add the ``4 n`` joint-limit rows, with ``joint_gains`` (γ₁, γ₂, γ_v) and the
             limits ``q_lo``, ``q_hi``, ``qd_max`` (n,).
         dofs, qpos_ids: (n,) the arm's dofs and their ``qpos`` addresses.
@@ -432,6 +465,9 @@ class RowParams(NamedTuple):
     floor_min: np.ndarray
     self_pairs: np.ndarray
     self_min: np.ndarray
+    fixed_capsules: np.ndarray
+    fixed_ends: np.ndarray
+    fixed_min: np.ndarray
     joint_rows: bool
     joint_gains: np.ndarray
     q_lo: np.ndarray
@@ -543,7 +579,8 @@ def filter_rows(stage, arm, obstacles, params, A, b, row_h):
        (:func:`_capsule_rows`: one per capsule; :func:`_site_rows`: one at the tool site), each
        followed, with a guard (``params.guard``), by the guard's row for that point.
     3. The floor rows of the capsule ends ``params.floor_ends`` (:func:`floor_rows`), then the
-       rows of the capsule pairs ``params.self_pairs`` (:func:`self_collision_rows`).
+       rows of the capsule pairs ``params.self_pairs`` (:func:`self_collision_rows`) and of the
+       capsules and fixed parts ``params.fixed_capsules`` (:func:`fixed_partner_rows`).
     4. With ``params.joint_rows``, the ``4 n`` joint-limit rows (:func:`joint_limit_rows`).
     The obstacle, floor and pair rows are tightened for the forces the filter cannot predict
     (:func:`unmodelled_margin`); the joint-limit rows are not.
@@ -587,6 +624,10 @@ def filter_rows(stage, arm, obstacles, params, A, b, row_h):
     self_collision_rows(arm.ends, params.self_pairs, params.self_min, params.floor_gamma, A[m:m + n_self],
                         b[m:m + n_self])
     m += n_self
+    n_fixed = params.fixed_capsules.shape[0]
+    fixed_partner_rows(arm.ends, params.fixed_capsules, params.fixed_ends, params.fixed_min, params.floor_gamma,
+                       A[m:m + n_fixed], b[m:m + n_fixed])
+    m += n_fixed
     unmodelled_margin(A[:m], b[:m], params.unmodelled_force)
     if params.joint_rows:
         joint_limit_rows(arm.qpos, arm.qvel, arm.Minv, arm.qacc_free, params, A[m:m + 4 * n], b[m:m + 4 * n])

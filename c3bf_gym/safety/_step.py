@@ -349,7 +349,7 @@ def filter_substep(stage, tau_nom, tau, buffers):
     """
     arm, obstacles, params, A, b, scale, limit, qp, tally, intervention_tol = buffers
     m, min_h, inside, n_sensed = filter_rows(stage, arm, obstacles, params, A, b, tally.row_h)
-    n_floor, n_self = params.floor_ends.shape[0], params.self_pairs.shape[0]
+    n_floor, n_self = params.floor_ends.shape[0], params.self_pairs.shape[0] + params.fixed_capsules.shape[0]
     n_fixed = n_floor + n_self + (4 * params.dofs.shape[0] if params.joint_rows else 0)
     stride = 2 if params.guard.present else 1  # obstacle rows: barrier, guard, barrier, guard, ... beside a guard
     layout = RowLayout(m - n_fixed, stride, n_floor, n_self)

@@ -401,6 +401,8 @@ class SafetyController:
             ee_radius=float(self.ee_radius), sensing_radius=float(self.sensing_radius), margin=float(self.margin),
             floor_gamma=self.floor.gamma, floor_ends=self.floor.ends, floor_min=self.floor.min_height,
             self_pairs=self.self_collision.pairs, self_min=self.self_collision.min_distance,
+            fixed_capsules=self.self_collision.fixed_capsules, fixed_ends=self.self_collision.fixed_ends,
+            fixed_min=self.self_collision.fixed_min,
             joint_rows=joint_limits is not None, joint_gains=joint_gains, q_lo=q_lo, q_hi=q_hi, qd_max=qd_max,
             dofs=self._dofs, qpos_ids=self._qpos_ids, unmodelled_force=self._unmodelled,
         )
@@ -524,7 +526,9 @@ class SafetyController:
         scratch.mocap_quat[:] = data.mocap_quat
         mujoco.mj_forward(model, scratch)
         protected = {int(g): k for k, g in enumerate(self.arm.capsule_ids)}
-        paired = {frozenset(map(int, pair)) for pair in self.self_collision.pairs}
+        rows = self.self_collision
+        paired = {frozenset(map(int, pair)) for pair in rows.pairs}
+        paired |= {frozenset((int(k), ~int(g))) for k, g in zip(rows.fixed_capsules, rows.fixed_geoms)}
         root = model.body_rootid[model.geom_bodyid[int(self.arm.capsule_ids[0])]]
         seen = set()
         for contact in scratch.contact[: scratch.ncon]:
@@ -532,7 +536,8 @@ class SafetyController:
             for mine, other in ((g1, g2), (g2, g1)):
                 if mine not in protected or model.body_rootid[model.geom_bodyid[other]] != root:
                     continue
-                if other in protected and frozenset((protected[mine], protected[other])) in paired:
+                partner = protected[other] if other in protected else ~other  # (a fixed part: ~geom)
+                if frozenset((protected[mine], partner)) in paired:
                     continue  # a row of its own pushes them apart
                 key = frozenset((mine, other))
                 if key in seen:
