@@ -262,12 +262,13 @@ def _pair_gap(ends, ends2, i, j, s, t, axis, col):
 
 
 @njit(inline="always", **_opts)
-def _pair_row(ends, i, s, partner, t, seg1, seg2, d_min, gamma, A, b, k):
-    """Row ``k`` of :func:`self_collision_rows` for the point ``s`` along capsule ``i``'s axis of
-    the packed ``ends`` and the point ``t`` along a partner: ``partner`` is ``(ends2, j)``, capsule
-    ``j`` of the packed ``ends2`` (which may be ``ends``). ``seg1``, ``seg2`` are the two axes'
-    directions (3-tuples), for the sliding correction."""
-    ends2, j = partner
+def _pair_row(first, second, d_min, gamma, A, b, k):
+    """Row ``k`` of :func:`self_collision_rows` between two points, each ``(packed ends, capsule,
+    parameter along its axis, the axis's direction)``: ``first`` the arm's capsule, ``second`` its
+    partner, a capsule of the arm's ends or of other packed ends (the axes' directions, 3-tuples,
+    for the sliding correction)."""
+    ends, i, s, seg1 = first
+    ends2, j, t, seg2 = second
     p = (_pair_gap(ends, ends2, i, j, s, t, 0, 0), _pair_gap(ends, ends2, i, j, s, t, 1, 0),
          _pair_gap(ends, ends2, i, j, s, t, 2, 0))
     v = (_pair_gap(ends, ends2, i, j, s, t, 0, 1), _pair_gap(ends, ends2, i, j, s, t, 1, 1),
@@ -331,7 +332,7 @@ def self_collision_rows(ends, pairs, d_min, gamma, A, b):
         a1, d1 = _axis(ends, i)
         a2, d2 = _axis(ends, j)
         s, t = _segment_params(a1, d1, a2, d2)
-        _pair_row(ends, i, s, (ends, j), t, d1, d2, d_min[k], gamma, A, b, k)
+        _pair_row((ends, i, s, d1), (ends, j, t, d2), d_min[k], gamma, A, b, k)
 
 
 @njit(**_opts)
@@ -345,7 +346,7 @@ def fixed_partner_rows(ends, capsules, fixed, d_min, gamma, A, b):
         a1, d1 = _axis(ends, i)
         a2, d2 = _axis(fixed, k)
         s, t = _segment_params(a1, d1, a2, d2)
-        _pair_row(ends, i, s, (fixed, k), t, d1, d2, d_min[k], gamma, A, b, k)
+        _pair_row((ends, i, s, d1), (fixed, k, t, d2), d_min[k], gamma, A, b, k)
 
 
 @njit(**_opts)
