@@ -102,7 +102,7 @@ class SelfCollision:
         configuration puts it. A capsule already within ``d_min`` of a fixed part there (the
         Sawyer's link 0 resting on its base) gets no row for it: no torque would part them, and
         :class:`~c3bf_gym.safety.SafetyController` warns of such contacts instead."""
-        from c3bf_gym.safety.geometry import UnsupportedGeomError, enclosing_capsule
+        from c3bf_gym.safety.geometry import UnsupportedGeomError, enclosing_capsule, world_segments
         from c3bf_gym.safety.robot import RobotDescription
 
         geoms = [int(g) for g in arm.capsule_ids]
@@ -124,7 +124,8 @@ class SelfCollision:
         for g in range(model.ngeom):
             if g in geoms or model.body_rootid[model.geom_bodyid[g]] != root:
                 continue
-            if not (model.geom_contype[g] or model.geom_conaffinity[g]):
+            partners = [i for i, gi in enumerate(geoms) if rules.collide(gi, g)]
+            if not partners:  # (before fitting a capsule to a mesh: the costly part)
                 continue
             try:
                 capsule = enclosing_capsule(model, g)
@@ -132,11 +133,11 @@ class SelfCollision:
                 continue
             if not RobotDescription._immovable(model, every_dof, g, capsule):
                 continue
-            rot = data.geom_xmat[g].reshape(3, 3)
-            ends = (data.geom_xpos[g] + rot @ capsule.a, data.geom_xpos[g] + rot @ capsule.b)
-            for i, gi in enumerate(geoms):
+            end_a, end_b = world_segments(data, np.array([g]), np.array([[capsule.a, capsule.b]]), np.array([-1]))
+            ends = (end_a[0], end_b[0])
+            for i in partners:
                 d_min = radius[i] + capsule.radius + margin
-                if rules.collide(gi, g) and _segment_distance(a[i], b[i], *ends) > d_min:
+                if _segment_distance(a[i], b[i], *ends) > d_min:
                     fixed.append(i)
                     fixed_geoms.append(g)
                     fixed_ends.append(ends)
