@@ -5,13 +5,17 @@ For the environment's arms (``C3BFReach-v0``'s UR5e, ``C3BFReachPanda-v0``'s Pan
 :func:`c3bf_gym.safety.filter_envelope` for 8 cm spheres sensed at 1 m (the environments'
 defaults): the largest sphere speed with a safe escape, the sensing radius 0.4 m/s would need, and
 the point that limits it, for the arm's own keep-out cylinder and, with ``--heights``, for other
-keep-out heights at the same radius.
+keep-out heights at the same radius. With ``--spawns N``, for the environments' arms: of the moving
+obstacles in the first N episodes of the ``random`` scenario (seeds 0 to N-1, as placed at reset),
+how many appear closer to the arm (surface to surface) than the sensing range ``D(V)`` their speed
+needs: the envelope's escape argument assumes an obstacle is first sensed that far out.
 
 Usage::
 
     python benchmarks/envelope.py                                   # every arm, its own keep-out
     python benchmarks/envelope.py --arms ur5e panda --heights 0.45 0.5 0.6 0.65 0.7
     python benchmarks/envelope.py --arms iiwa --radius 0.2 --heights 0.45 0.9
+    python benchmarks/envelope.py --arms ur5e panda --spawns 300
 """
 
 from __future__ import annotations
@@ -23,9 +27,16 @@ import warnings
 from pathlib import Path
 
 import gymnasium as gym
+import numpy as np
 
 import c3bf_gym  # noqa: F401  (registers the environments)
-from c3bf_gym.safety import FilterConfig, UnprotectedGeometryWarning, filter_envelope
+from c3bf_gym.safety import (
+    FilterConfig,
+    FilterEnvelope,
+    UnprotectedGeometryWarning,
+    filter_envelope,
+)
+from c3bf_gym.safety.dynamics import ArmModel, segment_closest_points
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import third_party  # noqa: E402
@@ -49,6 +60,26 @@ def _arm(name: str, cache: str | None):
     return model, robot, arm.init_qpos, arm.keep_out
 
 
+def spawns_inside(name: str, envelope: FilterEnvelope, episodes: int) -> tuple[int, int]:
+    """(moving obstacles placed at reset, those closer to the arm than ``envelope``'s
+    ``min_sensing_range`` of their speed) over ``episodes`` resets of environment arm ``name``'s
+    ``random`` scenario, seeds 0 to ``episodes - 1``."""
+    env = gym.make(ENVS[name], scenario="random").unwrapped
+    arm = ArmModel(env.model, env.robot.geom_ids, env.robot.site_id, env.robot.capsules)
+    moving = inside = 0
+    for seed in range(episodes):
+        env.reset(seed=seed)
+        obstacles = env.obstacles
+        a, b = arm.capsule_segments(env.data)
+        for k in np.flatnonzero(obstacles.active & (np.linalg.norm(obstacles.velocity, axis=1) > 0.0)):
+            closest = segment_closest_points(a, b, obstacles.position[k][None])[0]
+            gap = np.min(np.linalg.norm(closest - obstacles.position[k], axis=1) - arm.capsule_radius) - obstacles.radius[k]
+            moving += 1
+            inside += bool(gap < envelope.min_sensing_range(float(np.linalg.norm(obstacles.velocity[k]))))
+    env.close()
+    return moving, inside
+
+
 def main(argv: list[str] | None = None) -> list[dict]:
     choices = list(ENVS) + list(third_party.ARMS)
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -58,6 +89,8 @@ def main(argv: list[str] | None = None) -> list[dict]:
     parser.add_argument("--heights", type=float, nargs="+", help="keep-out heights [m] (default: each arm's own)")
     parser.add_argument("--configurations", type=int, default=128, help="drawn configurations (default 128)")
     parser.add_argument("--cache", help="robosuite download folder (third_party.py's --cache)")
+    parser.add_argument("--spawns", type=int, default=0, metavar="N", help="the environments' arms: moving obstacles "
+                        "of N random-scenario episodes placed inside the sensing range their speed needs")  # fmt: skip
     args = parser.parse_args(argv)
     rows = []
     print(f"default filter, spheres up to {RADIUS} m, sensing radius {CONFIG.sensing_radius} m")
@@ -75,6 +108,11 @@ def main(argv: list[str] | None = None) -> list[dict]:
                   f"{envelope.limiting_geom} {point}  ({time.perf_counter() - start:.1f} s)")  # fmt: skip
             rows.append({"arm": name, "keep_out": [radius, h], "max_speed": envelope.max_speed,
                          "sensing_for_0.4": needed, "limiting_geom": envelope.limiting_geom, "limiting_point": point})
+            if args.spawns and name in ENVS:
+                moving, inside = spawns_inside(name, envelope, args.spawns)
+                rows[-1]["spawned_inside"] = [inside, moving]
+                print(f"{'':<15} {inside} of the {moving} moving obstacles of {args.spawns} episodes appear closer "
+                      "than the sensing range their speed needs")  # fmt: skip
     return rows
 
 

@@ -297,6 +297,7 @@ class SafetyController:
         self.intervention_tol = config.intervention_tol
         self.envelope = envelope
         self._envelope_seen = (0.0, 0.0)  # the largest obstacle speed and radius checked so far
+        self._envelope_active = np.zeros(obstacles.capacity, dtype=bool)  # the slots active at the last check
         self._envelope_warned = False
         joint_limits = None
         reserve = speed_reserve = None
@@ -448,8 +449,12 @@ class SafetyController:
 
         Warns:
             EnvelopeWarning: once per controller, an active obstacle faster or larger than
-                :attr:`envelope` covers (computed the first time an obstacle is active when none
-                was given; not with an infinite sensing radius).
+                :attr:`envelope` covers, or one that became active closer to the arm than the
+                sensing range its speed needs (:meth:`FilterEnvelope.min_sensing_range
+                <c3bf_gym.safety.FilterEnvelope.min_sensing_range>`: the envelope's escape argument
+                assumes every obstacle is first sensed that far out); :attr:`envelope` is
+                computed the first time an obstacle is active when none was given. Not with an
+                infinite sensing radius.
 
         Raises:
             ValueError: ``tau_nom`` of the wrong shape, or with NaN or inf.
@@ -494,25 +499,48 @@ class SafetyController:
 
     def _check_envelope(self) -> None:
         """Warn once (:class:`~c3bf_gym.safety.EnvelopeWarning`) when an active obstacle is faster
-        or larger than :attr:`envelope` covers at this sensing radius; the envelope is computed
-        (no keep-out region) the first time an obstacle is active, if none was given. A speed
-        and radius no larger than ones already checked are not checked again."""
+        or larger than :attr:`envelope` covers at this sensing radius, or when an obstacle became
+        active (since the last call) inside the sensing range its speed needs; the envelope is
+        computed (no keep-out region) the first time an obstacle is active, if none was given. A
+        speed and radius no larger than ones already checked are not checked again."""
         obstacles = self.obstacles
+        appeared = obstacles.active & ~self._envelope_active
+        np.copyto(self._envelope_active, obstacles.active)
         active = np.flatnonzero(obstacles.active)
         if not len(active) or not math.isfinite(self.sensing_radius):
             return
         speed = float(np.sqrt((obstacles.velocity[active] ** 2).sum(axis=1).max()))
         radius = float(obstacles.radius[active].max())
-        if speed <= self._envelope_seen[0] and radius <= self._envelope_seen[1]:
+        faster = speed > self._envelope_seen[0] or radius > self._envelope_seen[1]
+        if not faster and not appeared.any():
             return
         if self.envelope is None:
             self.compute_envelope(radius)
-        self._envelope_seen = (max(speed, self._envelope_seen[0]), max(radius, self._envelope_seen[1]))
-        problems = self.envelope.problems(speed, radius, self.sensing_radius)
+        problems = []
+        if faster:
+            self._envelope_seen = (max(speed, self._envelope_seen[0]), max(radius, self._envelope_seen[1]))
+            problems = self.envelope.problems(speed, radius, self.sensing_radius)
+        if appeared.any():
+            problems += self._appeared_inside(np.flatnonzero(appeared))
         if problems:
             self._envelope_warned = True
             warnings.warn(EnvelopeWarning("the obstacles are outside the filter's envelope, where it guarantees "
                                           "nothing: " + "; ".join(problems)), stacklevel=3)  # fmt: skip
+
+    def _appeared_inside(self, slots: np.ndarray) -> list[str]:
+        """Why each obstacle of ``slots``, just become active, is outside :attr:`envelope`: its
+        surface closer to the arm than the sensing range its speed needs (one sentence each)."""
+        gaps = self._clearance()
+        out = []
+        for k in slots:
+            if gaps[k] >= self.sensing_radius:
+                continue  # sensed later, from the sensing radius in: the speed check covers it
+            speed = float(np.linalg.norm(self.obstacles.velocity[k]))
+            needed = self.envelope.min_sensing_range(speed)
+            if gaps[k] < needed:
+                out.append(f"obstacle {k} appeared {gaps[k]:.3g} m from the arm, moving at {speed:.3g} m/s, and the "
+                           f"envelope's escape argument needs it sensed {needed:.3g} m out or farther")
+        return out
 
     def _check_resting_contacts(self, model: mujoco.MjModel, data: mujoco.MjData) -> None:
         """Warn (:class:`~c3bf_gym.safety.UnprotectedGeometryWarning`) for each protected geom in
