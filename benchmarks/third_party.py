@@ -14,7 +14,7 @@ arm's geoms keep the file's ``contype`` and ``conaffinity``, so the arms can tou
 file excludes no pair; its first link touches the base at the start): contact forces are outside
 the filter's model, as in the project's own environment.
 
-Episodes of ``--seconds`` (5 s) at a 0.002 s physics step start from robosuite's initial joint
+Episodes of ``--seconds`` (:data:`SECONDS`, 8 s) at a 0.002 s physics step start from robosuite's initial joint
 configuration of the arm. Obstacle spheres (radius 5-8 cm, speed 0.1-0.4 m/s capped by the filter's
 envelope on the arm, :func:`speed_range`) are aimed at a random point of a random protected capsule
 or at the tool, as in the project's scenarios:
@@ -22,17 +22,22 @@ or at the tool, as in the project's scenarios:
 * ``static``: one sphere at rest, its surface 0.1-0.3 m from the point it is aimed at;
 * ``head_on``: one sphere coming horizontally straight at the point, along the line from the
   base's axis through it turned by up to 60 deg about the vertical (so that the path can stay
-  out of the keep-out cylinder), reaching it 0.8-2 s after the start, and leaving the scene
-  (deactivated) 0.3 m past it (so does every moving sphere);
-* ``crossing``: one sphere crossing that line at 50-90 deg, reaching the point 0.8-2 s in;
+  out of the keep-out cylinder), reaching it 0.8-2 s after it crosses into the sensing range
+  the filter's envelope needs at its speed (below), and leaving the scene (deactivated) 0.3 m
+  past it (so does every moving sphere);
+* ``crossing``: one sphere crossing that line at 50-90 deg, timed as ``head_on``'s;
 * ``multi``: four at once (static, head_on and two crossing), each aimed independently.
 
-Every sphere spawns at least 0.1 m (surface to surface) from every protected capsule and keeps its
-path (5 s, or until it leaves) above the floor and outside the arm's keep-out cylinder around the
+A sphere moving at ``V`` starts ``FilterEnvelope.min_sensing_range(V)`` back along its path from
+where it would be 0.8-2 s before its aim (so ``min_sensing_range(V) / V`` seconds more before it
+arrives) and at least that far from every protected capsule: the envelope's escape argument
+assumes an obstacle is sensed that far out, and one that appeared closer would be outside it
+(``--ignore-envelope`` drops this too). Every sphere spawns at least 0.1 m (surface to surface)
+from every protected capsule and keeps its path (over the episode, or until it leaves) above the floor and outside the arm's keep-out cylinder around the
 base's vertical axis (:attr:`Arm.keep_out`: the base and the links the pan joint only turns in place
 cannot sidestep, so no controller could protect them). The speeds and the keep-out are those of
 the envelope the filter states (``c3bf_gym.safety.filter_envelope``), printed per arm;
-``--ignore-envelope`` sends every arm spheres at 0.1-0.4 m/s. Policies (:data:`POLICIES`):
+``--ignore-envelope`` sends every arm spheres at 0.1-0.4 m/s, from 0.8-2 s before their aim. Policies (:data:`POLICIES`):
 
 * ``random``: gravity and Coriolis compensation (``data.qfrc_bias``) plus torques drawn uniformly
   within ``robot.torque_limit``, the draw held for 10 physics steps (a 50 Hz policy at 500 Hz
@@ -74,6 +79,7 @@ import tempfile
 import time
 import warnings
 import zipfile
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -225,6 +231,7 @@ CROSSING_ANGLE = (50.0, 90.0)  # [deg] a crossing sphere's heading from the head
 SPAWN_CLEARANCE = 0.1  # [m] from every protected capsule at the start
 MIN_HEIGHT = 0.05  # [m] every sphere's surface stays this far above the floor
 EXTRA_MOTOR_TORQUE = 10.0  # [N m] bound of a motor added to a joint the file leaves without one
+SECONDS = 8.0  # [s] episode length: the slowest-escaping arm's fastest sphere meets its aim by 6.3 s
 CUTOFF = 1.0  # [m] distances beyond this are not resolved (the lowest clearance is capped here)
 SENSING_RADIUS = 1.0  # [m] the filter's, as C3BFReach-v0's default
 #: The kinds of rows that give way last (priority 1): the ``hard/1k`` column counts steps where any did.
@@ -309,13 +316,19 @@ def build_scene(assets: Path, arm: str, spheres: int) -> tuple[mujoco.MjModel, R
 
 
 def _spawn(rng: np.random.Generator, kinds: tuple[str, ...], a: np.ndarray, b: np.ndarray, capsule_radius: np.ndarray,
-           tool: np.ndarray, horizon: float, *, speed: tuple[float, float],
-           keep_out: tuple[float, float]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+           tool: np.ndarray, horizon: float, *, speed: tuple[float, float], keep_out: tuple[float, float],
+           sensing: Callable[[float], float] | None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Positions (K, 3), velocities (K, 3), radii (K,) and leaving times (K,) of one sphere per
     kind, aimed at the capsules ``a``-``b`` (S, 3) of ``capsule_radius`` (S,) or the ``tool`` (3,)
     [m] (module docstring), moving at a speed drawn from ``speed`` [m/s] on paths out of the
     ``keep_out`` cylinder (radius, height) [m] until they leave the scene, :data:`PASS_DISTANCE`
-    past their aim point (inf for a static sphere) [s]; RuntimeError when 1,000 attempts place none."""
+    past their aim point (inf for a static sphere) [s]; RuntimeError when 1,000 attempts place none.
+
+    ``sensing``: the sensing range [m] the filter's envelope needs at a speed [m/s]
+    (``FilterEnvelope.min_sensing_range``), or None. A moving sphere then starts that much further
+    back on its path, ``sensing(V) / V`` seconds more before it meets its aim, and at least that
+    far (surface to surface) from every protected capsule: no sphere appears inside the range the
+    envelope's escape argument assumes it was sensed at."""
     out = np.zeros((len(kinds), 3)), np.zeros((len(kinds), 3)), np.zeros(len(kinds)), np.full(len(kinds), np.inf)
     for k, kind in enumerate(kinds):
         for _ in range(1000):
@@ -341,9 +354,11 @@ def _spawn(rng: np.random.Generator, kinds: tuple[str, ...], a: np.ndarray, b: n
                     angle = np.deg2rad(rng.uniform(*CROSSING_ANGLE))
                     heading = np.cos(angle) * heading + np.sin(angle) * normal
                 velocity = pace * heading
-                meet = rng.uniform(*MEET_TIME)
+                lead = 0.0 if sensing is None else sensing(pace)
+                meet = rng.uniform(*MEET_TIME) + lead / pace
                 position, leave = aim - velocity * meet, meet + PASS_DISTANCE / pace
-            if _placeable(position, velocity, radius, a, b, capsule_radius, min(horizon, leave), keep_out):
+            if _placeable(position, velocity, radius, a, b, capsule_radius, min(horizon, leave), keep_out,
+                          clearance=SPAWN_CLEARANCE if kind == "static" else max(SPAWN_CLEARANCE, lead)):
                 out[0][k], out[1][k], out[2][k], out[3][k] = position, velocity, radius, leave
                 break
         else:
@@ -352,11 +367,11 @@ def _spawn(rng: np.random.Generator, kinds: tuple[str, ...], a: np.ndarray, b: n
 
 
 def _placeable(position: np.ndarray, velocity: np.ndarray, radius: float, a: np.ndarray, b: np.ndarray,
-               capsule_radius: np.ndarray, horizon: float, keep_out: tuple[float, float]) -> bool:
-    """Clear of every capsule by :data:`SPAWN_CLEARANCE`, and a path over ``horizon`` s that stays
+               capsule_radius: np.ndarray, horizon: float, keep_out: tuple[float, float], *, clearance: float) -> bool:
+    """Clear of every capsule by ``clearance`` [m], and a path over ``horizon`` s that stays
     :data:`MIN_HEIGHT` above the floor and out of the ``keep_out`` cylinder (radius, height)."""
     closest = segment_closest_points(a, b, position[None])[0]
-    if np.min(np.linalg.norm(closest - position, axis=1) - capsule_radius) - radius < SPAWN_CLEARANCE:
+    if np.min(np.linalg.norm(closest - position, axis=1) - capsule_radius) - radius < clearance:
         return False
     path = position + np.linspace(0.0, horizon, 51)[:, None] * velocity
     if np.min(path[:, 2]) - radius < MIN_HEIGHT:
@@ -404,10 +419,20 @@ def speed_range(envelope: FilterEnvelope) -> tuple[float, float]:
     return min(SPEED[0], envelope.max_speed / 2), min(SPEED[1], envelope.max_speed)
 
 
-def run_episode(task: tuple[str, str, str, str, FilterConfig | None, int, float, tuple[float, float]]) -> Episode:
+def _envelope(assets: str, arm: str, config: FilterConfig) -> FilterEnvelope:
+    """:func:`arm_envelope` of ``config`` on ``arm``, computed once per process."""
+    if (assets, arm, config) not in _ENVELOPES:
+        model, robot, _ = _SCENES.get((assets, arm, 1)) or build_scene(Path(assets), arm, 1)
+        _ENVELOPES[assets, arm, config] = arm_envelope(model, robot, arm, config)
+    return _ENVELOPES[assets, arm, config]
+
+
+def run_episode(task: tuple[str, str, str, str, FilterConfig | None, int, float, tuple[float, float],
+                            FilterConfig | None]) -> Episode:
     """One episode: ``task`` = (assets folder, arm, scenario, policy, the filter's configuration or
-    None for none, seed, seconds, the spheres' speed range [m/s])."""
-    assets, arm, scenario, policy, config, seed, seconds, speed = task
+    None for none, seed, seconds, the spheres' speed range [m/s], the configuration whose envelope's
+    sensing range the moving spheres start outside of (:func:`_spawn`), or None for none)."""
+    assets, arm, scenario, policy, config, seed, seconds, speed, spawn_config = task
     filtered = config is not None
     kinds = SCENARIOS[scenario]
     key = (assets, arm, len(kinds))
@@ -421,10 +446,11 @@ def run_episode(task: tuple[str, str, str, str, FilterConfig | None, int, float,
     arm_model = ArmModel(model, robot.geom_ids, robot.site_id, robot.capsules)
     a, b = arm_model.capsule_segments(data)
     rng = np.random.default_rng(seed)
+    sensing = None if spawn_config is None else _envelope(assets, arm, spawn_config).min_sensing_range
     try:
         position, velocity, radius, leave = _spawn(rng, kinds, a, b, arm_model.capsule_radius,
                                                    data.site_xpos[robot.site_id], seconds, speed=speed,
-                                                   keep_out=ARMS[arm].keep_out)  # fmt: skip
+                                                   keep_out=ARMS[arm].keep_out, sensing=sensing)  # fmt: skip
     except RuntimeError as error:
         raise RuntimeError(f"{arm}, {scenario}, seed {seed}: {error}") from None
     balls = [model.geom(_BALL.format(k)).id for k in range(len(kinds))]
@@ -435,9 +461,7 @@ def run_episode(task: tuple[str, str, str, str, FilterConfig | None, int, float,
     spheres = MocapSpheres(model, [_BALL.format(k) for k in range(len(kinds))])
     controller = None
     if filtered:
-        if (assets, arm, config) not in _ENVELOPES:
-            _ENVELOPES[assets, arm, config] = arm_envelope(model, robot, arm, config)
-        controller = SafetyController(model, data, robot, spheres, config, envelope=_ENVELOPES[assets, arm, config])
+        controller = SafetyController(model, data, robot, spheres, config, envelope=_envelope(assets, arm, config))
     if controller is not None:
         arm_model = controller.arm
     out = Episode(arm, scenario, policy, filtered, seed)
@@ -573,7 +597,7 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--arms", nargs="+", help=f"from {', '.join(ARMS)} (default: all)")
     parser.add_argument("--scenarios", nargs="+", help=f"from {', '.join(SCENARIOS)} (default: all)")
     parser.add_argument("--policies", nargs="+", default=list(POLICIES), help=f"from {', '.join(POLICIES)}")
-    parser.add_argument("--seconds", type=float, default=5.0, help="episode length [s]")
+    parser.add_argument("--seconds", type=float, default=SECONDS, help="episode length [s]")
     parser.add_argument("--seed", type=int, default=0, help="episode i uses seed + i in every configuration")
     parser.add_argument("--workers", type=int, default=1, help="processes")
     parser.add_argument("--json", type=Path, help="write the settings and the table here")
@@ -615,7 +639,8 @@ def main(argv: list[str] | None = None) -> dict:
                           f"{envelope.limiting_geom}); spheres at {speeds[arm][0]:.3g}-{speeds[arm][1]:.3g} m/s")
     runnable = [arm for arm in arms if arm not in unsupported]
     twins = (config,) if args.no_unfiltered else (config, None)
-    tasks = [(str(assets), arm, scenario, policy, twin, args.seed + i, args.seconds, speeds[arm])
+    spawn_config = None if args.ignore_envelope else config
+    tasks = [(str(assets), arm, scenario, policy, twin, args.seed + i, args.seconds, speeds[arm], spawn_config)
              for arm in runnable for scenario in scenarios for policy in policies
              for i in range(args.episodes) for twin in twins]  # fmt: skip
     print(f"robosuite {ROBOSUITE_VERSION} arms from {assets}: {len(tasks)} episodes of {args.seconds:g} s "

@@ -112,6 +112,39 @@ def test_the_benchmark_runs_writes_its_json_and_the_unfiltered_adversary_collide
     assert result["configurations"] == rows
 
 
+def test_moving_spheres_start_outside_the_sensing_range_the_envelope_needs(assets):
+    """A moving sphere is first seen where the envelope's escape argument assumes it is sensed:
+    its surface at least ``min_sensing_range(V)`` from every protected capsule, 0.8-2 s (plus the
+    time to cross that range) before it meets its aim. Without that rule (``sensing=None``, as
+    ``--ignore-envelope``) the same draws put spheres inside it."""
+    model, robot, _ = tp.build_scene(assets, "sawyer", 4)
+    data = mujoco.MjData(model)
+    data.qpos[model.jnt_qposadr[model.dof_jntid[robot.dof_ids]]] = tp.ARMS["sawyer"].init_qpos
+    mujoco.mj_forward(model, data)
+    arm = tp.ArmModel(model, robot.geom_ids, robot.site_id, robot.capsules)
+    a, b = arm.capsule_segments(data)
+    envelope = tp._envelope(str(assets), "sawyer", tp.CONFIG)
+    needed, inside_without = envelope.min_sensing_range, 0
+    for seed in range(8):
+        for sensing in (needed, None):
+            position, velocity, radius, leave = tp._spawn(
+                np.random.default_rng(seed), tp.SCENARIOS["multi"], a, b, arm.capsule_radius,
+                data.site_xpos[robot.site_id], tp.SECONDS, speed=tp.speed_range(envelope),
+                keep_out=tp.ARMS["sawyer"].keep_out, sensing=sensing)  # fmt: skip
+            closest = tp.segment_closest_points(a, b, position)  # (K, S, 3)
+            gaps = (np.linalg.norm(closest - position[:, None], axis=2) - arm.capsule_radius).min(axis=1) - radius
+            for k in np.flatnonzero(np.linalg.norm(velocity, axis=1) > 0):  # the moving ones
+                pace = np.linalg.norm(velocity[k])
+                lead = needed(pace) / pace if sensing is not None else 0.0
+                meet = leave[k] - tp.PASS_DISTANCE / pace - lead  # [s] from where the old rule started it
+                assert tp.MEET_TIME[0] - 1e-9 <= meet <= tp.MEET_TIME[1] + 1e-9
+                if sensing is not None:
+                    assert gaps[k] >= max(tp.SPAWN_CLEARANCE, needed(pace)) - 1e-9
+                else:
+                    inside_without += gaps[k] < needed(pace)
+    assert inside_without > 0
+
+
 def test_the_command_line_names_the_valid_choices(capsys):
     with pytest.raises(SystemExit) as exit_info:
         tp.main(["--arms", "ur10"])
