@@ -36,7 +36,6 @@ from c3bf_gym.safety import (
     UnprotectedGeometryWarning,
     filter_envelope,
 )
-from c3bf_gym.safety.dynamics import ArmModel, segment_closest_points
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import third_party  # noqa: E402
@@ -63,19 +62,17 @@ def _arm(name: str, cache: str | None):
 def spawns_inside(name: str, envelope: FilterEnvelope, episodes: int) -> tuple[int, int]:
     """(moving obstacles placed at reset, those closer to the arm than ``envelope``'s
     ``min_sensing_range`` of their speed) over ``episodes`` resets of environment arm ``name``'s
-    ``random`` scenario, seeds 0 to ``episodes - 1``."""
+    ``random`` scenario, seeds 0 to ``episodes - 1``; distances as the filter senses them
+    (``obstacle_distances``: MuJoCo's, to every arm geom)."""
     env = gym.make(ENVS[name], scenario="random").unwrapped
-    arm = ArmModel(env.model, env.robot.geom_ids, env.robot.site_id, env.robot.capsules)
     moving = inside = 0
     for seed in range(episodes):
         env.reset(seed=seed)
-        obstacles = env.obstacles
-        a, b = arm.capsule_segments(env.data)
-        for k in np.flatnonzero(obstacles.active & (np.linalg.norm(obstacles.velocity, axis=1) > 0.0)):
-            closest = segment_closest_points(a, b, obstacles.position[k][None])[0]
-            gap = np.min(np.linalg.norm(closest - obstacles.position[k], axis=1) - arm.capsule_radius) - obstacles.radius[k]
+        speeds = np.linalg.norm(env.obstacles.velocity, axis=1)
+        gaps = env.obstacle_distances()
+        for k in np.flatnonzero(env.obstacles.active & (speeds > 0.0)):
             moving += 1
-            inside += bool(gap < envelope.min_sensing_range(float(np.linalg.norm(obstacles.velocity[k]))))
+            inside += bool(gaps[k] < envelope.min_sensing_range(float(speeds[k])))
     env.close()
     return moving, inside
 

@@ -419,10 +419,11 @@ def speed_range(envelope: FilterEnvelope) -> tuple[float, float]:
     return min(SPEED[0], envelope.max_speed / 2), min(SPEED[1], envelope.max_speed)
 
 
-def _envelope(assets: str, arm: str, config: FilterConfig) -> FilterEnvelope:
-    """:func:`arm_envelope` of ``config`` on ``arm``, computed once per process."""
+def _envelope(assets: str, arm: str, config: FilterConfig, model: mujoco.MjModel,
+              robot: RobotDescription) -> FilterEnvelope:
+    """:func:`arm_envelope` of ``config`` on ``arm`` (``model`` and ``robot``: any of its scenes,
+    the spheres do not enter it), computed once per process."""
     if (assets, arm, config) not in _ENVELOPES:
-        model, robot, _ = _SCENES.get((assets, arm, 1)) or build_scene(Path(assets), arm, 1)
         _ENVELOPES[assets, arm, config] = arm_envelope(model, robot, arm, config)
     return _ENVELOPES[assets, arm, config]
 
@@ -446,7 +447,7 @@ def run_episode(task: tuple[str, str, str, str, FilterConfig | None, int, float,
     arm_model = ArmModel(model, robot.geom_ids, robot.site_id, robot.capsules)
     a, b = arm_model.capsule_segments(data)
     rng = np.random.default_rng(seed)
-    sensing = None if spawn_config is None else _envelope(assets, arm, spawn_config).min_sensing_range
+    sensing = None if spawn_config is None else _envelope(assets, arm, spawn_config, model, robot).min_sensing_range
     try:
         position, velocity, radius, leave = _spawn(rng, kinds, a, b, arm_model.capsule_radius,
                                                    data.site_xpos[robot.site_id], seconds, speed=speed,
@@ -461,7 +462,8 @@ def run_episode(task: tuple[str, str, str, str, FilterConfig | None, int, float,
     spheres = MocapSpheres(model, [_BALL.format(k) for k in range(len(kinds))])
     controller = None
     if filtered:
-        controller = SafetyController(model, data, robot, spheres, config, envelope=_envelope(assets, arm, config))
+        controller = SafetyController(model, data, robot, spheres, config,
+                                      envelope=_envelope(assets, arm, config, model, robot))
     if controller is not None:
         arm_model = controller.arm
     out = Episode(arm, scenario, policy, filtered, seed)
@@ -576,8 +578,7 @@ def _check_arm(assets: Path, arm: str, config: FilterConfig) -> tuple[str | None
         SafetyController(model, mujoco.MjData(model), robot, MocapSpheres(model, [_BALL.format(0)]), config)
     except UnsupportedModelError as error:
         return str(error), [], None
-    envelope = _ENVELOPES[str(assets), arm, config] = arm_envelope(model, robot, arm, config)  # run_episode's too
-    return None, notes, envelope
+    return None, notes, _envelope(str(assets), arm, config, model, robot)  # run_episode's too
 
 
 def _choices(values: list[str], valid, what: str, parser: argparse.ArgumentParser) -> list[str]:

@@ -123,7 +123,7 @@ def test_moving_spheres_start_outside_the_sensing_range_the_envelope_needs(asset
     mujoco.mj_forward(model, data)
     arm = tp.ArmModel(model, robot.geom_ids, robot.site_id, robot.capsules)
     a, b = arm.capsule_segments(data)
-    envelope = tp._envelope(str(assets), "sawyer", tp.CONFIG)
+    envelope = tp._envelope(str(assets), "sawyer", tp.CONFIG, model, robot)
     needed, inside_without = envelope.min_sensing_range, 0
     for seed in range(8):
         for sensing in (needed, None):
