@@ -133,6 +133,10 @@ TRAINING_TABLES = (
     # default filter, seeds 0 and 1 (code 441059c)
     ("training_table_sets_ur5e_random_multi.md", "sets_ur5e_random_multi/sac_*", "final_eval.json",
      "training_curves_sets_ur5e_random_multi.png"),
+    # an attempt on the Panda: the candidate with the speed split (joint_range_reserve=0.3,
+    # allowance_level=true, joint_speed_fraction=1.0, nominal_speed_fraction=0.5; code 815766a), seeds 0 and 1
+    ("training_table_sets_candidate_speed_panda.md", "sets_candidate_speed/panda_sac_*", "final_eval.json",
+     "training_curves_sets_candidate_speed_panda.png"),
 )
 
 
