@@ -284,6 +284,11 @@ class TrainConfig:
     ``observe_correction`` appends the filter's last correction to the observation
     (:class:`~c3bf_gym.wrappers.FilterFeedback`; SB3 and a filter only).
 
+    ``posture_reach`` [rad] gives the policy the impedance controller's posture target too: the
+    action gets one entry per joint, the posture ``q_home + posture_reach * a[3:]``
+    (:class:`~c3bf_gym.wrappers.CartesianImpedanceAction`'s ``posture_reach``; Cartesian action
+    modes only; None, the default: the tool target only).
+
     ``action_weight`` None (the default) is the arm's, :data:`ACTION_WEIGHTS` (UR5e 3, Panda 10),
     resolved when the config is made like ``timesteps``.
 
@@ -321,6 +326,7 @@ class TrainConfig:
     obstacle_encoder: Literal["flat", "set"] = "set"
     observe_correction: bool = False
     posture_stiffness: float | None = None
+    posture_reach: float | None = None
     residual_fade: float | None = None
     hyperparams: dict[str, Any] = field(default_factory=dict)
 
@@ -363,6 +369,11 @@ class TrainConfig:
             if self.action == "torque":
                 raise ValueError("posture_stiffness sets the impedance controller of the Cartesian action modes "
                                  "('impedance', 'residual'); this run's action is 'torque'")  # fmt: skip
+        if self.posture_reach is not None:
+            validation.number("posture_reach", self.posture_reach, low=0.0, low_open=True)
+            if self.action == "torque":
+                raise ValueError("posture_reach moves the impedance controller's posture target, in the Cartesian "
+                                 "action modes ('impedance', 'residual'); this run's action is 'torque'")  # fmt: skip
         _residual_fade_or_none(self.residual_fade, self.action)
         if not (isinstance(self.hyperparams, dict) and all(isinstance(key, str) for key in self.hyperparams)):
             raise ValueError(f"hyperparams must be a dict of keyword arguments, got {self.hyperparams!r}")
@@ -390,6 +401,7 @@ class TrainConfig:
         encoder = "" if self.obstacle_encoder == "flat" else f"_{self.obstacle_encoder}"
         encoder += "_oc" if self.observe_correction else ""
         encoder += "" if self.posture_stiffness is None else f"_ps{self.posture_stiffness:g}"
+        encoder += "" if self.posture_reach is None else f"_pr{self.posture_reach:g}"
         encoder += f"_fade{self.residual_fade:g}" if self.residual_fade else ""
         robot = "" if self.robot == "ur5e" else f"{self.robot}_"  # UR5e runs keep their earlier names
         engine = "" if self.engine == "sb3" else f"{self.engine}_"
@@ -466,6 +478,7 @@ def build_env(
     observe_correction: bool = False,
     posture_stiffness: float | None = None,
     residual_fade: float | None = None,
+    posture_reach: float | None = None,
     **env_kwargs: Any,
 ) -> gym.Env:
     """``ActionPenalty(FilterFeedback(SafetyFilter(CartesianImpedanceAction(C3BFReach-v0))))``,
@@ -475,12 +488,13 @@ def build_env(
     :class:`~c3bf_gym.safety.FilterConfig`; ``guard_gamma``: the guard's gains where it has one
     (None: the default); ``posture_stiffness``: the impedance controller's null-space pull
     [N m/rad] (None: the arm's own, :func:`~c3bf_gym.wrappers.default_impedance`);
-    ``residual_fade``: the residual action's ``fade`` [m] (None or 0: none); ``env_kwargs`` go to
-    ``gym.make`` (:func:`env_kwargs`).
+    ``residual_fade``: the residual action's ``fade`` [m] (None or 0: none); ``posture_reach``:
+    the action's posture entries [rad] (None: none); ``env_kwargs`` go to ``gym.make``
+    (:func:`env_kwargs`).
 
     Raises:
         ValueError: an unknown filter or action mode, ``observe_correction`` without a filter,
-            ``posture_stiffness`` with torque actions, a ``residual_fade`` that is not a finite
+            ``posture_stiffness`` or ``posture_reach`` with torque actions, a ``residual_fade`` that is not a finite
             number >= 0 or is given with other than residual actions, or bad environment keywords.
     """
     config = filter_config(filter, guard_gamma)
@@ -489,9 +503,12 @@ def build_env(
     env = gym.make("C3BFReach-v0", scenario=scenario, **env_kwargs)
     if action in ("impedance", "residual"):
         controller = None if posture_stiffness is None else default_impedance(env.unwrapped, posture_stiffness)
-        env = CartesianImpedanceAction(env, controller=controller, residual=action == "residual", fade=fade)
-    elif posture_stiffness is not None:
-        raise ValueError(f"posture_stiffness sets the impedance controller of the Cartesian action modes; action={action!r}")
+        env = CartesianImpedanceAction(env, controller=controller, residual=action == "residual", fade=fade,
+                                       posture_reach=posture_reach)  # fmt: skip
+    else:
+        for name, value in (("posture_stiffness", posture_stiffness), ("posture_reach", posture_reach)):
+            if value is not None:
+                raise ValueError(f"{name} sets the impedance controller of the Cartesian action modes; action={action!r}")
     if config is not None:
         env = SafetyFilter(env, config)
     if observe_correction:
@@ -512,6 +529,7 @@ def make_env(
     observe_correction: bool = False,
     posture_stiffness: float | None = None,
     residual_fade: float | None = None,
+    posture_reach: float | None = None,
     **env_kwargs: Any,
 ) -> Callable[[], gym.Env]:
     """A thunk building ``Monitor(build_env(...))`` (:func:`build_env`) for SB3 vector envs,
@@ -523,7 +541,8 @@ def make_env(
 
     def thunk() -> gym.Env:
         env = build_env(scenario, config, action, action_weight, observe_correction=observe_correction,
-                        posture_stiffness=posture_stiffness, residual_fade=residual_fade, **env_kwargs)
+                        posture_stiffness=posture_stiffness, residual_fade=residual_fade, posture_reach=posture_reach,
+                        **env_kwargs)
         env = Monitor(env, monitor_file, info_keywords=info_keywords(config))
         env.reset(seed=seed)
         env.action_space.seed(seed)
@@ -622,7 +641,7 @@ def train(config: TrainConfig, address: str | None = None) -> Path:
     eval_env = DummyVecEnv(
         [make_env(config.evaluated_scenario, filter_, config.action, seed=10_000 + config.seed, action_weight=penalty,
                   observe_correction=config.observe_correction, posture_stiffness=config.posture_stiffness,
-                  residual_fade=config.residual_fade, **rate)]
+                  residual_fade=config.residual_fade, posture_reach=config.posture_reach, **rate)]
     )
     if config.normalize_obs:
         # Running mean/std of the observations (not of the rewards); EvalCallback copies the
@@ -669,7 +688,7 @@ def training_envs(config: TrainConfig):
     thunks = [make_env(config.scenario, filter_, config.action, seed=config.seed * 1000 + i,
                        action_weight=config.action_weight, observe_correction=config.observe_correction,
                        posture_stiffness=config.posture_stiffness, residual_fade=config.residual_fade,
-                       **config.env_kwargs())
+                       posture_reach=config.posture_reach, **config.env_kwargs())
               for i in range(config.n_envs)]  # fmt: skip
     return SubprocVecEnv(thunks) if config.n_envs > 1 else DummyVecEnv(thunks)
 
@@ -802,7 +821,7 @@ def evaluate(
     policy rate and reward (``distance_weight``, ``action_weight``) are the run's too (also for
     ``best/`` and ``checkpoints/`` models), so returns compare only between runs with the same
     reward; success and collisions do not depend on it. So are the nominal controller's
-    ``posture_stiffness``, the residual action's ``residual_fade`` (unless ``residual_fade`` is
+    ``posture_stiffness`` and ``posture_reach``, the residual action's ``residual_fade`` (unless ``residual_fade`` is
     given: 0 for none) and ``observe_correction`` (such a run needs a filter: ValueError
     otherwise). A run
     trained with ``normalize_obs`` has its final observation statistics in the run directory;
@@ -846,7 +865,7 @@ def evaluate(
                          config.get("robot", "ur5e"))
     env = build_env(scenario, filter_, action, action_weight=config.get("action_weight", 0.0),
                     observe_correction=observe, posture_stiffness=config.get("posture_stiffness"),
-                    residual_fade=residual_fade, **run_env)  # fmt: skip
+                    residual_fade=residual_fade, posture_reach=config.get("posture_reach"), **run_env)  # fmt: skip
     env.reset(seed=seed)  # as a training env starts (make_env); each episode below is reseeded
     for episode in range(episodes):
         obs, _ = env.reset(seed=seed + episode)

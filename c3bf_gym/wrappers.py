@@ -172,6 +172,13 @@ class CartesianImpedanceAction(gym.ActionWrapper, gym.utils.RecordConstructorArg
     actions apart, cannot hold the tool off it. Measured in the docs' RL results page ("Holding
     the goal").
 
+    With ``posture_reach`` the action has ``n`` more entries, one per joint: the posture task's
+    target is ``q_home + posture_reach * a[3:]`` [rad] (``q_home`` the controller's posture),
+    set when the step begins. The posture task acts in the tool task's null space, so these
+    entries choose how the redundant arm holds the tool (where the elbow and the wrist are, how
+    the tool points) without pulling the tool itself; ``a[3:] = 0`` is the controller alone.
+    The action space is then ``Box(-1, 1, (3 + n,))``.
+
     Args:
         env: a ``C3BFReach-v0`` environment (possibly wrapped, e.g. by :class:`SafetyFilter`).
         max_offset: the target's largest distance from the tool per axis (per part with
@@ -180,6 +187,8 @@ class CartesianImpedanceAction(gym.ActionWrapper, gym.utils.RecordConstructorArg
         residual: actions correct a straight step for the goal instead of being the whole offset.
         fade: with ``residual``, the goal distance [m] below which the correction shrinks in
             proportion (None: never).
+        posture_reach: the largest posture offset per joint [rad] the action sets (None: the
+            action sets the tool target only). Needs a controller with a posture task.
 
     ``gym.make(wrapped.spec)`` rebuilds the same stack (the wrapper records its arguments).
     Pickling rebuilds the wrapper, and so its controller hook, around the unpickled environment
@@ -193,10 +202,11 @@ class CartesianImpedanceAction(gym.ActionWrapper, gym.utils.RecordConstructorArg
         controller: CartesianImpedance | None = None,
         residual: bool = False,
         fade: float | None = None,
+        posture_reach: float | None = None,
     ) -> None:
         gym.utils.RecordConstructorArgs.__init__(self, max_offset=max_offset, controller=controller, residual=residual,
-                                                 fade=fade)  # fmt: skip
-        gym.utils.EzPickle.__init__(self, env, max_offset, controller, residual, fade)
+                                                 fade=fade, posture_reach=posture_reach)  # fmt: skip
+        gym.utils.EzPickle.__init__(self, env, max_offset, controller, residual, fade, posture_reach)
         super().__init__(env)
         base = reach_env(env, "CartesianImpedanceAction")
         if base.has_torque_hook("nominal"):
@@ -210,13 +220,25 @@ class CartesianImpedanceAction(gym.ActionWrapper, gym.utils.RecordConstructorArg
                 raise ValueError("fade shrinks the residual correction near the goal: it needs residual=True")
             if isinstance(fade, bool) or not (isinstance(fade, (int, float)) and np.isfinite(fade) and fade > 0):
                 raise ValueError(f"fade must be None or a finite number > 0 (m), got {fade!r}")
+        controller = controller or default_impedance(base)
+        if posture_reach is not None:
+            if isinstance(posture_reach, bool) or not (
+                    isinstance(posture_reach, (int, float)) and np.isfinite(posture_reach) and posture_reach > 0):
+                raise ValueError(f"posture_reach must be None or a finite number > 0 (rad), got {posture_reach!r}")
+            if controller.posture is None:
+                raise ValueError("posture_reach moves the controller's posture task, and this controller has none: "
+                                 "build it with posture=")  # fmt: skip
         self.fade = None if fade is None else float(fade)
         self.max_offset = float(max_offset)
         self.residual = bool(residual)
-        self.hook = ImpedanceHook(base, controller or default_impedance(base))
+        self.posture_reach = None if posture_reach is None else float(posture_reach)
+        self.hook = ImpedanceHook(base, controller)
         base.add_torque_hook(self.hook, stage="nominal")
         self._base = base
-        self.action_space = gym.spaces.Box(-1.0, 1.0, shape=(3,), dtype=np.float32)
+        self._home = None if controller.posture is None else controller.posture.copy()
+        self._n_action = 3 if posture_reach is None else 3 + self._home.size
+        self.action_space = gym.spaces.Box(-1.0, 1.0, shape=(self._n_action,), dtype=np.float32)
+        self._scales = "fractions of max_offset per axis" + ("" if posture_reach is None else ", then of posture_reach")
         self._zero = np.zeros(base.action_space.shape, dtype=np.float32)
         self._tool = base.data.site_xpos[base.ee_site_id]  # views, made once
         self._goal = base.goal
@@ -224,8 +246,8 @@ class CartesianImpedanceAction(gym.ActionWrapper, gym.utils.RecordConstructorArg
 
     def action(self, action: np.ndarray) -> np.ndarray:
         a = np.asarray(action)
-        if a.shape != (3,):
-            raise ValueError(f"action must have shape (3,), got {a.shape}")
+        if a.shape != (self._n_action,):
+            raise ValueError(f"action must have shape ({self._n_action},), got {a.shape}")
         if a.dtype.kind not in "fiu":
             raise ValueError(f"action must be a real (float) array, got dtype {a.dtype}")
         # on the entries as Python numbers: for three of them, cheaper than numpy's abs and all (the
@@ -233,8 +255,11 @@ class CartesianImpedanceAction(gym.ActionWrapper, gym.utils.RecordConstructorArg
         if not all(-_ACTION_BOUND <= v <= _ACTION_BOUND for v in a.tolist()):  # also False for NaN
             if not np.isfinite(a).all():
                 raise ValueError(f"action contains NaN or inf: {a}")
-            raise ValueError(f"action must lie in [-1, 1] (fraction of max_offset per axis), got {a}")
+            raise ValueError(f"action must lie in [-1, 1] ({self._scales}), got {a}")
         tool = self._tool
+        if self.posture_reach is not None:
+            self.hook.set_posture(self._home + self.posture_reach * a[3:])
+            a = a[:3]
         offset = self.max_offset * a
         if self.residual:  # + clip(goal − tool, ±max_offset), per axis
             m, straight, squared = self.max_offset, self._straight, 0.0

@@ -337,6 +337,21 @@ def test_posture_of_another_length_rejected(make_env):
         ImpedanceHook(env.unwrapped, CartesianImpedance(posture=np.zeros(6), posture_stiffness=np.ones(4)))
 
 
+def test_set_posture_checks_its_argument_and_leaves_the_controller_alone(make_env):
+    env = make_env(scenario="none")
+    controller = CartesianImpedance(posture=np.zeros(6))
+    hook = ImpedanceHook(env.unwrapped, controller)
+    hook.set_posture(np.full(6, 0.3))
+    np.testing.assert_array_equal(hook.gains.posture, 0.3)
+    np.testing.assert_array_equal(controller.posture, 0.0)  # the hook's copy moved, not the controller's
+    for bad in (np.zeros(5), np.r_[np.zeros(5), np.nan]):
+        with pytest.raises(ValueError, match="posture must be 6 finite joint angles"):
+            hook.set_posture(bad)
+    np.testing.assert_array_equal(hook.gains.posture, 0.3)
+    with pytest.raises(ValueError, match="this controller has no posture task to move"):
+        ImpedanceHook(make_env(scenario="none").unwrapped, CartesianImpedance()).set_posture(np.zeros(6))
+
+
 def oracle_at(env: C3BFReachEnv, ctrl: CartesianImpedance, target) -> np.ndarray:
     """The oracle's total torque at ``env``'s current state, from MuJoCo's own site Jacobian,
     ``mj_jacDot`` and mass matrix (with the integrator's implicit joint damping, as the env's arm)."""

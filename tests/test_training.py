@@ -175,6 +175,34 @@ def test_posture_stiffness_sets_the_nominal_controllers_pull_and_names_the_run()
         build_env("static", "none", "torque", posture_stiffness=2.0)
 
 
+def test_posture_reach_reaches_the_action_names_the_run_and_is_evaluated_with(tmp_path, monkeypatch):
+    """``posture_reach`` reaches the Cartesian action of the run's envs (one more entry per joint)
+    and its name; ``evaluate`` rebuilds a run's envs with the run's own; torque actions refuse it."""
+    import c3bf_gym.training as training
+
+    assert TrainConfig(posture_reach=0.5).name == "sac_residual_10hz_dw10_aw3_set_pr0.5_fade0.1_c3bf+hocbf_random_s0"
+    for reach, shape in ((None, (3,)), (0.5, (9,))):
+        env = build_env("static", "c3bf+hocbf", "residual", posture_reach=reach, **policy_rate_kwargs(10))
+        try:
+            assert env.get_wrapper_attr("posture_reach") == reach and env.action_space.shape == shape
+        finally:
+            env.close()
+    with pytest.raises(ValueError, match="posture_reach sets the impedance controller"):
+        build_env("static", "none", "torque", posture_reach=0.5)
+    for bad, message in (({"posture_reach": 0.0}, "posture_reach must be a finite number > 0"),
+                         ({"posture_reach": 0.5, "action": "torque"}, "this run's action is 'torque'")):  # fmt: skip
+        with pytest.raises(ValueError, match=re.escape(message)):
+            TrainConfig(**bad).validate()
+    built = []
+    monkeypatch.setattr(training, "build_env", lambda *args, **kwargs: built.append(kwargs) or build_env(*args, **kwargs))
+    monkeypatch.setattr(training, "_load_policy", lambda *args: lambda obs: np.zeros(9, np.float32))
+    (tmp_path / "model.zip").touch()
+    (tmp_path / "config.json").write_text(json.dumps({"algo": "sac", "action": "residual", "filter": "none",
+                                                      "policy_hz": 10, "posture_reach": 0.5}))  # fmt: skip
+    assert evaluate(tmp_path / "model.zip", episodes=1)["episodes"] == 1
+    assert built.pop()["posture_reach"] == 0.5
+
+
 def test_residual_fade_reaches_the_action_names_the_run_and_is_evaluated_with(tmp_path, monkeypatch):
     """``residual_fade`` reaches the residual action of the run's envs and its name; ``evaluate``
     rebuilds a run's envs with the run's own (None for runs from before the option)."""

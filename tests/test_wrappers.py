@@ -13,6 +13,7 @@ import pytest
 import c3bf_gym
 from c3bf_gym import DEFAULT_FILTER, FILTERS, ActionPenalty, CartesianImpedanceAction, FilterConfig, SafetyFilter
 from c3bf_gym.safety.barriers import C3BF, DistanceHOCBF
+from c3bf_gym.controllers import CartesianImpedance
 from c3bf_gym.wrappers import FilterFeedback
 from c3bf_gym.safety import GUARD_GAMMA
 
@@ -447,6 +448,71 @@ def test_bad_fade_rejected(make_env, kwargs, message):
     with pytest.raises(ValueError, match=re.escape(message)):
         CartesianImpedanceAction(env, **kwargs)
     assert not env.unwrapped.has_torque_hook("nominal")
+
+
+def test_posture_reach_moves_the_posture_target_and_not_the_tool_target(make_env):
+    """posture_reach: the action's last n entries set the posture task's target home + reach * a,
+    the first three the tool target exactly as without the option; zero entries are the
+    controller alone, and the controller's own posture is left as it was."""
+    plain = CartesianImpedanceAction(make_env(scenario="none"), residual=True, fade=0.1)
+    env = CartesianImpedanceAction(make_env(scenario="none"), residual=True, fade=0.1, posture_reach=0.5)
+    home = env.hook.controller.posture.copy()
+    assert env.action_space.shape == (3 + home.size,) and plain.action_space.shape == (3,)
+    for wrapper in (plain, env):
+        wrapper.reset(seed=3)
+    a = np.array([0.4, -1.0, 0.2], np.float32)
+    q = np.linspace(-1.0, 1.0, home.size).astype(np.float32)
+    env.action(np.concatenate([a, q]))
+    plain.action(a)
+    np.testing.assert_array_equal(env.hook.target_pos, plain.hook.target_pos)
+    np.testing.assert_allclose(env.hook.gains.posture, home + 0.5 * q, atol=1e-7)
+    np.testing.assert_array_equal(env.hook.controller.posture, home)
+    env.action(np.concatenate([a, np.zeros_like(q)]))
+    np.testing.assert_array_equal(env.hook.gains.posture, home)
+
+
+def test_posture_reach_moves_the_arm_and_holds_the_tool(make_env):
+    """With the tool target held, a posture offset turns the redundant joints (the tool task's null
+    space) and leaves the tool where the zero offset leaves it, to a few mm."""
+    finals = []
+    for entries in (0.0, 1.0):
+        env = CartesianImpedanceAction(make_env(scenario="none", frame_skip=50), residual=True, fade=0.1,
+                                       posture_reach=0.5)  # fmt: skip
+        env.reset(seed=5)
+        action = np.zeros(env.action_space.shape, np.float32)
+        action[3:] = entries
+        for _ in range(50):
+            _, _, _, _, info = env.step(action)
+        finals.append((env.unwrapped.data.qpos.copy(), info["distance"]))
+    (q_zero, d_zero), (q_moved, d_moved) = finals
+    assert np.abs(q_moved - q_zero).max() > 0.1
+    assert d_zero < 0.01 and d_moved < 0.01
+
+
+@pytest.mark.parametrize(("kwargs", "message"), [
+    ({"posture_reach": 0.0}, "posture_reach must be None or a finite number > 0"),
+    ({"posture_reach": float("inf")}, "posture_reach must be None or a finite number > 0"),
+    ({"posture_reach": True}, "posture_reach must be None or a finite number > 0"),
+    ({"posture_reach": 0.5, "controller": CartesianImpedance()}, "this controller has none: build it with posture="),
+])  # fmt: skip
+def test_bad_posture_reach_rejected(make_env, kwargs, message):
+    env = make_env(scenario="none")
+    with pytest.raises(ValueError, match=re.escape(message)):
+        CartesianImpedanceAction(env, residual=True, **kwargs)
+    assert not env.unwrapped.has_torque_hook("nominal")
+
+
+def test_posture_entries_checked_like_the_rest(make_env):
+    env = CartesianImpedanceAction(make_env(scenario="none"), residual=True, posture_reach=0.5)
+    env.reset(seed=1)
+    n = env.action_space.shape[0]
+    for bad, message in ((np.zeros(3, np.float32), f"action must have shape ({n},)"),
+                         (np.r_[np.zeros(3), 1.5 * np.ones(n - 3)].astype(np.float32), "then of posture_reach"),
+                         (np.r_[np.zeros(n - 1), np.nan].astype(np.float32), "NaN or inf")):  # fmt: skip
+        posture = env.hook.gains.posture.copy()
+        with pytest.raises(ValueError, match=re.escape(message)):
+            env.step(bad)
+        np.testing.assert_array_equal(env.hook.gains.posture, posture)
 
 
 @pytest.mark.parametrize("residual", [1, "yes", None])

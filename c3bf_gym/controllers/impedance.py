@@ -207,7 +207,8 @@ class ImpedanceHook:
 
     The target is either fixed by its owner (``set_target``: position, velocity, acceleration,
     held until the next call) or, with ``trajectory``, evaluated at the simulation time of every
-    physics step. The commanded torque arriving at the hook is replaced by the controller's.
+    physics step. The posture task's ``q₀`` can be moved the same way (``set_posture``). The
+    commanded torque arriving at the hook is replaced by the controller's.
 
     The law is :func:`c3bf_gym.controllers._kernels.impedance_substep` on the environment's arm
     (its ``Minv``, shared with the filter, and the tool site's Jacobian and ``J̇ q̇``), called
@@ -228,7 +229,8 @@ class ImpedanceHook:
 
     def __init__(self, env: C3BFReachEnv, controller: CartesianImpedance, trajectory: Trajectory | None = None) -> None:
         n = env.model.nv
-        self.gains = controller.gains(n)
+        gains = controller.gains(n)
+        self.gains = gains._replace(posture=gains.posture.copy())  # set_posture writes it, not the controller's
         self.env = env
         self.controller = controller
         self.trajectory = trajectory
@@ -246,6 +248,20 @@ class ImpedanceHook:
         self.target_pos[:] = pos
         self.target_vel[:] = 0.0 if vel is None else vel
         self.target_acc[:] = 0.0 if acc is None else acc
+
+    def set_posture(self, posture: np.ndarray) -> None:
+        """Hold the posture task's ``q₀`` (n,) [rad] until the next call (the controller's posture
+        until the first).
+
+        Raises:
+            ValueError: the controller has no posture task, or ``posture`` is not n finite angles.
+        """
+        if not self.gains.has_posture:
+            raise ValueError("this controller has no posture task to move: build it with posture=")
+        q0 = np.asarray(posture, dtype=float)
+        if q0.shape != self.gains.posture.shape or not np.isfinite(q0).all():
+            raise ValueError(f"posture must be {self.gains.posture.size} finite joint angles (rad), got {posture!r}")
+        self.gains.posture[:] = q0
 
     def _law(self) -> BoundImpedance:
         """The law bound to the environment's arrays (views), gathered once."""
