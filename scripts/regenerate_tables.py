@@ -137,6 +137,10 @@ TRAINING_TABLES = (
     # allowance_level=true, joint_speed_fraction=1.0, nominal_speed_fraction=0.5; code 815766a), seeds 0 and 1
     ("training_table_sets_candidate_speed_panda.md", "sets_candidate_speed/panda_sac_*", "final_eval.json",
      "training_curves_sets_candidate_speed_panda.png"),
+    # an attempt on the UR5e: the posture target in the action, c3bf-gym train --posture-reach 0.5
+    # --action-weight 9 (code 959cfa9), seeds 0 and 1
+    ("training_table_sets_ur5e_posture_reach.md", "sets_posture_reach/sac_*", "final_eval.json",
+     "training_curves_sets_ur5e_posture_reach.png"),
 )
 
 
