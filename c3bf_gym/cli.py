@@ -162,6 +162,9 @@ def _add_train(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--posture-stiffness", type=_nonnegative_float, default=d.posture_stiffness,
                    help="the impedance controller's null-space pull to home [N m/rad] (default: the arm's own, "
                         "20 on the UR5e, 2 on the Panda)")  # fmt: skip
+    p.add_argument("--correction-weight", type=_nonnegative_float, default=0.0,
+                   help="charge the safety filter's correction in the reward: -W * ||tau - tau_nom|| / ||tau_max|| "
+                        "per step (c3bf_gym.wrappers.CorrectionPenalty; a filter only; default: 0, none)")  # fmt: skip
     p.add_argument("--posture-reach", type=_positive_float, default=None, metavar="RAD",
                    help="give the policy the controller's posture target too: one more action entry per joint, the "
                         "posture home + RAD * a (Cartesian actions only; default: the tool target only)")  # fmt: skip
@@ -186,7 +189,7 @@ def _run_train(args: argparse.Namespace) -> int:
         eval_episodes=args.eval_episodes, final_eval_episodes=args.final_eval_episodes, checkpoint_freq=args.checkpoint_freq, out=args.out,
         progress_bar=not args.no_progress, normalize_obs=args.normalize_obs, policy_hz=args.policy_hz, distance_weight=args.distance_weight, action_weight=args.action_weight, obstacle_encoder=args.obstacle_encoder or defaults["obstacle_encoder"], hyperparams=args.hyperparams,
         observe_correction=args.observe_correction, posture_stiffness=args.posture_stiffness,
-        posture_reach=args.posture_reach, residual_fade=args.residual_fade,
+        posture_reach=args.posture_reach, correction_weight=args.correction_weight, residual_fade=args.residual_fade,
     )  # fmt: skip
     run_dir = train(config, address=args.address)
     print(f"run written to {run_dir}")

@@ -35,7 +35,8 @@ import numpy as np
 from c3bf_gym import validation
 from c3bf_gym.envs.reach import ROBOTS
 from c3bf_gym.safety import DEFAULT_FILTER, FILTERS, FilterConfig
-from c3bf_gym.wrappers import ActionPenalty, CartesianImpedanceAction, FilterFeedback, SafetyFilter, default_impedance
+from c3bf_gym.wrappers import (ActionPenalty, CartesianImpedanceAction, CorrectionPenalty, FilterFeedback, SafetyFilter,
+                               default_impedance)  # fmt: skip
 
 __all__ = [
     "ACTIONS",
@@ -284,6 +285,9 @@ class TrainConfig:
     ``observe_correction`` appends the filter's last correction to the observation
     (:class:`~c3bf_gym.wrappers.FilterFeedback`; SB3 and a filter only).
 
+    ``correction_weight`` charges the safety filter's correction in the reward
+    (:class:`~c3bf_gym.wrappers.CorrectionPenalty`; a filter only; 0, the default: none).
+
     ``posture_reach`` [rad] gives the policy the impedance controller's posture target too: the
     action gets one entry per joint, the posture ``q_home + posture_reach * a[3:]``
     (:class:`~c3bf_gym.wrappers.CartesianImpedanceAction`'s ``posture_reach``; Cartesian action
@@ -327,6 +331,7 @@ class TrainConfig:
     observe_correction: bool = False
     posture_stiffness: float | None = None
     posture_reach: float | None = None
+    correction_weight: float = 0.0
     residual_fade: float | None = None
     hyperparams: dict[str, Any] = field(default_factory=dict)
 
@@ -362,7 +367,7 @@ class TrainConfig:
             get_scenario(self.eval_scenario)
         policy_rate_kwargs(self.policy_hz)
         filter_ = self.filter_config()  # the filter's own checks, guard_gamma's and the settings' included
-        for name in ("distance_weight", "action_weight"):
+        for name in ("distance_weight", "action_weight", "correction_weight"):
             validation.number(name, getattr(self, name), low=0.0)
         if self.posture_stiffness is not None:
             validation.number("posture_stiffness", self.posture_stiffness, low=0.0)
@@ -380,6 +385,9 @@ class TrainConfig:
         for name in ("normalize_obs", "observe_correction"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"{name} must be True or False, got {getattr(self, name)!r}")
+        if self.correction_weight and filter_ is None:
+            raise ValueError("correction_weight charges the safety filter's correction: it needs a filter "
+                             f"(one of {', '.join(map(repr, FILTERS))}), got filter={self.filter!r}")  # fmt: skip
         if self.observe_correction and filter_ is None:
             raise ValueError("observe_correction observes the safety filter's correction: it needs a filter "
                              f"(one of {', '.join(map(repr, FILTERS))}), got filter={self.filter!r}")  # fmt: skip
@@ -402,6 +410,7 @@ class TrainConfig:
         encoder += "_oc" if self.observe_correction else ""
         encoder += "" if self.posture_stiffness is None else f"_ps{self.posture_stiffness:g}"
         encoder += "" if self.posture_reach is None else f"_pr{self.posture_reach:g}"
+        encoder += f"_cw{self.correction_weight:g}" if self.correction_weight else ""
         encoder += f"_fade{self.residual_fade:g}" if self.residual_fade else ""
         robot = "" if self.robot == "ur5e" else f"{self.robot}_"  # UR5e runs keep their earlier names
         engine = "" if self.engine == "sb3" else f"{self.engine}_"
@@ -479,21 +488,24 @@ def build_env(
     posture_stiffness: float | None = None,
     residual_fade: float | None = None,
     posture_reach: float | None = None,
+    correction_weight: float = 0.0,
     **env_kwargs: Any,
 ) -> gym.Env:
-    """``ActionPenalty(FilterFeedback(SafetyFilter(CartesianImpedanceAction(C3BFReach-v0))))``,
+    """``ActionPenalty(CorrectionPenalty(FilterFeedback(SafetyFilter(CartesianImpedanceAction(C3BFReach-v0)))))``,
     the parts the options ask for (``ActionPenalty`` when ``action_weight > 0``,
-    ``FilterFeedback`` with ``observe_correction``): the environment every training engine
+    ``CorrectionPenalty`` when ``correction_weight > 0``, ``FilterFeedback`` with
+    ``observe_correction``): the environment every training engine
     steps. ``filter``: "none"/None, a name of :data:`~c3bf_gym.safety.FILTERS` or a
     :class:`~c3bf_gym.safety.FilterConfig`; ``guard_gamma``: the guard's gains where it has one
     (None: the default); ``posture_stiffness``: the impedance controller's null-space pull
     [N m/rad] (None: the arm's own, :func:`~c3bf_gym.wrappers.default_impedance`);
     ``residual_fade``: the residual action's ``fade`` [m] (None or 0: none); ``posture_reach``:
-    the action's posture entries [rad] (None: none); ``env_kwargs`` go to ``gym.make``
+    the action's posture entries [rad] (None: none); ``correction_weight``: the weight of the
+    filter's correction in the reward (0: none); ``env_kwargs`` go to ``gym.make``
     (:func:`env_kwargs`).
 
     Raises:
-        ValueError: an unknown filter or action mode, ``observe_correction`` without a filter,
+        ValueError: an unknown filter or action mode, ``observe_correction`` or ``correction_weight`` without a filter,
             ``posture_stiffness`` or ``posture_reach`` with torque actions, a ``residual_fade`` that is not a finite
             number >= 0 or is given with other than residual actions, or bad environment keywords.
     """
@@ -513,6 +525,8 @@ def build_env(
         env = SafetyFilter(env, config)
     if observe_correction:
         env = FilterFeedback(env)  # refuses an environment without a filter
+    if correction_weight:
+        env = CorrectionPenalty(env, correction_weight)  # so does this
     if action_weight:
         env = ActionPenalty(env, action_weight)
     return env
@@ -530,6 +544,7 @@ def make_env(
     posture_stiffness: float | None = None,
     residual_fade: float | None = None,
     posture_reach: float | None = None,
+    correction_weight: float = 0.0,
     **env_kwargs: Any,
 ) -> Callable[[], gym.Env]:
     """A thunk building ``Monitor(build_env(...))`` (:func:`build_env`) for SB3 vector envs,
@@ -542,7 +557,7 @@ def make_env(
     def thunk() -> gym.Env:
         env = build_env(scenario, config, action, action_weight, observe_correction=observe_correction,
                         posture_stiffness=posture_stiffness, residual_fade=residual_fade, posture_reach=posture_reach,
-                        **env_kwargs)
+                        correction_weight=correction_weight, **env_kwargs)
         env = Monitor(env, monitor_file, info_keywords=info_keywords(config))
         env.reset(seed=seed)
         env.action_space.seed(seed)
@@ -641,7 +656,8 @@ def train(config: TrainConfig, address: str | None = None) -> Path:
     eval_env = DummyVecEnv(
         [make_env(config.evaluated_scenario, filter_, config.action, seed=10_000 + config.seed, action_weight=penalty,
                   observe_correction=config.observe_correction, posture_stiffness=config.posture_stiffness,
-                  residual_fade=config.residual_fade, posture_reach=config.posture_reach, **rate)]
+                  residual_fade=config.residual_fade, posture_reach=config.posture_reach,
+                  correction_weight=config.correction_weight, **rate)]
     )
     if config.normalize_obs:
         # Running mean/std of the observations (not of the rewards); EvalCallback copies the
@@ -688,7 +704,8 @@ def training_envs(config: TrainConfig):
     thunks = [make_env(config.scenario, filter_, config.action, seed=config.seed * 1000 + i,
                        action_weight=config.action_weight, observe_correction=config.observe_correction,
                        posture_stiffness=config.posture_stiffness, residual_fade=config.residual_fade,
-                       posture_reach=config.posture_reach, **config.env_kwargs())
+                       posture_reach=config.posture_reach, correction_weight=config.correction_weight,
+                       **config.env_kwargs())
               for i in range(config.n_envs)]  # fmt: skip
     return SubprocVecEnv(thunks) if config.n_envs > 1 else DummyVecEnv(thunks)
 
@@ -820,7 +837,8 @@ def evaluate(
     default gains and its other settings their defaults, unless given). The action mode,
     policy rate and reward (``distance_weight``, ``action_weight``) are the run's too (also for
     ``best/`` and ``checkpoints/`` models), so returns compare only between runs with the same
-    reward; success and collisions do not depend on it. So are the nominal controller's
+    reward (and ``correction_weight``, when evaluated with a filter); success and collisions do not
+    depend on it. So are the nominal controller's
     ``posture_stiffness`` and ``posture_reach``, the residual action's ``residual_fade`` (unless ``residual_fade`` is
     given: 0 for none) and ``observe_correction`` (such a run needs a filter: ValueError
     otherwise). A run
@@ -865,7 +883,9 @@ def evaluate(
                          config.get("robot", "ur5e"))
     env = build_env(scenario, filter_, action, action_weight=config.get("action_weight", 0.0),
                     observe_correction=observe, posture_stiffness=config.get("posture_stiffness"),
-                    residual_fade=residual_fade, posture_reach=config.get("posture_reach"), **run_env)  # fmt: skip
+                    residual_fade=residual_fade, posture_reach=config.get("posture_reach"),
+                    correction_weight=config.get("correction_weight", 0.0) if filter_ is not None else 0.0,
+                    **run_env)  # fmt: skip
     env.reset(seed=seed)  # as a training env starts (make_env); each episode below is reseeded
     for episode in range(episodes):
         obs, _ = env.reset(seed=seed + episode)

@@ -25,6 +25,7 @@ from c3bf_gym.safety import FILTERS, FilterConfig, StepSafety
 __all__ = [
     "ActionPenalty",
     "CartesianImpedanceAction",
+    "CorrectionPenalty",
     "FilterFeedback",
     "ImpedanceHook",
     "SafetyFilter",
@@ -304,6 +305,42 @@ class ActionPenalty(gym.Wrapper):
         obs, reward, terminated, truncated, info = self.env.step(action)  # validates the action
         penalty = -self.weight * float(np.mean(np.square(action, dtype=np.float64)))
         info["reward_action"] = penalty
+        return obs, float(reward) + penalty, terminated, truncated, info
+
+
+class CorrectionPenalty(gym.Wrapper):
+    """Adds ``-weight * c / ‖τ_max‖`` to the reward, ``c`` [N m] being the safety filter's largest
+    correction ``‖τ − clip(τ_nom)‖`` over the step's physics steps (``info["safety"]["correction"]``)
+    and ``‖τ_max‖`` the norm of the arm's torque limits (``env.unwrapped.robot.torque_limit``).
+
+    A training aid: the agent pays for what the filter had to change, so it can learn to stay out
+    of the situations where the filter acts. ``c / ‖τ_max‖`` lies in [0, 2]. The term is in
+    ``info["reward_correction"]`` (negative or zero); the task, its success and its cost do not
+    change.
+
+    Args:
+        env: a ``C3BFReach`` environment with a :class:`SafetyFilter` under this wrapper.
+        weight: the penalty's weight (finite, >= 0; 0 adds nothing but the info key).
+
+    Raises:
+        ValueError: ``env`` has no safety filter, or a bad ``weight``.
+    """
+
+    def __init__(self, env: gym.Env, weight: float) -> None:
+        super().__init__(env)
+        base = reach_env(env, "CorrectionPenalty")
+        if not base.has_torque_hook("filter"):
+            raise ValueError("CorrectionPenalty charges the safety filter's correction: wrap a SafetyFilter "
+                             "(SafetyFilter(env), then CorrectionPenalty(...)); this environment has none")  # fmt: skip
+        if isinstance(weight, bool) or not (isinstance(weight, (int, float)) and np.isfinite(weight) and weight >= 0):
+            raise ValueError(f"weight must be a finite number >= 0, got {weight!r}")
+        self.weight = float(weight)
+        self._scale = float(np.linalg.norm(base.robot.torque_limit))
+
+    def step(self, action: Any) -> tuple[Any, float, bool, bool, dict[str, Any]]:
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        penalty = -self.weight * float(info["safety"]["correction"]) / self._scale
+        info["reward_correction"] = penalty
         return obs, float(reward) + penalty, terminated, truncated, info
 
 

@@ -203,6 +203,24 @@ def test_posture_reach_reaches_the_action_names_the_run_and_is_evaluated_with(tm
     assert built.pop()["posture_reach"] == 0.5
 
 
+def test_correction_weight_charges_the_run_names_it_and_needs_a_filter():
+    assert TrainConfig(correction_weight=5.0).name == "sac_residual_10hz_dw10_aw3_set_cw5_fade0.1_c3bf+hocbf_random_s0"
+    assert TrainConfig().correction_weight == 0.0 and "_cw" not in TrainConfig().name
+    env = build_env("static", "c3bf+hocbf", "residual", correction_weight=5.0, **policy_rate_kwargs(10))
+    try:
+        assert env.get_wrapper_attr("weight") == 5.0
+        env.reset(seed=0)
+        assert "reward_correction" in env.step(np.zeros(3, np.float32))[-1]
+    finally:
+        env.close()
+    with pytest.raises(ValueError, match="CorrectionPenalty charges the safety filter's correction"):
+        build_env("static", "none", "residual", correction_weight=5.0)
+    for bad, message in (({"correction_weight": 5.0, "filter": "none"}, "correction_weight charges the safety filter's"),
+                         ({"correction_weight": -1.0}, "correction_weight must be a finite number >= 0")):  # fmt: skip
+        with pytest.raises(ValueError, match=re.escape(message)):
+            TrainConfig(**bad).validate()
+
+
 def test_residual_fade_reaches_the_action_names_the_run_and_is_evaluated_with(tmp_path, monkeypatch):
     """``residual_fade`` reaches the residual action of the run's envs and its name; ``evaluate``
     rebuilds a run's envs with the run's own (None for runs from before the option)."""

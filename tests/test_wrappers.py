@@ -14,7 +14,7 @@ import c3bf_gym
 from c3bf_gym import DEFAULT_FILTER, FILTERS, ActionPenalty, CartesianImpedanceAction, FilterConfig, SafetyFilter
 from c3bf_gym.safety.barriers import C3BF, DistanceHOCBF
 from c3bf_gym.controllers import CartesianImpedance
-from c3bf_gym.wrappers import FilterFeedback
+from c3bf_gym.wrappers import CorrectionPenalty, FilterFeedback
 from c3bf_gym.safety import GUARD_GAMMA
 
 from conftest import ENV_ID
@@ -622,6 +622,34 @@ def test_action_penalty_passes_bad_actions_to_the_env_check(make_env):
     env.reset(seed=0)
     with pytest.raises(ValueError, match="NaN or inf"):
         env.step(np.array([np.nan, 0.0, 0.0], np.float32))
+
+
+def test_correction_penalty_charges_the_filters_correction_and_nothing_else(make_env):
+    """-weight * correction / ‖τ_max‖ on the reward, the filter's report unchanged; the rollout
+    (observations) is the same as without the wrapper."""
+    plain = SafetyFilter(CartesianImpedanceAction(make_env(scenario="static"), residual=True))
+    charged = CorrectionPenalty(SafetyFilter(CartesianImpedanceAction(make_env(scenario="static"), residual=True)), 4.0)
+    scale = float(np.linalg.norm(charged.unwrapped.robot.torque_limit))
+    for env in (plain, charged):
+        env.reset(seed=3)
+    seen = []
+    for _ in range(30):  # the zero action runs the tool into the sphere at rest on its path
+        obs_a, reward_a, *_, info_a = plain.step(np.zeros(3, np.float32))
+        obs_b, reward_b, *_, info_b = charged.step(np.zeros(3, np.float32))
+        np.testing.assert_array_equal(obs_a, obs_b)
+        assert info_b["reward_correction"] == pytest.approx(-4.0 * info_b["safety"]["correction"] / scale)
+        assert reward_b == pytest.approx(reward_a + info_b["reward_correction"])
+        seen.append(info_b["reward_correction"])
+    assert min(seen) < -1e-3 and max(seen) <= 0.0  # the filter did act, and was charged
+
+
+def test_correction_penalty_needs_a_filter_and_a_weight(make_env):
+    env = CartesianImpedanceAction(make_env(), residual=True)
+    with pytest.raises(ValueError, match="CorrectionPenalty charges the safety filter's correction"):
+        CorrectionPenalty(env, 1.0)
+    for weight in (-1.0, float("nan"), True):
+        with pytest.raises(ValueError, match="weight must be a finite number >= 0"):
+            CorrectionPenalty(SafetyFilter(make_env()), weight)
 
 
 def test_filter_feedback_observes_the_filters_last_correction(make_env):
