@@ -141,6 +141,10 @@ TRAINING_TABLES = (
     # --action-weight 9 (code 959cfa9), seeds 0 and 1
     ("training_table_sets_ur5e_posture_reach.md", "sets_posture_reach/sac_*", "final_eval.json",
      "training_curves_sets_ur5e_posture_reach.png"),
+    # an attempt on the UR5e: the filter's correction charged in the reward, c3bf-gym train
+    # --correction-weight 5 (code 4307e73), seeds 0 and 1
+    ("training_table_sets_ur5e_correction_weight.md", "sets_correction_weight/sac_*", "final_eval.json",
+     "training_curves_sets_ur5e_correction_weight.png"),
 )
 
 
