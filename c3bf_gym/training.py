@@ -505,9 +505,10 @@ def build_env(
     (:func:`env_kwargs`).
 
     Raises:
-        ValueError: an unknown filter or action mode, ``observe_correction`` or ``correction_weight`` without a filter,
-            ``posture_stiffness`` or ``posture_reach`` with torque actions, a ``residual_fade`` that is not a finite
-            number >= 0 or is given with other than residual actions, or bad environment keywords.
+        ValueError: an unknown filter or action mode, ``observe_correction`` or
+            ``correction_weight`` without a filter, ``posture_stiffness`` or ``posture_reach``
+            with torque actions, a ``residual_fade`` that is not a finite number >= 0 or is given
+            with other than residual actions, or bad environment keywords.
     """
     config = filter_config(filter, guard_gamma)
     validation.choice("action", action, ACTIONS)
@@ -520,7 +521,8 @@ def build_env(
     else:
         for name, value in (("posture_stiffness", posture_stiffness), ("posture_reach", posture_reach)):
             if value is not None:
-                raise ValueError(f"{name} sets the impedance controller of the Cartesian action modes; action={action!r}")
+                raise ValueError(f"{name} sets the impedance controller of the Cartesian action modes; "
+                                 f"action={action!r}")  # fmt: skip
     if config is not None:
         env = SafetyFilter(env, config)
     if observe_correction:
@@ -838,10 +840,9 @@ def evaluate(
     policy rate and reward (``distance_weight``, ``action_weight``) are the run's too (also for
     ``best/`` and ``checkpoints/`` models), so returns compare only between runs with the same
     reward (and ``correction_weight``, when evaluated with a filter); success and collisions do not
-    depend on it. So are the nominal controller's
-    ``posture_stiffness`` and ``posture_reach``, the residual action's ``residual_fade`` (unless ``residual_fade`` is
-    given: 0 for none) and ``observe_correction`` (such a run needs a filter: ValueError
-    otherwise). A run
+    depend on it. So are the nominal controller's ``posture_stiffness`` and ``posture_reach``,
+    the residual action's ``residual_fade`` (unless ``residual_fade`` is given: 0 for none) and
+    ``observe_correction`` (such a run needs a filter: ValueError otherwise). A run
     trained with ``normalize_obs`` has its final observation statistics in the run directory;
     they are applied (to a ``best/`` or checkpoint model too, an approximation).
 
