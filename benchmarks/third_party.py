@@ -16,7 +16,7 @@ the filter's model, as in the project's own environment.
 
 Episodes of ``--seconds`` (:data:`SECONDS`, 8 s) at a 0.002 s physics step start from robosuite's initial joint
 configuration of the arm. Obstacle spheres (radius 5-8 cm, speed 0.1-0.4 m/s capped by the filter's
-envelope on the arm, :func:`speed_range`) are aimed at a random point of a random protected capsule
+envelope on the arm, :func:`speed_range`; ``--max-speed`` lowers the 0.4) are aimed at a random point of a random protected capsule
 or at the tool, as in the project's scenarios:
 
 * ``static``: one sphere at rest, its surface 0.1-0.3 m from the point it is aimed at;
@@ -414,9 +414,10 @@ def arm_envelope(model: mujoco.MjModel, robot: RobotDescription, arm: str, confi
                            keep_out_height=height, qpos=ARMS[arm].init_qpos)  # fmt: skip
 
 
-def speed_range(envelope: FilterEnvelope) -> tuple[float, float]:
-    """:data:`SPEED` capped by the envelope's speed: ``(min(low, v/2), min(high, v))`` [m/s]."""
-    return min(SPEED[0], envelope.max_speed / 2), min(SPEED[1], envelope.max_speed)
+def speed_range(envelope: FilterEnvelope, top: float = SPEED[1]) -> tuple[float, float]:
+    """:data:`SPEED`, its top replaced by ``top``, capped by the envelope's speed ``v``:
+    ``(min(low, v/2, top), min(top, v))`` [m/s]."""
+    return min(SPEED[0], envelope.max_speed / 2, top), min(top, envelope.max_speed)
 
 
 def _envelope(assets: str, arm: str, config: FilterConfig, model: mujoco.MjModel,
@@ -610,6 +611,9 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--no-unfiltered", action="store_true", help="skip the unfiltered twin of each episode")
     parser.add_argument("--ignore-envelope", action="store_true", help=f"spheres at {SPEED[0]}-{SPEED[1]} m/s on "
                         "every arm, not capped by the filter's envelope")  # fmt: skip
+    parser.add_argument("--max-speed", type=float, default=SPEED[1], metavar="V",
+                        help=f"the spheres' top speed [m/s] before the envelope's cap (default {SPEED[1]}); a "
+                             "lower one asks whether slower spheres are safer")  # fmt: skip
     args = parser.parse_args(argv)
     try:
         config = CONFIG.replace(**dict(args.set))
@@ -623,6 +627,8 @@ def main(argv: list[str] | None = None) -> dict:
     policies = _choices(args.policies, POLICIES, "policy", parser)
     if args.episodes < 1 or args.workers < 1 or not args.seconds > 0:
         parser.error("--episodes and --workers must be >= 1 and --seconds > 0")
+    if not 0 < args.max_speed < float("inf"):
+        parser.error(f"--max-speed must be a finite speed > 0 (m/s), got {args.max_speed}")
     assets = robosuite_assets(args.cache)
 
     unsupported, notes, envelopes, speeds = {}, {}, {}, {}
@@ -634,7 +640,8 @@ def main(argv: list[str] | None = None) -> dict:
         envelopes[arm] = {"max_speed_m_s": envelope.max_speed, "keep_out_m": list(ARMS[arm].keep_out),
                           "limiting_geom": envelope.limiting_geom,
                           "limiting_point_m": envelope.limiting_point.tolist()}  # fmt: skip
-        speeds[arm] = SPEED if args.ignore_envelope else speed_range(envelope)
+        speeds[arm] = ((min(SPEED[0], args.max_speed), args.max_speed) if args.ignore_envelope
+                       else speed_range(envelope, args.max_speed))  # fmt: skip
         notes[arm].append(f"the filter's envelope: {envelope.max_speed:.3f} m/s for spheres up to {RADIUS[1]} m, "
                           f"keep-out {ARMS[arm].keep_out[0]} m x {ARMS[arm].keep_out[1]} m (limited by "
                           f"{envelope.limiting_geom}); spheres at {speeds[arm][0]:.3g}-{speeds[arm][1]:.3g} m/s")

@@ -152,6 +152,20 @@ def test_the_command_line_names_the_valid_choices(capsys):
     assert "unknown arm ur10; choose from iiwa, sawyer, kinova3, jaco" in capsys.readouterr().err
 
 
+def test_max_speed_lowers_the_spheres_top_speed_below_the_envelopes(assets, capsys):
+    """``--max-speed``: the spheres' speeds are drawn up to it, never above the envelope's,
+    recorded in the settings; a speed that is not a finite one > 0 is refused by name."""
+    common = ["--arms", "iiwa", "--scenarios", "head_on", "--policies", "random", "--episodes", "1", "--seconds",
+              "0.2", "--no-unfiltered", "--cache", str(assets.parents[2])]  # fmt: skip
+    assert tp.main(common)["settings"]["sphere_speed_m_s"]["iiwa"] == list(tp.SPEED)  # the iiwa's envelope: 0.85 m/s
+    assert tp.main(common + ["--max-speed", "0.25"])["settings"]["sphere_speed_m_s"]["iiwa"] == [0.1, 0.25]
+    assert tp.main(common + ["--max-speed", "2"])["settings"]["sphere_speed_m_s"]["iiwa"][1] < 2  # the envelope caps it
+    for bad in ("0", "-0.1", "inf"):
+        with pytest.raises(SystemExit):
+            tp.main(common + ["--max-speed", bad])
+        assert "--max-speed must be a finite speed > 0" in capsys.readouterr().err
+
+
 def _guide_snippet() -> str:
     """The own-robot guide's robosuite example, as the guide shows it."""
     guide = (Path(__file__).resolve().parents[1] / "docs" / "guides" / "own-robot.md").read_text()
