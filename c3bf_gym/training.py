@@ -33,10 +33,10 @@ import gymnasium as gym
 import numpy as np
 
 from c3bf_gym import validation
-from c3bf_gym.envs.reach import ROBOTS
+from c3bf_gym.envs.reach import ROBOTS, observation_slices
 from c3bf_gym.safety import DEFAULT_FILTER, FILTERS, FilterConfig
-from c3bf_gym.wrappers import (ActionPenalty, CartesianImpedanceAction, CorrectionPenalty, FilterFeedback, SafetyFilter,
-                               default_impedance)  # fmt: skip
+from c3bf_gym.wrappers import (ActionPenalty, ArmClearance, CartesianImpedanceAction, CorrectionPenalty, FilterFeedback,
+                               SafetyFilter, default_impedance)  # fmt: skip
 
 __all__ = [
     "ACTIONS",
@@ -285,6 +285,9 @@ class TrainConfig:
     ``observe_correction`` appends the filter's last correction to the observation
     (:class:`~c3bf_gym.wrappers.FilterFeedback`; SB3 and a filter only).
 
+    ``observe_clearance`` appends each arm geom's clearance to the obstacles to the observation
+    (:class:`~c3bf_gym.wrappers.ArmClearance`, saturating at 0.5 m).
+
     ``correction_weight`` charges the safety filter's correction in the reward
     (:class:`~c3bf_gym.wrappers.CorrectionPenalty`; a filter only; 0, the default: none).
 
@@ -329,6 +332,7 @@ class TrainConfig:
     action_weight: float | None = None
     obstacle_encoder: Literal["flat", "set"] = "set"
     observe_correction: bool = False
+    observe_clearance: bool = False
     posture_stiffness: float | None = None
     posture_reach: float | None = None
     correction_weight: float = 0.0
@@ -382,7 +386,7 @@ class TrainConfig:
         _residual_fade_or_none(self.residual_fade, self.action)
         if not (isinstance(self.hyperparams, dict) and all(isinstance(key, str) for key in self.hyperparams)):
             raise ValueError(f"hyperparams must be a dict of keyword arguments, got {self.hyperparams!r}")
-        for name in ("normalize_obs", "observe_correction"):
+        for name in ("normalize_obs", "observe_correction", "observe_clearance"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"{name} must be True or False, got {getattr(self, name)!r}")
         if self.correction_weight and filter_ is None:
@@ -408,6 +412,7 @@ class TrainConfig:
         penalty = f"_aw{self.action_weight:g}" if self.action_weight else ""
         encoder = "" if self.obstacle_encoder == "flat" else f"_{self.obstacle_encoder}"
         encoder += "_oc" if self.observe_correction else ""
+        encoder += "_cl" if self.observe_clearance else ""
         encoder += "" if self.posture_stiffness is None else f"_ps{self.posture_stiffness:g}"
         encoder += "" if self.posture_reach is None else f"_pr{self.posture_reach:g}"
         encoder += f"_cw{self.correction_weight:g}" if self.correction_weight else ""
@@ -489,12 +494,13 @@ def build_env(
     residual_fade: float | None = None,
     posture_reach: float | None = None,
     correction_weight: float = 0.0,
+    observe_clearance: bool = False,
     **env_kwargs: Any,
 ) -> gym.Env:
-    """``ActionPenalty(CorrectionPenalty(FilterFeedback(SafetyFilter(CartesianImpedanceAction(C3BFReach-v0)))))``,
-    the parts the options ask for (``ActionPenalty`` when ``action_weight > 0``,
-    ``CorrectionPenalty`` when ``correction_weight > 0``, ``FilterFeedback`` with
-    ``observe_correction``): the environment every training engine
+    """``ActionPenalty(CorrectionPenalty(ArmClearance(FilterFeedback(SafetyFilter(CartesianImpedanceAction(
+    C3BFReach-v0))))))``, the parts the options ask for (``ActionPenalty`` when ``action_weight > 0``,
+    ``CorrectionPenalty`` when ``correction_weight > 0``, ``ArmClearance`` with ``observe_clearance``,
+    ``FilterFeedback`` with ``observe_correction``): the environment every training engine
     steps. ``filter``: "none"/None, a name of :data:`~c3bf_gym.safety.FILTERS` or a
     :class:`~c3bf_gym.safety.FilterConfig`; ``guard_gamma``: the guard's gains where it has one
     (None: the default); ``posture_stiffness``: the impedance controller's null-space pull
@@ -527,8 +533,10 @@ def build_env(
         env = SafetyFilter(env, config)
     if observe_correction:
         env = FilterFeedback(env)  # refuses an environment without a filter
+    if observe_clearance:
+        env = ArmClearance(env)
     if correction_weight:
-        env = CorrectionPenalty(env, correction_weight)  # so does this
+        env = CorrectionPenalty(env, correction_weight)  # refuses an environment without a filter too
     if action_weight:
         env = ActionPenalty(env, action_weight)
     return env
@@ -547,6 +555,7 @@ def make_env(
     residual_fade: float | None = None,
     posture_reach: float | None = None,
     correction_weight: float = 0.0,
+    observe_clearance: bool = False,
     **env_kwargs: Any,
 ) -> Callable[[], gym.Env]:
     """A thunk building ``Monitor(build_env(...))`` (:func:`build_env`) for SB3 vector envs,
@@ -559,7 +568,7 @@ def make_env(
     def thunk() -> gym.Env:
         env = build_env(scenario, config, action, action_weight, observe_correction=observe_correction,
                         posture_stiffness=posture_stiffness, residual_fade=residual_fade, posture_reach=posture_reach,
-                        correction_weight=correction_weight, **env_kwargs)
+                        correction_weight=correction_weight, observe_clearance=observe_clearance, **env_kwargs)
         env = Monitor(env, monitor_file, info_keywords=info_keywords(config))
         env.reset(seed=seed)
         env.action_space.seed(seed)
@@ -659,7 +668,7 @@ def train(config: TrainConfig, address: str | None = None) -> Path:
         [make_env(config.evaluated_scenario, filter_, config.action, seed=10_000 + config.seed, action_weight=penalty,
                   observe_correction=config.observe_correction, posture_stiffness=config.posture_stiffness,
                   residual_fade=config.residual_fade, posture_reach=config.posture_reach,
-                  correction_weight=config.correction_weight, **rate)]
+                  correction_weight=config.correction_weight, observe_clearance=config.observe_clearance, **rate)]
     )
     if config.normalize_obs:
         # Running mean/std of the observations (not of the rewards); EvalCallback copies the
@@ -707,7 +716,7 @@ def training_envs(config: TrainConfig):
                        action_weight=config.action_weight, observe_correction=config.observe_correction,
                        posture_stiffness=config.posture_stiffness, residual_fade=config.residual_fade,
                        posture_reach=config.posture_reach, correction_weight=config.correction_weight,
-                       **config.env_kwargs())
+                       observe_clearance=config.observe_clearance, **config.env_kwargs())
               for i in range(config.n_envs)]  # fmt: skip
     return SubprocVecEnv(thunks) if config.n_envs > 1 else DummyVecEnv(thunks)
 
@@ -745,7 +754,10 @@ def sb3_model(config: TrainConfig, venv, hyper: dict[str, Any], **kwargs: Any):
     if config.obstacle_encoder == "set":
         from c3bf_gym.policies import ObstacleSetExtractor
 
-        extra = {"features_extractor_kwargs": {"extra_features": ROBOTS[config.robot].n_joints}} if config.observe_correction else {}
+        # the entries the wrappers appended to the environment's own 2 n + 73 (FilterFeedback, ArmClearance)
+        appended = venv.observation_space.shape[0] - sum(s.stop - s.start for s in observation_slices(0).values()) \
+            - 2 * ROBOTS[config.robot].n_joints
+        extra = {"features_extractor_kwargs": {"extra_features": appended}} if appended else {}
         hyper = {**hyper, "policy_kwargs": {**hyper.get("policy_kwargs", {}), "features_extractor_class": ObstacleSetExtractor,
                                             **extra}}  # fmt: skip
     return algo("MlpPolicy", venv, seed=config.seed, verbose=0, **hyper, **kwargs)
@@ -842,7 +854,8 @@ def evaluate(
     reward (and ``correction_weight``, when evaluated with a filter); success and collisions do not
     depend on it. So are the nominal controller's ``posture_stiffness`` and ``posture_reach``,
     the residual action's ``residual_fade`` (unless ``residual_fade`` is given: 0 for none) and
-    ``observe_correction`` (such a run needs a filter: ValueError otherwise). A run
+    ``observe_correction`` (such a run needs a filter: ValueError otherwise) and
+    ``observe_clearance``. A run
     trained with ``normalize_obs`` has its final observation statistics in the run directory;
     they are applied (to a ``best/`` or checkpoint model too, an approximation).
 
@@ -886,7 +899,7 @@ def evaluate(
                     observe_correction=observe, posture_stiffness=config.get("posture_stiffness"),
                     residual_fade=residual_fade, posture_reach=config.get("posture_reach"),
                     correction_weight=config.get("correction_weight", 0.0) if filter_ is not None else 0.0,
-                    **run_env)  # fmt: skip
+                    observe_clearance=config.get("observe_clearance", False), **run_env)  # fmt: skip
     env.reset(seed=seed)  # as a training env starts (make_env); each episode below is reseeded
     for episode in range(episodes):
         obs, _ = env.reset(seed=seed + episode)

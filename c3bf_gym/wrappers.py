@@ -24,6 +24,7 @@ from c3bf_gym.safety import FILTERS, FilterConfig, StepSafety
 
 __all__ = [
     "ActionPenalty",
+    "ArmClearance",
     "CartesianImpedanceAction",
     "CorrectionPenalty",
     "FilterFeedback",
@@ -399,6 +400,48 @@ class FilterFeedback(gym.ObservationWrapper):
 
     def observation(self, observation: np.ndarray) -> np.ndarray:
         return np.concatenate([observation, self._correction.astype(observation.dtype)])
+
+
+class ArmClearance(gym.ObservationWrapper):
+    """Appends each arm geom's clearance to the obstacles, so a policy can see which link is close.
+
+    The entries added, one per arm geom (``env.unwrapped.arm_geom_ids``, in that order), are
+    ``clip(d, −cap, cap) / cap``, ``d`` [m] being the geom's smallest signed surface distance to
+    any active obstacle (MuJoCo's distance sensors, ``env.unwrapped.distances``; negative inside):
+    1 for a geom ``cap`` or farther from every obstacle, 0 in contact. The environment's own
+    observation (which places the obstacles relative to the tool only) is unchanged; the appended
+    part comes last. The training option ``TrainConfig.observe_clearance`` (off by default) puts it
+    in a run's environments.
+
+    Args:
+        env: a ``C3BFReach`` environment (any wrappers, with or without a filter).
+        cap: the distance [m] at which the entries saturate (finite, > 0).
+    """
+
+    def __init__(self, env: gym.Env, cap: float = 0.5) -> None:
+        super().__init__(env)
+        if isinstance(cap, bool) or not (isinstance(cap, (int, float)) and np.isfinite(cap) and cap > 0):
+            raise ValueError(f"cap must be a finite distance > 0 (m), got {cap!r}")
+        space = env.observation_space
+        if not isinstance(space, gym.spaces.Box) or len(space.shape) != 1:
+            raise TypeError(f"ArmClearance needs a flat Box observation space, got {space}")
+        base = reach_env(env, "ArmClearance")
+        self.cap = float(cap)
+        self._base = base
+        n = len(base.arm_geom_ids)
+        self._clearance = np.zeros(n)
+        bound = np.ones(n, dtype=space.dtype)
+        self.observation_space = gym.spaces.Box(np.concatenate([space.low, -bound]), np.concatenate([space.high, bound]),
+                                                dtype=space.dtype)  # fmt: skip
+
+    def observation(self, observation: np.ndarray) -> np.ndarray:
+        base, out = self._base, self._clearance
+        out[:] = self.cap
+        if base.obstacle_active.any():
+            np.minimum(out, base.distances[base.obstacle_active].min(axis=0), out=out)
+        np.clip(out, -self.cap, self.cap, out=out)
+        out /= self.cap
+        return np.concatenate([observation, out.astype(observation.dtype)])
 
 
 def make_reach(safety_filter: FilterConfig | str | None = None, **kwargs: Any) -> gym.Env:

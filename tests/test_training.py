@@ -287,18 +287,21 @@ def test_correction_observing_run_names_itself_reloads_and_evaluates(tmp_path):
 
 
 @pytest.mark.slow
-def test_posture_reach_and_correction_weight_run_trains_reloads_and_evaluates(tmp_path):
-    """A run with the posture entries and the correction's cost: the model acts in 3 + 6
-    dimensions, and evaluate rebuilds the run's action and reward from its config."""
+def test_posture_reach_correction_weight_and_clearance_run_trains_reloads_and_evaluates(tmp_path):
+    """A run with the posture entries, the correction's cost and the arm's clearances: the model
+    acts in 3 + 6 dimensions and sees 8 more entries, which the set encoder passes through, and
+    evaluate rebuilds the run's action, observation and reward from its config."""
     from stable_baselines3 import SAC
 
     run = train(TrainConfig(timesteps=250, scenario="multi", posture_reach=0.5, correction_weight=5.0,
-                            eval_freq=10_000, final_eval_episodes=0, out=str(tmp_path), progress_bar=False,
-                            hyperparams={"learning_starts": 100}))  # fmt: skip
-    assert run.name == "sac_residual_10hz_dw10_aw3_set_pr0.5_cw5_fade0.1_c3bf+hocbf_multi_s0"
+                            observe_clearance=True, eval_freq=10_000, final_eval_episodes=0, out=str(tmp_path),
+                            progress_bar=False, hyperparams={"learning_starts": 100}))  # fmt: skip
+    assert run.name == "sac_residual_10hz_dw10_aw3_set_cl_pr0.5_cw5_fade0.1_c3bf+hocbf_multi_s0"
     saved = json.loads((run / "config.json").read_text())
-    assert (saved["posture_reach"], saved["correction_weight"]) == (0.5, 5.0)
-    assert SAC.load(run / "model.zip", device="cpu").action_space.shape == (9,)
+    assert (saved["posture_reach"], saved["correction_weight"], saved["observe_clearance"]) == (0.5, 5.0, True)
+    model = SAC.load(run / "model.zip", device="cpu")
+    assert model.action_space.shape == (9,) and model.observation_space.shape == (2 * 6 + 73 + 8,)
+    assert model.actor.features_extractor.features_dim == 21 + 8 + 2 * 64  # the clearances beside the arm's own
     result = evaluate(run / "model.zip", episodes=1)
     assert result["episodes"] == 1 and result["collision_episodes"] == 0
     assert evaluate(run / "model.zip", episodes=1, filter="none")["episodes"] == 1  # no filter, no correction to charge

@@ -14,7 +14,7 @@ import c3bf_gym
 from c3bf_gym import DEFAULT_FILTER, FILTERS, ActionPenalty, CartesianImpedanceAction, FilterConfig, SafetyFilter
 from c3bf_gym.safety.barriers import C3BF, DistanceHOCBF
 from c3bf_gym.controllers import CartesianImpedance
-from c3bf_gym.wrappers import CorrectionPenalty, FilterFeedback
+from c3bf_gym.wrappers import ArmClearance, CorrectionPenalty, FilterFeedback
 from c3bf_gym.safety import GUARD_GAMMA
 
 from conftest import ENV_ID
@@ -650,6 +650,35 @@ def test_correction_penalty_needs_a_filter_and_a_weight(make_env):
     for weight in (-1.0, float("nan"), True):
         with pytest.raises(ValueError, match="weight must be a finite number >= 0"):
             CorrectionPenalty(SafetyFilter(make_env()), weight)
+
+
+def test_arm_clearance_appends_each_geoms_clearance_to_the_nearest_obstacle(make_env):
+    """One entry per arm geom: clip(d, −cap, cap) / cap for its smallest distance to an active
+    obstacle (MuJoCo's sensors), 1 with none; the rollout and the env's own observation are
+    unchanged."""
+    plain = CartesianImpedanceAction(make_env(scenario="multi"), residual=True)
+    seen = ArmClearance(CartesianImpedanceAction(make_env(scenario="multi"), residual=True), cap=0.5)
+    base = seen.unwrapped
+    n = len(base.arm_geom_ids)
+    assert seen.observation_space.shape == (plain.observation_space.shape[0] + n,)
+    obs_a, _ = plain.reset(seed=4)
+    obs_b, _ = seen.reset(seed=4)
+    for step in range(25):
+        np.testing.assert_array_equal(obs_a, obs_b[:-n])
+        expected = np.clip(base.distances[base.obstacle_active].min(axis=0), -0.5, 0.5) / 0.5
+        np.testing.assert_allclose(obs_b[-n:], expected, atol=1e-6)
+        obs_a, *_ = plain.step(np.zeros(3, np.float32))
+        obs_b, *_ = seen.step(np.zeros(3, np.float32))
+    assert obs_b[-n:].min() < 0.5  # the arm came within a quarter metre of a sphere
+    free = ArmClearance(make_env(scenario="none"))
+    obs, _ = free.reset(seed=1)
+    np.testing.assert_array_equal(obs[-len(free.unwrapped.arm_geom_ids):], 1.0)
+
+
+@pytest.mark.parametrize("cap", [0.0, -1.0, float("inf"), True])
+def test_arm_clearance_bad_cap_rejected(make_env, cap):
+    with pytest.raises(ValueError, match="cap must be a finite distance > 0"):
+        ArmClearance(make_env(), cap=cap)
 
 
 def test_filter_feedback_observes_the_filters_last_correction(make_env):
