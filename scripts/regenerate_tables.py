@@ -145,6 +145,10 @@ TRAINING_TABLES = (
     # --correction-weight 5 (code 4307e73), seeds 0 and 1
     ("training_table_sets_ur5e_correction_weight.md", "sets_correction_weight/sac_*", "final_eval.json",
      "training_curves_sets_ur5e_correction_weight.png"),
+    # an attempt on the UR5e: each arm geom's clearance in the observation, c3bf-gym train --observe-clearance
+    # (code bfb8572), seeds 0 and 1
+    ("training_table_sets_ur5e_clearance.md", "sets_clearance/sac_*", "final_eval.json",
+     "training_curves_sets_ur5e_clearance.png"),
 )
 
 
