@@ -33,7 +33,7 @@ import gymnasium as gym
 import numpy as np
 
 from c3bf_gym import validation
-from c3bf_gym.envs.reach import ROBOTS, observation_slices
+from c3bf_gym.envs.reach import ROBOTS, observation_layout
 from c3bf_gym.safety import DEFAULT_FILTER, FILTERS, FilterConfig
 from c3bf_gym.wrappers import (ActionPenalty, ArmClearance, CartesianImpedanceAction, CorrectionPenalty, FilterFeedback,
                                SafetyFilter, default_impedance)  # fmt: skip
@@ -389,12 +389,10 @@ class TrainConfig:
         for name in ("normalize_obs", "observe_correction", "observe_clearance"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"{name} must be True or False, got {getattr(self, name)!r}")
-        if self.correction_weight and filter_ is None:
-            raise ValueError("correction_weight charges the safety filter's correction: it needs a filter "
-                             f"(one of {', '.join(map(repr, FILTERS))}), got filter={self.filter!r}")  # fmt: skip
-        if self.observe_correction and filter_ is None:
-            raise ValueError("observe_correction observes the safety filter's correction: it needs a filter "
-                             f"(one of {', '.join(map(repr, FILTERS))}), got filter={self.filter!r}")  # fmt: skip
+        for name, use in (("correction_weight", "charges"), ("observe_correction", "observes")):
+            if getattr(self, name) and filter_ is None:
+                raise ValueError(f"{name} {use} the safety filter's correction: it needs a filter "
+                                 f"(one of {', '.join(map(repr, FILTERS))}), got filter={self.filter!r}")  # fmt: skip
         for name in ("timesteps", "n_envs", "eval_freq", "eval_episodes", "checkpoint_freq"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
@@ -754,9 +752,9 @@ def sb3_model(config: TrainConfig, venv, hyper: dict[str, Any], **kwargs: Any):
     if config.obstacle_encoder == "set":
         from c3bf_gym.policies import ObstacleSetExtractor
 
-        # the entries the wrappers appended to the environment's own 2 n + 73 (FilterFeedback, ArmClearance)
-        appended = venv.observation_space.shape[0] - sum(s.stop - s.start for s in observation_slices(0).values()) \
-            - 2 * ROBOTS[config.robot].n_joints
+        # the entries the wrappers appended to the environment's own (FilterFeedback, ArmClearance)
+        own = sum(size for _, size, _ in observation_layout(ROBOTS[config.robot].n_joints))
+        appended = venv.observation_space.shape[0] - own
         extra = {"features_extractor_kwargs": {"extra_features": appended}} if appended else {}
         hyper = {**hyper, "policy_kwargs": {**hyper.get("policy_kwargs", {}), "features_extractor_class": ObstacleSetExtractor,
                                             **extra}}  # fmt: skip

@@ -17,6 +17,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
+from c3bf_gym import validation
 from c3bf_gym.controllers.impedance import CartesianImpedance, ImpedanceHook
 from c3bf_gym.envs.reach import _ACTION_BOUND, C3BFReachEnv
 from c3bf_gym.filter import SafetyHook
@@ -43,6 +44,25 @@ def reach_env(env: gym.Env, wrapper: str) -> C3BFReachEnv:
             f"got {type(base if base is not None else env).__name__}"
         )
     return base
+
+
+def _filtered_env(env: gym.Env, wrapper: str, use: str) -> C3BFReachEnv:
+    """:func:`reach_env`, refused (ValueError) when it has no safety filter: ``wrapper`` ``use``\ s
+    the filter's correction (FilterFeedback, CorrectionPenalty)."""
+    base = reach_env(env, wrapper)
+    if not base.has_torque_hook("filter"):
+        raise ValueError(f"{wrapper} {use} the safety filter's correction: wrap a SafetyFilter "
+                         f"(SafetyFilter(env), then {wrapper}(...)); this environment has none")  # fmt: skip
+    return base
+
+
+def _appended_space(space: gym.Space, bound: np.ndarray, wrapper: str) -> gym.spaces.Box:
+    """The flat ``Box`` ``space`` with entries in ``[-bound, bound]`` appended (TypeError for any
+    other space): the observation of a wrapper that appends to it (FilterFeedback, ArmClearance)."""
+    if not isinstance(space, gym.spaces.Box) or len(space.shape) != 1:
+        raise TypeError(f"{wrapper} needs a flat Box observation space, got {space}")
+    bound = bound.astype(space.dtype)
+    return gym.spaces.Box(np.concatenate([space.low, -bound]), np.concatenate([space.high, bound]), dtype=space.dtype)
 
 
 class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs, gym.utils.EzPickle):
@@ -298,9 +318,7 @@ class ActionPenalty(gym.Wrapper):
         super().__init__(env)
         if not isinstance(env.action_space, gym.spaces.Box):
             raise TypeError(f"ActionPenalty needs a Box action space, got {env.action_space}")
-        if isinstance(weight, bool) or not (isinstance(weight, (int, float)) and np.isfinite(weight) and weight >= 0):
-            raise ValueError(f"weight must be a finite number >= 0, got {weight!r}")
-        self.weight = float(weight)
+        self.weight = validation.number("weight", weight, low=0.0)
 
     def step(self, action: Any) -> tuple[Any, float, bool, bool, dict[str, Any]]:
         obs, reward, terminated, truncated, info = self.env.step(action)  # validates the action
@@ -329,13 +347,8 @@ class CorrectionPenalty(gym.Wrapper):
 
     def __init__(self, env: gym.Env, weight: float) -> None:
         super().__init__(env)
-        base = reach_env(env, "CorrectionPenalty")
-        if not base.has_torque_hook("filter"):
-            raise ValueError("CorrectionPenalty charges the safety filter's correction: wrap a SafetyFilter "
-                             "(SafetyFilter(env), then CorrectionPenalty(...)); this environment has none")  # fmt: skip
-        if isinstance(weight, bool) or not (isinstance(weight, (int, float)) and np.isfinite(weight) and weight >= 0):
-            raise ValueError(f"weight must be a finite number >= 0, got {weight!r}")
-        self.weight = float(weight)
+        base = _filtered_env(env, "CorrectionPenalty", "charges")
+        self.weight = validation.number("weight", weight, low=0.0)
         self._scale = float(np.linalg.norm(base.robot.torque_limit))
 
     def step(self, action: Any) -> tuple[Any, float, bool, bool, dict[str, Any]]:
@@ -370,20 +383,12 @@ class FilterFeedback(gym.ObservationWrapper):
 
     def __init__(self, env: gym.Env) -> None:
         super().__init__(env)
-        base = reach_env(env, "FilterFeedback")
-        if not base.has_torque_hook("filter"):
-            raise ValueError("FilterFeedback observes the safety filter's correction: wrap a SafetyFilter "
-                             "(SafetyFilter(env), then FilterFeedback(...)); this environment has none")  # fmt: skip
-        space = env.observation_space
-        if not isinstance(space, gym.spaces.Box) or len(space.shape) != 1:
-            raise TypeError(f"FilterFeedback needs a flat Box observation space, got {space}")
-        self._base = base
+        base = _filtered_env(env, "FilterFeedback", "observes")
         self._limit = np.asarray(base.robot.torque_limit, dtype=np.float64)
         n = self._limit.shape[0]
+        self.observation_space = _appended_space(env.observation_space, np.full(n, 2.0), "FilterFeedback")
+        self._base = base
         self._correction = np.zeros(n)
-        bound = np.full(n, 2.0, dtype=space.dtype)
-        self.observation_space = gym.spaces.Box(np.concatenate([space.low, -bound]), np.concatenate([space.high, bound]),
-                                                dtype=space.dtype)  # fmt: skip
 
     def reset(self, **kwargs: Any):
         obs, info = self.env.reset(**kwargs)
@@ -420,19 +425,12 @@ class ArmClearance(gym.ObservationWrapper):
 
     def __init__(self, env: gym.Env, cap: float = 0.5) -> None:
         super().__init__(env)
-        if isinstance(cap, bool) or not (isinstance(cap, (int, float)) and np.isfinite(cap) and cap > 0):
-            raise ValueError(f"cap must be a finite distance > 0 (m), got {cap!r}")
-        space = env.observation_space
-        if not isinstance(space, gym.spaces.Box) or len(space.shape) != 1:
-            raise TypeError(f"ArmClearance needs a flat Box observation space, got {space}")
+        self.cap = validation.number("cap", cap, low=0.0, low_open=True, unit="m")
         base = reach_env(env, "ArmClearance")
-        self.cap = float(cap)
-        self._base = base
         n = len(base.arm_geom_ids)
+        self.observation_space = _appended_space(env.observation_space, np.ones(n), "ArmClearance")
+        self._base = base
         self._clearance = np.zeros(n)
-        bound = np.ones(n, dtype=space.dtype)
-        self.observation_space = gym.spaces.Box(np.concatenate([space.low, -bound]), np.concatenate([space.high, bound]),
-                                                dtype=space.dtype)  # fmt: skip
 
     def observation(self, observation: np.ndarray) -> np.ndarray:
         base, out = self._base, self._clearance

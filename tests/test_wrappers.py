@@ -677,7 +677,7 @@ def test_arm_clearance_appends_each_geoms_clearance_to_the_nearest_obstacle(make
 
 @pytest.mark.parametrize("cap", [0.0, -1.0, float("inf"), True])
 def test_arm_clearance_bad_cap_rejected(make_env, cap):
-    with pytest.raises(ValueError, match="cap must be a finite distance > 0"):
+    with pytest.raises(ValueError, match=re.escape("cap must be a finite number > 0 [m]")):
         ArmClearance(make_env(), cap=cap)
 
 
