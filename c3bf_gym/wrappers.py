@@ -47,8 +47,8 @@ def reach_env(env: gym.Env, wrapper: str) -> C3BFReachEnv:
 
 
 def _filtered_env(env: gym.Env, wrapper: str, use: str) -> C3BFReachEnv:
-    """:func:`reach_env`, refused (ValueError) when it has no safety filter: ``wrapper`` ``use``\ s
-    the filter's correction (FilterFeedback, CorrectionPenalty)."""
+    """:func:`reach_env`, refused (ValueError) when it has no safety filter, for a ``wrapper`` that
+    reads the filter's correction (FilterFeedback, CorrectionPenalty; ``use``: what it does with it)."""
     base = reach_env(env, wrapper)
     if not base.has_torque_hook("filter"):
         raise ValueError(f"{wrapper} {use} the safety filter's correction: wrap a SafetyFilter "
