@@ -244,12 +244,8 @@ _BALL = "c3bf_ball{}"
 
 
 def build_scene(assets: Path, arm: str, spheres: int) -> tuple[mujoco.MjModel, RobotDescription, list[str]]:
-    """The arm's robosuite MJCF with the benchmark's scene added, and its description.
-
-    Added: ``model.opt.timestep`` = :data:`TIMESTEP`; a floor plane at z = 0 (the arm's base
-    stands on it); ``spheres`` mocap spheres ``c3bf_ball0``... (contype = conaffinity = 0, radius
-    set per episode); a site ``c3bf_tool`` on the last body when the file has no site; and a
-    ``<motor>`` (±:data:`EXTRA_MOTOR_TORQUE` N m) on every joint without an actuator.
+    """The arm's robosuite MJCF with the benchmark's scene added (:func:`scene_spec`), compiled,
+    and its description.
 
     Returns:
         (model, robot, notes): the compiled model, ``RobotDescription.from_model`` with the
@@ -259,6 +255,31 @@ def build_scene(assets: Path, arm: str, spheres: int) -> tuple[mujoco.MjModel, R
     Raises:
         ValueError: an unknown arm (names the valid ones), or a file that reads angles in degrees.
         UnsupportedModelError: the library refuses the model (its message says why).
+    """
+    spec, arm_joints, tool, notes = scene_spec(assets, arm, spheres)
+    model = spec.compile()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        robot = RobotDescription.from_model(model, joints=arm_joints, site=tool,
+                                            joint_speed_limit=ARMS[arm].joint_speed_limit)  # fmt: skip
+    notes += [str(w.message) for w in caught]
+    return model, robot, notes
+
+
+def scene_spec(assets: Path, arm: str, spheres: int) -> tuple[mujoco.MjSpec, list[str], str, list[str]]:
+    """The arm's robosuite MJCF with the benchmark's scene added, not yet compiled.
+
+    Added: ``model.opt.timestep`` = :data:`TIMESTEP`; a floor plane at z = 0 (the arm's base
+    stands on it); ``spheres`` mocap spheres ``c3bf_ball0``... (contype = conaffinity = 0, radius
+    set per episode); a site ``c3bf_tool`` on the last body when the file has no site; and a
+    ``<motor>`` (±:data:`EXTRA_MOTOR_TORQUE` N m) on every joint without an actuator.
+
+    Returns:
+        (spec, joints, tool, notes): the scene's ``MjSpec``, the names of the arm's joints (a
+        gripper's are not among them), the tool site's name, and the additions to report.
+
+    Raises:
+        ValueError: an unknown arm (names the valid ones), or a file that reads angles in degrees.
     """
     if arm not in ARMS:
         raise ValueError(f"unknown arm {arm!r}; choose from {', '.join(ARMS)}")
@@ -303,13 +324,7 @@ def build_scene(assets: Path, arm: str, spheres: int) -> tuple[mujoco.MjModel, R
                               trntype=mujoco.mjtTrn.mjTRN_JOINT, ctrllimited=mujoco.mjtLimited.mjLIMITED_TRUE,
                               ctrlrange=[-EXTRA_MOTOR_TORQUE, EXTRA_MOTOR_TORQUE])  # fmt: skip
             notes.append(f"added a ±{EXTRA_MOTOR_TORQUE:g} N m motor on joint {joint.name!r}")
-    model = spec.compile()
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        robot = RobotDescription.from_model(model, joints=arm_joints, site=tool,
-                                            joint_speed_limit=ARMS[arm].joint_speed_limit)  # fmt: skip
-    notes += [str(w.message) for w in caught]
-    return model, robot, notes
+    return spec, arm_joints, tool, notes
 
 
 # ----------------------------------------------------------------------------- spheres
@@ -429,6 +444,52 @@ def _envelope(assets: str, arm: str, config: FilterConfig, model: mujoco.MjModel
     return _ENVELOPES[assets, arm, config]
 
 
+@dataclass(frozen=True)
+class Spheres:
+    """One episode's spheres (:func:`_spawn`): positions at the start (K, 3) [m], velocities (K, 3)
+    [m/s], radii (K,) [m] and the times they leave the scene (K,) [s] (inf: never)."""
+
+    position: np.ndarray
+    velocity: np.ndarray
+    radius: np.ndarray
+    leave: np.ndarray
+
+    def at(self, t: float) -> tuple[np.ndarray, np.ndarray]:
+        """(positions (K, 3) [m], active (K,)) at time ``t`` [s]: a sphere that has left is parked
+        at (10 + k, 0, 1), far from every arm, as the episodes park it."""
+        active = self.leave > t
+        parked = np.column_stack([10.0 + np.arange(len(self.radius)), np.zeros((len(self.radius), 2))])
+        parked[:, 2] = 1.0
+        return np.where(active[:, None], self.position + self.velocity * t, parked), active
+
+
+def episode_start(model: mujoco.MjModel, robot: RobotDescription, arm: str, scenario: str, seed: int,
+                  seconds: float, speed: tuple[float, float],
+                  sensing: Callable[[float], float] | None) -> tuple[mujoco.MjData, Spheres]:
+    """The state an episode starts from: a new ``MjData`` of ``model`` (a scene of
+    :func:`scene_spec` for ``scenario``'s spheres) at robosuite's initial configuration of
+    ``arm``, with seed ``seed``'s spheres (:func:`_spawn`: ``speed`` [m/s], ``sensing`` the range
+    the moving ones start outside of, or None) placed (``model.geom_size`` set to their radii),
+    after ``mj_forward``; and those spheres. RuntimeError (naming arm, scenario and seed) when
+    they cannot be placed."""
+    kinds = SCENARIOS[scenario]
+    data = mujoco.MjData(model)
+    data.qpos[model.jnt_qposadr[model.dof_jntid[robot.dof_ids]]] = ARMS[arm].init_qpos
+    mujoco.mj_forward(model, data)
+    arm_model = ArmModel(model, robot.geom_ids, robot.site_id, robot.capsules)
+    a, b = arm_model.capsule_segments(data)
+    try:
+        drawn = Spheres(*_spawn(np.random.default_rng(seed), kinds, a, b, arm_model.capsule_radius,
+                                data.site_xpos[robot.site_id], seconds, speed=speed, keep_out=ARMS[arm].keep_out,
+                                sensing=sensing))  # fmt: skip
+    except RuntimeError as error:
+        raise RuntimeError(f"{arm}, {scenario}, seed {seed}: {error}") from None
+    model.geom_size[[model.geom(_BALL.format(k)).id for k in range(len(kinds))], 0] = drawn.radius
+    data.mocap_pos[[model.body(_BALL.format(k)).mocapid[0] for k in range(len(kinds))]] = drawn.position
+    mujoco.mj_forward(model, data)
+    return data, drawn
+
+
 def run_episode(task: tuple[str, str, str, str, FilterConfig | None, int, float, tuple[float, float],
                             FilterConfig | None]) -> Episode:
     """One episode: ``task`` = (assets folder, arm, scenario, policy, the filter's configuration or
@@ -441,26 +502,14 @@ def run_episode(task: tuple[str, str, str, str, FilterConfig | None, int, float,
     if key not in _SCENES:
         _SCENES[key] = build_scene(Path(assets), arm, len(kinds))
     model, robot, _ = _SCENES[key]
-    data = mujoco.MjData(model)
-    dofs = robot.dof_ids  # the arm's; a gripper's fingers are the model's other dofs
-    data.qpos[model.jnt_qposadr[model.dof_jntid[dofs]]] = ARMS[arm].init_qpos
-    mujoco.mj_forward(model, data)
-    arm_model = ArmModel(model, robot.geom_ids, robot.site_id, robot.capsules)
-    a, b = arm_model.capsule_segments(data)
-    rng = np.random.default_rng(seed)
     sensing = None if spawn_config is None else _envelope(assets, arm, spawn_config, model, robot).min_sensing_range
-    try:
-        position, velocity, radius, leave = _spawn(rng, kinds, a, b, arm_model.capsule_radius,
-                                                   data.site_xpos[robot.site_id], seconds, speed=speed,
-                                                   keep_out=ARMS[arm].keep_out, sensing=sensing)  # fmt: skip
-    except RuntimeError as error:
-        raise RuntimeError(f"{arm}, {scenario}, seed {seed}: {error}") from None
+    data, drawn = episode_start(model, robot, arm, scenario, seed, seconds, speed, sensing)
+    velocity, radius, leave = drawn.velocity.copy(), drawn.radius, drawn.leave.copy()
+    dofs = robot.dof_ids  # the arm's; a gripper's fingers are the model's other dofs
     balls = [model.geom(_BALL.format(k)).id for k in range(len(kinds))]
     mocap = [model.body(_BALL.format(k)).mocapid[0] for k in range(len(kinds))]
-    model.geom_size[balls, 0] = radius
-    data.mocap_pos[mocap] = position
-    mujoco.mj_forward(model, data)
     spheres = MocapSpheres(model, [_BALL.format(k) for k in range(len(kinds))])
+    arm_model = ArmModel(model, robot.geom_ids, robot.site_id, robot.capsules)
     controller = None
     if filtered:
         controller = SafetyController(model, data, robot, spheres, config,

@@ -1,0 +1,273 @@
+"""Does an escape exist? A search over the arm's motions that knows every sphere's future (issue 32).
+
+The filter's rows look one physics step ahead. When an episode of ``benchmarks/third_party.py``
+collides under the filter, this asks whether any motion of the arm would have kept it clear:
+if none does, no filter could have, and the spheres were outside what any controller can
+guarantee; if one does, the filter missed it, and a look-ahead has something to find.
+
+The episode is the benchmark's own (:func:`third_party.episode_start`: the same arm, scenario,
+seed and filter settings draw the same spheres, starting where the benchmark starts them), and
+the arm is the same model with two changes that make a motion easy to search
+(:func:`escape_spec`):
+
+* every arm joint is driven by a velocity servo, its target within ``joint_speed_fraction`` of
+  the manufacturer's speed (the filter's bound), its force within the motor's torque limit;
+* gravity is compensated through the same actuators (MuJoCo's ``gravcomp`` with
+  ``actuatorgravcomp``), so servo and compensation together stay within that limit.
+
+A motion is a sequence of joint-velocity targets held for :data:`SEGMENT` s each, searched by the
+cross-entropy method (:func:`search`): :data:`SAMPLES` motions per iteration rolled out in
+MuJoCo's C rollout (``mujoco.rollout``), the best :data:`ELITES` re-centring the next draw, up
+to ``--iterations``, stopping at the first escape. Clearance is MuJoCo's distance sensors
+(``mj_geomDistance`` on the real geoms, the benchmark's measure) between every protected geom
+and every sphere at every physics step. An **escape** keeps every clearance above 0 and every
+joint within 1 % of its bound over the horizon: until the last moving sphere has left, plus
+0.5 s, within the episode's length. Contacts with the floor and between links are simulated, as
+in the benchmark, and allowed. A search that finds none does not prove that none exists; one
+that finds one proves it does.
+
+``--hold T`` keeps the arm still for the first T seconds before it may move: how late an escape
+can still start, and so how far ahead a look-ahead would have to see.
+
+Usage::
+
+    python benchmarks/escape.py --arm sawyer --scenario multi --seeds 20 23 67 \\
+        --set joint_range_reserve=0.3 allowance_level=true joint_speed_fraction=1.0 nominal_speed_fraction=0.4
+    python benchmarks/escape.py --arm sawyer --scenario multi --seeds 20 --hold 1.0 --set joint_speed_fraction=1.0
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import mujoco
+import mujoco.rollout
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import third_party as tp  # the benchmark beside this file
+
+from c3bf_gym.cli import add_filter_settings
+from c3bf_gym.safety import FilterConfig, RobotDescription
+
+SEGMENT = 0.1  # [s] a velocity target is held this long
+SAMPLES = 96  # motions per iteration
+ELITES = 12  # the best motions that re-centre the next draw
+SMOOTHING = 0.7  # weight of the elites' mean and spread against the last ones
+SPREAD = 0.3  # the first draw's spread, as a fraction of each joint's speed bound
+SPREAD_FLOOR = 0.005  # the spread never falls below this fraction of the bound
+TARGET = 0.015  # [m] the search pushes clearances up to this; an escape needs > 0
+SPEED_TOLERANCE = 1.01  # an escape keeps every joint within this multiple of its bound
+TAIL = 0.5  # [s] the horizon runs this long past the last moving sphere's exit
+SERVO_RESPONSE = 0.2  # a servo saturates at this fraction of the bound in velocity error
+STABLE_GAIN = 0.5  # the servo's gain is at most this x the joint's inertia / dt
+
+
+@dataclass
+class Escape:
+    """What the search found for one episode (lengths in m, times in s)."""
+
+    arm: str
+    scenario: str
+    seed: int
+    hold: float
+    horizon: float
+    found: bool
+    lowest_clearance: float  # the best motion's lowest clearance over the horizon
+    max_speed_ratio: float  # its largest |q̇_i| / bound_i
+    still_clearance: float  # the lowest clearance if the arm holds still throughout
+    still_contact: float  # when a sphere first touches the arm held still (inf: never)
+    iterations: int
+    seconds: float  # wall time
+
+
+def escape_spec(spec: mujoco.MjSpec, robot: RobotDescription, model: mujoco.MjModel, qpos: np.ndarray,
+                bound: np.ndarray, spheres: int) -> int:
+    """Turn the scene ``spec`` (of :func:`third_party.scene_spec`, whose compiled ``model`` the
+    arm ``robot`` describes) into the search's model, in place: velocity servos on the arm's
+    joints (targets within ``bound`` (n,) [rad/s], forces within ``robot.torque_limit``),
+    gravity compensated through them, the implicit-fast integrator (the servos are stiff), and a
+    distance sensor between every protected geom and each of the ``spheres`` spheres. The servo
+    gains are :data:`SERVO_RESPONSE` and :data:`STABLE_GAIN`'s, with the joints' inertia at
+    ``qpos`` (the arm's joint positions). Returns the index of the first distance sensor (the
+    file's own sensors come before them)."""
+    data = mujoco.MjData(model)
+    data.qpos[model.jnt_qposadr[model.dof_jntid[robot.dof_ids]]] = qpos
+    mujoco.mj_forward(model, data)
+    dense = np.zeros((model.nv, model.nv))
+    mujoco.mj_fullM(model, data, dense)
+    inertia = np.diag(dense)[robot.dof_ids]
+    limit = np.asarray(robot.torque_limit, dtype=float)
+    dof_of = {int(model.jnt_dofadr[j]): j for j in range(model.njnt)}
+    index = {int(dof): i for i, dof in enumerate(robot.dof_ids)}
+    for actuator in spec.actuators:
+        dof = int(model.jnt_dofadr[model.actuator_trnid[model.actuator(actuator.name).id, 0]])
+        if dof not in index:
+            continue  # a gripper's fingers keep their own servos
+        i = index[dof]
+        gain = min(limit[i] / (SERVO_RESPONSE * bound[i]), STABLE_GAIN * inertia[i] / model.opt.timestep)
+        actuator.gear[0] = 1.0
+        actuator.gaintype, actuator.biastype = mujoco.mjtGain.mjGAIN_FIXED, mujoco.mjtBias.mjBIAS_AFFINE
+        actuator.gainprm[0] = gain
+        actuator.biasprm[:3] = [0.0, 0.0, -gain]
+        actuator.ctrllimited = actuator.forcelimited = mujoco.mjtLimited.mjLIMITED_TRUE
+        actuator.ctrlrange, actuator.forcerange = [-bound[i], bound[i]], [-limit[i], limit[i]]
+        joint = spec.joint(model.joint(dof_of[dof]).name)
+        joint.actgravcomp = True  # the compensation is the actuators' torque, within their limit
+        joint.actfrclimited = mujoco.mjtLimited.mjLIMITED_TRUE
+        joint.actfrcrange = [-limit[i], limit[i]]
+    for body in spec.bodies[1:]:
+        if not body.mocap:
+            body.gravcomp = 1.0
+    spec.option.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
+    first = len(spec.sensors)
+    for geom in robot.geom_ids:
+        for k in range(spheres):
+            spec.add_sensor(type=mujoco.mjtSensor.mjSENS_GEOMDIST, objtype=mujoco.mjtObj.mjOBJ_GEOM,
+                            objname=model.geom(int(geom)).name, reftype=mujoco.mjtObj.mjOBJ_GEOM,
+                            refname=tp._BALL.format(k), cutoff=tp.CUTOFF)  # fmt: skip
+    return first
+
+
+def search(arm: str, scenario: str, seed: int, config: FilterConfig, *, assets: Path, hold: float = 0.0,
+           iterations: int = 40, max_speed: float = tp.SPEED[1], threads: int = 2) -> Escape:
+    """Search for an escape in ``third_party``'s episode (``arm``, ``scenario``, ``seed``, the
+    spheres the filter ``config``'s envelope allows at up to ``max_speed`` m/s), the arm held
+    still for the first ``hold`` seconds; ``iterations`` of the cross-entropy method at most, each
+    rolled out on ``threads`` threads. ValueError on an unknown arm or scenario, a hold outside
+    [0, horizon) or iterations < 1."""
+    if scenario not in tp.SCENARIOS:
+        raise ValueError(f"unknown scenario {scenario!r}; choose from {', '.join(tp.SCENARIOS)}")
+    if iterations < 1:
+        raise ValueError(f"iterations must be >= 1, got {iterations}")
+    start = time.perf_counter()
+    kinds = len(tp.SCENARIOS[scenario])
+    model, robot, _ = tp.build_scene(assets, arm, kinds)  # ValueError on an unknown arm
+    envelope = tp.arm_envelope(model, robot, arm, config)
+    bound = config.joint_speed_fraction * np.asarray(robot.joint_speed_limit, dtype=float)
+    spec, _, _, _ = tp.scene_spec(assets, arm, kinds)
+    first = escape_spec(spec, robot, model, np.array(tp.ARMS[arm].init_qpos), bound, kinds)
+    servo = spec.compile()
+    sensed = slice(int(servo.sensor_adr[first]), None)  # the distance sensors' entries of sensordata
+    data, spheres = tp.episode_start(servo, robot, arm, scenario, seed, tp.SECONDS,
+                                     tp.speed_range(envelope, max_speed), envelope.min_sensing_range)  # fmt: skip
+    leaving = spheres.leave[np.isfinite(spheres.leave)]
+    horizon = min(tp.SECONDS, (leaving.max() if leaving.size else 0.0) + TAIL)
+    if not 0.0 <= hold < horizon:
+        raise ValueError(f"hold must be in [0, {horizon:g}) s, the horizon of this episode, got {hold}")
+    dt = servo.opt.timestep
+    steps = round(horizon / dt)
+    segment = round(SEGMENT / dt)
+    segments = -(-steps // segment)
+    held = round(hold / SEGMENT)
+    # the spheres' positions at every step, as the control's mocap part
+    mocap = [servo.body(tp._BALL.format(k)).mocapid[0] for k in range(kinds)]
+    spheres_path = np.zeros((steps, servo.nmocap, 3))
+    spheres_path[:] = data.mocap_pos
+    for t in range(steps):
+        spheres_path[t, mocap] = spheres.at((t + 1) * dt)[0]
+    arm_actuators = [(i, int(np.flatnonzero(robot.dof_ids == servo.jnt_dofadr[servo.actuator_trnid[i, 0]])[0]))
+                     for i in range(servo.nu) if servo.jnt_dofadr[servo.actuator_trnid[i, 0]] in robot.dof_ids]  # fmt: skip
+    spec_bits = mujoco.mjtState.mjSTATE_CTRL | mujoco.mjtState.mjSTATE_MOCAP_POS
+    full = mujoco.mjtState.mjSTATE_FULLPHYSICS
+    state0 = np.zeros(mujoco.mj_stateSize(servo, full))
+    mujoco.mj_getState(servo, data, state0, full)
+    qvel = 1 + servo.nq + robot.dof_ids  # the arm's velocities in a FULLPHYSICS state (time, qpos, qvel, ...)
+    datas = [mujoco.MjData(servo) for _ in range(threads)]
+
+    def roll(plans: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(cost, lowest clearance, largest speed ratio, each step's lowest clearance (B, steps))
+        of each plan (B, segments, n) [rad/s]."""
+        control = np.zeros((len(plans), steps, servo.nu + 3 * servo.nmocap))
+        targets = np.repeat(plans, segment, axis=1)[:, :steps]
+        for actuator, joint in arm_actuators:
+            control[:, :, actuator] = targets[:, :, joint]
+        control[:, :, servo.nu:] = spheres_path.reshape(steps, -1)
+        states, sensors = mujoco.rollout.rollout(servo, datas, np.tile(state0, (len(plans), 1)), control,
+                                                 control_spec=spec_bits)  # fmt: skip
+        distances = sensors[:, :, sensed]
+        lowest_per_step = distances.min(axis=2)
+        lowest = lowest_per_step.min(axis=1)
+        ratio = (np.abs(states[:, :, qvel]) / bound).max(axis=(1, 2))
+        cost = (1e3 * (np.maximum(TARGET - distances, 0.0) ** 2).sum(axis=(1, 2))
+                + 100.0 * np.maximum(ratio - 1.0, 0.0) + 1e-4 * ((plans / bound) ** 2).sum(axis=(1, 2)))  # fmt: skip
+        return cost, lowest, ratio, lowest_per_step
+
+    _, still_lowest, _, still_path = roll(np.zeros((1, segments, robot.n)))
+    touching = np.flatnonzero(still_path[0] < 0.0)
+    still_contact = (touching[0] + 1) * dt if touching.size else np.inf
+    mean, spread = np.zeros((segments, robot.n)), np.tile(SPREAD * bound, (segments, 1))
+    best = (np.inf, float(still_lowest[0]), 0.0)
+    done = 0
+    for done in range(1, iterations + 1):
+        rng = np.random.default_rng([seed, done])
+        plans = np.clip(mean + spread * rng.standard_normal((SAMPLES, segments, robot.n)), -bound, bound)
+        plans[0] = mean
+        plans[:, :held] = 0.0
+        cost, lowest, ratio, _ = roll(plans)
+        order = np.argsort(cost)
+        if cost[order[0]] < best[0]:
+            best = (float(cost[order[0]]), float(lowest[order[0]]), float(ratio[order[0]]))
+        if best[1] > 0.0 and best[2] <= SPEED_TOLERANCE or held >= segments:
+            break
+        elites = plans[order[:ELITES]]
+        mean = SMOOTHING * elites.mean(axis=0) + (1 - SMOOTHING) * mean
+        spread = SMOOTHING * elites.std(axis=0) + (1 - SMOOTHING) * spread + SPREAD_FLOOR * bound
+    found = best[1] > 0.0 and best[2] <= SPEED_TOLERANCE
+    return Escape(arm, scenario, seed, hold, horizon, found, best[1], best[2], float(still_lowest[0]),
+                  float(still_contact), done, time.perf_counter() - start)
+
+
+def main(argv: list[str] | None = None) -> list[dict]:
+    """Run the search for each seed (``argv``: the command line without the program name), print
+    one line per seed and return (and write to ``--json``) the :class:`Escape` records."""
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--arm", default="sawyer", help=f"from {', '.join(tp.ARMS)}")
+    parser.add_argument("--scenario", default="multi", help=f"from {', '.join(tp.SCENARIOS)}")
+    parser.add_argument("--seeds", type=int, nargs="+", required=True, help="the benchmark's episode seeds")
+    parser.add_argument("--hold", type=float, default=0.0, help="the arm holds still this long first [s]")
+    parser.add_argument("--iterations", type=int, default=40, help="cross-entropy iterations at most")
+    parser.add_argument("--max-speed", type=float, default=tp.SPEED[1], metavar="V",
+                        help="the spheres' top speed before the envelope's cap, as third_party.py's [m/s]")  # fmt: skip
+    parser.add_argument("--threads", type=int, default=2, help="rollout threads")
+    parser.add_argument("--cache", help="robosuite download folder (third_party.py's)")
+    parser.add_argument("--json", type=Path, help="write the records here")
+    add_filter_settings(parser, "--set")
+    args = parser.parse_args(argv)
+    try:
+        config = tp.CONFIG.replace(**dict(args.set))
+    except (TypeError, ValueError) as error:
+        parser.error(f"--set: {error}")
+    if args.arm not in tp.ARMS or args.scenario not in tp.SCENARIOS:
+        parser.error(f"--arm from {', '.join(tp.ARMS)}; --scenario from {', '.join(tp.SCENARIOS)}")
+    if args.iterations < 1 or args.threads < 1 or args.hold < 0:
+        parser.error("--iterations and --threads must be >= 1 and --hold >= 0")
+    assets = tp.robosuite_assets(args.cache)
+    print(f"{args.arm}, {args.scenario}, joint speeds within {config.joint_speed_fraction:g} of the manufacturer's; "
+          f"filter {config!r}")  # fmt: skip
+    records = []
+    for seed in args.seeds:
+        found = search(args.arm, args.scenario, seed, config, assets=assets, hold=args.hold,
+                       iterations=args.iterations, max_speed=args.max_speed, threads=args.threads)  # fmt: skip
+        records.append(asdict(found))
+        print(f"seed {seed}: {'escape' if found.found else 'none found'}, lowest clearance "
+              f"{1e3 * found.lowest_clearance:+.1f} mm, joint speed {found.max_speed_ratio:.2f} of the bound "
+              f"(holding still: {1e3 * found.still_clearance:+.1f} mm, touching at {found.still_contact:.2f} s), "
+              f"{found.iterations} iterations, "
+              f"horizon {found.horizon:.2f} s, {found.seconds:.0f} s", flush=True)  # fmt: skip
+    if args.json is not None:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps({"settings": {"filter": repr(config), "hold": args.hold,
+                                                      "iterations": args.iterations, "max_speed": args.max_speed},
+                                         "episodes": records}, indent=2))  # fmt: skip
+        print(f"wrote {args.json}")
+    return records
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,89 @@
+"""The escape search (benchmarks/escape.py): on an episode of robosuite's Sawyer that the filter
+loses, a motion within the arm's torque limits and the filter's speed bound keeps it clear, and a
+search that cannot find one says so."""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+from pathlib import Path
+
+import mujoco
+import numpy as np
+import pytest
+
+from c3bf_gym.safety import FilterConfig
+
+BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
+
+
+def _load(name: str):
+    spec = importlib.util.spec_from_file_location(f"{name}_benchmark", BENCHMARKS / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # dataclasses look their module up while the class is built
+    spec.loader.exec_module(module)
+    return module
+
+
+escape = _load("escape")
+tp = escape.tp
+
+#: the candidate settings of the guarantee page, under which the Sawyer's multi seed 20 collides
+CANDIDATE = FilterConfig(sensing_radius=tp.SENSING_RADIUS, joint_range_reserve=0.3, allowance_level=True,
+                         joint_speed_fraction=1.0, nominal_speed_fraction=0.4)  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def assets() -> Path:
+    return tp.robosuite_assets()
+
+
+def test_an_episode_the_filter_loses_has_an_escape_and_holding_still_has_none(assets):
+    model, robot, _ = tp.build_scene(assets, "sawyer", 4)
+    speed = tp.speed_range(tp.arm_envelope(model, robot, "sawyer", CANDIDATE))
+    assert tp.run_episode((str(assets), "sawyer", "multi", "random", CANDIDATE, 20, tp.SECONDS, speed,
+                           CANDIDATE)).collided  # the filter loses it
+
+    found = escape.search("sawyer", "multi", 20, CANDIDATE, assets=assets, iterations=15)
+    assert found.found
+    assert found.lowest_clearance > 0.0
+    assert found.max_speed_ratio <= escape.SPEED_TOLERANCE
+    assert found.still_clearance < -0.05  # standing still, a sphere passes through the arm
+    assert found.horizon > 3.0  # until the last moving sphere has left
+
+
+def test_a_search_that_finds_no_escape_says_so(assets):
+    """Held still until after the spheres have closed, no motion is left that clears them."""
+    found = escape.search("sawyer", "multi", 20, CANDIDATE, assets=assets, hold=4.0, iterations=2)
+    assert not found.found
+    assert found.lowest_clearance < 0.0
+    assert found.iterations == 2
+
+
+def test_the_search_model_keeps_the_arms_torque_limits_and_speed_bound(assets):
+    model, robot, _ = tp.build_scene(assets, "sawyer+gripper", 4)
+    bound = 0.5 * np.asarray(robot.joint_speed_limit)
+    spec, _, _, _ = tp.scene_spec(assets, "sawyer+gripper", 4)
+    first = escape.escape_spec(spec, robot, model, np.array(tp.ARMS["sawyer+gripper"].init_qpos), bound, 4)
+    servo = spec.compile()
+    limit = np.asarray(robot.torque_limit)
+    arm = [i for i in range(servo.nu) if servo.jnt_dofadr[servo.actuator_trnid[i, 0]] in robot.dof_ids]
+    dofs = servo.jnt_dofadr[servo.actuator_trnid[arm, 0]]
+    order = [int(np.flatnonzero(robot.dof_ids == d)[0]) for d in dofs]
+    np.testing.assert_allclose(servo.actuator_forcerange[arm, 1], limit[order])
+    np.testing.assert_allclose(servo.actuator_ctrlrange[arm, 1], bound[order])
+    joints = servo.dof_jntid[robot.dof_ids]
+    assert servo.jnt_actgravcomp[joints].all()  # gravity is compensated within the same limit
+    np.testing.assert_allclose(servo.jnt_actfrcrange[joints, 1], limit)
+    assert len(arm) == robot.n < servo.nu  # the gripper's fingers keep their own actuators
+    distance = servo.sensor_type[first:] == mujoco.mjtSensor.mjSENS_GEOMDIST
+    assert distance.all() and len(distance) == len(robot.geom_ids) * 4
+
+
+def test_the_search_names_the_valid_choices(assets):
+    with pytest.raises(ValueError, match="static, head_on, crossing, multi"):
+        escape.search("sawyer", "swarm", 20, CANDIDATE, assets=assets)
+    with pytest.raises(ValueError, match="unknown arm"):
+        escape.search("ur10", "multi", 20, CANDIDATE, assets=assets)
+    with pytest.raises(ValueError, match=r"hold must be in \[0, "):
+        escape.search("sawyer", "multi", 20, CANDIDATE, assets=assets, hold=30.0)
