@@ -15,10 +15,16 @@ the arm is the same model with two changes that make a motion easy to search
 * gravity is compensated through the same actuators (MuJoCo's ``gravcomp`` with
   ``actuatorgravcomp``), so servo and compensation together stay within that limit.
 
+The servos are a torque law the arm's motors could apply, τ = clip(K (q̇* − q̇) + g(q)),
+integrated with the scene's own explicit Euler step; their gains are scaled
+down together until that step is stable for the arm's mass matrix (:data:`STABLE_GAIN`), which
+leaves them soft: the searched arm accelerates more slowly than the real one could, so an escape
+it finds is one the real arm has with torque to spare.
+
 A motion is a sequence of joint-velocity targets held for :data:`SEGMENT` s each, searched by the
 cross-entropy method (:func:`search`): :data:`SAMPLES` motions per iteration rolled out in
 MuJoCo's C rollout (``mujoco.rollout``), the best :data:`ELITES` re-centring the next draw, up
-to ``--iterations``, stopping at the first escape. Clearance is MuJoCo's distance sensors
+to ``--iterations``, stopping once a motion keeps :data:`TARGET` clear. Clearance is MuJoCo's distance sensors
 (``mj_geomDistance`` on the real geoms, the benchmark's measure) between every protected geom
 and every sphere at every physics step. An **escape** keeps every clearance above 0 and every
 joint within 1 % of its bound over the horizon: until the last moving sphere has left, plus
@@ -61,11 +67,11 @@ ELITES = 12  # the best motions that re-centre the next draw
 SMOOTHING = 0.7  # weight of the elites' mean and spread against the last ones
 SPREAD = 0.3  # the first draw's spread, as a fraction of each joint's speed bound
 SPREAD_FLOOR = 0.005  # the spread never falls below this fraction of the bound
-TARGET = 0.015  # [m] the search pushes clearances up to this; an escape needs > 0
+TARGET = 0.015  # [m] the search pushes clearances up to this and stops there; an escape needs > 0
 SPEED_TOLERANCE = 1.01  # an escape keeps every joint within this multiple of its bound
 TAIL = 0.5  # [s] the horizon runs this long past the last moving sphere's exit
 SERVO_RESPONSE = 0.2  # a servo saturates at this fraction of the bound in velocity error
-STABLE_GAIN = 0.5  # the servo's gain is at most this x the joint's inertia / dt
+STABLE_GAIN = 0.5  # the largest eigenvalue of dt M⁻¹ K the servo gains K may reach (explicit Euler needs < 2)
 
 
 @dataclass
@@ -84,6 +90,7 @@ class Escape:
     still_contact: float  # when a sphere first touches the arm held still (inf: never)
     iterations: int
     seconds: float  # wall time
+    targets: list[list[float]]  # the best motion: joint-velocity targets [rad/s], one row per SEGMENT s
 
 
 def escape_spec(spec: mujoco.MjSpec, robot: RobotDescription, model: mujoco.MjModel, qpos: np.ndarray,
@@ -91,18 +98,22 @@ def escape_spec(spec: mujoco.MjSpec, robot: RobotDescription, model: mujoco.MjMo
     """Turn the scene ``spec`` (of :func:`third_party.scene_spec`, whose compiled ``model`` the
     arm ``robot`` describes) into the search's model, in place: velocity servos on the arm's
     joints (targets within ``bound`` (n,) [rad/s], forces within ``robot.torque_limit``),
-    gravity compensated through them, the implicit-fast integrator (the servos are stiff), and a
+    gravity compensated through them, and a
     distance sensor between every protected geom and each of the ``spheres`` spheres. The servo
-    gains are :data:`SERVO_RESPONSE` and :data:`STABLE_GAIN`'s, with the joints' inertia at
-    ``qpos`` (the arm's joint positions). Returns the index of the first distance sensor (the
+    gains are :data:`SERVO_RESPONSE`'s, scaled down together to :data:`STABLE_GAIN` with the mass
+    matrix at ``qpos`` (the arm's joint positions). Returns the index of the first distance sensor (the
     file's own sensors come before them)."""
     data = mujoco.MjData(model)
     data.qpos[model.jnt_qposadr[model.dof_jntid[robot.dof_ids]]] = qpos
     mujoco.mj_forward(model, data)
     dense = np.zeros((model.nv, model.nv))
     mujoco.mj_fullM(model, data, dense)
-    inertia = np.diag(dense)[robot.dof_ids]
     limit = np.asarray(robot.torque_limit, dtype=float)
+    gains = limit / (SERVO_RESPONSE * bound)
+    # explicit Euler (the scene's integrator) is stable while dt M⁻¹ K has no eigenvalue past 2;
+    # the gains are scaled down together until the largest is STABLE_GAIN
+    coupling = model.opt.timestep * np.linalg.inv(dense)[np.ix_(robot.dof_ids, robot.dof_ids)] * gains
+    gains *= min(1.0, STABLE_GAIN / np.max(np.abs(np.linalg.eigvals(coupling))))
     dof_of = {int(model.jnt_dofadr[j]): j for j in range(model.njnt)}
     index = {int(dof): i for i, dof in enumerate(robot.dof_ids)}
     for actuator in spec.actuators:
@@ -110,7 +121,7 @@ def escape_spec(spec: mujoco.MjSpec, robot: RobotDescription, model: mujoco.MjMo
         if dof not in index:
             continue  # a gripper's fingers keep their own servos
         i = index[dof]
-        gain = min(limit[i] / (SERVO_RESPONSE * bound[i]), STABLE_GAIN * inertia[i] / model.opt.timestep)
+        gain = gains[i]
         actuator.gear[0] = 1.0
         actuator.gaintype, actuator.biastype = mujoco.mjtGain.mjGAIN_FIXED, mujoco.mjtBias.mjBIAS_AFFINE
         actuator.gainprm[0] = gain
@@ -124,7 +135,6 @@ def escape_spec(spec: mujoco.MjSpec, robot: RobotDescription, model: mujoco.MjMo
     for body in spec.bodies[1:]:
         if not body.mocap:
             body.gravcomp = 1.0
-    spec.option.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
     first = len(spec.sensors)
     for geom in robot.geom_ids:
         for k in range(spheres):
@@ -202,7 +212,7 @@ def search(arm: str, scenario: str, seed: int, config: FilterConfig, *, assets: 
     touching = np.flatnonzero(still_path[0] < 0.0)
     still_contact = (touching[0] + 1) * dt if touching.size else np.inf
     mean, spread = np.zeros((segments, robot.n)), np.tile(SPREAD * bound, (segments, 1))
-    best = (np.inf, float(still_lowest[0]), 0.0)
+    best = (np.inf, float(still_lowest[0]), 0.0, mean)
     done = 0
     for done in range(1, iterations + 1):
         rng = np.random.default_rng([seed, done])
@@ -212,15 +222,15 @@ def search(arm: str, scenario: str, seed: int, config: FilterConfig, *, assets: 
         cost, lowest, ratio, _ = roll(plans)
         order = np.argsort(cost)
         if cost[order[0]] < best[0]:
-            best = (float(cost[order[0]]), float(lowest[order[0]]), float(ratio[order[0]]))
-        if best[1] > 0.0 and best[2] <= SPEED_TOLERANCE or held >= segments:
-            break
+            best = (float(cost[order[0]]), float(lowest[order[0]]), float(ratio[order[0]]), plans[order[0]])
+        if best[1] >= TARGET and best[2] <= SPEED_TOLERANCE or held >= segments:
+            break  # clear by the target: no need to search on
         elites = plans[order[:ELITES]]
         mean = SMOOTHING * elites.mean(axis=0) + (1 - SMOOTHING) * mean
         spread = SMOOTHING * elites.std(axis=0) + (1 - SMOOTHING) * spread + SPREAD_FLOOR * bound
     found = best[1] > 0.0 and best[2] <= SPEED_TOLERANCE
     return Escape(arm, scenario, seed, hold, horizon, found, best[1], best[2], float(still_lowest[0]),
-                  float(still_contact), done, time.perf_counter() - start)
+                  float(still_contact), done, time.perf_counter() - start, best[3].round(6).tolist())
 
 
 def main(argv: list[str] | None = None) -> list[dict]:

@@ -78,6 +78,15 @@ def test_the_search_model_keeps_the_arms_torque_limits_and_speed_bound(assets):
     assert len(arm) == robot.n < servo.nu  # the gripper's fingers keep their own actuators
     distance = servo.sensor_type[first:] == mujoco.mjtSensor.mjSENS_GEOMDIST
     assert distance.all() and len(distance) == len(robot.geom_ids) * 4
+    # zero targets hold the arm where it is: the servos are stable on the scene's Euler step
+    data = mujoco.MjData(servo)
+    qpos = servo.jnt_qposadr[servo.dof_jntid[robot.dof_ids]]
+    data.qpos[qpos] = tp.ARMS["sawyer+gripper"].init_qpos
+    start = data.qpos[qpos].copy()
+    for _ in range(1000):
+        mujoco.mj_step(servo, data)
+    assert np.abs(data.qvel[robot.dof_ids]).max() < 1e-3
+    np.testing.assert_allclose(data.qpos[qpos], start, atol=1e-3)
 
 
 def test_the_search_names_the_valid_choices(assets):
