@@ -16,21 +16,21 @@ the arm is the same model with two changes that make a motion easy to search
   ``actuatorgravcomp``), so servo and compensation together stay within that limit.
 
 The servos are a torque law the arm's motors could apply, τ = clip(K (q̇* − q̇) + g(q)),
-integrated with the scene's own explicit Euler step; their gains are scaled
-down together until that step is stable for the arm's mass matrix (:data:`STABLE_GAIN`), which
-leaves them soft: the searched arm accelerates more slowly than the real one could, so an escape
-it finds is one the real arm has with torque to spare.
+integrated with the scene's own explicit Euler step; their gains are scaled down together until
+that step is stable for the arm's mass matrix (:data:`STABLE_GAIN`), which leaves them soft: the
+searched arm accelerates more slowly than the real one could, so an escape it finds is one the
+real arm has with torque to spare.
 
 A motion is a sequence of joint-velocity targets held for :data:`SEGMENT` s each, searched by the
 cross-entropy method (:func:`search`): :data:`SAMPLES` motions per iteration rolled out in
-MuJoCo's C rollout (``mujoco.rollout``), the best :data:`ELITES` re-centring the next draw, up
-to ``--iterations``, stopping once a motion keeps :data:`TARGET` clear. Clearance is MuJoCo's distance sensors
-(``mj_geomDistance`` on the real geoms, the benchmark's measure) between every protected geom
-and every sphere at every physics step. An **escape** keeps every clearance above 0 and every
-joint within 1 % of its bound over the horizon: until the last moving sphere has left, plus
-0.5 s, within the episode's length. Contacts with the floor and between links are simulated, as
-in the benchmark, and allowed. A search that finds none does not prove that none exists; one
-that finds one proves it does.
+MuJoCo's C rollout (``mujoco.rollout``), the best :data:`ELITES` re-centring the next draw, up to
+``--iterations``, stopping once a motion keeps :data:`TARGET` clear. Clearance is MuJoCo's
+distance sensors (``mj_geomDistance`` on the real geoms, the benchmark's measure) between every
+protected geom and every sphere at every physics step. An **escape** keeps every clearance above 0
+and every joint within 1 % of its bound over the horizon: until the last moving sphere has left,
+plus 0.5 s, within the episode's length. Contacts with the floor and between links are simulated,
+as in the benchmark, and allowed. A search that finds none does not prove that none exists; one
+that finds one shows it does, on the benchmark's model and physics step.
 
 ``--hold T`` keeps the arm still for the first T seconds before it may move: how late an escape
 can still start, and so how far ahead a look-ahead would have to see.
