@@ -33,7 +33,9 @@ as in the benchmark, and allowed. A search that finds none does not prove that n
 that finds one shows it does, on the benchmark's model and physics step.
 
 ``--hold T`` keeps the arm still for the first T seconds before it may move: how late an escape
-can still start, and so how far ahead a look-ahead would have to see.
+can still start, and so how far ahead a look-ahead would have to see. ``--replay`` applies each
+motion found to the benchmark's own torque-driven model (:func:`replay`), as it is and as the
+filter's nominal torque: whether the escape survives the filter.
 
 Usage::
 
@@ -59,7 +61,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import third_party as tp  # the benchmark beside this file
 
 from c3bf_gym.cli import add_filter_settings
-from c3bf_gym.safety import FilterConfig, RobotDescription
+from c3bf_gym.safety import (
+    FilterConfig,
+    MocapSpheres,
+    RobotDescription,
+    SafetyController,
+)
 
 SEGMENT = 0.1  # [s] a velocity target is held this long
 SAMPLES = 96  # motions per iteration
@@ -67,7 +74,7 @@ ELITES = 12  # the best motions that re-centre the next draw
 SMOOTHING = 0.7  # weight of the elites' mean and spread against the last ones
 SPREAD = 0.3  # the first draw's spread, as a fraction of each joint's speed bound
 SPREAD_FLOOR = 0.005  # the spread never falls below this fraction of the bound
-TARGET = 0.015  # [m] the search pushes clearances up to this and stops there; an escape needs > 0
+TARGET = 0.015  # [m] the search pushes clearances up to this and stops there (--target); an escape needs > 0
 SPEED_TOLERANCE = 1.01  # an escape keeps every joint within this multiple of its bound
 TAIL = 0.5  # [s] the horizon runs this long past the last moving sphere's exit
 SERVO_RESPONSE = 0.2  # a servo saturates at this fraction of the bound in velocity error
@@ -93,6 +100,21 @@ class Escape:
     targets: list[list[float]]  # the best motion: joint-velocity targets [rad/s], one row per SEGMENT s
 
 
+def servo_gains(model: mujoco.MjModel, robot: RobotDescription, qpos: np.ndarray, bound: np.ndarray) -> np.ndarray:
+    """(n,) the servos' velocity gains K [N m s/rad]: each joint's torque limit over
+    :data:`SERVO_RESPONSE` of its ``bound`` [rad/s], scaled down together until the largest
+    eigenvalue of dt M⁻¹ K, with the mass matrix at ``qpos``, is :data:`STABLE_GAIN` (explicit
+    Euler, the scene's integrator, is stable below 2)."""
+    data = mujoco.MjData(model)
+    data.qpos[model.jnt_qposadr[model.dof_jntid[robot.dof_ids]]] = qpos
+    mujoco.mj_forward(model, data)
+    dense = np.zeros((model.nv, model.nv))
+    mujoco.mj_fullM(model, data, dense)
+    gains = np.asarray(robot.torque_limit, dtype=float) / (SERVO_RESPONSE * bound)
+    coupling = model.opt.timestep * np.linalg.inv(dense)[np.ix_(robot.dof_ids, robot.dof_ids)] * gains
+    return gains * min(1.0, STABLE_GAIN / np.max(np.abs(np.linalg.eigvals(coupling))))
+
+
 def escape_spec(spec: mujoco.MjSpec, robot: RobotDescription, model: mujoco.MjModel, qpos: np.ndarray,
                 bound: np.ndarray, spheres: int) -> int:
     """Turn the scene ``spec`` (of :func:`third_party.scene_spec`, whose compiled ``model`` the
@@ -100,20 +122,10 @@ def escape_spec(spec: mujoco.MjSpec, robot: RobotDescription, model: mujoco.MjMo
     joints (targets within ``bound`` (n,) [rad/s], forces within ``robot.torque_limit``),
     gravity compensated through them, and a
     distance sensor between every protected geom and each of the ``spheres`` spheres. The servo
-    gains are :data:`SERVO_RESPONSE`'s, scaled down together to :data:`STABLE_GAIN` with the mass
-    matrix at ``qpos`` (the arm's joint positions). Returns the index of the first distance sensor (the
-    file's own sensors come before them)."""
-    data = mujoco.MjData(model)
-    data.qpos[model.jnt_qposadr[model.dof_jntid[robot.dof_ids]]] = qpos
-    mujoco.mj_forward(model, data)
-    dense = np.zeros((model.nv, model.nv))
-    mujoco.mj_fullM(model, data, dense)
+    gains are :func:`servo_gains` at ``qpos`` (the arm's joint positions). Returns the index of
+    the first distance sensor (the file's own sensors come before them)."""
     limit = np.asarray(robot.torque_limit, dtype=float)
-    gains = limit / (SERVO_RESPONSE * bound)
-    # explicit Euler (the scene's integrator) is stable while dt M⁻¹ K has no eigenvalue past 2;
-    # the gains are scaled down together until the largest is STABLE_GAIN
-    coupling = model.opt.timestep * np.linalg.inv(dense)[np.ix_(robot.dof_ids, robot.dof_ids)] * gains
-    gains *= min(1.0, STABLE_GAIN / np.max(np.abs(np.linalg.eigvals(coupling))))
+    gains = servo_gains(model, robot, qpos, bound)
     dof_of = {int(model.jnt_dofadr[j]): j for j in range(model.njnt)}
     index = {int(dof): i for i, dof in enumerate(robot.dof_ids)}
     for actuator in spec.actuators:
@@ -145,16 +157,16 @@ def escape_spec(spec: mujoco.MjSpec, robot: RobotDescription, model: mujoco.MjMo
 
 
 def search(arm: str, scenario: str, seed: int, config: FilterConfig, *, assets: Path, hold: float = 0.0,
-           iterations: int = 40, max_speed: float = tp.SPEED[1], threads: int = 2) -> Escape:
+           iterations: int = 40, max_speed: float = tp.SPEED[1], threads: int = 2, target: float = TARGET) -> Escape:
     """Search for an escape in ``third_party``'s episode (``arm``, ``scenario``, ``seed``, the
     spheres the filter ``config``'s envelope allows at up to ``max_speed`` m/s), the arm held
     still for the first ``hold`` seconds; ``iterations`` of the cross-entropy method at most, each
-    rolled out on ``threads`` threads. ValueError on an unknown arm or scenario, a hold outside
-    [0, horizon) or iterations < 1."""
+    rolled out on ``threads`` threads, until a motion keeps ``target`` [m] clear. ValueError on an
+    unknown arm or scenario, a hold outside [0, horizon), iterations < 1 or a target <= 0."""
     if scenario not in tp.SCENARIOS:
         raise ValueError(f"unknown scenario {scenario!r}; choose from {', '.join(tp.SCENARIOS)}")
-    if iterations < 1:
-        raise ValueError(f"iterations must be >= 1, got {iterations}")
+    if iterations < 1 or not target > 0.0:
+        raise ValueError(f"iterations must be >= 1 and target > 0 m, got {iterations} and {target}")
     start = time.perf_counter()
     kinds = len(tp.SCENARIOS[scenario])
     model, robot, _ = tp.build_scene(assets, arm, kinds)  # ValueError on an unknown arm
@@ -204,7 +216,7 @@ def search(arm: str, scenario: str, seed: int, config: FilterConfig, *, assets: 
         lowest_per_step = distances.min(axis=2)
         lowest = lowest_per_step.min(axis=1)
         ratio = (np.abs(states[:, :, qvel]) / bound).max(axis=(1, 2))
-        cost = (1e3 * (np.maximum(TARGET - distances, 0.0) ** 2).sum(axis=(1, 2))
+        cost = (1e3 * (np.maximum(target - distances, 0.0) ** 2).sum(axis=(1, 2))
                 + 100.0 * np.maximum(ratio - 1.0, 0.0) + 1e-4 * ((plans / bound) ** 2).sum(axis=(1, 2)))  # fmt: skip
         return cost, lowest, ratio, lowest_per_step
 
@@ -223,7 +235,7 @@ def search(arm: str, scenario: str, seed: int, config: FilterConfig, *, assets: 
         order = np.argsort(cost)
         if cost[order[0]] < best[0]:
             best = (float(cost[order[0]]), float(lowest[order[0]]), float(ratio[order[0]]), plans[order[0]])
-        if best[1] >= TARGET and best[2] <= SPEED_TOLERANCE or held >= segments:
+        if best[1] >= target and best[2] <= SPEED_TOLERANCE or held >= segments:
             break  # clear by the target: no need to search on
         elites = plans[order[:ELITES]]
         mean = SMOOTHING * elites.mean(axis=0) + (1 - SMOOTHING) * mean
@@ -231,6 +243,60 @@ def search(arm: str, scenario: str, seed: int, config: FilterConfig, *, assets: 
     found = best[1] > 0.0 and best[2] <= SPEED_TOLERANCE
     return Escape(arm, scenario, seed, hold, horizon, found, best[1], best[2], float(still_lowest[0]),
                   float(still_contact), done, time.perf_counter() - start, best[3].round(6).tolist())
+
+
+@dataclass
+class Replay:
+    """A motion of :func:`search` replayed on the benchmark's own torque-driven model (lengths in m)."""
+
+    unfiltered_clearance: float  # the lowest clearance with the motion's torques applied as they are
+    filtered_clearance: float  # ... with them as the nominal torque of the filter
+    filtered_infeasible_steps: int  # physics steps where the filter's rows gave way beyond their allowance
+
+
+def replay(arm: str, scenario: str, seed: int, config: FilterConfig, targets: np.ndarray, horizon: float, *,
+           assets: Path, max_speed: float = tp.SPEED[1]) -> Replay:
+    """Apply ``targets`` (segments, n) [rad/s] (:attr:`Escape.targets`) to ``third_party``'s own
+    model of the episode (torque motors, no servos, no sensors) for ``horizon`` s: the torque
+    τ = clip(K (q̇* − q̇) + g(q)) at every physics step, with the search's gains
+    (:func:`servo_gains`) and the gravity torque g(q) of the arm at rest, once as it is and once
+    as the nominal torque of the filter ``config``. Clearance as ``third_party.py`` measures it
+    (``mj_geomDistance``, every protected geom to every sphere, before every physics step)."""
+    model, robot, _ = tp.build_scene(assets, arm, len(tp.SCENARIOS[scenario]))
+    envelope = tp.arm_envelope(model, robot, arm, config)
+    bound = config.joint_speed_fraction * np.asarray(robot.joint_speed_limit, dtype=float)
+    gains = servo_gains(model, robot, np.array(tp.ARMS[arm].init_qpos), bound)
+    targets = np.asarray(targets, dtype=float)
+    limit, dofs, dt = np.asarray(robot.torque_limit), robot.dof_ids, model.opt.timestep
+    names = [tp._BALL.format(k) for k in range(len(tp.SCENARIOS[scenario]))]
+    balls = [model.geom(name).id for name in names]
+    rest = mujoco.MjData(model)  # the arm at rest in the same configuration: its qfrc_bias is g(q)
+    outcome = []
+    for filtered in (False, True):
+        data, drawn = tp.episode_start(model, robot, arm, scenario, seed, tp.SECONDS,
+                                       tp.speed_range(envelope, max_speed), envelope.min_sensing_range)  # fmt: skip
+        spheres = MocapSpheres(model, names)
+        controller = SafetyController(model, data, robot, spheres, config, envelope=envelope) if filtered else None
+        lowest, infeasible = tp.CUTOFF, 0
+        for step in range(round(horizon / dt)):
+            mujoco.mj_step1(model, data)
+            for ball in balls:
+                for geom in robot.geom_ids:
+                    lowest = min(lowest, mujoco.mj_geomDistance(model, data, ball, int(geom), lowest, None))
+            rest.qpos[:] = data.qpos
+            mujoco.mj_forward(model, rest)
+            target = targets[min(int(step * dt / SEGMENT + 1e-9), len(targets) - 1)]
+            tau = np.clip(rest.qfrc_bias[dofs] + gains * (target - data.qvel[dofs]), -limit, limit)
+            if controller is not None:
+                spheres.active[:] = drawn.leave > step * dt
+                spheres.velocity[:] = drawn.velocity
+                tau, report = controller.filter(tau)
+                infeasible += report.infeasible_steps
+            robot.write_ctrl(model, data, tau)
+            mujoco.mj_step2(model, data)
+            data.mocap_pos[[model.body(name).mocapid[0] for name in names]] = drawn.at((step + 1) * dt)[0]
+        outcome.append((lowest, infeasible))
+    return Replay(outcome[0][0], outcome[1][0], outcome[1][1])
 
 
 def main(argv: list[str] | None = None) -> list[dict]:
@@ -245,6 +311,9 @@ def main(argv: list[str] | None = None) -> list[dict]:
     parser.add_argument("--max-speed", type=float, default=tp.SPEED[1], metavar="V",
                         help="the spheres' top speed before the envelope's cap, as third_party.py's [m/s]")  # fmt: skip
     parser.add_argument("--threads", type=int, default=2, help="rollout threads")
+    parser.add_argument("--target", type=float, default=TARGET, help="search until a motion keeps this clear [m]")
+    parser.add_argument("--replay", action="store_true", help="replay each motion found on the benchmark's own "
+                        "model, as it is and as the filter's nominal torque")  # fmt: skip
     parser.add_argument("--cache", help="robosuite download folder (third_party.py's)")
     parser.add_argument("--json", type=Path, help="write the records here")
     add_filter_settings(parser, "--set")
@@ -255,21 +324,29 @@ def main(argv: list[str] | None = None) -> list[dict]:
         parser.error(f"--set: {error}")
     if args.arm not in tp.ARMS or args.scenario not in tp.SCENARIOS:
         parser.error(f"--arm from {', '.join(tp.ARMS)}; --scenario from {', '.join(tp.SCENARIOS)}")
-    if args.iterations < 1 or args.threads < 1 or args.hold < 0:
-        parser.error("--iterations and --threads must be >= 1 and --hold >= 0")
+    if args.iterations < 1 or args.threads < 1 or args.hold < 0 or not args.target > 0:
+        parser.error("--iterations and --threads must be >= 1, --hold >= 0 and --target > 0")
     assets = tp.robosuite_assets(args.cache)
     print(f"{args.arm}, {args.scenario}, joint speeds within {config.joint_speed_fraction:g} of the manufacturer's; "
           f"filter {config!r}")  # fmt: skip
     records = []
     for seed in args.seeds:
         found = search(args.arm, args.scenario, seed, config, assets=assets, hold=args.hold,
-                       iterations=args.iterations, max_speed=args.max_speed, threads=args.threads)  # fmt: skip
+                       iterations=args.iterations, max_speed=args.max_speed, threads=args.threads,
+                       target=args.target)  # fmt: skip
         records.append(asdict(found))
         print(f"seed {seed}: {'escape' if found.found else 'none found'}, lowest clearance "
               f"{1e3 * found.lowest_clearance:+.1f} mm, joint speed {found.max_speed_ratio:.2f} of the bound "
               f"(holding still: {1e3 * found.still_clearance:+.1f} mm, touching at {found.still_contact:.2f} s), "
               f"{found.iterations} iterations, "
               f"horizon {found.horizon:.2f} s, {found.seconds:.0f} s", flush=True)  # fmt: skip
+        if args.replay:
+            again = replay(args.arm, args.scenario, seed, config, np.array(found.targets), found.horizon,
+                           assets=assets, max_speed=args.max_speed)  # fmt: skip
+            records[-1]["replay"] = asdict(again)
+            print(f"  replayed on the benchmark's model: {1e3 * again.unfiltered_clearance:+.1f} mm as it is, "
+                  f"{1e3 * again.filtered_clearance:+.1f} mm beneath the filter "
+                  f"({again.filtered_infeasible_steps} infeasible physics steps)", flush=True)  # fmt: skip
     if args.json is not None:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps({"settings": {"filter": repr(config), "hold": args.hold,
