@@ -34,8 +34,8 @@ that finds one shows it does, on the benchmark's model and physics step.
 
 ``--hold T`` keeps the arm still for the first T seconds before it may move: how late an escape
 can still start, and so how far ahead a look-ahead would have to see. ``--replay`` applies each
-motion found to the benchmark's own torque-driven model (:func:`replay`), as it is and as the
-filter's nominal torque: whether the escape survives the filter.
+motion found to the benchmark's own torque-driven model (:func:`replay`): as it is, as the
+filter's nominal torque, and as the fallback where the filter's rows give way.
 
 Usage::
 
@@ -252,6 +252,8 @@ class Replay:
     unfiltered_clearance: float  # the lowest clearance with the motion's torques applied as they are
     filtered_clearance: float  # ... with them as the nominal torque of the filter
     filtered_infeasible_steps: int  # physics steps where the filter's rows gave way beyond their allowance
+    fallback_clearance: float  # ... beneath the filter, but the motion's own torque where its rows gave way
+    fallback_steps: int  # physics steps where the motion's torque replaced the filter's
 
 
 def replay(arm: str, scenario: str, seed: int, config: FilterConfig, targets: np.ndarray, horizon: float, *,
@@ -259,9 +261,11 @@ def replay(arm: str, scenario: str, seed: int, config: FilterConfig, targets: np
     """Apply ``targets`` (segments, n) [rad/s] (:attr:`Escape.targets`) to ``third_party``'s own
     model of the episode (torque motors, no servos, no sensors) for ``horizon`` s: the torque
     τ = clip(K (q̇* − q̇) + g(q)) at every physics step, with the search's gains
-    (:func:`servo_gains`) and the gravity torque g(q) of the arm at rest, once as it is and once
-    as the nominal torque of the filter ``config``. Clearance as ``third_party.py`` measures it
-    (``mj_geomDistance``, every protected geom to every sphere, before every physics step)."""
+    (:func:`servo_gains`) and the gravity torque g(q) of the arm at rest, three times: as it is;
+    as the nominal torque of the filter ``config``; and beneath the filter, but applied as it is at
+    every physics step where the filter's rows gave way beyond their allowance (the motion as a
+    certified fallback in place of the QP's compromise). Clearance as ``third_party.py`` measures
+    it (``mj_geomDistance``, every protected geom to every sphere, before every physics step)."""
     model, robot, _ = tp.build_scene(assets, arm, len(tp.SCENARIOS[scenario]))
     envelope = tp.arm_envelope(model, robot, arm, config)
     bound = config.joint_speed_fraction * np.asarray(robot.joint_speed_limit, dtype=float)
@@ -272,7 +276,8 @@ def replay(arm: str, scenario: str, seed: int, config: FilterConfig, targets: np
     balls = [model.geom(name).id for name in names]
     rest = mujoco.MjData(model)  # the arm at rest in the same configuration: its qfrc_bias is g(q)
     outcome = []
-    for filtered in (False, True):
+    for mode in ("as it is", "filtered", "fallback"):
+        filtered = mode != "as it is"
         data, drawn = tp.episode_start(model, robot, arm, scenario, seed, tp.SECONDS,
                                        tp.speed_range(envelope, max_speed), envelope.min_sensing_range)  # fmt: skip
         spheres = MocapSpheres(model, names)
@@ -290,13 +295,15 @@ def replay(arm: str, scenario: str, seed: int, config: FilterConfig, targets: np
             if controller is not None:
                 spheres.active[:] = drawn.leave > step * dt
                 spheres.velocity[:] = drawn.velocity
-                tau, report = controller.filter(tau)
+                safe, report = controller.filter(tau)
                 infeasible += report.infeasible_steps
+                if not (mode == "fallback" and report.infeasible_steps):
+                    tau = safe
             robot.write_ctrl(model, data, tau)
             mujoco.mj_step2(model, data)
             data.mocap_pos[[model.body(name).mocapid[0] for name in names]] = drawn.at((step + 1) * dt)[0]
         outcome.append((lowest, infeasible))
-    return Replay(outcome[0][0], outcome[1][0], outcome[1][1])
+    return Replay(outcome[0][0], outcome[1][0], outcome[1][1], outcome[2][0], outcome[2][1])
 
 
 def main(argv: list[str] | None = None) -> list[dict]:
@@ -313,7 +320,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     parser.add_argument("--threads", type=int, default=2, help="rollout threads")
     parser.add_argument("--target", type=float, default=TARGET, help="search until a motion keeps this clear [m]")
     parser.add_argument("--replay", action="store_true", help="replay each motion found on the benchmark's own "
-                        "model, as it is and as the filter's nominal torque")  # fmt: skip
+                        "model: as it is, as the filter's nominal torque, as its fallback")  # fmt: skip
     parser.add_argument("--cache", help="robosuite download folder (third_party.py's)")
     parser.add_argument("--json", type=Path, help="write the records here")
     add_filter_settings(parser, "--set")
@@ -346,7 +353,9 @@ def main(argv: list[str] | None = None) -> list[dict]:
             records[-1]["replay"] = asdict(again)
             print(f"  replayed on the benchmark's model: {1e3 * again.unfiltered_clearance:+.1f} mm as it is, "
                   f"{1e3 * again.filtered_clearance:+.1f} mm beneath the filter "
-                  f"({again.filtered_infeasible_steps} infeasible physics steps)", flush=True)  # fmt: skip
+                  f"({again.filtered_infeasible_steps} infeasible physics steps), "
+                  f"{1e3 * again.fallback_clearance:+.1f} mm with it as the fallback where the rows give way "
+                  f"({again.fallback_steps} physics steps)", flush=True)  # fmt: skip
     if args.json is not None:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps({"settings": {"filter": repr(config), "hold": args.hold,

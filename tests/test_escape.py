@@ -55,6 +55,7 @@ def test_an_episode_the_filter_loses_has_an_escape_and_holding_still_has_none(as
     again = escape.replay("sawyer", "multi", 20, CANDIDATE, np.array(found.targets), found.horizon, assets=assets)
     assert again.unfiltered_clearance > 0.0
     assert abs(again.unfiltered_clearance - found.lowest_clearance) < 0.002
+    assert again.filtered_infeasible_steps > 0 and again.fallback_steps > 0  # the rows give way here
 
 
 def test_a_search_that_finds_no_escape_says_so(assets):
