@@ -63,6 +63,7 @@ import third_party as tp  # the benchmark beside this file
 from c3bf_gym.cli import add_filter_settings
 from c3bf_gym.safety import (
     FilterConfig,
+    FilterEnvelope,
     MocapSpheres,
     RobotDescription,
     SafetyController,
@@ -115,6 +116,23 @@ def servo_gains(model: mujoco.MjModel, robot: RobotDescription, qpos: np.ndarray
     return gains * min(1.0, STABLE_GAIN / np.max(np.abs(np.linalg.eigvals(coupling))))
 
 
+def _arm_actuators(model: mujoco.MjModel, robot: RobotDescription) -> list[tuple[int, int]]:
+    """(actuator id, index among ``robot``'s joints) of every actuator on one of the arm's joints
+    (a gripper's are left out)."""
+    joint_of = {int(dof): i for i, dof in enumerate(robot.dof_ids)}
+    dofs = model.jnt_dofadr[model.actuator_trnid[:, 0]]
+    return [(i, joint_of[int(dof)]) for i, dof in enumerate(dofs) if int(dof) in joint_of]
+
+
+def _scene(arm: str, scenario: str, config: FilterConfig,
+           assets: Path) -> tuple[mujoco.MjModel, RobotDescription, FilterEnvelope, np.ndarray]:
+    """``third_party``'s scene for ``scenario`` on ``arm`` (ValueError on an unknown arm), the
+    envelope of ``config`` there, and the joints' speed bound [rad/s] under ``config``."""
+    model, robot, _ = tp.build_scene(assets, arm, len(tp.SCENARIOS[scenario]))
+    envelope = tp.arm_envelope(model, robot, arm, config)
+    return model, robot, envelope, config.joint_speed_fraction * np.asarray(robot.joint_speed_limit, dtype=float)
+
+
 def escape_spec(spec: mujoco.MjSpec, robot: RobotDescription, model: mujoco.MjModel, qpos: np.ndarray,
                 bound: np.ndarray, spheres: int) -> int:
     """Turn the scene ``spec`` (of :func:`third_party.scene_spec`, whose compiled ``model`` the
@@ -126,13 +144,8 @@ def escape_spec(spec: mujoco.MjSpec, robot: RobotDescription, model: mujoco.MjMo
     the first distance sensor (the file's own sensors come before them)."""
     limit = np.asarray(robot.torque_limit, dtype=float)
     gains = servo_gains(model, robot, qpos, bound)
-    dof_of = {int(model.jnt_dofadr[j]): j for j in range(model.njnt)}
-    index = {int(dof): i for i, dof in enumerate(robot.dof_ids)}
-    for actuator in spec.actuators:
-        dof = int(model.jnt_dofadr[model.actuator_trnid[model.actuator(actuator.name).id, 0]])
-        if dof not in index:
-            continue  # a gripper's fingers keep their own servos
-        i = index[dof]
+    for a, i in _arm_actuators(model, robot):  # a gripper's fingers keep their own servos
+        actuator = spec.actuator(model.actuator(a).name)
         gain = gains[i]
         actuator.gear[0] = 1.0
         actuator.gaintype, actuator.biastype = mujoco.mjtGain.mjGAIN_FIXED, mujoco.mjtBias.mjBIAS_AFFINE
@@ -140,7 +153,7 @@ def escape_spec(spec: mujoco.MjSpec, robot: RobotDescription, model: mujoco.MjMo
         actuator.biasprm[:3] = [0.0, 0.0, -gain]
         actuator.ctrllimited = actuator.forcelimited = mujoco.mjtLimited.mjLIMITED_TRUE
         actuator.ctrlrange, actuator.forcerange = [-bound[i], bound[i]], [-limit[i], limit[i]]
-        joint = spec.joint(model.joint(dof_of[dof]).name)
+        joint = spec.joint(model.joint(model.actuator_trnid[a, 0]).name)
         joint.actgravcomp = True  # the compensation is the actuators' torque, within their limit
         joint.actfrclimited = mujoco.mjtLimited.mjLIMITED_TRUE
         joint.actfrcrange = [-limit[i], limit[i]]
@@ -169,9 +182,7 @@ def search(arm: str, scenario: str, seed: int, config: FilterConfig, *, assets: 
         raise ValueError(f"iterations must be >= 1 and target > 0 m, got {iterations} and {target}")
     start = time.perf_counter()
     kinds = len(tp.SCENARIOS[scenario])
-    model, robot, _ = tp.build_scene(assets, arm, kinds)  # ValueError on an unknown arm
-    envelope = tp.arm_envelope(model, robot, arm, config)
-    bound = config.joint_speed_fraction * np.asarray(robot.joint_speed_limit, dtype=float)
+    model, robot, envelope, bound = _scene(arm, scenario, config, assets)
     spec, _, _, _ = tp.scene_spec(assets, arm, kinds)
     first = escape_spec(spec, robot, model, np.array(tp.ARMS[arm].init_qpos), bound, kinds)
     servo = spec.compile()
@@ -193,8 +204,7 @@ def search(arm: str, scenario: str, seed: int, config: FilterConfig, *, assets: 
     spheres_path[:] = data.mocap_pos
     for t in range(steps):
         spheres_path[t, mocap] = spheres.at((t + 1) * dt)[0]
-    arm_actuators = [(i, int(np.flatnonzero(robot.dof_ids == servo.jnt_dofadr[servo.actuator_trnid[i, 0]])[0]))
-                     for i in range(servo.nu) if servo.jnt_dofadr[servo.actuator_trnid[i, 0]] in robot.dof_ids]  # fmt: skip
+    arm_actuators = _arm_actuators(servo, robot)
     spec_bits = mujoco.mjtState.mjSTATE_CTRL | mujoco.mjtState.mjSTATE_MOCAP_POS
     full = mujoco.mjtState.mjSTATE_FULLPHYSICS
     state0 = np.zeros(mujoco.mj_stateSize(servo, full))
@@ -266,14 +276,13 @@ def replay(arm: str, scenario: str, seed: int, config: FilterConfig, targets: np
     every physics step where the filter's rows gave way beyond their allowance (the motion as a
     certified fallback in place of the QP's compromise). Clearance as ``third_party.py`` measures
     it (``mj_geomDistance``, every protected geom to every sphere, before every physics step)."""
-    model, robot, _ = tp.build_scene(assets, arm, len(tp.SCENARIOS[scenario]))
-    envelope = tp.arm_envelope(model, robot, arm, config)
-    bound = config.joint_speed_fraction * np.asarray(robot.joint_speed_limit, dtype=float)
+    model, robot, envelope, bound = _scene(arm, scenario, config, assets)
     gains = servo_gains(model, robot, np.array(tp.ARMS[arm].init_qpos), bound)
     targets = np.asarray(targets, dtype=float)
     limit, dofs, dt = np.asarray(robot.torque_limit), robot.dof_ids, model.opt.timestep
     names = [tp._BALL.format(k) for k in range(len(tp.SCENARIOS[scenario]))]
     balls = [model.geom(name).id for name in names]
+    mocap = [model.body(name).mocapid[0] for name in names]
     rest = mujoco.MjData(model)  # the arm at rest in the same configuration: its qfrc_bias is g(q)
     outcome = []
     for mode in ("as it is", "filtered", "fallback"):
@@ -301,7 +310,7 @@ def replay(arm: str, scenario: str, seed: int, config: FilterConfig, targets: np
                     tau = safe
             robot.write_ctrl(model, data, tau)
             mujoco.mj_step2(model, data)
-            data.mocap_pos[[model.body(name).mocapid[0] for name in names]] = drawn.at((step + 1) * dt)[0]
+            data.mocap_pos[mocap] = drawn.at((step + 1) * dt)[0]
         outcome.append((lowest, infeasible))
     return Replay(outcome[0][0], outcome[1][0], outcome[1][1], outcome[2][0], outcome[2][1])
 

@@ -458,9 +458,13 @@ class Spheres:
         """(positions (K, 3) [m], active (K,)) at time ``t`` [s]: a sphere that has left is parked
         at (10 + k, 0, 1), far from every arm, as the episodes park it."""
         active = self.leave > t
-        parked = np.column_stack([10.0 + np.arange(len(self.radius)), np.zeros((len(self.radius), 2))])
-        parked[:, 2] = 1.0
+        parked = np.array([_parked(k) for k in range(len(self.radius))])
         return np.where(active[:, None], self.position + self.velocity * t, parked), active
+
+
+def _parked(k: int) -> tuple[float, float, float]:
+    """Where sphere ``k`` waits once it has left the scene [m]: far from every arm, apart from the others."""
+    return (10.0 + k, 0.0, 1.0)
 
 
 def episode_start(model: mujoco.MjModel, robot: RobotDescription, arm: str, scenario: str, seed: int,
@@ -561,7 +565,7 @@ def run_episode(task: tuple[str, str, str, str, FilterConfig | None, int, float,
         for k in np.flatnonzero(leave <= out.steps * TIMESTEP):  # past its aim: out of the scene
             leave[k], velocity[k] = np.inf, 0.0
             spheres.clear(k)
-            data.mocap_pos[mocap[k]] = (10.0 + k, 0.0, 1.0)
+            data.mocap_pos[mocap[k]] = _parked(k)
     mujoco.mj_kinematics(model, data)
     measure()
     return out
