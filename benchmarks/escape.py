@@ -37,11 +37,18 @@ can still start, and so how far ahead a look-ahead would have to see. ``--replay
 motion found to the benchmark's own torque-driven model (:func:`replay`): as it is, as the
 filter's nominal torque, and as the fallback where the filter's rows give way.
 
+``--online`` drops the oracle's knowledge: it runs the benchmark's filtered episode under each of
+``--policies`` and, where the filter's rows give way, searches from the state reached with only
+what the filter knows there (each sphere's position and velocity, held), over ``--lookahead`` s,
+and engages an escape found for ``--engage`` s as the filter's nominal torque and its fallback
+(:class:`OnlineEscape`). Each episode runs without and with it on the same seed.
+
 Usage::
 
     python benchmarks/escape.py --arm sawyer --scenario multi --seeds 20 23 67 \\
         --set joint_range_reserve=0.3 allowance_level=true joint_speed_fraction=1.0 nominal_speed_fraction=0.4
     python benchmarks/escape.py --arm sawyer --scenario multi --seeds 20 --hold 1.0 --set joint_speed_fraction=1.0
+    python benchmarks/escape.py --online --arm sawyer --scenario multi --seeds 2 12 20 40 89
 """
 
 from __future__ import annotations
@@ -99,6 +106,19 @@ class Escape:
     iterations: int
     seconds: float  # wall time
     targets: list[list[float]]  # the best motion: joint-velocity targets [rad/s], one row per SEGMENT s
+    start: float = 0.0  # [s] into the episode, where the search started (a Start's time)
+
+
+@dataclass
+class Start:
+    """A search's start other than the episode's beginning: a state the filtered episode reached,
+    with the spheres as the filter knew them there."""
+
+    time: float  # [s] into the episode
+    qpos: np.ndarray  # (model.nq,) the scene's joint positions
+    qvel: np.ndarray  # (model.nv,) [rad/s] and velocities
+    spheres: tp.Spheres  # their positions then, velocities held from then on; times count from ``time``
+    horizon: float  # [s] into the episode: the search's end
 
 
 def servo_gains(model: mujoco.MjModel, robot: RobotDescription, qpos: np.ndarray, bound: np.ndarray) -> np.ndarray:
@@ -170,36 +190,49 @@ def escape_spec(spec: mujoco.MjSpec, robot: RobotDescription, model: mujoco.MjMo
 
 
 def search(arm: str, scenario: str, seed: int, config: FilterConfig, *, assets: Path, hold: float = 0.0,
-           iterations: int = 40, max_speed: float = tp.SPEED[1], threads: int = 2, target: float = TARGET) -> Escape:
+           iterations: int = 40, max_speed: float = tp.SPEED[1], threads: int = 2, target: float = TARGET,
+           start: Start | None = None, initial: np.ndarray | None = None) -> Escape:
     """Search for an escape in ``third_party``'s episode (``arm``, ``scenario``, ``seed``, the
     spheres the filter ``config``'s envelope allows at up to ``max_speed`` m/s), the arm held
     still for the first ``hold`` seconds; ``iterations`` of the cross-entropy method at most, each
-    rolled out on ``threads`` threads, until a motion keeps ``target`` [m] clear. ValueError on an
+    rolled out on ``threads`` threads, until a motion keeps ``target`` [m] clear. From the
+    episode's beginning, with the spheres' whole paths, until the last moving one has left plus
+    :data:`TAIL`; or from ``start``, with the spheres it gives, until its horizon. The first draw is
+    centred on ``initial`` (segments, n) [rad/s] (a motion to start from; zeros past its end), or on
+    holding still. ValueError on an
     unknown arm or scenario, a hold outside [0, horizon), iterations < 1 or a target <= 0."""
     if scenario not in tp.SCENARIOS:
         raise ValueError(f"unknown scenario {scenario!r}; choose from {', '.join(tp.SCENARIOS)}")
     if iterations < 1 or not target > 0.0:
         raise ValueError(f"iterations must be >= 1 and target > 0 m, got {iterations} and {target}")
-    start = time.perf_counter()
+    clock = time.perf_counter()
     kinds = len(tp.SCENARIOS[scenario])
     model, robot, envelope, bound = _scene(arm, scenario, config, assets)
+    joints = model.jnt_qposadr[model.dof_jntid[robot.dof_ids]]  # the arm's entries of qpos
     spec, _, _, _ = tp.scene_spec(assets, arm, kinds)
-    first = escape_spec(spec, robot, model, np.array(tp.ARMS[arm].init_qpos), bound, kinds)
+    qpos = np.array(tp.ARMS[arm].init_qpos) if start is None else start.qpos[joints]
+    first = escape_spec(spec, robot, model, qpos, bound, kinds)
     servo = spec.compile()
     sensed = slice(int(servo.sensor_adr[first]), None)  # the distance sensors' entries of sensordata
     data, spheres = tp.episode_start(servo, robot, arm, scenario, seed, tp.SECONDS,
                                      tp.speed_range(envelope, max_speed), envelope.min_sensing_range)  # fmt: skip
-    leaving = spheres.leave[np.isfinite(spheres.leave)]
-    horizon = min(tp.SECONDS, (leaving.max() if leaving.size else 0.0) + TAIL)
-    if not 0.0 <= hold < horizon:
-        raise ValueError(f"hold must be in [0, {horizon:g}) s, the horizon of this episode, got {hold}")
+    mocap = [servo.body(tp._BALL.format(k)).mocapid[0] for k in range(kinds)]
+    if start is None:
+        begin, leaving = 0.0, spheres.leave[np.isfinite(spheres.leave)]
+        horizon = min(tp.SECONDS, (leaving.max() if leaving.size else 0.0) + TAIL)
+    else:
+        begin, horizon, spheres = start.time, start.horizon, start.spheres
+        data.qpos[:], data.qvel[:], data.time = start.qpos, start.qvel, start.time
+        data.mocap_pos[mocap] = spheres.at(0.0)[0]
+        mujoco.mj_forward(servo, data)
+    if not 0.0 <= hold < horizon - begin:
+        raise ValueError(f"hold must be in [0, {horizon - begin:g}) s, the horizon of this search, got {hold}")
     dt = servo.opt.timestep
-    steps = round(horizon / dt)
+    steps = round((horizon - begin) / dt)
     segment = round(SEGMENT / dt)
     segments = -(-steps // segment)
     held = round(hold / SEGMENT)
     # the spheres' positions at every step, as the control's mocap part
-    mocap = [servo.body(tp._BALL.format(k)).mocapid[0] for k in range(kinds)]
     spheres_path = np.zeros((steps, servo.nmocap, 3))
     spheres_path[:] = data.mocap_pos
     for t in range(steps):
@@ -232,12 +265,14 @@ def search(arm: str, scenario: str, seed: int, config: FilterConfig, *, assets: 
 
     _, still_lowest, _, still_path = roll(np.zeros((1, segments, robot.n)))
     touching = np.flatnonzero(still_path[0] < 0.0)
-    still_contact = (touching[0] + 1) * dt if touching.size else np.inf
+    still_contact = begin + (touching[0] + 1) * dt if touching.size else np.inf
     mean, spread = np.zeros((segments, robot.n)), np.tile(SPREAD * bound, (segments, 1))
+    if initial is not None:
+        mean[: len(initial)] = np.clip(initial[:segments], -bound, bound)
     best = (np.inf, float(still_lowest[0]), 0.0, mean)
     done = 0
     for done in range(1, iterations + 1):
-        rng = np.random.default_rng([seed, done])
+        rng = np.random.default_rng([seed, done] if start is None else [seed, done, round(begin / dt)])
         plans = np.clip(mean + spread * rng.standard_normal((SAMPLES, segments, robot.n)), -bound, bound)
         plans[0] = mean
         plans[:, :held] = 0.0
@@ -252,7 +287,21 @@ def search(arm: str, scenario: str, seed: int, config: FilterConfig, *, assets: 
         spread = SMOOTHING * elites.std(axis=0) + (1 - SMOOTHING) * spread + SPREAD_FLOOR * bound
     found = best[1] > 0.0 and best[2] <= SPEED_TOLERANCE
     return Escape(arm, scenario, seed, hold, horizon, found, best[1], best[2], float(still_lowest[0]),
-                  float(still_contact), done, time.perf_counter() - start, best[3].round(6).tolist())
+                  float(still_contact), done, time.perf_counter() - clock, best[3].round(6).tolist(), begin)
+
+
+def servo_torque(model: mujoco.MjModel, rest: mujoco.MjData, data: mujoco.MjData, robot: RobotDescription,
+                 gains: np.ndarray, targets: np.ndarray, elapsed: float) -> np.ndarray:
+    """(n,) [N m] the search's torque law on the benchmark's torque-driven ``model`` at ``data``'s
+    state, ``elapsed`` s into the motion ``targets`` (segments, n) [rad/s] (its last target held
+    past its end): τ = clip(g(q) + K (q̇* − q̇)) within the torque limits, with the servo
+    ``gains`` K and g(q) the gravity torque of the arm at rest at q (``rest``, a scratch
+    ``MjData`` of ``model``)."""
+    rest.qpos[:] = data.qpos
+    mujoco.mj_forward(model, rest)
+    target = targets[min(int(elapsed / SEGMENT + 1e-9), len(targets) - 1)]
+    limit = np.asarray(robot.torque_limit)
+    return np.clip(rest.qfrc_bias[robot.dof_ids] + gains * (target - data.qvel[robot.dof_ids]), -limit, limit)
 
 
 @dataclass
@@ -279,7 +328,7 @@ def replay(arm: str, scenario: str, seed: int, config: FilterConfig, targets: np
     model, robot, envelope, bound = _scene(arm, scenario, config, assets)
     gains = servo_gains(model, robot, np.array(tp.ARMS[arm].init_qpos), bound)
     targets = np.asarray(targets, dtype=float)
-    limit, dofs, dt = np.asarray(robot.torque_limit), robot.dof_ids, model.opt.timestep
+    dt = model.opt.timestep
     names = [tp._BALL.format(k) for k in range(len(tp.SCENARIOS[scenario]))]
     balls = [model.geom(name).id for name in names]
     mocap = [model.body(name).mocapid[0] for name in names]
@@ -297,10 +346,7 @@ def replay(arm: str, scenario: str, seed: int, config: FilterConfig, targets: np
             for ball in balls:
                 for geom in robot.geom_ids:
                     lowest = min(lowest, mujoco.mj_geomDistance(model, data, ball, int(geom), lowest, None))
-            rest.qpos[:] = data.qpos
-            mujoco.mj_forward(model, rest)
-            target = targets[min(int(step * dt / SEGMENT + 1e-9), len(targets) - 1)]
-            tau = np.clip(rest.qfrc_bias[dofs] + gains * (target - data.qvel[dofs]), -limit, limit)
+            tau = servo_torque(model, rest, data, robot, gains, targets, step * dt)
             if controller is not None:
                 spheres.active[:] = drawn.leave > step * dt
                 spheres.velocity[:] = drawn.velocity
@@ -315,36 +361,135 @@ def replay(arm: str, scenario: str, seed: int, config: FilterConfig, targets: np
     return Replay(outcome[0][0], outcome[1][0], outcome[1][1], outcome[2][0], outcome[2][1])
 
 
-def main(argv: list[str] | None = None) -> list[dict]:
-    """Run the search for each seed (``argv``: the command line without the program name), print
-    one line per seed and return (and write to ``--json``) the :class:`Escape` records."""
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--arm", default="sawyer", help=f"from {', '.join(tp.ARMS)}")
-    parser.add_argument("--scenario", default="multi", help=f"from {', '.join(tp.SCENARIOS)}")
-    parser.add_argument("--seeds", type=int, nargs="+", required=True, help="the benchmark's episode seeds")
-    parser.add_argument("--hold", type=float, default=0.0, help="the arm holds still this long first [s]")
-    parser.add_argument("--iterations", type=int, default=40, help="cross-entropy iterations at most")
-    parser.add_argument("--max-speed", type=float, default=tp.SPEED[1], metavar="V",
-                        help="the spheres' top speed before the envelope's cap, as third_party.py's [m/s]")  # fmt: skip
-    parser.add_argument("--threads", type=int, default=2, help="rollout threads")
-    parser.add_argument("--target", type=float, default=TARGET, help="search until a motion keeps this clear [m]")
-    parser.add_argument("--replay", action="store_true", help="replay each motion found on the benchmark's own "
-                        "model: as it is, as the filter's nominal torque, as its fallback")  # fmt: skip
-    parser.add_argument("--cache", help="robosuite download folder (third_party.py's)")
-    parser.add_argument("--json", type=Path, help="write the records here")
-    add_filter_settings(parser, "--set")
-    args = parser.parse_args(argv)
-    try:
-        config = tp.CONFIG.replace(**dict(args.set))
-    except (TypeError, ValueError) as error:
-        parser.error(f"--set: {error}")
-    if args.arm not in tp.ARMS or args.scenario not in tp.SCENARIOS:
-        parser.error(f"--arm from {', '.join(tp.ARMS)}; --scenario from {', '.join(tp.SCENARIOS)}")
-    if args.iterations < 1 or args.threads < 1 or args.hold < 0 or not args.target > 0:
-        parser.error("--iterations and --threads must be >= 1, --hold >= 0 and --target > 0")
-    assets = tp.robosuite_assets(args.cache)
-    print(f"{args.arm}, {args.scenario}, joint speeds within {config.joint_speed_fraction:g} of the manufacturer's; "
-          f"filter {config!r}")  # fmt: skip
+LOOKAHEAD = 2.0  # [s] an online search's horizon (--lookahead)
+ENGAGE = 1.0  # [s] how long an escape it finds stays engaged before the next search (--engage)
+
+
+class OnlineEscape:
+    """The search run by the filtered episode itself (a :class:`third_party.Takeover`), knowing
+    only what the filter knows, as a receding horizon that runs while the filter's rows give way.
+
+    Where the rows give way beyond their allowance and no escape is engaged, :func:`search` runs
+    from that state (:class:`Start`) over the next ``lookahead`` s, with the spheres then active
+    held at their velocities (none leaves, none appears), its first draw centred on what is left of
+    the last motion found. An escape it finds (a motion certified clear over the horizon) is
+    engaged for ``engage`` s: it is the filter's nominal torque (:func:`servo_torque`), and is
+    applied as it is wherever the rows give way. So each engaged stretch ends with ``lookahead −
+    engage`` s of certified motion still ahead, for the next search to start from: at its end the
+    search runs again, and an escape found is engaged again while a sphere would still reach the
+    arm held still within the horizon; else the policy has the arm back. When a search finds
+    none, nothing is engaged: the filter's own torque stands and the next search waits ``engage``
+    s. The policy's torque is the nominal whenever nothing is engaged. Each search's
+    record is kept in :attr:`searches`, the physics steps on an escape's own torque counted in
+    :attr:`fallback_steps`."""
+
+    def __init__(self, arm: str, scenario: str, seed: int, config: FilterConfig, *, assets: Path,
+                 max_speed: float, lookahead: float, engage: float, iterations: int, threads: int,
+                 target: float) -> None:
+        if not 0.0 < engage <= lookahead:
+            raise ValueError(f"engage must be in (0, lookahead = {lookahead:g}] s, got {engage}")
+        self.episode = (arm, scenario, seed, config)
+        self.options = {"assets": assets, "max_speed": max_speed, "iterations": iterations, "threads": threads,
+                        "target": target}  # fmt: skip
+        self.model, self.robot, _, self.bound = _scene(arm, scenario, config, assets)
+        self.rest = mujoco.MjData(self.model)
+        self.lookahead, self.engage = lookahead, engage
+        self.searches: list[Escape] = []
+        self.fallback_steps = 0
+        self._first = self._until = self._next = 0  # the motion's first step, its engaged end, the next search's
+        self._targets = self._gains = None
+
+    def _torque(self, step: int, data: mujoco.MjData) -> np.ndarray:
+        dt = self.model.opt.timestep
+        return servo_torque(self.model, self.rest, data, self.robot, self._gains, self._targets,
+                            (step - self._first) * dt)  # fmt: skip
+
+    def nominal(self, step: int, data: mujoco.MjData, obstacles: MocapSpheres, tau: np.ndarray) -> np.ndarray:
+        if step == self._until and self._targets is not None:  # an engaged stretch ends here
+            obstacles.refresh(data)
+            found = self._search(step, data, obstacles)
+            if found.found and found.still_contact < found.horizon:
+                self._engage(step, data, found)  # a sphere would still reach the arm: go on
+            elif found.found:
+                self._next = step  # none would: the policy's again, searched again where the rows give way
+        return self._torque(step, data) if step < self._until else tau
+
+    def gave_way(self, step: int, data: mujoco.MjData, obstacles: MocapSpheres, safe: np.ndarray) -> np.ndarray:
+        if step >= max(self._until, self._next):
+            found = self._search(step, data, obstacles)
+            if found.found:
+                self._engage(step, data, found)
+        if step >= self._until:
+            return safe
+        self.fallback_steps += 1
+        return self._torque(step, data)
+
+    def _search(self, step: int, data: mujoco.MjData, obstacles: MocapSpheres) -> Escape:
+        """Search from ``data``'s state with what the filter knows (``obstacles``, current at it);
+        no search again for ``engage`` s unless the caller says otherwise."""
+        dt = self.model.opt.timestep
+        active = obstacles.active.copy()
+        known = tp.Spheres(obstacles.position.copy(), np.where(active[:, None], obstacles.velocity, 0.0),
+                           obstacles.radius.copy(), np.where(active, np.inf, 0.0))  # fmt: skip
+        begin = step * dt
+        start = Start(begin, data.qpos.copy(), data.qvel.copy(), known, min(tp.SECONDS, begin + self.lookahead))
+        left = None
+        if self._targets is not None:  # warm start: the last motion, from where it has got to
+            left = self._targets[min(int((step - self._first) * dt / SEGMENT + 1e-9), len(self._targets)):]
+        found = search(*self.episode, start=start, initial=left, **self.options)
+        self.searches.append(found)
+        self._next = step + round(self.engage / dt)
+        return found
+
+    def _engage(self, step: int, data: mujoco.MjData, found: Escape) -> None:
+        """Engage ``found`` (searched from ``data``'s state at ``step``) for ``engage`` s."""
+        joints = self.model.jnt_qposadr[self.model.dof_jntid[self.robot.dof_ids]]
+        self._gains = servo_gains(self.model, self.robot, data.qpos[joints], self.bound)
+        self._targets, self._first = np.array(found.targets), step
+        self._until = step + round(self.engage / self.model.opt.timestep)
+
+
+def online(arm: str, scenario: str, policy: str, seed: int, config: FilterConfig, *, assets: Path,
+           max_speed: float = tp.SPEED[1], lookahead: float = LOOKAHEAD, engage: float = ENGAGE,
+           iterations: int = 40, threads: int = 2, target: float = TARGET) -> dict:
+    """``third_party``'s filtered episode (``arm``, ``scenario``, ``policy``, ``seed``), without and
+    with :class:`OnlineEscape`: each one's outcome (:class:`third_party.Episode`) and wall time
+    [s], and the online searches' records."""
+    envelope = tp.arm_envelope(*tp.build_scene(assets, arm, 1)[:2], arm, config)
+    task = (str(assets), arm, scenario, policy, config, seed, tp.SECONDS,
+            tp.speed_range(envelope, max_speed), config)  # fmt: skip
+    clock = time.perf_counter()
+    alone = tp.run_episode(task)
+    alone_seconds = time.perf_counter() - clock
+    takeover = OnlineEscape(arm, scenario, seed, config, assets=assets, max_speed=max_speed, lookahead=lookahead,
+                            engage=engage, iterations=iterations, threads=threads, target=target)  # fmt: skip
+    clock = time.perf_counter()
+    helped = tp.run_episode(task, takeover)
+    return {"filtered": asdict(alone), "filtered_seconds": alone_seconds, "online": asdict(helped),
+            "online_seconds": time.perf_counter() - clock, "fallback_steps": takeover.fallback_steps,
+            "searches": [asdict(found) for found in takeover.searches]}  # fmt: skip
+
+
+def _online_records(args: argparse.Namespace, config: FilterConfig, assets: Path) -> list[dict]:
+    """``--online``: :func:`online` for each seed and policy, one line each."""
+    records = []
+    for seed in args.seeds:
+        for policy in args.policies:
+            run = online(args.arm, args.scenario, policy, seed, config, assets=assets, max_speed=args.max_speed,
+                         lookahead=args.lookahead, engage=args.engage, iterations=args.iterations,
+                         threads=args.threads, target=args.target)  # fmt: skip
+            records.append({"seed": seed, "policy": policy, **run})
+            alone, helped = run["filtered"], run["online"]
+            print(f"seed {seed}, {policy}: filtered {1e3 * alone['lowest_clearance']:+.1f} mm "
+                  f"({alone['infeasible_steps']} infeasible physics steps, {run['filtered_seconds']:.1f} s); "
+                  f"with the online search {1e3 * helped['lowest_clearance']:+.1f} mm "
+                  f"({len(run['searches'])} searches, {sum(f['found'] for f in run['searches'])} found an escape, "
+                  f"{run['fallback_steps']} physics steps on its torque, {run['online_seconds']:.1f} s)", flush=True)  # fmt: skip
+    return records
+
+
+def _search_records(args: argparse.Namespace, config: FilterConfig, assets: Path) -> list[dict]:
+    """The search for each seed's whole episode (and ``--replay``), one line each."""
     records = []
     for seed in args.seeds:
         found = search(args.arm, args.scenario, seed, config, assets=assets, hold=args.hold,
@@ -365,10 +510,60 @@ def main(argv: list[str] | None = None) -> list[dict]:
                   f"({again.filtered_infeasible_steps} infeasible physics steps), "
                   f"{1e3 * again.fallback_clearance:+.1f} mm with it as the fallback where the rows give way "
                   f"({again.fallback_steps} physics steps)", flush=True)  # fmt: skip
+    return records
+
+
+def main(argv: list[str] | None = None) -> list[dict]:
+    """Run the search for each seed, or with ``--online`` the episode of each seed and policy with
+    :class:`OnlineEscape` (``argv``: the command line without the program name); print one line each
+    and return (and write to ``--json``) the records."""
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--arm", default="sawyer", help=f"from {', '.join(tp.ARMS)}")
+    parser.add_argument("--scenario", default="multi", help=f"from {', '.join(tp.SCENARIOS)}")
+    parser.add_argument("--seeds", type=int, nargs="+", required=True, help="the benchmark's episode seeds")
+    parser.add_argument("--hold", type=float, default=0.0, help="the arm holds still this long first [s]")
+    parser.add_argument("--iterations", type=int, default=40, help="cross-entropy iterations at most")
+    parser.add_argument("--max-speed", type=float, default=tp.SPEED[1], metavar="V",
+                        help="the spheres' top speed before the envelope's cap, as third_party.py's [m/s]")  # fmt: skip
+    parser.add_argument("--threads", type=int, default=2, help="rollout threads")
+    parser.add_argument("--target", type=float, default=TARGET, help="search until a motion keeps this clear [m]")
+    parser.add_argument("--replay", action="store_true", help="replay each motion found on the benchmark's own "
+                        "model: as it is, as the filter's nominal torque, as its fallback")  # fmt: skip
+    parser.add_argument("--online", action="store_true", help="instead of searching each episode whole, run "
+                        "it filtered with the search started where the rows give way (OnlineEscape)")  # fmt: skip
+    parser.add_argument("--policies", nargs="+", default=list(tp.POLICIES),
+                        help=f"--online: from {', '.join(tp.POLICIES)}")
+    parser.add_argument("--lookahead", type=float, default=LOOKAHEAD, help="--online: each search's horizon [s]")
+    parser.add_argument("--engage", type=float, default=ENGAGE, help="--online: how long an escape found is engaged [s]")
+    parser.add_argument("--cache", help="robosuite download folder (third_party.py's)")
+    parser.add_argument("--json", type=Path, help="write the records here")
+    add_filter_settings(parser, "--set")
+    args = parser.parse_args(argv)
+    try:
+        config = tp.CONFIG.replace(**dict(args.set))
+    except (TypeError, ValueError) as error:
+        parser.error(f"--set: {error}")
+    if args.arm not in tp.ARMS or args.scenario not in tp.SCENARIOS:
+        parser.error(f"--arm from {', '.join(tp.ARMS)}; --scenario from {', '.join(tp.SCENARIOS)}")
+    if args.iterations < 1 or args.threads < 1 or args.hold < 0 or not args.target > 0:
+        parser.error("--iterations and --threads must be >= 1, --hold >= 0 and --target > 0")
+    if not 0 < args.engage <= args.lookahead:
+        parser.error(f"--engage must be in (0, --lookahead], got {args.engage} and {args.lookahead}")
+    unknown = [policy for policy in args.policies if policy not in tp.POLICIES]
+    if unknown:
+        parser.error(f"unknown --policies {', '.join(unknown)}; choose from {', '.join(tp.POLICIES)}")
+    assets = tp.robosuite_assets(args.cache)
+    print(f"{args.arm}, {args.scenario}, joint speeds within {config.joint_speed_fraction:g} of the manufacturer's; "
+          f"filter {config!r}")  # fmt: skip
+    run = _online_records if args.online else _search_records
+    records = run(args, config, assets)
     if args.json is not None:
         args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps({"settings": {"filter": repr(config), "hold": args.hold,
-                                                      "iterations": args.iterations, "max_speed": args.max_speed},
+        settings = {"filter": repr(config), "hold": args.hold, "iterations": args.iterations,
+                    "max_speed": args.max_speed}
+        if args.online:
+            settings.update(online=True, lookahead=args.lookahead, engage=args.engage, target=args.target)
+        args.json.write_text(json.dumps({"settings": settings,
                                          "episodes": records}, indent=2))  # fmt: skip
         print(f"wrote {args.json}")
     return records

@@ -82,6 +82,7 @@ import zipfile
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import Protocol
 
 import mujoco
 import numpy as np
@@ -494,11 +495,29 @@ def episode_start(model: mujoco.MjModel, robot: RobotDescription, arm: str, scen
     return data, drawn
 
 
+class Takeover(Protocol):
+    """A controller that may take the arm over from the episode's policy (``escape.py --online``).
+
+    At each physics step :func:`run_episode` asks :meth:`nominal` for the torque to filter, and,
+    when the filter's rows gave way beyond their allowance, :meth:`gave_way` for the torque to
+    apply instead of the filter's. Both see the step, ``data`` after ``mj_step1`` (the state the
+    last physics step reached, its kinematics current) and the filter's obstacles as the filter
+    sees them (positions, velocities, which are active); torques are the arm's (n,) [N m]."""
+
+    def nominal(self, step: int, data: mujoco.MjData, obstacles: MocapSpheres, tau: np.ndarray) -> np.ndarray:
+        """The nominal torque of this step: ``tau``, the policy's, or the takeover's own."""
+
+    def gave_way(self, step: int, data: mujoco.MjData, obstacles: MocapSpheres, safe: np.ndarray) -> np.ndarray:
+        """The torque to apply where the rows gave way: ``safe``, the filter's, or the takeover's own."""
+
+
 def run_episode(task: tuple[str, str, str, str, FilterConfig | None, int, float, tuple[float, float],
-                            FilterConfig | None]) -> Episode:
+                            FilterConfig | None], takeover: Takeover | None = None) -> Episode:
     """One episode: ``task`` = (assets folder, arm, scenario, policy, the filter's configuration or
     None for none, seed, seconds, the spheres' speed range [m/s], the configuration whose envelope's
-    sensing range the moving spheres start outside of (:func:`_spawn`), or None for none)."""
+    sensing range the moving spheres start outside of (:func:`_spawn`), or None for none); with a
+    filter, ``takeover`` (or None) may replace the policy's nominal torque and the torque applied
+    where the rows give way."""
     assets, arm, scenario, policy, config, seed, seconds, speed, spawn_config = task
     filtered = config is not None
     kinds = SCENARIOS[scenario]
@@ -554,7 +573,11 @@ def run_episode(task: tuple[str, str, str, str, FilterConfig | None, int, float,
         tau = np.clip(tau, -limit, limit)
         if controller is not None:
             spheres.velocity[:] = velocity
+            if takeover is not None:
+                tau = takeover.nominal(step, data, spheres, tau)
             tau, report = controller.filter(tau)
+            if takeover is not None and report.infeasible_steps:
+                tau = takeover.gave_way(step, data, spheres, tau)
             out.infeasible_steps += report.infeasible_steps
             out.hard_relaxed_steps += any(report.violation[kind] > 0.0 for kind in HARD_ROWS)
             out.gain_raised_steps += report.gain_raised_steps

@@ -1,6 +1,8 @@
 """The escape search (benchmarks/escape.py): on an episode of robosuite's Sawyer that the filter
 loses, a motion within the arm's torque limits and the filter's speed bound keeps it clear (on the
-search's model and, replayed, on the benchmark's own), and a search that cannot find one says so."""
+search's model and, replayed, on the benchmark's own), and a search that cannot find one says so;
+run by the episode itself where the filter's rows give way, with only what the filter knows, it
+keeps that episode clear."""
 
 from __future__ import annotations
 
@@ -104,3 +106,41 @@ def test_the_search_names_the_valid_choices(assets):
         escape.search("sawyer", "multi", 20, CANDIDATE, assets=assets, target=0.0)
     with pytest.raises(ValueError, match=r"hold must be in \[0, "):
         escape.search("sawyer", "multi", 20, CANDIDATE, assets=assets, hold=30.0)
+    with pytest.raises(ValueError, match=r"engage must be in \(0, lookahead = 1\] s"):
+        escape.OnlineEscape("sawyer", "multi", 20, CANDIDATE, assets=assets, max_speed=0.4, lookahead=1.0,
+                            engage=2.0, iterations=1, threads=1, target=escape.TARGET)  # fmt: skip
+    with pytest.raises(SystemExit):
+        escape.main(["--seeds", "20", "--online", "--policies", "lazy"])
+
+
+class _PassThrough:
+    """A takeover that changes nothing: the policy's nominal, the filter's torque."""
+
+    def __init__(self) -> None:
+        self.gave_way_steps = 0
+
+    def nominal(self, step, data, obstacles, tau):
+        return tau
+
+    def gave_way(self, step, data, obstacles, safe):
+        self.gave_way_steps += 1
+        return safe
+
+
+def test_a_takeover_that_changes_nothing_leaves_the_episode_as_it_was(assets):
+    model, robot, _ = tp.build_scene(assets, "sawyer", 4)
+    speed = tp.speed_range(tp.arm_envelope(model, robot, "sawyer", CANDIDATE))
+    task = (str(assets), "sawyer", "multi", "random", CANDIDATE, 20, 2.0, speed, CANDIDATE)
+    watching = _PassThrough()
+    assert tp.run_episode(task, watching) == tp.run_episode(task)
+    assert watching.gave_way_steps == tp.run_episode(task).infeasible_steps > 0  # asked at every step they gave way
+
+
+def test_the_search_run_where_the_rows_give_way_keeps_an_episode_the_filter_loses_clear(assets):
+    """Knowing only what the filter knows there (the spheres' positions and velocities)."""
+    run = escape.online("sawyer", "multi", "random", 20, tp.CONFIG, assets=assets, iterations=10)
+    assert run["filtered"]["collided"] and run["filtered"]["lowest_clearance"] < -0.02
+    assert not run["online"]["collided"] and run["online"]["lowest_clearance"] > 0.01
+    assert run["searches"] and run["fallback_steps"] > 0
+    first = run["searches"][0]
+    assert first["start"] < tp.SECONDS and first["horizon"] == pytest.approx(first["start"] + escape.LOOKAHEAD)
