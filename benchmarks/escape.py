@@ -54,6 +54,7 @@ Usage::
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import sys
 import time
@@ -144,10 +145,13 @@ def _arm_actuators(model: mujoco.MjModel, robot: RobotDescription) -> list[tuple
     return [(i, joint_of[int(dof)]) for i, dof in enumerate(dofs) if int(dof) in joint_of]
 
 
+@functools.cache
 def _scene(arm: str, scenario: str, config: FilterConfig,
            assets: Path) -> tuple[mujoco.MjModel, RobotDescription, FilterEnvelope, np.ndarray]:
     """``third_party``'s scene for ``scenario`` on ``arm`` (ValueError on an unknown arm), the
-    envelope of ``config`` there, and the joints' speed bound [rad/s] under ``config``."""
+    envelope of ``config`` there, and the joints' speed bound [rad/s] under ``config``: built once
+    per process (the envelope takes seconds), so callers share them and must not change them
+    except through ``third_party.episode_start``, which sets the spheres' radii for its episode."""
     model, robot, _ = tp.build_scene(assets, arm, len(tp.SCENARIOS[scenario]))
     envelope = tp.arm_envelope(model, robot, arm, config)
     return model, robot, envelope, config.joint_speed_fraction * np.asarray(robot.joint_speed_limit, dtype=float)
