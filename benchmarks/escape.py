@@ -22,8 +22,8 @@ searched arm accelerates more slowly than the real one could, so an escape it fi
 real arm has with torque to spare.
 
 A motion is a sequence of joint-velocity targets held for :data:`SEGMENT` s each, searched by the
-cross-entropy method (:func:`search`): :data:`SAMPLES` motions per iteration rolled out in
-MuJoCo's C rollout (``mujoco.rollout``), the best :data:`ELITES` re-centring the next draw, up to
+cross-entropy method (:func:`search`): :data:`SAMPLES` motions per iteration (``--samples``) rolled
+out in MuJoCo's C rollout (``mujoco.rollout``), the best eighth (:data:`ELITES`) re-centring the next draw, up to
 ``--iterations``, stopping once a motion keeps :data:`TARGET` clear. Clearance is MuJoCo's
 distance sensors (``mj_geomDistance`` on the real geoms, the benchmark's measure) between every
 protected geom and every sphere at every physics step. An **escape** keeps every clearance above 0
@@ -78,8 +78,8 @@ from c3bf_gym.safety import (
 )
 
 SEGMENT = 0.1  # [s] a velocity target is held this long
-SAMPLES = 96  # motions per iteration
-ELITES = 12  # the best motions that re-centre the next draw
+SAMPLES = 96  # motions per iteration (--samples)
+ELITES = 1 / 8  # the best fraction of them, which re-centres the next draw
 SMOOTHING = 0.7  # weight of the elites' mean and spread against the last ones
 SPREAD = 0.3  # the first draw's spread, as a fraction of each joint's speed bound
 SPREAD_FLOOR = 0.005  # the spread never falls below this fraction of the bound
@@ -195,20 +195,21 @@ def escape_spec(spec: mujoco.MjSpec, robot: RobotDescription, model: mujoco.MjMo
 
 def search(arm: str, scenario: str, seed: int, config: FilterConfig, *, assets: Path, hold: float = 0.0,
            iterations: int = 40, max_speed: float = tp.SPEED[1], threads: int = 2, target: float = TARGET,
-           start: Start | None = None, initial: np.ndarray | None = None) -> Escape:
+           start: Start | None = None, initial: np.ndarray | None = None, samples: int = SAMPLES) -> Escape:
     """Search for an escape in ``third_party``'s episode (``arm``, ``scenario``, ``seed``, the
     spheres the filter ``config``'s envelope allows at up to ``max_speed`` m/s), the arm held
     still for the first ``hold`` seconds; ``iterations`` of the cross-entropy method at most, each
-    rolled out on ``threads`` threads, until a motion keeps ``target`` [m] clear. From the
+    rolled out on ``threads`` threads, ``samples`` motions each, until a motion keeps ``target`` [m] clear. From the
     episode's beginning, with the spheres' whole paths, until the last moving one has left plus
     :data:`TAIL`; or from ``start``, with the spheres it gives, until its horizon. The first draw is
     centred on ``initial`` (segments, n) [rad/s] (a motion to start from; zeros past its end), or on
     holding still. ValueError on an
-    unknown arm or scenario, a hold outside [0, horizon), iterations < 1 or a target <= 0."""
+    unknown arm or scenario, a hold outside [0, horizon), iterations < 1, samples < 2 or a target <= 0."""
     if scenario not in tp.SCENARIOS:
         raise ValueError(f"unknown scenario {scenario!r}; choose from {', '.join(tp.SCENARIOS)}")
-    if iterations < 1 or not target > 0.0:
-        raise ValueError(f"iterations must be >= 1 and target > 0 m, got {iterations} and {target}")
+    if iterations < 1 or samples < 2 or not target > 0.0:
+        raise ValueError(f"iterations must be >= 1, samples >= 2 and target > 0 m, got {iterations}, {samples} "
+                         f"and {target}")  # fmt: skip
     clock = time.perf_counter()
     kinds = len(tp.SCENARIOS[scenario])
     model, robot, envelope, bound = _scene(arm, scenario, config, assets)
@@ -277,7 +278,7 @@ def search(arm: str, scenario: str, seed: int, config: FilterConfig, *, assets: 
     done = 0
     for done in range(1, iterations + 1):
         rng = np.random.default_rng([seed, done] if start is None else [seed, done, round(begin / dt)])
-        plans = np.clip(mean + spread * rng.standard_normal((SAMPLES, segments, robot.n)), -bound, bound)
+        plans = np.clip(mean + spread * rng.standard_normal((samples, segments, robot.n)), -bound, bound)
         plans[0] = mean
         plans[:, :held] = 0.0
         cost, lowest, ratio, _ = roll(plans)
@@ -286,7 +287,7 @@ def search(arm: str, scenario: str, seed: int, config: FilterConfig, *, assets: 
             best = (float(cost[order[0]]), float(lowest[order[0]]), float(ratio[order[0]]), plans[order[0]])
         if best[1] >= target and best[2] <= SPEED_TOLERANCE or held >= segments:
             break  # clear by the target: no need to search on
-        elites = plans[order[:ELITES]]
+        elites = plans[order[: max(2, round(ELITES * samples))]]
         mean = SMOOTHING * elites.mean(axis=0) + (1 - SMOOTHING) * mean
         spread = SMOOTHING * elites.std(axis=0) + (1 - SMOOTHING) * spread + SPREAD_FLOOR * bound
     found = best[1] > 0.0 and best[2] <= SPEED_TOLERANCE
@@ -389,12 +390,12 @@ class OnlineEscape:
 
     def __init__(self, arm: str, scenario: str, seed: int, config: FilterConfig, *, assets: Path,
                  max_speed: float, lookahead: float, engage: float, iterations: int, threads: int,
-                 target: float) -> None:
+                 target: float, samples: int = SAMPLES) -> None:
         if not 0.0 < engage <= lookahead:
             raise ValueError(f"engage must be in (0, lookahead = {lookahead:g}] s, got {engage}")
         self.episode = (arm, scenario, seed, config)
         self.options = {"assets": assets, "max_speed": max_speed, "iterations": iterations, "threads": threads,
-                        "target": target}  # fmt: skip
+                        "target": target, "samples": samples}  # fmt: skip
         self.model, self.robot, _, self.bound = _scene(arm, scenario, config, assets)
         self.rest = mujoco.MjData(self.model)
         self.lookahead, self.engage = lookahead, engage
@@ -455,7 +456,7 @@ class OnlineEscape:
 
 def online(arm: str, scenario: str, policy: str, seed: int, config: FilterConfig, *, assets: Path,
            max_speed: float = tp.SPEED[1], lookahead: float = LOOKAHEAD, engage: float = ENGAGE,
-           iterations: int = 40, threads: int = 2, target: float = TARGET) -> dict:
+           iterations: int = 40, threads: int = 2, target: float = TARGET, samples: int = SAMPLES) -> dict:
     """``third_party``'s filtered episode (``arm``, ``scenario``, ``policy``, ``seed``), without and
     with :class:`OnlineEscape`: each one's outcome (:class:`third_party.Episode`) and wall time
     [s], and the online searches' records."""
@@ -466,7 +467,8 @@ def online(arm: str, scenario: str, policy: str, seed: int, config: FilterConfig
     alone = tp.run_episode(task)
     alone_seconds = time.perf_counter() - clock
     takeover = OnlineEscape(arm, scenario, seed, config, assets=assets, max_speed=max_speed, lookahead=lookahead,
-                            engage=engage, iterations=iterations, threads=threads, target=target)  # fmt: skip
+                            engage=engage, iterations=iterations, threads=threads, target=target,
+                            samples=samples)  # fmt: skip
     clock = time.perf_counter()
     helped = tp.run_episode(task, takeover)
     return {"filtered": asdict(alone), "filtered_seconds": alone_seconds, "online": asdict(helped),
@@ -481,7 +483,7 @@ def _online_records(args: argparse.Namespace, config: FilterConfig, assets: Path
         for policy in args.policies:
             run = online(args.arm, args.scenario, policy, seed, config, assets=assets, max_speed=args.max_speed,
                          lookahead=args.lookahead, engage=args.engage, iterations=args.iterations,
-                         threads=args.threads, target=args.target)  # fmt: skip
+                         threads=args.threads, target=args.target, samples=args.samples)  # fmt: skip
             records.append({"seed": seed, "policy": policy, **run})
             alone, helped = run["filtered"], run["online"]
             print(f"seed {seed}, {policy}: filtered {1e3 * alone['lowest_clearance']:+.1f} mm "
@@ -498,7 +500,7 @@ def _search_records(args: argparse.Namespace, config: FilterConfig, assets: Path
     for seed in args.seeds:
         found = search(args.arm, args.scenario, seed, config, assets=assets, hold=args.hold,
                        iterations=args.iterations, max_speed=args.max_speed, threads=args.threads,
-                       target=args.target)  # fmt: skip
+                       target=args.target, samples=args.samples)  # fmt: skip
         records.append(asdict(found))
         print(f"seed {seed}: {'escape' if found.found else 'none found'}, lowest clearance "
               f"{1e3 * found.lowest_clearance:+.1f} mm, joint speed {found.max_speed_ratio:.2f} of the bound "
@@ -527,6 +529,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     parser.add_argument("--seeds", type=int, nargs="+", required=True, help="the benchmark's episode seeds")
     parser.add_argument("--hold", type=float, default=0.0, help="the arm holds still this long first [s]")
     parser.add_argument("--iterations", type=int, default=40, help="cross-entropy iterations at most")
+    parser.add_argument("--samples", type=int, default=SAMPLES, help="motions rolled out per iteration")
     parser.add_argument("--max-speed", type=float, default=tp.SPEED[1], metavar="V",
                         help="the spheres' top speed before the envelope's cap, as third_party.py's [m/s]")  # fmt: skip
     parser.add_argument("--threads", type=int, default=2, help="rollout threads")
@@ -549,8 +552,8 @@ def main(argv: list[str] | None = None) -> list[dict]:
         parser.error(f"--set: {error}")
     if args.arm not in tp.ARMS or args.scenario not in tp.SCENARIOS:
         parser.error(f"--arm from {', '.join(tp.ARMS)}; --scenario from {', '.join(tp.SCENARIOS)}")
-    if args.iterations < 1 or args.threads < 1 or args.hold < 0 or not args.target > 0:
-        parser.error("--iterations and --threads must be >= 1, --hold >= 0 and --target > 0")
+    if args.iterations < 1 or args.threads < 1 or args.samples < 2 or args.hold < 0 or not args.target > 0:
+        parser.error("--iterations and --threads must be >= 1, --samples >= 2, --hold >= 0 and --target > 0")
     if not 0 < args.engage <= args.lookahead:
         parser.error(f"--engage must be in (0, --lookahead], got {args.engage} and {args.lookahead}")
     unknown = [policy for policy in args.policies if policy not in tp.POLICIES]
@@ -564,7 +567,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     if args.json is not None:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         settings = {"filter": repr(config), "hold": args.hold, "iterations": args.iterations,
-                    "max_speed": args.max_speed}
+                    "samples": args.samples, "max_speed": args.max_speed}
         if args.online:
             settings.update(online=True, lookahead=args.lookahead, engage=args.engage, target=args.target)
         args.json.write_text(json.dumps({"settings": settings,

@@ -104,6 +104,8 @@ def test_the_search_names_the_valid_choices(assets):
         escape.search("ur10", "multi", 20, CANDIDATE, assets=assets)
     with pytest.raises(ValueError, match="target > 0 m"):
         escape.search("sawyer", "multi", 20, CANDIDATE, assets=assets, target=0.0)
+    with pytest.raises(ValueError, match="samples >= 2"):
+        escape.search("sawyer", "multi", 20, CANDIDATE, assets=assets, samples=1)
     with pytest.raises(ValueError, match=r"hold must be in \[0, "):
         escape.search("sawyer", "multi", 20, CANDIDATE, assets=assets, hold=30.0)
     with pytest.raises(ValueError, match=r"engage must be in \(0, lookahead = 1\] s"):
