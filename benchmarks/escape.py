@@ -22,11 +22,11 @@ searched arm accelerates more slowly than the real one could, so an escape it fi
 real arm has with torque to spare.
 
 A motion is a sequence of joint-velocity targets held for :data:`SEGMENT` s each, searched by the
-cross-entropy method (:func:`search`): :data:`SAMPLES` motions per iteration (``--samples``) rolled
-out in MuJoCo's C rollout (``mujoco.rollout``), the best eighth (:data:`ELITES`) re-centring the next draw, up to
-``--iterations``, stopping once a motion keeps :data:`TARGET` clear. Clearance is MuJoCo's
-distance sensors (``mj_geomDistance`` on the real geoms, the benchmark's measure) between every
-protected geom and every sphere at every physics step. An **escape** keeps every clearance above 0
+cross-entropy method (:func:`search`): :data:`SAMPLES` motions per iteration (``--samples``)
+rolled out in MuJoCo's C rollout (``mujoco.rollout``), the best eighth (:data:`ELITES`)
+re-centring the next draw, up to ``--iterations``, stopping once a motion keeps :data:`TARGET`
+clear. Clearance is MuJoCo's distance sensors (``mj_geomDistance`` on the real geoms, the
+benchmark's measure) between every protected geom and every sphere at every physics step. An **escape** keeps every clearance above 0
 and every joint within 1 % of its bound over the horizon: until the last moving sphere has left,
 plus 0.5 s, within the episode's length. Contacts with the floor and between links are simulated,
 as in the benchmark, and allowed. A search that finds none does not prove that none exists; one
@@ -199,12 +199,13 @@ def search(arm: str, scenario: str, seed: int, config: FilterConfig, *, assets: 
     """Search for an escape in ``third_party``'s episode (``arm``, ``scenario``, ``seed``, the
     spheres the filter ``config``'s envelope allows at up to ``max_speed`` m/s), the arm held
     still for the first ``hold`` seconds; ``iterations`` of the cross-entropy method at most, each
-    rolled out on ``threads`` threads, ``samples`` motions each, until a motion keeps ``target`` [m] clear. From the
-    episode's beginning, with the spheres' whole paths, until the last moving one has left plus
-    :data:`TAIL`; or from ``start``, with the spheres it gives, until its horizon. The first draw is
-    centred on ``initial`` (segments, n) [rad/s] (a motion to start from; zeros past its end), or on
-    holding still. ValueError on an
-    unknown arm or scenario, a hold outside [0, horizon), iterations < 1, samples < 2 or a target <= 0."""
+    ``samples`` motions rolled out on ``threads`` threads, until a motion keeps ``target`` [m] clear.
+
+    From the episode's beginning, with the spheres' whole paths, until the last moving one has left
+    plus :data:`TAIL`; or from ``start``, with the spheres it gives, until its horizon. The first
+    draw is centred on ``initial`` (segments, n) [rad/s] (a motion to start from; zeros past its
+    end), or on holding still. ValueError on an unknown arm or scenario, a hold outside
+    [0, horizon), iterations < 1, samples < 2 or a target <= 0."""
     if scenario not in tp.SCENARIOS:
         raise ValueError(f"unknown scenario {scenario!r}; choose from {', '.join(tp.SCENARIOS)}")
     if iterations < 1 or samples < 2 or not target > 0.0:
