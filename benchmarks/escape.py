@@ -461,7 +461,7 @@ def online(arm: str, scenario: str, policy: str, seed: int, config: FilterConfig
     """``third_party``'s filtered episode (``arm``, ``scenario``, ``policy``, ``seed``), without and
     with :class:`OnlineEscape`: each one's outcome (:class:`third_party.Episode`) and wall time
     [s], and the online searches' records."""
-    envelope = tp.arm_envelope(*tp.build_scene(assets, arm, 1)[:2], arm, config)
+    envelope = _scene(arm, scenario, config, assets)[2]  # third_party.main's: the arm's, the same on every scene
     task = (str(assets), arm, scenario, policy, config, seed, tp.SECONDS,
             tp.speed_range(envelope, max_speed), config)  # fmt: skip
     clock = time.perf_counter()
