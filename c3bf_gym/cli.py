@@ -171,6 +171,9 @@ def _add_train(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--residual-fade", type=_nonnegative_float, default=None, metavar="M",
                    help="shrink the residual correction within M metres of the goal, in proportion to the distance "
                         f"(residual actions only; 0: never; default: {RESIDUAL_FADE:g})")  # fmt: skip
+    p.add_argument("--modulate", action="store_true",
+                   help="bend the residual action's straight step for the goal round the sensed obstacles "
+                        "(c3bf_gym.controllers.modulate; residual actions only)")  # fmt: skip
     p.add_argument("--observe-correction", action="store_true",
                    help="append the filter's last correction to the observation (c3bf_gym.wrappers.FilterFeedback; "
                         "SB3 and a filter only)")  # fmt: skip
@@ -193,7 +196,7 @@ def _run_train(args: argparse.Namespace) -> int:
         progress_bar=not args.no_progress, normalize_obs=args.normalize_obs, policy_hz=args.policy_hz, distance_weight=args.distance_weight, action_weight=args.action_weight, obstacle_encoder=args.obstacle_encoder or defaults["obstacle_encoder"], hyperparams=args.hyperparams,
         observe_correction=args.observe_correction, posture_stiffness=args.posture_stiffness,
         posture_reach=args.posture_reach, correction_weight=args.correction_weight, residual_fade=args.residual_fade,
-        observe_clearance=args.observe_clearance,
+        observe_clearance=args.observe_clearance, residual_modulation=args.modulate,
     )  # fmt: skip
     run_dir = train(config, address=args.address)
     print(f"run written to {run_dir}")

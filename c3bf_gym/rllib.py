@@ -96,7 +96,8 @@ def _ppo_config(config: TrainConfig, hyper: dict[str, Any]):
         scenario=config.scenario, filter=config.filter_config(), action=config.action,
         action_weight=config.action_weight, posture_stiffness=config.posture_stiffness,
         posture_reach=config.posture_reach, correction_weight=config.correction_weight,
-        observe_clearance=config.observe_clearance, residual_fade=config.residual_fade, **config.env_kwargs(),
+        observe_clearance=config.observe_clearance, residual_fade=config.residual_fade,
+        residual_modulation=config.residual_modulation, **config.env_kwargs(),
     )  # fmt: skip
     ppo = PPOConfig()
     try:

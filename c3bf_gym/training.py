@@ -296,6 +296,10 @@ class TrainConfig:
     (:class:`~c3bf_gym.wrappers.CartesianImpedanceAction`'s ``posture_reach``; Cartesian action
     modes only; None, the default: the tool target only).
 
+    ``residual_modulation`` bends the residual action's straight step for the goal round the
+    sensed obstacles (:class:`~c3bf_gym.wrappers.CartesianImpedanceAction`'s ``modulate``;
+    residual actions only; off by default).
+
     ``action_weight`` None (the default) is the arm's, :data:`ACTION_WEIGHTS` (UR5e 3, Panda 10),
     resolved when the config is made like ``timesteps``.
 
@@ -337,6 +341,7 @@ class TrainConfig:
     posture_reach: float | None = None
     correction_weight: float = 0.0
     residual_fade: float | None = None
+    residual_modulation: bool = False
     hyperparams: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
@@ -386,9 +391,12 @@ class TrainConfig:
         _residual_fade_or_none(self.residual_fade, self.action)
         if not (isinstance(self.hyperparams, dict) and all(isinstance(key, str) for key in self.hyperparams)):
             raise ValueError(f"hyperparams must be a dict of keyword arguments, got {self.hyperparams!r}")
-        for name in ("normalize_obs", "observe_correction", "observe_clearance"):
+        for name in ("normalize_obs", "observe_correction", "observe_clearance", "residual_modulation"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"{name} must be True or False, got {getattr(self, name)!r}")
+        if self.residual_modulation and self.action != "residual":
+            raise ValueError("residual_modulation bends the residual action's straight step for the goal: it needs "
+                             f"action='residual', got {self.action!r}")  # fmt: skip
         for name, use in (("correction_weight", "charges"), ("observe_correction", "observes")):
             if getattr(self, name) and filter_ is None:
                 raise ValueError(f"{name} {use} the safety filter's correction: it needs a filter "
@@ -415,6 +423,7 @@ class TrainConfig:
         encoder += "" if self.posture_reach is None else f"_pr{self.posture_reach:g}"
         encoder += f"_cw{self.correction_weight:g}" if self.correction_weight else ""
         encoder += f"_fade{self.residual_fade:g}" if self.residual_fade else ""
+        encoder += "_mod" if self.residual_modulation else ""
         robot = "" if self.robot == "ur5e" else f"{self.robot}_"  # UR5e runs keep their earlier names
         engine = "" if self.engine == "sb3" else f"{self.engine}_"
         return (
@@ -493,6 +502,7 @@ def build_env(
     posture_reach: float | None = None,
     correction_weight: float = 0.0,
     observe_clearance: bool = False,
+    residual_modulation: bool = False,
     **env_kwargs: Any,
 ) -> gym.Env:
     """``ActionPenalty(CorrectionPenalty(ArmClearance(FilterFeedback(SafetyFilter(CartesianImpedanceAction(
@@ -505,23 +515,27 @@ def build_env(
     [N m/rad] (None: the arm's own, :func:`~c3bf_gym.wrappers.default_impedance`);
     ``residual_fade``: the residual action's ``fade`` [m] (None or 0: none); ``posture_reach``:
     the action's posture entries [rad] (None: none); ``correction_weight``: the weight of the
-    filter's correction in the reward (0: none); ``env_kwargs`` go to ``gym.make``
-    (:func:`env_kwargs`).
+    filter's correction in the reward (0: none); ``residual_modulation``: the residual action's
+    ``modulate``; ``env_kwargs`` go to ``gym.make`` (:func:`env_kwargs`).
 
     Raises:
         ValueError: an unknown filter or action mode, ``observe_correction`` or
             ``correction_weight`` without a filter, ``posture_stiffness`` or ``posture_reach``
             with torque actions, a ``residual_fade`` that is not a finite number >= 0 or is given
-            with other than residual actions, or bad environment keywords.
+            with other than residual actions, ``residual_modulation`` with other than residual
+            actions, or bad environment keywords.
     """
     config = filter_config(filter, guard_gamma)
     validation.choice("action", action, ACTIONS)
     fade = _residual_fade_or_none(residual_fade, action)
+    if residual_modulation and action != "residual":
+        raise ValueError("residual_modulation bends the residual action's straight step for the goal: it needs "
+                         f"action='residual', got {action!r}")  # fmt: skip
     env = gym.make("C3BFReach-v0", scenario=scenario, **env_kwargs)
     if action in ("impedance", "residual"):
         controller = None if posture_stiffness is None else default_impedance(env.unwrapped, posture_stiffness)
         env = CartesianImpedanceAction(env, controller=controller, residual=action == "residual", fade=fade,
-                                       posture_reach=posture_reach)  # fmt: skip
+                                       posture_reach=posture_reach, modulate=residual_modulation)  # fmt: skip
     else:
         for name, value in (("posture_stiffness", posture_stiffness), ("posture_reach", posture_reach)):
             if value is not None:
@@ -554,6 +568,7 @@ def make_env(
     posture_reach: float | None = None,
     correction_weight: float = 0.0,
     observe_clearance: bool = False,
+    residual_modulation: bool = False,
     **env_kwargs: Any,
 ) -> Callable[[], gym.Env]:
     """A thunk building ``Monitor(build_env(...))`` (:func:`build_env`) for SB3 vector envs,
@@ -566,7 +581,8 @@ def make_env(
     def thunk() -> gym.Env:
         env = build_env(scenario, config, action, action_weight, observe_correction=observe_correction,
                         posture_stiffness=posture_stiffness, residual_fade=residual_fade, posture_reach=posture_reach,
-                        correction_weight=correction_weight, observe_clearance=observe_clearance, **env_kwargs)
+                        correction_weight=correction_weight, observe_clearance=observe_clearance,
+                        residual_modulation=residual_modulation, **env_kwargs)
         env = Monitor(env, monitor_file, info_keywords=info_keywords(config))
         env.reset(seed=seed)
         env.action_space.seed(seed)
@@ -666,7 +682,8 @@ def train(config: TrainConfig, address: str | None = None) -> Path:
         [make_env(config.evaluated_scenario, filter_, config.action, seed=10_000 + config.seed, action_weight=penalty,
                   observe_correction=config.observe_correction, posture_stiffness=config.posture_stiffness,
                   residual_fade=config.residual_fade, posture_reach=config.posture_reach,
-                  correction_weight=config.correction_weight, observe_clearance=config.observe_clearance, **rate)]
+                  correction_weight=config.correction_weight, observe_clearance=config.observe_clearance,
+                  residual_modulation=config.residual_modulation, **rate)]
     )
     if config.normalize_obs:
         # Running mean/std of the observations (not of the rewards); EvalCallback copies the
@@ -714,7 +731,8 @@ def training_envs(config: TrainConfig):
                        action_weight=config.action_weight, observe_correction=config.observe_correction,
                        posture_stiffness=config.posture_stiffness, residual_fade=config.residual_fade,
                        posture_reach=config.posture_reach, correction_weight=config.correction_weight,
-                       observe_clearance=config.observe_clearance, **config.env_kwargs())
+                       observe_clearance=config.observe_clearance, residual_modulation=config.residual_modulation,
+                       **config.env_kwargs())
               for i in range(config.n_envs)]  # fmt: skip
     return SubprocVecEnv(thunks) if config.n_envs > 1 else DummyVecEnv(thunks)
 
@@ -852,8 +870,8 @@ def evaluate(
     reward (and ``correction_weight``, when evaluated with a filter); success and collisions do not
     depend on it. So are the nominal controller's ``posture_stiffness`` and ``posture_reach``,
     the residual action's ``residual_fade`` (unless ``residual_fade`` is given: 0 for none) and
-    ``observe_correction`` (such a run needs a filter: ValueError otherwise) and
-    ``observe_clearance``. A run
+    ``observe_correction`` (such a run needs a filter: ValueError otherwise),
+    ``observe_clearance`` and ``residual_modulation``. A run
     trained with ``normalize_obs`` has its final observation statistics in the run directory;
     they are applied (to a ``best/`` or checkpoint model too, an approximation).
 
@@ -897,7 +915,8 @@ def evaluate(
                     observe_correction=observe, posture_stiffness=config.get("posture_stiffness"),
                     residual_fade=residual_fade, posture_reach=config.get("posture_reach"),
                     correction_weight=config.get("correction_weight", 0.0) if filter_ is not None else 0.0,
-                    observe_clearance=config.get("observe_clearance", False), **run_env)  # fmt: skip
+                    observe_clearance=config.get("observe_clearance", False),
+                    residual_modulation=config.get("residual_modulation", False), **run_env)  # fmt: skip
     env.reset(seed=seed)  # as a training env starts (make_env); each episode below is reseeded
     for episode in range(episodes):
         obs, _ = env.reset(seed=seed + episode)

@@ -19,6 +19,7 @@ import numpy as np
 
 from c3bf_gym import validation
 from c3bf_gym.controllers.impedance import CartesianImpedance, ImpedanceHook
+from c3bf_gym.controllers.modulation import modulated
 from c3bf_gym.envs.reach import _ACTION_BOUND, C3BFReachEnv
 from c3bf_gym.filter import SafetyHook
 from c3bf_gym.safety import FILTERS, FilterConfig, StepSafety
@@ -33,7 +34,12 @@ __all__ = [
     "SafetyFilter",
     "make_reach",
     "reach_env",
+    "MODULATION_LOOKAHEAD",
 ]
+
+#: [s] ``CartesianImpedanceAction(modulate=True)`` bends the straight step relative to each
+#: sphere's displacement over this time (the step and the displacement then share a unit, m).
+MODULATION_LOOKAHEAD = 1.0
 
 def reach_env(env: gym.Env, wrapper: str) -> C3BFReachEnv:
     """The unwrapped :class:`C3BFReachEnv` under ``env``, or a clear error."""
@@ -201,6 +207,15 @@ class CartesianImpedanceAction(gym.ActionWrapper, gym.utils.RecordConstructorArg
     the tool points) without pulling the tool itself; ``a[3:] = 0`` is the controller alone.
     The action space is then ``Box(-1, 1, (3 + n,))``.
 
+    With ``modulate`` (residual only) the step straight for the goal bends round the obstacles
+    the filter senses (:meth:`~c3bf_gym.envs.C3BFReachEnv.sensed_mask`) before the correction is
+    added: :func:`~c3bf_gym.controllers.modulation.modulate` reshapes it at the tool, relative to
+    each sphere's displacement over the next :data:`MODULATION_LOOKAHEAD` seconds, and it is then
+    scaled down, direction kept, until every axis is within ``max_offset``. The zero action then
+    flows round a sphere in its way instead of pressing against the filter. It steers the nominal
+    motion only: the filter still keeps every link off the spheres. Measured in the docs' RL
+    results page ("An attempt on the UR5e: the straight step bent round the spheres").
+
     Args:
         env: a ``C3BFReach-v0`` environment (possibly wrapped, e.g. by :class:`SafetyFilter`).
         max_offset: the target's largest distance from the tool per axis (per part with
@@ -211,6 +226,7 @@ class CartesianImpedanceAction(gym.ActionWrapper, gym.utils.RecordConstructorArg
             proportion (None: never).
         posture_reach: the largest posture offset per joint [rad] the action sets (None: the
             action sets the tool target only). Needs a controller with a posture task.
+        modulate: with ``residual``, bend the straight step round the sensed obstacles.
 
     ``gym.make(wrapped.spec)`` rebuilds the same stack (the wrapper records its arguments).
     Pickling rebuilds the wrapper, and so its controller hook, around the unpickled environment
@@ -225,10 +241,11 @@ class CartesianImpedanceAction(gym.ActionWrapper, gym.utils.RecordConstructorArg
         residual: bool = False,
         fade: float | None = None,
         posture_reach: float | None = None,
+        modulate: bool = False,
     ) -> None:
         gym.utils.RecordConstructorArgs.__init__(self, max_offset=max_offset, controller=controller, residual=residual,
-                                                 fade=fade, posture_reach=posture_reach)  # fmt: skip
-        gym.utils.EzPickle.__init__(self, env, max_offset, controller, residual, fade, posture_reach)
+                                                 fade=fade, posture_reach=posture_reach, modulate=modulate)  # fmt: skip
+        gym.utils.EzPickle.__init__(self, env, max_offset, controller, residual, fade, posture_reach, modulate)
         super().__init__(env)
         base = reach_env(env, "CartesianImpedanceAction")
         if base.has_torque_hook("nominal"):
@@ -242,6 +259,10 @@ class CartesianImpedanceAction(gym.ActionWrapper, gym.utils.RecordConstructorArg
                 raise ValueError("fade shrinks the residual correction near the goal: it needs residual=True")
             if isinstance(fade, bool) or not (isinstance(fade, (int, float)) and np.isfinite(fade) and fade > 0):
                 raise ValueError(f"fade must be None or a finite number > 0 (m), got {fade!r}")
+        if not isinstance(modulate, (bool, np.bool_)):
+            raise ValueError(f"modulate must be True or False, got {modulate!r}")
+        if modulate and not residual:
+            raise ValueError("modulate bends the residual action's straight step for the goal: it needs residual=True")
         controller = controller or default_impedance(base)
         if posture_reach is not None:
             if isinstance(posture_reach, bool) or not (
@@ -254,6 +275,7 @@ class CartesianImpedanceAction(gym.ActionWrapper, gym.utils.RecordConstructorArg
         self.max_offset = float(max_offset)
         self.residual = bool(residual)
         self.posture_reach = None if posture_reach is None else float(posture_reach)
+        self.modulate = bool(modulate)
         self.hook = ImpedanceHook(base, controller)
         base.add_torque_hook(self.hook, stage="nominal")
         self._base = base
@@ -290,9 +312,22 @@ class CartesianImpedanceAction(gym.ActionWrapper, gym.utils.RecordConstructorArg
                 squared += (g - x) * (g - x)
             if self.fade is not None and squared < self.fade * self.fade:
                 offset = offset * (math.sqrt(squared) / self.fade)
+            if self.modulate:
+                straight = self._bent(tool, straight)
             offset = offset + straight
         self.hook.set_target(tool + offset)
         return self._zero  # the torque action underneath is replaced by the controller's
+
+    def _bent(self, tool: np.ndarray, straight: np.ndarray) -> np.ndarray:
+        """The straight step bent round the sensed obstacles, back inside the ``max_offset`` box."""
+        base = self._base
+        near = base.sensed_mask()
+        if not near.any():
+            return straight
+        bent = modulated(tool, straight, base.obstacle_pos[near], MODULATION_LOOKAHEAD * base.obstacle_vel[near],
+                         base.obstacle_radius[near])  # fmt: skip
+        largest = float(np.abs(bent).max())
+        return bent / largest * self.max_offset if largest > self.max_offset else bent
 
     def close(self) -> None:
         self._base.remove_torque_hook("nominal")

@@ -175,11 +175,24 @@ def test_posture_stiffness_sets_the_nominal_controllers_pull_and_names_the_run()
         build_env("static", "none", "torque", posture_stiffness=2.0)
 
 
+def _evaluated_with(tmp_path, monkeypatch, saved: dict, actions: int = 3) -> dict:
+    """The keywords ``evaluate`` builds its env with, for a residual run whose ``config.json`` has
+    ``saved`` (a policy of ``actions`` zeros, one episode)."""
+    import c3bf_gym.training as training
+
+    built = []
+    monkeypatch.setattr(training, "build_env", lambda *args, **kwargs: built.append(kwargs) or build_env(*args, **kwargs))
+    monkeypatch.setattr(training, "_load_policy", lambda *args: lambda obs: np.zeros(actions, np.float32))
+    (tmp_path / "model.zip").touch()
+    (tmp_path / "config.json").write_text(json.dumps({"algo": "sac", "action": "residual", "filter": "none",
+                                                      "policy_hz": 10, **saved}))  # fmt: skip
+    assert evaluate(tmp_path / "model.zip", episodes=1)["episodes"] == 1
+    return built.pop()
+
+
 def test_posture_reach_reaches_the_action_names_the_run_and_is_evaluated_with(tmp_path, monkeypatch):
     """``posture_reach`` reaches the Cartesian action of the run's envs (one more entry per joint)
     and its name; ``evaluate`` rebuilds a run's envs with the run's own; torque actions refuse it."""
-    import c3bf_gym.training as training
-
     assert TrainConfig(posture_reach=0.5).name == "sac_residual_10hz_dw10_aw3_set_pr0.5_fade0.1_c3bf+hocbf_random_s0"
     for reach, shape in ((None, (3,)), (0.5, (9,))):
         env = build_env("static", "c3bf+hocbf", "residual", posture_reach=reach, **policy_rate_kwargs(10))
@@ -193,14 +206,27 @@ def test_posture_reach_reaches_the_action_names_the_run_and_is_evaluated_with(tm
                          ({"posture_reach": 0.5, "action": "torque"}, "this run's action is 'torque'")):  # fmt: skip
         with pytest.raises(ValueError, match=re.escape(message)):
             TrainConfig(**bad).validate()
-    built = []
-    monkeypatch.setattr(training, "build_env", lambda *args, **kwargs: built.append(kwargs) or build_env(*args, **kwargs))
-    monkeypatch.setattr(training, "_load_policy", lambda *args: lambda obs: np.zeros(9, np.float32))
-    (tmp_path / "model.zip").touch()
-    (tmp_path / "config.json").write_text(json.dumps({"algo": "sac", "action": "residual", "filter": "none",
-                                                      "policy_hz": 10, "posture_reach": 0.5}))  # fmt: skip
-    assert evaluate(tmp_path / "model.zip", episodes=1)["episodes"] == 1
-    assert built.pop()["posture_reach"] == 0.5
+    assert _evaluated_with(tmp_path, monkeypatch, {"posture_reach": 0.5}, actions=9)["posture_reach"] == 0.5
+
+
+def test_residual_modulation_reaches_the_action_names_the_run_and_is_evaluated_with(tmp_path, monkeypatch):
+    """``residual_modulation`` reaches the residual action of the run's envs and its name;
+    ``evaluate`` rebuilds a run's envs with the run's own; other action modes refuse it."""
+    assert TrainConfig(residual_modulation=True).name == "sac_residual_10hz_dw10_aw3_set_fade0.1_mod_c3bf+hocbf_random_s0"
+    assert "_mod" not in TrainConfig().name
+    for modulate in (False, True):
+        env = build_env("static", "c3bf+hocbf", "residual", residual_modulation=modulate, **policy_rate_kwargs(10))
+        try:
+            assert env.get_wrapper_attr("modulate") is modulate
+        finally:
+            env.close()
+    with pytest.raises(ValueError, match="residual_modulation bends the residual action's straight step"):
+        build_env("static", "none", "impedance", residual_modulation=True)
+    for bad, message in (({"residual_modulation": True, "action": "torque"}, "it needs action='residual'"),
+                         ({"residual_modulation": 1}, "residual_modulation must be True or False")):  # fmt: skip
+        with pytest.raises(ValueError, match=re.escape(message)):
+            TrainConfig(**bad).validate()
+    assert _evaluated_with(tmp_path, monkeypatch, {"residual_modulation": True})["residual_modulation"] is True
 
 
 def test_correction_weight_charges_the_run_names_it_and_needs_a_filter():

@@ -13,7 +13,8 @@ import pytest
 import c3bf_gym
 from c3bf_gym import DEFAULT_FILTER, FILTERS, ActionPenalty, CartesianImpedanceAction, FilterConfig, SafetyFilter
 from c3bf_gym.safety.barriers import C3BF, DistanceHOCBF
-from c3bf_gym.controllers import CartesianImpedance
+from c3bf_gym.controllers import CartesianImpedance, modulate
+from c3bf_gym.controllers.modulation import REACH
 from c3bf_gym.wrappers import ArmClearance, CorrectionPenalty, FilterFeedback
 from c3bf_gym.safety import GUARD_GAMMA
 
@@ -444,6 +445,83 @@ def test_residual_fade_lets_no_small_bias_hold_the_tool_off_the_goal(make_env):
     ({"residual": True, "fade": True}, "fade must be None or a finite number > 0"),
 ])  # fmt: skip
 def test_bad_fade_rejected(make_env, kwargs, message):
+    env = make_env(scenario="none")
+    with pytest.raises(ValueError, match=re.escape(message)):
+        CartesianImpedanceAction(env, **kwargs)
+    assert not env.unwrapped.has_torque_hook("nominal")
+
+
+def test_modulate_turns_a_step_round_a_sphere():
+    """The modulation of Khansari-Zadeh and Billard for a sphere: at its surface a step straight
+    in loses its normal part, a step along it doubles, a step leaving it keeps its normal part;
+    in between it is E diag(λ_n, λ_t, λ_t) Eᵀ; beyond REACH radii, and for a step that moves with
+    the sphere, nothing changes."""
+    c, radius = np.zeros(3), 0.1
+    surface = np.array([0.0, 0.0, 0.1])  # Γ = 1, n = +z
+    np.testing.assert_allclose(modulate(surface, [0.3, 0.0, -1.0], [c], [np.zeros(3)], [radius]), [0.6, 0.0, 0.0])
+    np.testing.assert_allclose(modulate(surface, [0.3, 0.0, 1.0], [c], [np.zeros(3)], [radius]), [0.6, 0.0, 1.0])
+    x = np.array([0.12, -0.05, 0.15])
+    step = np.array([-0.4, 0.2, -0.3])  # heading in: n · step < 0
+    r = np.linalg.norm(x)
+    n, gamma = x / r, r / radius
+    e1 = np.cross(n, [1.0, 0.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    E = np.stack([n, e1, np.cross(n, e1)], axis=1)
+    expected = E @ np.diag([1 - 1 / gamma, 1 + 1 / gamma, 1 + 1 / gamma]) @ E.T @ step
+    np.testing.assert_allclose(modulate(x, step, [c], [np.zeros(3)], [radius]), expected, atol=1e-12)
+    far = np.array([0.0, 0.0, REACH * radius + 1e-6])
+    np.testing.assert_array_equal(modulate(far, step, [c], [np.zeros(3)], [radius]), step)
+    w = np.array([0.0, 0.0, 0.5])
+    np.testing.assert_allclose(modulate(surface, w, [c], [w], [radius]), w)
+    np.testing.assert_array_equal(modulate(x, step, np.zeros((0, 3)), np.zeros((0, 3)), []), step)
+
+
+@pytest.mark.parametrize(("args", "message"), [
+    ((np.zeros(2), np.ones(3), [np.ones(3)], [np.zeros(3)], [0.1]), "position and step must have shape (3,)"),
+    ((np.zeros(3), np.ones(3), [np.ones(3)], np.zeros((2, 3)), [0.1]), "must describe the same spheres"),
+    ((np.zeros(3), np.ones(3), [np.ones(3)], [np.zeros(3)], [0.0]), "radii must be > 0 (m)"),
+    ((np.zeros(3), [np.nan, 0, 0], [np.ones(3)], [np.zeros(3)], [0.1]), "step must be finite"),
+])  # fmt: skip
+def test_modulate_rejects_bad_spheres(args, message):
+    with pytest.raises(ValueError, match=re.escape(message)):
+        modulate(*args)
+
+
+def test_modulated_straight_step_bends_round_a_sensed_sphere(make_env):
+    """modulate=True: with no sphere near the tool the target is the plain residual's; with one
+    at rest on the way to the goal the straight step turns aside, goes less far into it and stays
+    inside the max_offset box; the correction is added after, unchanged."""
+    plain = CartesianImpedanceAction(make_env(scenario="none"), residual=True, fade=0.1)
+    env = CartesianImpedanceAction(make_env(scenario="none"), residual=True, fade=0.1, modulate=True)
+    for wrapper in (plain, env):
+        wrapper.reset(seed=3)
+    a = np.array([0.4, -1.0, 0.2], np.float32)
+    env.action(a)
+    plain.action(a)
+    np.testing.assert_array_equal(env.hook.target_pos, plain.hook.target_pos)
+    base = env.unwrapped
+    tool = base.data.site_xpos[base.ee_site_id].copy()
+    way = (base.goal - tool) / np.linalg.norm(base.goal - tool)
+    sphere = tool + 0.15 * way + 0.02 * np.cross(way, [0.0, 0.0, 1.0])  # on the way, a little to one side
+    base.place_obstacle(0, sphere, radius=0.06)
+    assert base.sensed_mask()[0]
+    zero = np.zeros(3, np.float32)
+    env.action(zero)
+    step = env.hook.target_pos - tool
+    straight = np.clip(base.goal - tool, -0.1, 0.1)
+    n = (tool - sphere) / np.linalg.norm(tool - sphere)
+    assert np.abs(step).max() <= 0.1 + 1e-12
+    assert -(n @ step) < -(n @ straight)  # less far into the sphere
+    assert np.linalg.norm(step - (step @ n) * n) > np.linalg.norm(straight - (straight @ n) * n)  # more along it
+    env.action(a)
+    np.testing.assert_allclose(env.hook.target_pos - tool, step + 0.1 * a, atol=1e-7)
+
+
+@pytest.mark.parametrize(("kwargs", "message"), [
+    ({"modulate": True}, "modulate bends the residual action's straight step for the goal: it needs residual=True"),
+    ({"residual": True, "modulate": 1}, "modulate must be True or False"),
+])  # fmt: skip
+def test_bad_modulate_rejected(make_env, kwargs, message):
     env = make_env(scenario="none")
     with pytest.raises(ValueError, match=re.escape(message)):
         CartesianImpedanceAction(env, **kwargs)

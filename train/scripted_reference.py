@@ -7,9 +7,12 @@ for the goal ends an episode at it (is_success at the last step), and how often 
 on the same environment, wrappers, policy rate and evaluation seeds as `c3bf-gym evaluate`.
 `--posture-stiffness` replaces the impedance controller's null-space pull (the arm's own by
 default, `ReachRobot.posture_stiffness`) with each value given in turn: how the Panda's was chosen.
+`--modulate off on` runs it with the straight step as it is and bent round the sensed obstacles
+(`CartesianImpedanceAction(modulate=True)`, `c3bf-gym train --modulate`).
 
     python train/scripted_reference.py --episodes 50
     python train/scripted_reference.py --robot panda --episodes 200 --filters none c3bf+hocbf --posture-stiffness 20 5 2
+    python train/scripted_reference.py --episodes 200 --filters none c3bf+hocbf --modulate off on
 """
 
 from __future__ import annotations
@@ -44,10 +47,13 @@ def main() -> None:
     parser.add_argument("--robot", choices=list(ROBOTS), default="ur5e")
     parser.add_argument("--posture-stiffness", nargs="+", type=float, default=[None], metavar="K_Q",
                         help="the impedance controller's null-space stiffness [N m/rad] (default: the arm's own)")
+    parser.add_argument("--modulate", nargs="+", choices=("off", "on"), default=["off"],
+                        help="the straight step as it is, or bent round the sensed obstacles (default: off)")
     args = parser.parse_args()
-    for stiffness, filter_name in itertools.product(args.posture_stiffness, args.filters):
+    for stiffness, modulate, filter_name in itertools.product(args.posture_stiffness, args.modulate, args.filters):
         base = gym.make("C3BFReach-v0", scenario=args.scenario, **env_kwargs(args.policy_hz, robot=args.robot))
-        env = CartesianImpedanceAction(base, residual=True, controller=default_impedance(base.unwrapped, stiffness))
+        env = CartesianImpedanceAction(base, residual=True, controller=default_impedance(base.unwrapped, stiffness),
+                                       modulate=modulate == "on")  # fmt: skip
         config = filter_config(filter_name)
         if config is not None:  # as training.build_env stacks them
             env = SafetyFilter(env, config)
@@ -65,7 +71,7 @@ def main() -> None:
         env.close()
         result = {
             "robot": args.robot, "posture_stiffness": env.unwrapped.task_robot.posture_stiffness if stiffness is None else stiffness,
-            "filter": filter_name, "policy_hz": args.policy_hz, "episodes": args.episodes,
+            "modulate": modulate == "on", "filter": filter_name, "policy_hz": args.policy_hz, "episodes": args.episodes,
             "success_rate": float(np.mean(success)), "collision_episodes": int(sum(collided)),
             "by_scenario": by_scenario(kinds, success, collided),
         }  # fmt: skip
