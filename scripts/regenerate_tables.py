@@ -149,6 +149,10 @@ TRAINING_TABLES = (
     # (code bfb8572), seeds 0 and 1
     ("training_table_sets_ur5e_clearance.md", "sets_clearance/sac_*", "final_eval.json",
      "training_curves_sets_ur5e_clearance.png"),
+    # an attempt on the UR5e: the residual's straight step bent round the sensed spheres, c3bf-gym train
+    # --modulate (code c1ba180), seeds 0 and 1
+    ("training_table_sets_ur5e_modulation.md", "sets_modulation/sac_*", "final_eval.json",
+     "training_curves_sets_ur5e_modulation.png"),
 )
 
 
