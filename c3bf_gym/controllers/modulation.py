@@ -35,7 +35,8 @@ REACH = 4.0
 def modulate(
     position: np.ndarray, step: np.ndarray, centers: np.ndarray, velocities: np.ndarray, radii: np.ndarray
 ) -> np.ndarray:
-    """``step`` (3,) taken at ``position`` (3,) [m], reshaped round the spheres (module docstring).
+    """``step`` (3,) taken at ``position`` (3,) [m], reshaped round the spheres (the math is the
+    module's docstring: :mod:`c3bf_gym.controllers.modulation`).
 
     Args:
         position: the point that moves [m], (3,).
