@@ -394,9 +394,7 @@ class TrainConfig:
         for name in ("normalize_obs", "observe_correction", "observe_clearance", "residual_modulation"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"{name} must be True or False, got {getattr(self, name)!r}")
-        if self.residual_modulation and self.action != "residual":
-            raise ValueError("residual_modulation bends the residual action's straight step for the goal: it needs "
-                             f"action='residual', got {self.action!r}")  # fmt: skip
+        _check_residual_modulation(self.residual_modulation, self.action)
         for name, use in (("correction_weight", "charges"), ("observe_correction", "observes")):
             if getattr(self, name) and filter_ is None:
                 raise ValueError(f"{name} {use} the safety filter's correction: it needs a filter "
@@ -490,6 +488,13 @@ def _residual_fade_or_none(value: float | None, action: str) -> float | None:
     return fade or None
 
 
+def _check_residual_modulation(modulate: bool, action: str) -> None:
+    """ValueError for ``residual_modulation`` with another action mode than residual."""
+    if modulate and action != "residual":
+        raise ValueError("residual_modulation bends the residual action's straight step for the goal: it needs "
+                         f"action='residual', got {action!r}")  # fmt: skip
+
+
 def build_env(
     scenario: str = "random",
     filter: str | FilterConfig | None = DEFAULT_FILTER,
@@ -528,9 +533,7 @@ def build_env(
     config = filter_config(filter, guard_gamma)
     validation.choice("action", action, ACTIONS)
     fade = _residual_fade_or_none(residual_fade, action)
-    if residual_modulation and action != "residual":
-        raise ValueError("residual_modulation bends the residual action's straight step for the goal: it needs "
-                         f"action='residual', got {action!r}")  # fmt: skip
+    _check_residual_modulation(residual_modulation, action)
     env = gym.make("C3BFReach-v0", scenario=scenario, **env_kwargs)
     if action in ("impedance", "residual"):
         controller = None if posture_stiffness is None else default_impedance(env.unwrapped, posture_stiffness)

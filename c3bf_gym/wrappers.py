@@ -41,6 +41,7 @@ __all__ = [
 #: sphere's displacement over this time (the step and the displacement then share a unit, m).
 MODULATION_LOOKAHEAD = 1.0
 
+
 def reach_env(env: gym.Env, wrapper: str) -> C3BFReachEnv:
     """The unwrapped :class:`C3BFReachEnv` under ``env``, or a clear error."""
     base = getattr(env, "unwrapped", None)

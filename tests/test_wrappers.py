@@ -479,6 +479,7 @@ def test_modulate_turns_a_step_round_a_sphere():
 @pytest.mark.parametrize(("args", "message"), [
     ((np.zeros(2), np.ones(3), [np.ones(3)], [np.zeros(3)], [0.1]), "position and step must have shape (3,)"),
     ((np.zeros(3), np.ones(3), [np.ones(3)], np.zeros((2, 3)), [0.1]), "must describe the same spheres"),
+    ((np.zeros(3), np.ones(3), np.ones(6), np.zeros((2, 3)), [0.1, 0.1]), "must describe the same spheres"),
     ((np.zeros(3), np.ones(3), [np.ones(3)], [np.zeros(3)], [0.0]), "radii must be > 0 (m)"),
     ((np.zeros(3), [np.nan, 0, 0], [np.ones(3)], [np.zeros(3)], [0.1]), "step must be finite"),
 ])  # fmt: skip

@@ -49,18 +49,18 @@ def modulate(
         The modulated step, a new (3,) array.
 
     Raises:
-        ValueError: shapes that do not match, a radius that is not > 0, or a value that is not finite.
+        ValueError: shapes other than these (k spheres, none for k = 0: ``centers`` of shape
+            (0, 3)), a radius that is not > 0, or a value that is not finite.
     """
     x = np.asarray(position, dtype=float)
     v = np.array(step, dtype=float)
-    centers = np.asarray(centers, dtype=float).reshape(-1, 3) if np.size(centers) else np.zeros((0, 3))
-    velocities = np.asarray(velocities, dtype=float).reshape(-1, 3) if np.size(velocities) else np.zeros((0, 3))
-    radii = np.asarray(radii, dtype=float).reshape(-1)
+    centers, velocities, radii = (np.asarray(value, dtype=float) for value in (centers, velocities, radii))
     if x.shape != (3,) or v.shape != (3,):
         raise ValueError(f"position and step must have shape (3,), got {x.shape} and {v.shape}")
-    if not (len(centers) == len(velocities) == len(radii)):
+    k = len(radii) if radii.ndim == 1 else -1
+    if centers.shape != (k, 3) or velocities.shape != (k, 3):
         raise ValueError(f"centers (k, 3), velocities (k, 3) and radii (k,) must describe the same spheres, got "
-                         f"{len(centers)}, {len(velocities)} and {len(radii)}")  # fmt: skip
+                         f"shapes {centers.shape}, {velocities.shape} and {radii.shape}")  # fmt: skip
     for name, value in (("position", x), ("step", v), ("centers", centers), ("velocities", velocities),
                         ("radii", radii)):  # fmt: skip
         if not np.isfinite(value).all():
