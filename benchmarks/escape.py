@@ -41,7 +41,10 @@ filter's nominal torque, and as the fallback where the filter's rows give way.
 ``--policies`` and, where the filter's rows give way, searches from the state reached with only
 what the filter knows there (each sphere's position and velocity, held), over ``--lookahead`` s,
 and engages an escape found for ``--engage`` s as the filter's nominal torque and its fallback
-(:class:`OnlineEscape`). Each episode runs without and with it on the same seed.
+(:class:`OnlineEscape`). Each episode runs without and with it on the same seed. ``--trigger``
+says what starts a search: the rows giving way (``rows``), a hard row giving way (``hard``), or a
+forecast of one: the filtered arm rolled ahead from the state reached, left to the filter, every
+0.1 s (``forecast``, :class:`Forecast`).
 
 Usage::
 
@@ -49,6 +52,7 @@ Usage::
         --set joint_range_reserve=0.3 allowance_level=true joint_speed_fraction=1.0 nominal_speed_fraction=0.4
     python benchmarks/escape.py --arm sawyer --scenario multi --seeds 20 --hold 1.0 --set joint_speed_fraction=1.0
     python benchmarks/escape.py --online --arm sawyer --scenario multi --seeds 2 12 20 40 89
+    python benchmarks/escape.py --online --trigger forecast --lookahead 3 --arm sawyer --scenario multi --seeds 2 12 20 40 89
 """
 
 from __future__ import annotations
@@ -58,6 +62,7 @@ import functools
 import json
 import sys
 import time
+import warnings
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -70,11 +75,13 @@ import third_party as tp  # the benchmark beside this file
 
 from c3bf_gym.cli import add_filter_settings
 from c3bf_gym.safety import (
+    EnvelopeWarning,
     FilterConfig,
     FilterEnvelope,
     MocapSpheres,
     RobotDescription,
     SafetyController,
+    UnprotectedGeometryWarning,
 )
 
 SEGMENT = 0.1  # [s] a velocity target is held this long
@@ -369,6 +376,59 @@ def replay(arm: str, scenario: str, seed: int, config: FilterConfig, targets: np
 
 LOOKAHEAD = 2.0  # [s] an online search's horizon (--lookahead)
 ENGAGE = 1.0  # [s] how long an escape it finds stays engaged before the next search (--engage)
+#: What starts a search (--trigger): any row given way beyond its allowance; only a hard one (a
+#: guard, floor, joint-limit or self-collision row, :data:`third_party.HARD_ROWS`), which also
+#: narrows where an escape's torque replaces the filter's; or a forecast of a hard row giving way
+#: (:class:`Forecast`).
+TRIGGERS = ("rows", "hard", "forecast")
+FORECAST_EVERY = 0.1  # [s] how often the forecast runs while no escape is engaged (--trigger forecast)
+
+
+class Forecast:
+    """The benchmark's filtered arm rolled ahead from a state, left to the filter: its nominal
+    torque is the arm's bias force (gravity and Coriolis compensation, the zero policy), the
+    spheres keep the velocities the filter knows. It answers one question: does a hard row
+    (:data:`third_party.HARD_ROWS`) give way within the horizon? That is the pinch's signature in
+    every ``multi`` episode the filter lost. The roll-out is the benchmark's own model, physics
+    step and filter, on a second ``MjData`` and :class:`SafetyController`."""
+
+    def __init__(self, model: mujoco.MjModel, robot: RobotDescription, spheres: int, config: FilterConfig,
+                 envelope: FilterEnvelope) -> None:
+        self.model, self.robot = model, robot
+        self.data = mujoco.MjData(model)
+        names = [tp._BALL.format(k) for k in range(spheres)]
+        self.spheres = MocapSpheres(model, names)
+        self.mocap = [model.body(name).mocapid[0] for name in names]
+        with warnings.catch_warnings():  # the episode's filter has said it of the same model
+            warnings.simplefilter("ignore", UnprotectedGeometryWarning)
+            self.controller = SafetyController(model, self.data, robot, self.spheres, config, envelope=envelope)
+        self.runs, self.seconds = 0, 0.0
+
+    def pinched(self, data: mujoco.MjData, obstacles: MocapSpheres, horizon: float) -> bool:
+        """Whether a hard row gives way within ``horizon`` s of ``data``'s state, with ``obstacles``'
+        velocities and active slots held."""
+        clock = time.perf_counter()
+        model, rolled, robot = self.model, self.data, self.robot
+        mujoco.mj_copyData(rolled, model, data)
+        self.spheres.velocity[:] = np.where(obstacles.active[:, None], obstacles.velocity, 0.0)
+        self.spheres.active[:] = obstacles.active
+        self.controller.reset()
+        limit, dofs, dt = np.asarray(robot.torque_limit), robot.dof_ids, model.opt.timestep
+        pinch = False
+        with warnings.catch_warnings():  # the episode's own spheres: its filter warns of them, if any
+            warnings.simplefilter("ignore", EnvelopeWarning)
+            for _ in range(round(horizon / dt)):
+                mujoco.mj_step1(model, rolled)
+                tau, report = self.controller.filter(np.clip(rolled.qfrc_bias[dofs], -limit, limit))
+                if any(report.violation[kind] > 0.0 for kind in tp.HARD_ROWS):
+                    pinch = True
+                    break
+                robot.write_ctrl(model, rolled, tau)
+                mujoco.mj_step2(model, rolled)
+                rolled.mocap_pos[self.mocap] += self.spheres.velocity * dt
+        self.runs += 1
+        self.seconds += time.perf_counter() - clock
+        return pinch
 
 
 class OnlineEscape:
@@ -383,26 +443,44 @@ class OnlineEscape:
     applied as it is wherever the rows give way. So each engaged stretch ends with ``lookahead −
     engage`` s of certified motion still ahead, for the next search to start from: at its end the
     search runs again, and an escape found is engaged again while a sphere would still reach the
-    arm held still within the horizon; else the policy has the arm back. When a search finds
-    none, nothing is engaged: the filter's own torque stands and the next search waits ``engage``
-    s. The policy's torque is the nominal whenever nothing is engaged. Each search's
+    arm held still within the horizon; else the policy has the arm back. When that search finds
+    none, the engaged escape goes on to the end of its certified horizon, and the search runs again
+    there. When a search from an unengaged arm finds none, nothing is engaged: the filter's own
+    torque stands and the next search waits ``engage`` s. The policy's torque is the nominal
+    whenever nothing is engaged. Each search's
     record is kept in :attr:`searches`, the physics steps on an escape's own torque counted in
-    :attr:`fallback_steps`."""
+    :attr:`fallback_steps`.
+
+    ``trigger="hard"`` narrows both uses of the rows' giving way to the hard rows: a search starts
+    only where a guard, floor, joint-limit or self-collision row gives way, and an engaged
+    escape's torque replaces the filter's only there. Where only the C3BF's rows give way, the
+    filter's own torque (the relaxed QP's, with the escape as its nominal) is applied.
+
+    ``trigger="forecast"`` starts a search, while nothing is engaged, only where the
+    :class:`Forecast` run every :data:`FORECAST_EVERY` s over ``lookahead`` s sees a hard row give
+    way; the rest is as with ``"rows"``. Its runs and their wall time are kept in
+    :attr:`forecast`."""
 
     def __init__(self, arm: str, scenario: str, seed: int, config: FilterConfig, *, assets: Path,
                  max_speed: float, lookahead: float, engage: float, iterations: int, threads: int,
-                 target: float, samples: int = SAMPLES) -> None:
+                 target: float, samples: int = SAMPLES, trigger: str = "rows") -> None:
         if not 0.0 < engage <= lookahead:
             raise ValueError(f"engage must be in (0, lookahead = {lookahead:g}] s, got {engage}")
+        if trigger not in TRIGGERS:
+            raise ValueError(f"unknown trigger {trigger!r}; choose from {', '.join(TRIGGERS)}")
+        self.trigger = trigger
+        self.forecast: Forecast | None = None  # built at the first step (trigger "forecast"), on the episode's model
         self.episode = (arm, scenario, seed, config)
         self.options = {"assets": assets, "max_speed": max_speed, "iterations": iterations, "threads": threads,
                         "target": target, "samples": samples}  # fmt: skip
         self.model, self.robot, _, self.bound = _scene(arm, scenario, config, assets)
         self.rest = mujoco.MjData(self.model)
         self.lookahead, self.engage = lookahead, engage
+        self._every = round(FORECAST_EVERY / self.model.opt.timestep)
         self.searches: list[Escape] = []
         self.fallback_steps = 0
-        self._first = self._until = self._next = 0  # the motion's first step, its engaged end, the next search's
+        # the motion's first step, its engaged end, the end of its certified horizon, the next search's
+        self._first = self._until = self._certified = self._next = 0
         self._targets = self._gains = None
 
     def _torque(self, step: int, data: mujoco.MjData) -> np.ndarray:
@@ -418,10 +496,25 @@ class OnlineEscape:
                 self._engage(step, data, found)  # a sphere would still reach the arm: go on
             elif found.found:
                 self._next = step  # none would: the policy's again, searched again where the rows give way
+            elif step < self._certified:  # none found: the engaged escape is certified until its horizon
+                self._until = self._certified
+        if self.trigger == "forecast" and step >= max(self._until, self._next) and step % self._every == 0:
+            obstacles.refresh(data)  # the filter reads them after this call: they are a step old, or unread
+            if self.forecast is None:
+                _, scenario, _, config = self.episode
+                self.forecast = Forecast(data.model, self.robot, len(tp.SCENARIOS[scenario]), config,
+                                         _scene(*self.episode[:2], config, self.options["assets"])[2])
+            if self.forecast.pinched(data, obstacles, self.lookahead):
+                found = self._search(step, data, obstacles)
+                if found.found:
+                    self._engage(step, data, found)
         return self._torque(step, data) if step < self._until else tau
 
-    def gave_way(self, step: int, data: mujoco.MjData, obstacles: MocapSpheres, safe: np.ndarray) -> np.ndarray:
-        if step >= max(self._until, self._next):
+    def gave_way(self, step: int, data: mujoco.MjData, obstacles: MocapSpheres, safe: np.ndarray,
+                 hard: bool) -> np.ndarray:
+        if self.trigger == "hard" and not hard:
+            return safe
+        if self.trigger != "forecast" and step >= max(self._until, self._next):
             found = self._search(step, data, obstacles)
             if found.found:
                 self._engage(step, data, found)
@@ -453,14 +546,16 @@ class OnlineEscape:
         self._gains = servo_gains(self.model, self.robot, data.qpos[joints], self.bound)
         self._targets, self._first = np.array(found.targets), step
         self._until = step + round(self.engage / self.model.opt.timestep)
+        self._certified = round(found.horizon / self.model.opt.timestep)
 
 
 def online(arm: str, scenario: str, policy: str, seed: int, config: FilterConfig, *, assets: Path,
            max_speed: float = tp.SPEED[1], lookahead: float = LOOKAHEAD, engage: float = ENGAGE,
-           iterations: int = 40, threads: int = 2, target: float = TARGET, samples: int = SAMPLES) -> dict:
+           iterations: int = 40, threads: int = 2, target: float = TARGET, samples: int = SAMPLES,
+           trigger: str = "rows") -> dict:
     """``third_party``'s filtered episode (``arm``, ``scenario``, ``policy``, ``seed``), without and
-    with :class:`OnlineEscape`: each one's outcome (:class:`third_party.Episode`) and wall time
-    [s], and the online searches' records."""
+    with :class:`OnlineEscape` (its ``trigger``): each one's outcome (:class:`third_party.Episode`)
+    and wall time [s], and the online searches' records."""
     envelope = _scene(arm, scenario, config, assets)[2]  # third_party.main's: the arm's, the same on every scene
     task = (str(assets), arm, scenario, policy, config, seed, tp.SECONDS,
             tp.speed_range(envelope, max_speed), config)  # fmt: skip
@@ -469,11 +564,13 @@ def online(arm: str, scenario: str, policy: str, seed: int, config: FilterConfig
     alone_seconds = time.perf_counter() - clock
     takeover = OnlineEscape(arm, scenario, seed, config, assets=assets, max_speed=max_speed, lookahead=lookahead,
                             engage=engage, iterations=iterations, threads=threads, target=target,
-                            samples=samples)  # fmt: skip
+                            samples=samples, trigger=trigger)  # fmt: skip
     clock = time.perf_counter()
     helped = tp.run_episode(task, takeover)
     return {"filtered": asdict(alone), "filtered_seconds": alone_seconds, "online": asdict(helped),
             "online_seconds": time.perf_counter() - clock, "fallback_steps": takeover.fallback_steps,
+            "forecasts": takeover.forecast.runs if takeover.forecast else 0,
+            "forecast_seconds": takeover.forecast.seconds if takeover.forecast else 0.0,
             "searches": [asdict(found) for found in takeover.searches]}  # fmt: skip
 
 
@@ -484,13 +581,15 @@ def _online_records(args: argparse.Namespace, config: FilterConfig, assets: Path
         for policy in args.policies:
             run = online(args.arm, args.scenario, policy, seed, config, assets=assets, max_speed=args.max_speed,
                          lookahead=args.lookahead, engage=args.engage, iterations=args.iterations,
-                         threads=args.threads, target=args.target, samples=args.samples)  # fmt: skip
+                         threads=args.threads, target=args.target, samples=args.samples,
+                         trigger=args.trigger)  # fmt: skip
             records.append({"seed": seed, "policy": policy, **run})
             alone, helped = run["filtered"], run["online"]
             print(f"seed {seed}, {policy}: filtered {1e3 * alone['lowest_clearance']:+.1f} mm "
                   f"({alone['infeasible_steps']} infeasible physics steps, {run['filtered_seconds']:.1f} s); "
                   f"with the online search {1e3 * helped['lowest_clearance']:+.1f} mm "
-                  f"({len(run['searches'])} searches, {sum(f['found'] for f in run['searches'])} found an escape, "
+                  f"({run['forecasts']} forecasts, {run['forecast_seconds']:.1f} s; "
+                  f"{len(run['searches'])} searches, {sum(f['found'] for f in run['searches'])} found an escape, "
                   f"{run['fallback_steps']} physics steps on its torque, {run['online_seconds']:.1f} s)", flush=True)  # fmt: skip
     return records
 
@@ -543,6 +642,8 @@ def main(argv: list[str] | None = None) -> list[dict]:
                         help=f"--online: from {', '.join(tp.POLICIES)}")
     parser.add_argument("--lookahead", type=float, default=LOOKAHEAD, help="--online: each search's horizon [s]")
     parser.add_argument("--engage", type=float, default=ENGAGE, help="--online: how long an escape found is engaged [s]")
+    parser.add_argument("--trigger", choices=TRIGGERS, default="rows", help="--online: search, and apply an escape's "
+                        "torque, where any row gives way beyond its allowance or only where a hard one does")  # fmt: skip
     parser.add_argument("--cache", help="robosuite download folder (third_party.py's)")
     parser.add_argument("--json", type=Path, help="write the records here")
     add_filter_settings(parser, "--set")
@@ -570,7 +671,8 @@ def main(argv: list[str] | None = None) -> list[dict]:
         settings = {"filter": repr(config), "hold": args.hold, "iterations": args.iterations,
                     "samples": args.samples, "max_speed": args.max_speed}
         if args.online:
-            settings.update(online=True, lookahead=args.lookahead, engage=args.engage, target=args.target)
+            settings.update(online=True, lookahead=args.lookahead, engage=args.engage, target=args.target,
+                            trigger=args.trigger)
         args.json.write_text(json.dumps({"settings": settings,
                                          "episodes": records}, indent=2))  # fmt: skip
         print(f"wrote {args.json}")

@@ -507,8 +507,11 @@ class Takeover(Protocol):
     def nominal(self, step: int, data: mujoco.MjData, obstacles: MocapSpheres, tau: np.ndarray) -> np.ndarray:
         """The nominal torque of this step: ``tau``, the policy's, or the takeover's own."""
 
-    def gave_way(self, step: int, data: mujoco.MjData, obstacles: MocapSpheres, safe: np.ndarray) -> np.ndarray:
-        """The torque to apply where the rows gave way: ``safe``, the filter's, or the takeover's own."""
+    def gave_way(self, step: int, data: mujoco.MjData, obstacles: MocapSpheres, safe: np.ndarray,
+                 hard: bool) -> np.ndarray:
+        """The torque to apply where the rows gave way: ``safe``, the filter's, or the takeover's own;
+        ``hard``: whether a guard, floor, joint-limit or self-collision row (:data:`HARD_ROWS`) was
+        among them, not only the C3BF's."""
 
 
 def run_episode(task: tuple[str, str, str, str, FilterConfig | None, int, float, tuple[float, float],
@@ -576,10 +579,11 @@ def run_episode(task: tuple[str, str, str, str, FilterConfig | None, int, float,
             if takeover is not None:
                 tau = takeover.nominal(step, data, spheres, tau)
             tau, report = controller.filter(tau)
+            hard = any(report.violation[kind] > 0.0 for kind in HARD_ROWS)
             if takeover is not None and report.infeasible_steps:
-                tau = takeover.gave_way(step, data, spheres, tau)
+                tau = takeover.gave_way(step, data, spheres, tau, hard)
             out.infeasible_steps += report.infeasible_steps
-            out.hard_relaxed_steps += any(report.violation[kind] > 0.0 for kind in HARD_ROWS)
+            out.hard_relaxed_steps += hard
             out.gain_raised_steps += report.gain_raised_steps
         robot.write_ctrl(model, data, tau)
         mujoco.mj_step2(model, data)

@@ -2,7 +2,8 @@
 loses, a motion within the arm's torque limits and the filter's speed bound keeps it clear (on the
 search's model and, replayed, on the benchmark's own), and a search that cannot find one says so;
 run by the episode itself where the filter's rows give way, with only what the filter knows, it
-keeps that episode clear."""
+keeps that episode clear, and so it does when started only where a forecast of the filtered arm
+sees a hard row give way."""
 
 from __future__ import annotations
 
@@ -111,8 +112,13 @@ def test_the_search_names_the_valid_choices(assets):
     with pytest.raises(ValueError, match=r"engage must be in \(0, lookahead = 1\] s"):
         escape.OnlineEscape("sawyer", "multi", 20, CANDIDATE, assets=assets, max_speed=0.4, lookahead=1.0,
                             engage=2.0, iterations=1, threads=1, target=escape.TARGET)  # fmt: skip
+    with pytest.raises(ValueError, match="unknown trigger 'soon'; choose from rows, hard, forecast"):
+        escape.OnlineEscape("sawyer", "multi", 20, CANDIDATE, assets=assets, max_speed=0.4, lookahead=2.0,
+                            engage=1.0, iterations=1, threads=1, target=escape.TARGET, trigger="soon")  # fmt: skip
     with pytest.raises(SystemExit):
         escape.main(["--seeds", "20", "--online", "--policies", "lazy"])
+    with pytest.raises(SystemExit):
+        escape.main(["--seeds", "20", "--online", "--trigger", "soon"])
 
 
 class _PassThrough:
@@ -124,7 +130,7 @@ class _PassThrough:
     def nominal(self, step, data, obstacles, tau):
         return tau
 
-    def gave_way(self, step, data, obstacles, safe):
+    def gave_way(self, step, data, obstacles, safe, hard):
         self.gave_way_steps += 1
         return safe
 
@@ -138,6 +144,40 @@ def test_a_takeover_that_changes_nothing_leaves_the_episode_as_it_was(assets):
     assert watching.gave_way_steps == alone.infeasible_steps > 0  # asked at every step they gave way
 
 
+class _Forecasting(_PassThrough):
+    """A takeover that changes nothing and forecasts every ``FORECAST_EVERY`` s of the first second."""
+
+    def __init__(self, robot) -> None:
+        super().__init__()
+        self.robot, self.forecast, self.pinched = robot, None, []
+
+    def nominal(self, step, data, obstacles, tau):
+        if step % round(escape.FORECAST_EVERY / tp.TIMESTEP) == 0 and step * tp.TIMESTEP < 1.0:
+            if self.forecast is None:
+                envelope = tp.arm_envelope(data.model, self.robot, "sawyer", tp.CONFIG)
+                self.forecast = escape.Forecast(data.model, self.robot, 4, tp.CONFIG, envelope)
+            self.pinched.append(self.forecast.pinched(data, obstacles, escape.LOOKAHEAD))
+        return tau
+
+
+def test_the_forecast_sees_a_pinch_ahead_on_its_own_data_and_none_without_spheres(assets):
+    """The Sawyer's multi seed 2, which the default filter loses: a hard row gives way within
+    2 s of its first second's states, and forecasting leaves the episode as it was."""
+    model, robot, _ = tp.build_scene(assets, "sawyer", 4)
+    speed = tp.speed_range(tp.arm_envelope(model, robot, "sawyer", tp.CONFIG))
+    task = (str(assets), "sawyer", "multi", "random", tp.CONFIG, 2, tp.SECONDS, speed, tp.CONFIG)
+    alone, watching = tp.run_episode(task), _Forecasting(robot)
+    assert tp.run_episode(task, watching) == alone
+    assert len(watching.pinched) == 10 and any(watching.pinched)
+    forecast = watching.forecast
+    data = mujoco.MjData(forecast.model)
+    mujoco.mj_forward(forecast.model, data)
+    nothing = escape.MocapSpheres(forecast.model, [tp._BALL.format(k) for k in range(4)])
+    nothing.clear()
+    assert not forecast.pinched(data, nothing, escape.LOOKAHEAD)
+    assert forecast.runs == 11 and forecast.seconds > 0.0
+
+
 def test_the_search_run_where_the_rows_give_way_keeps_an_episode_the_filter_loses_clear(assets):
     """Knowing only what the filter knows there (the spheres' positions and velocities)."""
     run = escape.online("sawyer", "multi", "random", 20, tp.CONFIG, assets=assets, iterations=10)
@@ -146,3 +186,13 @@ def test_the_search_run_where_the_rows_give_way_keeps_an_episode_the_filter_lose
     assert run["searches"] and run["fallback_steps"] > 0
     first = run["searches"][0]
     assert first["start"] < tp.SECONDS and first["horizon"] == pytest.approx(first["start"] + escape.LOOKAHEAD)
+
+
+def test_the_search_run_where_a_forecast_sees_a_pinch_keeps_an_episode_the_filter_loses_clear(assets):
+    """The Sawyer's multi seed 12: the rows give way from the first step, the forecast sees a hard
+    row give way only later, and the searches it starts keep the episode clear."""
+    run = escape.online("sawyer", "multi", "random", 12, tp.CONFIG, assets=assets, iterations=10, trigger="forecast")
+    assert run["filtered"]["collided"] and run["filtered"]["infeasible_steps"] > 0
+    assert not run["online"]["collided"] and run["online"]["lowest_clearance"] > 0.01
+    assert run["forecasts"] > 0 and run["forecast_seconds"] > 0.0
+    assert run["searches"] and run["searches"][0]["start"] >= 1.0 and run["fallback_steps"] > 0
