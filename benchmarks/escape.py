@@ -52,7 +52,7 @@ Usage::
         --set joint_range_reserve=0.3 allowance_level=true joint_speed_fraction=1.0 nominal_speed_fraction=0.4
     python benchmarks/escape.py --arm sawyer --scenario multi --seeds 20 --hold 1.0 --set joint_speed_fraction=1.0
     python benchmarks/escape.py --online --arm sawyer --scenario multi --seeds 2 12 20 40 89
-    python benchmarks/escape.py --online --trigger forecast --lookahead 3 --arm sawyer --scenario multi --seeds 2 12 20 40 89
+    python benchmarks/escape.py --online --trigger forecast --arm sawyer --scenario multi --seeds 2 12 20 40 89
 """
 
 from __future__ import annotations
@@ -499,7 +499,7 @@ class OnlineEscape:
             elif step < self._certified:  # none found: the engaged escape is certified until its horizon
                 self._until = self._certified
         if self.trigger == "forecast" and step >= max(self._until, self._next) and step % self._every == 0:
-            obstacles.refresh(data)  # the filter reads them after this call: they are a step old, or unread
+            obstacles.refresh(data)  # the filter last read them a physics step ago, or never (step 0)
             if self.forecast is None:
                 _, scenario, _, config = self.episode
                 self.forecast = Forecast(data.model, self.robot, len(tp.SCENARIOS[scenario]), config,
@@ -642,8 +642,9 @@ def main(argv: list[str] | None = None) -> list[dict]:
                         help=f"--online: from {', '.join(tp.POLICIES)}")
     parser.add_argument("--lookahead", type=float, default=LOOKAHEAD, help="--online: each search's horizon [s]")
     parser.add_argument("--engage", type=float, default=ENGAGE, help="--online: how long an escape found is engaged [s]")
-    parser.add_argument("--trigger", choices=TRIGGERS, default="rows", help="--online: search, and apply an escape's "
-                        "torque, where any row gives way beyond its allowance or only where a hard one does")  # fmt: skip
+    parser.add_argument("--trigger", choices=TRIGGERS, default="rows", help="--online: what starts a search: any "
+                        "row giving way beyond its allowance (rows); a hard row giving way, where alone an escape's "
+                        "torque then replaces the filter's (hard); a forecast of one over --lookahead s (forecast)")  # fmt: skip
     parser.add_argument("--cache", help="robosuite download folder (third_party.py's)")
     parser.add_argument("--json", type=Path, help="write the records here")
     add_filter_settings(parser, "--set")
