@@ -382,12 +382,15 @@ ENGAGE = 1.0  # [s] how long an escape it finds stays engaged before the next se
 #: (:class:`Forecast`).
 TRIGGERS = ("rows", "hard", "forecast")
 FORECAST_EVERY = 0.1  # [s] how often the forecast runs while no escape is engaged (--trigger forecast)
+#: The forecast's nominal torque (--forecast-torque): the bias force alone (the arm left to the
+#: filter), or with the policy's excess over it at the forecast's start held throughout.
+FORECAST_TORQUES = ("bias", "held")
 
 
 class Forecast:
     """The benchmark's filtered arm rolled ahead from a state, left to the filter: its nominal
-    torque is the arm's bias force (gravity and Coriolis compensation, the zero policy), the
-    spheres keep the velocities the filter knows. It answers one question: does a hard row
+    torque is the arm's bias force (gravity and Coriolis compensation, the zero policy), plus a
+    held excess if :meth:`pinched` is given one; the spheres keep the velocities the filter knows. It answers one question: does a hard row
     (:data:`third_party.HARD_ROWS`) give way within the horizon? That is the pinch's signature in
     every ``multi`` episode the filter lost. The roll-out is the benchmark's own model, physics
     step and filter, on a second ``MjData`` and :class:`SafetyController`."""
@@ -404,9 +407,11 @@ class Forecast:
             self.controller = SafetyController(model, self.data, robot, self.spheres, config, envelope=envelope)
         self.runs, self.seconds = 0, 0.0
 
-    def pinched(self, data: mujoco.MjData, obstacles: MocapSpheres, horizon: float) -> bool:
+    def pinched(self, data: mujoco.MjData, obstacles: MocapSpheres, horizon: float,
+                excess: np.ndarray | None = None) -> bool:
         """Whether a hard row gives way within ``horizon`` s of ``data``'s state, with ``obstacles``'
-        velocities and active slots held."""
+        velocities and active slots held, and ``excess`` (n,) [N m] (None: zero) added to the bias
+        force at every step of the roll-out before the torque limits clip it."""
         clock = time.perf_counter()
         model, rolled, robot = self.model, self.data, self.robot
         mujoco.mj_copyData(rolled, model, data)
@@ -414,12 +419,13 @@ class Forecast:
         self.spheres.active[:] = obstacles.active
         self.controller.reset()
         limit, dofs, dt = np.asarray(robot.torque_limit), robot.dof_ids, model.opt.timestep
+        excess = 0.0 if excess is None else excess
         pinch = False
         with warnings.catch_warnings():  # the episode's own spheres: its filter warns of them, if any
             warnings.simplefilter("ignore", EnvelopeWarning)
             for _ in range(round(horizon / dt)):
                 mujoco.mj_step1(model, rolled)
-                tau, report = self.controller.filter(np.clip(rolled.qfrc_bias[dofs], -limit, limit))
+                tau, report = self.controller.filter(np.clip(rolled.qfrc_bias[dofs] + excess, -limit, limit))
                 if any(report.violation[kind] > 0.0 for kind in tp.HARD_ROWS):
                     pinch = True
                     break
@@ -458,17 +464,20 @@ class OnlineEscape:
 
     ``trigger="forecast"`` starts a search, while nothing is engaged, only where the
     :class:`Forecast` run every :data:`FORECAST_EVERY` s over ``lookahead`` s sees a hard row give
-    way; the rest is as with ``"rows"``. Its runs and their wall time are kept in
-    :attr:`forecast`."""
+    way; the rest is as with ``"rows"``. With ``forecast_torque="held"`` the forecast's nominal
+    adds the policy's torque in excess of the bias force at its start, held. Its runs and their
+    wall time are kept in :attr:`forecast`."""
 
     def __init__(self, arm: str, scenario: str, seed: int, config: FilterConfig, *, assets: Path,
                  max_speed: float, lookahead: float, engage: float, iterations: int, threads: int,
-                 target: float, samples: int = SAMPLES, trigger: str = "rows") -> None:
+                 target: float, samples: int = SAMPLES, trigger: str = "rows", forecast_torque: str = "bias") -> None:
         if not 0.0 < engage <= lookahead:
             raise ValueError(f"engage must be in (0, lookahead = {lookahead:g}] s, got {engage}")
         if trigger not in TRIGGERS:
             raise ValueError(f"unknown trigger {trigger!r}; choose from {', '.join(TRIGGERS)}")
-        self.trigger = trigger
+        if forecast_torque not in FORECAST_TORQUES:
+            raise ValueError(f"unknown forecast_torque {forecast_torque!r}; choose from {', '.join(FORECAST_TORQUES)}")
+        self.trigger, self.forecast_torque = trigger, forecast_torque
         self.forecast: Forecast | None = None  # built at the first step (trigger "forecast"), on the episode's model
         self.episode = (arm, scenario, seed, config)
         self.options = {"assets": assets, "max_speed": max_speed, "iterations": iterations, "threads": threads,
@@ -504,7 +513,8 @@ class OnlineEscape:
                 _, scenario, _, config = self.episode
                 self.forecast = Forecast(data.model, self.robot, len(tp.SCENARIOS[scenario]), config,
                                          _scene(*self.episode[:2], config, self.options["assets"])[2])
-            if self.forecast.pinched(data, obstacles, self.lookahead):
+            held = tau - data.qfrc_bias[self.robot.dof_ids] if self.forecast_torque == "held" else None
+            if self.forecast.pinched(data, obstacles, self.lookahead, held):
                 found = self._search(step, data, obstacles)
                 if found.found:
                     self._engage(step, data, found)
@@ -552,9 +562,9 @@ class OnlineEscape:
 def online(arm: str, scenario: str, policy: str, seed: int, config: FilterConfig, *, assets: Path,
            max_speed: float = tp.SPEED[1], lookahead: float = LOOKAHEAD, engage: float = ENGAGE,
            iterations: int = 40, threads: int = 2, target: float = TARGET, samples: int = SAMPLES,
-           trigger: str = "rows") -> dict:
+           trigger: str = "rows", forecast_torque: str = "bias") -> dict:
     """``third_party``'s filtered episode (``arm``, ``scenario``, ``policy``, ``seed``), without and
-    with :class:`OnlineEscape` (its ``trigger``): each one's outcome (:class:`third_party.Episode`)
+    with :class:`OnlineEscape` (its ``trigger`` and ``forecast_torque``): each one's outcome (:class:`third_party.Episode`)
     and wall time [s], and the online searches' records."""
     envelope = _scene(arm, scenario, config, assets)[2]  # third_party.main's: the arm's, the same on every scene
     task = (str(assets), arm, scenario, policy, config, seed, tp.SECONDS,
@@ -564,7 +574,7 @@ def online(arm: str, scenario: str, policy: str, seed: int, config: FilterConfig
     alone_seconds = time.perf_counter() - clock
     takeover = OnlineEscape(arm, scenario, seed, config, assets=assets, max_speed=max_speed, lookahead=lookahead,
                             engage=engage, iterations=iterations, threads=threads, target=target,
-                            samples=samples, trigger=trigger)  # fmt: skip
+                            samples=samples, trigger=trigger, forecast_torque=forecast_torque)  # fmt: skip
     clock = time.perf_counter()
     helped = tp.run_episode(task, takeover)
     return {"filtered": asdict(alone), "filtered_seconds": alone_seconds, "online": asdict(helped),
@@ -582,7 +592,7 @@ def _online_records(args: argparse.Namespace, config: FilterConfig, assets: Path
             run = online(args.arm, args.scenario, policy, seed, config, assets=assets, max_speed=args.max_speed,
                          lookahead=args.lookahead, engage=args.engage, iterations=args.iterations,
                          threads=args.threads, target=args.target, samples=args.samples,
-                         trigger=args.trigger)  # fmt: skip
+                         trigger=args.trigger, forecast_torque=args.forecast_torque)  # fmt: skip
             records.append({"seed": seed, "policy": policy, **run})
             alone, helped = run["filtered"], run["online"]
             print(f"seed {seed}, {policy}: filtered {1e3 * alone['lowest_clearance']:+.1f} mm "
@@ -645,6 +655,8 @@ def main(argv: list[str] | None = None) -> list[dict]:
     parser.add_argument("--trigger", choices=TRIGGERS, default="rows", help="--online: what starts a search: any "
                         "row giving way beyond its allowance (rows); a hard row giving way, where alone an escape's "
                         "torque then replaces the filter's (hard); a forecast of one over --lookahead s (forecast)")  # fmt: skip
+    parser.add_argument("--forecast-torque", choices=FORECAST_TORQUES, default="bias", help="--trigger forecast: "
+                        "its nominal torque, the bias force alone or with the policy's excess over it held")  # fmt: skip
     parser.add_argument("--cache", help="robosuite download folder (third_party.py's)")
     parser.add_argument("--json", type=Path, help="write the records here")
     add_filter_settings(parser, "--set")
@@ -673,7 +685,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
                     "samples": args.samples, "max_speed": args.max_speed}
         if args.online:
             settings.update(online=True, lookahead=args.lookahead, engage=args.engage, target=args.target,
-                            trigger=args.trigger)
+                            trigger=args.trigger, forecast_torque=args.forecast_torque)
         args.json.write_text(json.dumps({"settings": settings,
                                          "episodes": records}, indent=2))  # fmt: skip
         print(f"wrote {args.json}")

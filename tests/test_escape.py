@@ -117,6 +117,10 @@ def test_the_search_names_the_valid_choices(assets):
                             engage=1.0, iterations=1, threads=1, target=escape.TARGET, trigger="soon")  # fmt: skip
     with pytest.raises(SystemExit):
         escape.main(["--seeds", "20", "--online", "--policies", "lazy"])
+    with pytest.raises(ValueError, match="unknown forecast_torque 'policy'; choose from bias, held"):
+        escape.OnlineEscape("sawyer", "multi", 20, CANDIDATE, assets=assets, max_speed=0.4, lookahead=2.0,
+                            engage=1.0, iterations=1, threads=1, target=escape.TARGET, trigger="forecast",
+                            forecast_torque="policy")  # fmt: skip
     with pytest.raises(SystemExit):
         escape.main(["--seeds", "20", "--online", "--trigger", "soon"])
 
