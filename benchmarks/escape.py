@@ -482,7 +482,7 @@ class OnlineEscape:
         self.episode = (arm, scenario, seed, config)
         self.options = {"assets": assets, "max_speed": max_speed, "iterations": iterations, "threads": threads,
                         "target": target, "samples": samples}  # fmt: skip
-        self.model, self.robot, _, self.bound = _scene(arm, scenario, config, assets)
+        self.model, self.robot, self.envelope, self.bound = _scene(arm, scenario, config, assets)
         self.rest = mujoco.MjData(self.model)
         self.lookahead, self.engage = lookahead, engage
         self._every = round(FORECAST_EVERY / self.model.opt.timestep)
@@ -511,8 +511,7 @@ class OnlineEscape:
             obstacles.refresh(data)  # the filter last read them a physics step ago, or never (step 0)
             if self.forecast is None:
                 _, scenario, _, config = self.episode
-                self.forecast = Forecast(data.model, self.robot, len(tp.SCENARIOS[scenario]), config,
-                                         _scene(*self.episode[:2], config, self.options["assets"])[2])
+                self.forecast = Forecast(data.model, self.robot, len(tp.SCENARIOS[scenario]), config, self.envelope)
             held = tau - data.qfrc_bias[self.robot.dof_ids] if self.forecast_torque == "held" else None
             if self.forecast.pinched(data, obstacles, self.lookahead, held):
                 found = self._search(step, data, obstacles)

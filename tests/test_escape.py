@@ -151,15 +151,14 @@ def test_a_takeover_that_changes_nothing_leaves_the_episode_as_it_was(assets):
 class _Forecasting(_PassThrough):
     """A takeover that changes nothing and forecasts every ``FORECAST_EVERY`` s of the first second."""
 
-    def __init__(self, robot) -> None:
+    def __init__(self, robot, envelope) -> None:
         super().__init__()
-        self.robot, self.forecast, self.pinched = robot, None, []
+        self.robot, self.envelope, self.forecast, self.pinched = robot, envelope, None, []
 
     def nominal(self, step, data, obstacles, tau):
         if step % round(escape.FORECAST_EVERY / tp.TIMESTEP) == 0 and step * tp.TIMESTEP < 1.0:
             if self.forecast is None:
-                envelope = tp.arm_envelope(data.model, self.robot, "sawyer", tp.CONFIG)
-                self.forecast = escape.Forecast(data.model, self.robot, 4, tp.CONFIG, envelope)
+                self.forecast = escape.Forecast(data.model, self.robot, 4, tp.CONFIG, self.envelope)
             self.pinched.append(self.forecast.pinched(data, obstacles, escape.LOOKAHEAD))
         return tau
 
@@ -168,9 +167,9 @@ def test_the_forecast_sees_a_pinch_ahead_on_its_own_data_and_none_without_sphere
     """The Sawyer's multi seed 2, which the default filter loses: a hard row gives way within
     2 s of its first second's states, and forecasting leaves the episode as it was."""
     model, robot, _ = tp.build_scene(assets, "sawyer", 4)
-    speed = tp.speed_range(tp.arm_envelope(model, robot, "sawyer", tp.CONFIG))
-    task = (str(assets), "sawyer", "multi", "random", tp.CONFIG, 2, tp.SECONDS, speed, tp.CONFIG)
-    alone, watching = tp.run_episode(task), _Forecasting(robot)
+    envelope = tp.arm_envelope(model, robot, "sawyer", tp.CONFIG)
+    task = (str(assets), "sawyer", "multi", "random", tp.CONFIG, 2, tp.SECONDS, tp.speed_range(envelope), tp.CONFIG)
+    alone, watching = tp.run_episode(task), _Forecasting(robot, envelope)
     assert tp.run_episode(task, watching) == alone
     assert len(watching.pinched) == 10 and any(watching.pinched)
     forecast = watching.forecast
