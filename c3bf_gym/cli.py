@@ -180,6 +180,9 @@ def _add_train(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--observe-clearance", action="store_true",
                    help="append each arm geom's clearance to the obstacles to the observation "
                         "(c3bf_gym.wrappers.ArmClearance)")  # fmt: skip
+    p.add_argument("--applied-action", action="store_true",
+                   help="store the action the filter applied in the replay buffer, in place of the policy's (Cheng "
+                        "et al. 2019; c3bf_gym.wrappers.AppliedAction; SAC, a filter and Cartesian actions only)")  # fmt: skip
     p.add_argument("--hyperparams", type=json.loads, default={},
                    help='JSON overriding the defaults, e.g. \'{"learning_rate": 1e-3}\'')  # fmt: skip
     p.set_defaults(func=_run_train)
@@ -196,7 +199,7 @@ def _run_train(args: argparse.Namespace) -> int:
         progress_bar=not args.no_progress, normalize_obs=args.normalize_obs, policy_hz=args.policy_hz, distance_weight=args.distance_weight, action_weight=args.action_weight, obstacle_encoder=args.obstacle_encoder or defaults["obstacle_encoder"], hyperparams=args.hyperparams,
         observe_correction=args.observe_correction, posture_stiffness=args.posture_stiffness,
         posture_reach=args.posture_reach, correction_weight=args.correction_weight, residual_fade=args.residual_fade,
-        observe_clearance=args.observe_clearance, residual_modulation=args.modulate,
+        observe_clearance=args.observe_clearance, residual_modulation=args.modulate, applied_action=args.applied_action,
     )  # fmt: skip
     run_dir = train(config, address=args.address)
     print(f"run written to {run_dir}")

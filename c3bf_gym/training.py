@@ -35,8 +35,8 @@ import numpy as np
 from c3bf_gym import validation
 from c3bf_gym.envs.reach import ROBOTS, observation_layout
 from c3bf_gym.safety import DEFAULT_FILTER, FILTERS, FilterConfig
-from c3bf_gym.wrappers import (ActionPenalty, ArmClearance, CartesianImpedanceAction, CorrectionPenalty, FilterFeedback,
-                               SafetyFilter, default_impedance)  # fmt: skip
+from c3bf_gym.wrappers import (ActionPenalty, AppliedAction, ArmClearance, CartesianImpedanceAction, CorrectionPenalty,
+                               FilterFeedback, SafetyFilter, default_impedance)  # fmt: skip
 
 __all__ = [
     "ACTIONS",
@@ -288,6 +288,11 @@ class TrainConfig:
     ``observe_clearance`` appends each arm geom's clearance to the obstacles to the observation
     (:class:`~c3bf_gym.wrappers.ArmClearance`, saturating at 0.5 m).
 
+    ``applied_action`` stores the action the filter applied in the replay buffer in place of
+    the policy's (:class:`~c3bf_gym.wrappers.AppliedAction`,
+    :class:`~c3bf_gym.replay.AppliedActionReplayBuffer`; the action penalty then charges it too;
+    SAC, a filter and Cartesian actions only; off by default).
+
     ``correction_weight`` charges the safety filter's correction in the reward
     (:class:`~c3bf_gym.wrappers.CorrectionPenalty`; a filter only; 0, the default: none).
 
@@ -342,6 +347,7 @@ class TrainConfig:
     correction_weight: float = 0.0
     residual_fade: float | None = None
     residual_modulation: bool = False
+    applied_action: bool = False
     hyperparams: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
@@ -391,11 +397,16 @@ class TrainConfig:
         _residual_fade_or_none(self.residual_fade, self.action)
         if not (isinstance(self.hyperparams, dict) and all(isinstance(key, str) for key in self.hyperparams)):
             raise ValueError(f"hyperparams must be a dict of keyword arguments, got {self.hyperparams!r}")
-        for name in ("normalize_obs", "observe_correction", "observe_clearance", "residual_modulation"):
+        for name in ("normalize_obs", "observe_correction", "observe_clearance", "residual_modulation", "applied_action"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"{name} must be True or False, got {getattr(self, name)!r}")
         _check_residual_modulation(self.residual_modulation, self.action)
-        for name, use in (("correction_weight", "charges"), ("observe_correction", "observes")):
+        _check_applied_action(self.applied_action, self.action)
+        if self.applied_action and (self.engine, self.algo) != ("sb3", "sac"):
+            raise ValueError("applied_action relabels the actions of an off-policy replay buffer: it needs "
+                             f"engine='sb3' and algo='sac', got engine={self.engine!r}, algo={self.algo!r}")  # fmt: skip
+        for name, use in (("correction_weight", "charges"), ("observe_correction", "observes"),
+                          ("applied_action", "maps back")):
             if getattr(self, name) and filter_ is None:
                 raise ValueError(f"{name} {use} the safety filter's correction: it needs a filter "
                                  f"(one of {', '.join(map(repr, FILTERS))}), got filter={self.filter!r}")  # fmt: skip
@@ -422,6 +433,7 @@ class TrainConfig:
         encoder += f"_cw{self.correction_weight:g}" if self.correction_weight else ""
         encoder += f"_fade{self.residual_fade:g}" if self.residual_fade else ""
         encoder += "_mod" if self.residual_modulation else ""
+        encoder += "_applied" if self.applied_action else ""
         robot = "" if self.robot == "ur5e" else f"{self.robot}_"  # UR5e runs keep their earlier names
         engine = "" if self.engine == "sb3" else f"{self.engine}_"
         return (
@@ -488,6 +500,13 @@ def _residual_fade_or_none(value: float | None, action: str) -> float | None:
     return fade or None
 
 
+def _check_applied_action(applied: bool, action: str) -> None:
+    """ValueError for ``applied_action`` with torque actions (it maps the correction back to a tool target)."""
+    if applied and action not in ("impedance", "residual"):
+        raise ValueError("applied_action maps the filter's correction back to a tool target: it needs a Cartesian "
+                         f"action ('impedance', 'residual'), got {action!r}")  # fmt: skip
+
+
 def _check_residual_modulation(modulate: bool, action: str) -> None:
     """ValueError for ``residual_modulation`` with another action mode than residual."""
     if modulate and action != "residual":
@@ -508,12 +527,15 @@ def build_env(
     correction_weight: float = 0.0,
     observe_clearance: bool = False,
     residual_modulation: bool = False,
+    applied_action: bool = False,
     **env_kwargs: Any,
 ) -> gym.Env:
-    """``ActionPenalty(CorrectionPenalty(ArmClearance(FilterFeedback(SafetyFilter(CartesianImpedanceAction(
-    C3BFReach-v0))))))``, the parts the options ask for (``ActionPenalty`` when ``action_weight > 0``,
-    ``CorrectionPenalty`` when ``correction_weight > 0``, ``ArmClearance`` with ``observe_clearance``,
-    ``FilterFeedback`` with ``observe_correction``): the environment every training engine
+    """``ActionPenalty(AppliedAction(CorrectionPenalty(ArmClearance(FilterFeedback(SafetyFilter(
+    CartesianImpedanceAction(C3BFReach-v0)))))))``, the parts the options ask for (``ActionPenalty``
+    when ``action_weight > 0``, charging the applied action with ``applied_action``,
+    ``AppliedAction`` with ``applied_action``, ``CorrectionPenalty`` when ``correction_weight > 0``,
+    ``ArmClearance`` with ``observe_clearance``, ``FilterFeedback`` with ``observe_correction``):
+    the environment every training engine
     steps. ``filter``: "none"/None, a name of :data:`~c3bf_gym.safety.FILTERS` or a
     :class:`~c3bf_gym.safety.FilterConfig`; ``guard_gamma``: the guard's gains where it has one
     (None: the default); ``posture_stiffness``: the impedance controller's null-space pull
@@ -521,19 +543,22 @@ def build_env(
     ``residual_fade``: the residual action's ``fade`` [m] (None or 0: none); ``posture_reach``:
     the action's posture entries [rad] (None: none); ``correction_weight``: the weight of the
     filter's correction in the reward (0: none); ``residual_modulation``: the residual action's
-    ``modulate``; ``env_kwargs`` go to ``gym.make`` (:func:`env_kwargs`).
+    ``modulate``; ``applied_action``: put the action the filter applied in ``info``;
+    ``env_kwargs`` go to ``gym.make`` (:func:`env_kwargs`).
 
     Raises:
         ValueError: an unknown filter or action mode, ``observe_correction`` or
             ``correction_weight`` without a filter, ``posture_stiffness`` or ``posture_reach``
             with torque actions, a ``residual_fade`` that is not a finite number >= 0 or is given
             with other than residual actions, ``residual_modulation`` with other than residual
-            actions, or bad environment keywords.
+            actions, ``applied_action`` without a filter or with torque actions, or bad environment
+            keywords.
     """
     config = filter_config(filter, guard_gamma)
     validation.choice("action", action, ACTIONS)
     fade = _residual_fade_or_none(residual_fade, action)
     _check_residual_modulation(residual_modulation, action)
+    _check_applied_action(applied_action, action)
     env = gym.make("C3BFReach-v0", scenario=scenario, **env_kwargs)
     if action in ("impedance", "residual"):
         controller = None if posture_stiffness is None else default_impedance(env.unwrapped, posture_stiffness)
@@ -552,8 +577,10 @@ def build_env(
         env = ArmClearance(env)
     if correction_weight:
         env = CorrectionPenalty(env, correction_weight)  # refuses an environment without a filter too
+    if applied_action:
+        env = AppliedAction(env)  # refuses an environment without a filter too
     if action_weight:
-        env = ActionPenalty(env, action_weight)
+        env = ActionPenalty(env, action_weight, charge="applied" if applied_action else "policy")
     return env
 
 
@@ -572,6 +599,7 @@ def make_env(
     correction_weight: float = 0.0,
     observe_clearance: bool = False,
     residual_modulation: bool = False,
+    applied_action: bool = False,
     **env_kwargs: Any,
 ) -> Callable[[], gym.Env]:
     """A thunk building ``Monitor(build_env(...))`` (:func:`build_env`) for SB3 vector envs,
@@ -585,7 +613,7 @@ def make_env(
         env = build_env(scenario, config, action, action_weight, observe_correction=observe_correction,
                         posture_stiffness=posture_stiffness, residual_fade=residual_fade, posture_reach=posture_reach,
                         correction_weight=correction_weight, observe_clearance=observe_clearance,
-                        residual_modulation=residual_modulation, **env_kwargs)
+                        residual_modulation=residual_modulation, applied_action=applied_action, **env_kwargs)
         env = Monitor(env, monitor_file, info_keywords=info_keywords(config))
         env.reset(seed=seed)
         env.action_space.seed(seed)
@@ -686,7 +714,7 @@ def train(config: TrainConfig, address: str | None = None) -> Path:
                   observe_correction=config.observe_correction, posture_stiffness=config.posture_stiffness,
                   residual_fade=config.residual_fade, posture_reach=config.posture_reach,
                   correction_weight=config.correction_weight, observe_clearance=config.observe_clearance,
-                  residual_modulation=config.residual_modulation, **rate)]
+                  residual_modulation=config.residual_modulation, applied_action=config.applied_action, **rate)]
     )
     if config.normalize_obs:
         # Running mean/std of the observations (not of the rewards); EvalCallback copies the
@@ -735,7 +763,7 @@ def training_envs(config: TrainConfig):
                        posture_stiffness=config.posture_stiffness, residual_fade=config.residual_fade,
                        posture_reach=config.posture_reach, correction_weight=config.correction_weight,
                        observe_clearance=config.observe_clearance, residual_modulation=config.residual_modulation,
-                       **config.env_kwargs())
+                       applied_action=config.applied_action, **config.env_kwargs())
               for i in range(config.n_envs)]  # fmt: skip
     return SubprocVecEnv(thunks) if config.n_envs > 1 else DummyVecEnv(thunks)
 
@@ -779,6 +807,10 @@ def sb3_model(config: TrainConfig, venv, hyper: dict[str, Any], **kwargs: Any):
         extra = {"features_extractor_kwargs": {"extra_features": appended}} if appended else {}
         hyper = {**hyper, "policy_kwargs": {**hyper.get("policy_kwargs", {}), "features_extractor_class": ObstacleSetExtractor,
                                             **extra}}  # fmt: skip
+    if config.applied_action:
+        from c3bf_gym.replay import AppliedActionReplayBuffer
+
+        hyper = {**hyper, "replay_buffer_class": AppliedActionReplayBuffer}
     return algo("MlpPolicy", venv, seed=config.seed, verbose=0, **hyper, **kwargs)
 
 
@@ -870,7 +902,8 @@ def evaluate(
     default gains and its other settings their defaults, unless given). The action mode,
     policy rate and reward (``distance_weight``, ``action_weight``) are the run's too (also for
     ``best/`` and ``checkpoints/`` models), so returns compare only between runs with the same
-    reward (and ``correction_weight``, when evaluated with a filter); success and collisions do not
+    reward (and ``correction_weight`` and ``applied_action``'s charge, when evaluated with a
+    filter); success and collisions do not
     depend on it. So are the nominal controller's ``posture_stiffness`` and ``posture_reach``,
     the residual action's ``residual_fade`` (unless ``residual_fade`` is given: 0 for none) and
     ``observe_correction`` (such a run needs a filter: ValueError otherwise),
@@ -919,7 +952,9 @@ def evaluate(
                     residual_fade=residual_fade, posture_reach=config.get("posture_reach"),
                     correction_weight=config.get("correction_weight", 0.0) if filter_ is not None else 0.0,
                     observe_clearance=config.get("observe_clearance", False),
-                    residual_modulation=config.get("residual_modulation", False), **run_env)  # fmt: skip
+                    residual_modulation=config.get("residual_modulation", False),
+                    applied_action=config.get("applied_action", False) if filter_ is not None else False,
+                    **run_env)  # fmt: skip
     env.reset(seed=seed)  # as a training env starts (make_env); each episode below is reseeded
     for episode in range(episodes):
         obs, _ = env.reset(seed=seed + episode)

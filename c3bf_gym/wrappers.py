@@ -18,6 +18,7 @@ import gymnasium as gym
 import numpy as np
 
 from c3bf_gym import validation
+from c3bf_gym.controllers._kernels import MIN_INVERSE_INERTIA
 from c3bf_gym.controllers.impedance import CartesianImpedance, ImpedanceHook
 from c3bf_gym.controllers.modulation import modulated
 from c3bf_gym.envs.reach import _ACTION_BOUND, C3BFReachEnv
@@ -26,6 +27,7 @@ from c3bf_gym.safety import FILTERS, FilterConfig, StepSafety
 
 __all__ = [
     "ActionPenalty",
+    "AppliedAction",
     "ArmClearance",
     "CartesianImpedanceAction",
     "CorrectionPenalty",
@@ -288,6 +290,9 @@ class CartesianImpedanceAction(gym.ActionWrapper, gym.utils.RecordConstructorArg
         self._tool = base.data.site_xpos[base.ee_site_id]  # views, made once
         self._goal = base.goal
         self._straight = np.zeros(3)
+        #: [m] how far one unit of the action's tool entries moved the target at the last step:
+        #: ``max_offset``, times the fade's ``d / fade`` near the goal.
+        self.reach = self.max_offset
 
     def action(self, action: np.ndarray) -> np.ndarray:
         a = np.asarray(action)
@@ -306,13 +311,16 @@ class CartesianImpedanceAction(gym.ActionWrapper, gym.utils.RecordConstructorArg
             self.hook.set_posture(self._home + self.posture_reach * a[3:])
             a = a[:3]
         offset = self.max_offset * a
+        self.reach = self.max_offset
         if self.residual:  # + clip(goal − tool, ±max_offset), per axis
             m, straight, squared = self.max_offset, self._straight, 0.0
             for i, (g, x) in enumerate(zip(self._goal.tolist(), tool.tolist())):
                 straight[i] = min(max(g - x, -m), m)
                 squared += (g - x) * (g - x)
             if self.fade is not None and squared < self.fade * self.fade:
-                offset = offset * (math.sqrt(squared) / self.fade)
+                shrink = math.sqrt(squared) / self.fade
+                offset = offset * shrink
+                self.reach = self.max_offset * shrink
             if self.modulate:
                 straight = self._bent(tool, straight)
             offset = offset + straight
@@ -335,30 +343,54 @@ class CartesianImpedanceAction(gym.ActionWrapper, gym.utils.RecordConstructorArg
         super().close()
 
 
+def _wrapper_under(env: gym.Env, kind: type[gym.Wrapper]) -> gym.Wrapper | None:
+    """The outermost wrapper of type ``kind`` in ``env``'s stack (``env`` itself included), or None."""
+    while isinstance(env, gym.Wrapper):
+        if isinstance(env, kind):
+            return env
+        env = env.env
+    return None
+
+
 class ActionPenalty(gym.Wrapper):
-    """Adds ``-weight * mean(a²)`` to the reward, ``a`` being the policy's action as it arrives.
+    """Adds ``-weight * mean(a²)`` to the reward, ``a`` being the policy's action as it arrives
+    (``charge="policy"``) or the action the safety filter let through (``charge="applied"``,
+    ``info["applied_action"]`` of an :class:`AppliedAction` under this wrapper).
 
     A training aid for residual policies (``CartesianImpedanceAction(residual=True)``): ``a = 0``
     is the prior (straight for the goal), and the penalty makes a correction pay for itself, so
     the agent keeps the prior where it already works instead of drifting from it wherever the
     other reward terms are flat. The term is in ``info["reward_action"]`` (negative or zero);
     the task, its success and its cost do not change. Put it outside wrappers that change the
-    action's meaning, so that it sees the policy's own action.
+    action's meaning, so that it sees the policy's own action. ``charge="applied"`` is for a
+    learner that stores the applied action in place of its own (:class:`AppliedAction`): the
+    reward it stores then belongs to the action it stores.
 
     Args:
-        env: any environment with a ``Box`` action space.
+        env: any environment with a ``Box`` action space (with ``charge="applied"``, with an
+            :class:`AppliedAction` under this wrapper).
         weight: the penalty's weight (finite, >= 0; 0 adds nothing but the info key).
+        charge: ``"policy"`` or ``"applied"``: whose action is charged.
+
+    Raises:
+        ValueError: a bad ``weight`` or ``charge``, or ``charge="applied"`` without an
+            :class:`AppliedAction` under this wrapper.
     """
 
-    def __init__(self, env: gym.Env, weight: float) -> None:
+    def __init__(self, env: gym.Env, weight: float, charge: str = "policy") -> None:
         super().__init__(env)
         if not isinstance(env.action_space, gym.spaces.Box):
             raise TypeError(f"ActionPenalty needs a Box action space, got {env.action_space}")
         self.weight = validation.number("weight", weight, low=0.0)
+        self.charge = validation.choice("charge", charge, ("policy", "applied"))
+        if self.charge == "applied" and _wrapper_under(env, AppliedAction) is None:
+            raise ValueError("ActionPenalty(charge='applied') charges info['applied_action']: wrap an AppliedAction "
+                             "under it (AppliedAction(env), then ActionPenalty(...)); this environment has none")  # fmt: skip
 
     def step(self, action: Any) -> tuple[Any, float, bool, bool, dict[str, Any]]:
         obs, reward, terminated, truncated, info = self.env.step(action)  # validates the action
-        penalty = -self.weight * float(np.mean(np.square(action, dtype=np.float64)))
+        charged = info["applied_action"] if self.charge == "applied" else action
+        penalty = -self.weight * float(np.mean(np.square(charged, dtype=np.float64)))
         info["reward_action"] = penalty
         return obs, float(reward) + penalty, terminated, truncated, info
 
@@ -392,6 +424,82 @@ class CorrectionPenalty(gym.Wrapper):
         penalty = -self.weight * float(info["safety"]["correction"]) / self._scale
         info["reward_correction"] = penalty
         return obs, float(reward) + penalty, terminated, truncated, info
+
+
+class AppliedAction(gym.Wrapper):
+    """Puts the action the safety filter let through in ``info["applied_action"]``: the Cartesian
+    action that, given to the impedance controller with no filter, would have produced the
+    filtered torque's pull on the tool.
+
+    For learners trained on the action the barrier applied rather than the one the policy chose
+    (Cheng, Orosz, Murray and Burdick, AAAI 2019): an off-policy learner that stores this action
+    (:class:`~c3bf_gym.replay.AppliedActionReplayBuffer`) learns the value of what was done.
+
+    The filter changes torque, and the action sets the impedance controller's tool target, so the
+    correction is mapped back to a target shift. At the last physics step of the policy step, with
+    ``Δτ = τ − clip(τ_nom)`` the filter's correction [N m] (the nominal clipped to the torque
+    limits, as :class:`FilterFeedback`), ``G = J M_h⁻¹`` the tool's acceleration per unit torque
+    (:meth:`~c3bf_gym.safety.dynamics.ArmModel.site_dynamics`) and ``Λ = (G Jᵀ)⁻¹`` the task
+    inertia the controller uses (eigenvalues of ``G Jᵀ`` clamped from below as it clamps them),
+    the task force with the same tool acceleration is ``ΔF = Λ G Δτ`` [N], the target shift that
+    the controller's stiffness ``K`` turns into that force is ``Δx = K⁻¹ ΔF`` [m], and::
+
+        applied[:3] = clip(a[:3] + Δx / r, −1, 1)
+
+    with ``r`` [m] the target's reach per unit action at that step
+    (:attr:`CartesianImpedanceAction.reach`: ``max_offset``, shrunk by the residual action's
+    fade). The correction's null-space part, which does not move the tool, is dropped, and the
+    action's posture entries (``posture_reach``) are passed on as chosen. Where the filter left the
+    torque alone, or where ``r`` is 0 (the fade at the goal itself: every action sets the same
+    target there), ``applied`` is ``a``. Approximations: one physics step stands for the policy
+    step's fifty, and the controller's ``max_force`` bound is not inverted. The environment's
+    step, its reward and its observation are unchanged.
+
+    Args:
+        env: a ``C3BFReach`` environment with a :class:`CartesianImpedanceAction` and a
+            :class:`SafetyFilter` under this wrapper.
+
+    Raises:
+        ValueError: ``env`` has no safety filter or no Cartesian impedance action.
+    """
+
+    def __init__(self, env: gym.Env) -> None:
+        super().__init__(env)
+        base = _filtered_env(env, "AppliedAction", "maps back")
+        impedance = _wrapper_under(env, CartesianImpedanceAction)
+        if impedance is None:
+            raise ValueError("AppliedAction maps the filter's correction back to a tool target: wrap a "
+                             "CartesianImpedanceAction under it; this environment's actions are torques")  # fmt: skip
+        self._base = base
+        self._impedance = impedance
+        self._limit = np.asarray(base.robot.torque_limit, dtype=np.float64)
+        self._stiffness = np.asarray(impedance.hook.controller.K, dtype=np.float64)
+
+    def step(self, action: Any) -> tuple[Any, float, bool, bool, dict[str, Any]]:
+        obs, reward, terminated, truncated, info = self.env.step(action)  # validates the action
+        info["applied_action"] = self.applied(action, self._base.torque_hook("filter").report)
+        return obs, reward, terminated, truncated, info
+
+    def applied(self, action: np.ndarray, report: StepSafety) -> np.ndarray:
+        """The applied action (float32, the action's shape) for ``action``, the one the last
+        :meth:`step` received, given the filter's ``report`` of that step (its last physics step's
+        ``tau`` and ``tau_nominal``); the arm's state is the one that step left."""
+        out = np.array(action, dtype=np.float32)
+        reach = self._impedance.reach
+        if report.tau is None or report.tau_nominal is None or reach <= 0.0:
+            return out
+        delta = report.tau - np.clip(report.tau_nominal, -self._limit, self._limit)
+        if not delta.any():
+            return out
+        arm, data = self._base.arm, self._base.data
+        arm.update(data)  # M_h⁻¹ at the last physics step's state, which data still holds
+        tool = arm.site_dynamics(data)
+        gain, jac = tool.G[0], tool.jac[0]
+        mu, basis = np.linalg.eigh(gain @ jac.T)
+        force = basis @ ((basis.T @ (gain @ delta)) / np.maximum(mu, MIN_INVERSE_INERTIA))
+        shift = np.linalg.solve(self._stiffness, force)
+        out[:3] = np.clip(out[:3] + shift / reach, -1.0, 1.0)
+        return out
 
 
 class FilterFeedback(gym.ObservationWrapper):

@@ -229,6 +229,39 @@ def test_residual_modulation_reaches_the_action_names_the_run_and_is_evaluated_w
     assert _evaluated_with(tmp_path, monkeypatch, {"residual_modulation": True})["residual_modulation"] is True
 
 
+def test_applied_action_reaches_the_run_its_buffer_and_its_name_and_is_evaluated_with(tmp_path, monkeypatch):
+    """``applied_action``: the run's envs put the applied action in ``info`` and charge it, the
+    SAC model stores it (its replay buffer class), the run's name says so, and ``evaluate``
+    rebuilds the run's reward; PPO, RLlib, torque actions and no filter refuse it."""
+    from stable_baselines3 import SAC
+
+    from c3bf_gym.replay import AppliedActionReplayBuffer
+
+    assert TrainConfig(applied_action=True).name == "sac_residual_10hz_dw10_aw3_set_fade0.1_applied_c3bf+hocbf_random_s0"
+    assert "_applied" not in TrainConfig().name
+    env = build_env("static", "c3bf+hocbf", "residual", action_weight=3.0, applied_action=True, **policy_rate_kwargs(10))
+    try:
+        env.reset(seed=0)
+        assert env.get_wrapper_attr("charge") == "applied"
+        assert env.step(np.zeros(3, np.float32))[-1]["applied_action"].shape == (3,)
+    finally:
+        env.close()
+    for bad, message in (({"applied_action": True, "algo": "ppo"}, "it needs engine='sb3' and algo='sac', got engine='sb3', algo='ppo'"),
+                         ({"applied_action": True, "filter": "none"}, "applied_action maps back the safety filter's correction"),
+                         ({"applied_action": True, "action": "torque"}, "it needs a Cartesian action ('impedance', 'residual'), got 'torque'"),
+                         ({"applied_action": 1}, "applied_action must be True or False")):  # fmt: skip
+        with pytest.raises(ValueError, match=re.escape(message)):
+            TrainConfig(**bad).validate()
+    with pytest.raises(ValueError, match="applied_action maps the filter's correction back to a tool target"):
+        build_env("static", "c3bf+hocbf", "torque", applied_action=True)
+    run = train(TrainConfig(timesteps=150, scenario="multi", applied_action=True, eval_freq=10_000, final_eval_episodes=0,
+                            out=str(tmp_path / "run"), progress_bar=False, hyperparams={"learning_starts": 100}))  # fmt: skip
+    assert json.loads((run / "config.json").read_text())["applied_action"] is True
+    assert SAC.load(run / "model.zip", device="cpu").replay_buffer_class is AppliedActionReplayBuffer
+    saved = {"applied_action": True, "filter": "c3bf+hocbf", "action_weight": 3.0}
+    assert _evaluated_with(tmp_path, monkeypatch, saved)["applied_action"] is True
+
+
 def test_correction_weight_charges_the_run_names_it_and_needs_a_filter():
     assert TrainConfig(correction_weight=5.0).name == "sac_residual_10hz_dw10_aw3_set_cw5_fade0.1_c3bf+hocbf_random_s0"
     assert TrainConfig().correction_weight == 0.0 and "_cw" not in TrainConfig().name

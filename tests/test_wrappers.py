@@ -15,7 +15,7 @@ from c3bf_gym import DEFAULT_FILTER, FILTERS, ActionPenalty, CartesianImpedanceA
 from c3bf_gym.safety.barriers import C3BF, DistanceHOCBF
 from c3bf_gym.controllers import CartesianImpedance, modulate
 from c3bf_gym.controllers.modulation import REACH
-from c3bf_gym.wrappers import ArmClearance, CorrectionPenalty, FilterFeedback
+from c3bf_gym.wrappers import AppliedAction, ArmClearance, CorrectionPenalty, FilterFeedback
 from c3bf_gym.safety import GUARD_GAMMA
 
 from conftest import ENV_ID
@@ -701,6 +701,75 @@ def test_action_penalty_passes_bad_actions_to_the_env_check(make_env):
     env.reset(seed=0)
     with pytest.raises(ValueError, match="NaN or inf"):
         env.step(np.array([np.nan, 0.0, 0.0], np.float32))
+
+
+def test_applied_action_reads_a_task_force_back_as_its_target_shift(make_env):
+    """A correction ``Jᵀ K Δx`` (a pure task force at the tool) is read back as the target shift
+    ``Δx``: the applied action is ``clip(a + Δx / reach, −1, 1)``; where the filter left the
+    torque alone it is the action itself."""
+    impedance = CartesianImpedanceAction(make_env(scenario="none"), residual=True)
+    env = AppliedAction(SafetyFilter(impedance))
+    base = env.unwrapped
+    limit = base.robot.torque_limit
+    env.reset(seed=1)
+    action = np.array([0.2, -0.1, 0.0], np.float32)
+    for _ in range(3):
+        *_, info = env.step(action)
+    report = base.torque_hook("filter").report
+    np.testing.assert_array_equal(report.tau, np.clip(report.tau_nominal, -limit, limit))  # free space: no correction
+    np.testing.assert_array_equal(info["applied_action"], action)
+    assert info["applied_action"].dtype == np.float32
+    base.arm.update(base.data)
+    jac = base.arm.site_dynamics(base.data).jac[0]
+    stiffness = impedance.hook.controller.K
+    for shift, expected in ((np.array([0.004, -0.006, 0.002]), [0.24, -0.16, 0.02]),   # reach 0.1 m
+                            (np.array([0.5, 0.0, -0.5]), [1.0, -0.1, -1.0])):  # fmt: skip
+        report.tau = np.clip(report.tau_nominal, -limit, limit) + jac.T @ (stiffness @ shift)
+        np.testing.assert_allclose(env.applied(action, report), expected, rtol=0, atol=1e-5)
+
+
+def test_applied_action_follows_the_filter_and_leaves_the_rollout_alone(make_env):
+    """In a multi episode the filter pulls the arm, and the applied action says where: it differs
+    from the zero action, stays in the action space, keeps the posture entries as chosen, and the
+    rollout (observations, rewards) is the same as without the wrapper."""
+    plain = SafetyFilter(CartesianImpedanceAction(make_env(scenario="multi"), residual=True, posture_reach=0.3))
+    told = AppliedAction(SafetyFilter(CartesianImpedanceAction(make_env(scenario="multi"), residual=True,
+                                                               posture_reach=0.3)))  # fmt: skip
+    plain.reset(seed=1)
+    told.reset(seed=1)
+    action = np.zeros(9, np.float32)
+    action[3:] = 0.5
+    moved = 0
+    for _ in range(20):
+        obs_a, reward_a, *_ = plain.step(action)
+        obs_b, reward_b, *_, info = told.step(action)
+        np.testing.assert_array_equal(obs_a, obs_b)
+        assert reward_a == reward_b
+        applied = info["applied_action"]
+        assert told.action_space.contains(applied)
+        np.testing.assert_array_equal(applied[3:], action[3:])
+        moved += np.abs(applied[:3]).max() > 0.1
+    assert moved > 10, "the filter corrects the zero action from the start of this multi episode"
+
+
+def test_applied_action_needs_a_filter_and_a_cartesian_action(make_env):
+    with pytest.raises(ValueError, match="AppliedAction maps back the safety filter's correction: wrap a SafetyFilter"):
+        AppliedAction(CartesianImpedanceAction(make_env(), residual=True))
+    with pytest.raises(ValueError, match="wrap a CartesianImpedanceAction under it; this environment's actions are torques"):
+        AppliedAction(SafetyFilter(make_env()))
+
+
+def test_action_penalty_charges_the_applied_action_when_asked(make_env):
+    env = ActionPenalty(AppliedAction(SafetyFilter(CartesianImpedanceAction(make_env(scenario="multi"), residual=True))),
+                        weight=2.0, charge="applied")  # fmt: skip
+    env.reset(seed=1)
+    *_, info = env.step(np.zeros(3, np.float32))
+    assert info["reward_action"] == pytest.approx(-2.0 * float(np.mean(np.square(info["applied_action"]))))
+    assert info["reward_action"] < 0.0  # the filter moved the zero action: the move is charged
+    with pytest.raises(ValueError, match=re.escape("ActionPenalty(charge='applied') charges info['applied_action']")):
+        ActionPenalty(SafetyFilter(CartesianImpedanceAction(make_env(), residual=True)), 1.0, charge="applied")
+    with pytest.raises(ValueError, match="unknown charge 'filtered'; valid choices: 'policy', 'applied'"):
+        ActionPenalty(make_env(), 1.0, charge="filtered")
 
 
 def test_correction_penalty_charges_the_filters_correction_and_nothing_else(make_env):
