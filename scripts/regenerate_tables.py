@@ -154,7 +154,7 @@ TRAINING_TABLES = (
     ("training_table_sets_ur5e_modulation.md", "sets_modulation/sac_*", "final_eval.json",
      "training_curves_sets_ur5e_modulation.png"),
     # an attempt on the UR5e: the replay buffer stores the action the filter applied, c3bf-gym train
-    # --applied-action (Cheng et al. 2019; code CODE), seeds 0 and 1
+    # --applied-action (Cheng et al. 2019; code 5e8d6dd), seeds 0 and 1
     ("training_table_sets_ur5e_applied_action.md", "sets_applied_action/sac_*", "final_eval.json",
      "training_curves_sets_ur5e_applied_action.png"),
     # an attempt on the UR5e: twice the training with the fade, c3bf-gym train --timesteps 50000, the default
