@@ -264,7 +264,8 @@ def numpy_rows(u, hook):
     idx, g = hook.floor.ends, FilterConfig().floor_gamma
     A_floor = ends.G[idx, 2]
     b_floor = -(ends.c[idx, 2] + 2 * g * ends.vel[idx, 2] + g * g * (ends.pos[idx, 2] - hook.floor.min_height))
-    jl = hook.joint_limits.rows(u.data.qpos, u.data.qvel, arm.Minv, arm.qacc_free)
+    # the joint rows' drift carries the last physics step's constraint force (here mj_forward's)
+    jl = hook.joint_limits.rows(u.data.qpos, u.data.qvel, arm.Minv, arm.qacc_free + arm.Minv @ u.data.qfrc_constraint)
     A_all, b_all = np.concatenate([A, A_floor, jl.A]), np.concatenate([b, b_floor, jl.b])
     return A_all, b_all, h.min(initial=np.inf), inside.any(), len(sensed)
 

@@ -7,7 +7,8 @@ in plain loops, compiled once by numba with :data:`~c3bf_gym._compile_cache.STEP
 (cached on disk, keyed on every kernel source by :mod:`c3bf_gym._compile_cache`; no allocation,
 no reference counting).
 
-* :func:`step_inverse`: ``(M + h D)⁻¹`` and ``qacc_free`` (:class:`~c3bf_gym.safety.dynamics.ArmModel`).
+* :func:`step_inverse`: ``(M + h D)⁻¹`` and ``qacc_free`` (:class:`~c3bf_gym.safety.dynamics.ArmModel`);
+  :func:`joint_drift`: ``qacc_free`` with the last physics step's constraint force.
 * :func:`point_dynamics` / :func:`capsule_ends` / :func:`tool_site_dynamics`: position, velocity,
   ``c``, ``G`` and Jacobian of points on the arm, from ``cdof`` and ``cdof_dot`` (the formulas of
   :mod:`c3bf_gym.safety.dynamics`): any points, the capsule ends (into :class:`ArmArrays`), the
@@ -40,9 +41,9 @@ class ArmArrays(NamedTuple):
     views, updated in place, never replaced. ``S`` protected geoms, ``nv`` dofs.
 
     Attributes:
-        M, qfrc_passive, qfrc_bias, geom_xpos, geom_xmat, xpos, xmat, cdof, cdof_dot, com, qpos,
-            qvel: the ``MjData`` arrays the dynamics read (``com``: the arm's root subtree centre of
-            mass).
+        M, qfrc_passive, qfrc_bias, qfrc_constraint, geom_xpos, geom_xmat, xpos, xmat, cdof,
+            cdof_dot, com, qpos, qvel: the ``MjData`` arrays the dynamics read (``com``: the arm's
+            root subtree centre of mass).
         capsule_ids: (S,) the protected geoms.
         capsule_body: (S,) -1 where a capsule is in its geom's frame, else the body in whose frame
             it is (:func:`~c3bf_gym.safety.geometry.protected_capsule`).
@@ -54,6 +55,8 @@ class ArmArrays(NamedTuple):
         factor: (nv, nv) scratch for the factorisation of ``M + h D``.
         end_jac: (2S, 3, nv) scratch for the capsule ends' Jacobians.
         Minv, qacc_free: (nv, nv), (nv,) ``(M + h D)⁻¹`` and the joint acceleration at zero torque.
+        qacc_joint: (nv,) the joint acceleration at zero torque under the last physics step's
+            constraint force (:func:`joint_drift`), which the joint-limit rows use.
         ends, ends_ab, a_dot_ab: the capsule ends' packed dynamics (:func:`capsule_ends`).
         site: the tool site (:class:`ToolSite`; position zeros and no dofs for an arm without
             one), whose dynamics the filter's rows for ``points="ee"`` compute
@@ -63,6 +66,7 @@ class ArmArrays(NamedTuple):
     M: np.ndarray
     qfrc_passive: np.ndarray
     qfrc_bias: np.ndarray
+    qfrc_constraint: np.ndarray
     geom_xpos: np.ndarray
     geom_xmat: np.ndarray
     xpos: np.ndarray
@@ -86,6 +90,7 @@ class ArmArrays(NamedTuple):
     end_jac: np.ndarray
     Minv: np.ndarray
     qacc_free: np.ndarray
+    qacc_joint: np.ndarray
     ends: np.ndarray
     ends_ab: np.ndarray
     a_dot_ab: np.ndarray
@@ -215,6 +220,24 @@ def step_inverse(mass, damping, qfrc_passive, qfrc_bias, work, Minv, qacc_free):
         for j in range(nv):
             acc += Minv[i, j] * (qfrc_passive[j] - qfrc_bias[j])
         qacc_free[i] = acc
+
+
+@njit(**_opts)
+def joint_drift(Minv, qacc_free, qfrc_constraint, out):
+    """``out = qacc_free + Minv φ`` (nv,): the joint acceleration at zero torque, with ``φ`` the
+    generalised constraint force of the last physics step (MuJoCo's ``qfrc_constraint``: contacts,
+    joint limits, dry friction; ``mj_step1`` leaves the one ``mj_step2`` computed, ``mj_forward``
+    computes it for the current state and controls).
+
+    The constraint force depends on the torque about to be applied, which the filter chooses, so
+    the last step's force is an estimate of the next one, exact while it changes slowly. Where no
+    constraint is active ``φ = 0`` and ``out`` equals ``qacc_free`` exactly."""
+    nv = out.shape[0]
+    for i in range(nv):
+        acc = qacc_free[i]
+        for j in range(nv):
+            acc += Minv[i, j] * qfrc_constraint[j]
+        out[i] = acc
 
 
 @njit(**_opts)

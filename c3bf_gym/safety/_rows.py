@@ -38,8 +38,8 @@ import numpy as np
 from numba import njit
 
 from c3bf_gym._compile_cache import STEP_KERNEL_OPTIONS  # (before any @njit(cache=True): the cache keys)
-from c3bf_gym.safety._dynamics import (ArmMotion, SparseMass, capsule_ends, closest_terms, step_inverse, surface_gap,
-                                       tool_site_dynamics)
+from c3bf_gym.safety._dynamics import (ArmMotion, SparseMass, capsule_ends, closest_terms, joint_drift, step_inverse,
+                                       surface_gap, tool_site_dynamics)
 
 #: barrier kinds of the fused kernel
 C3BF_KIND = 0
@@ -582,9 +582,12 @@ def filter_rows(stage, arm, obstacles, params, A, b, row_h):
     3. The floor rows of the capsule ends ``params.floor_ends`` (:func:`floor_rows`), then the
        rows of the capsule pairs ``params.self_pairs`` (:func:`self_collision_rows`) and of the
        capsules and fixed parts ``params.fixed_capsules`` (:func:`fixed_partner_rows`).
-    4. With ``params.joint_rows``, the ``4 n`` joint-limit rows (:func:`joint_limit_rows`).
+    4. With ``params.joint_rows``, the ``4 n`` joint-limit rows (:func:`joint_limit_rows`), on the
+       drift with the last physics step's constraint force
+       (:func:`~c3bf_gym.safety._dynamics.joint_drift`).
     The obstacle, floor and pair rows are tightened for the forces the filter cannot predict
-    (:func:`unmodelled_margin`); the joint-limit rows are not.
+    (:func:`unmodelled_margin`); the joint-limit rows are not: they take the constraint force the
+    last physics step applied as the next one's instead.
 
     The rows are written for the generalised force on every dof of the model (``A`` (·, nv)); the
     QP reads the columns of the arm's dofs (``params.dofs``).
@@ -631,6 +634,7 @@ def filter_rows(stage, arm, obstacles, params, A, b, row_h):
     m += n_fixed
     unmodelled_margin(A[:m], b[:m], params.unmodelled_force)
     if params.joint_rows:
-        joint_limit_rows(arm.qpos, arm.qvel, arm.Minv, arm.qacc_free, params, A[m:m + 4 * n], b[m:m + 4 * n])
+        joint_drift(arm.Minv, arm.qacc_free, arm.qfrc_constraint, arm.qacc_joint)
+        joint_limit_rows(arm.qpos, arm.qvel, arm.Minv, arm.qacc_joint, params, A[m:m + 4 * n], b[m:m + 4 * n])
         m += 4 * n
     return m, min_h, inside_any, n_sensed

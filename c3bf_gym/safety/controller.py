@@ -26,7 +26,12 @@ configurations the project compares. At every physics step (between ``mj_step1``
    when the config sets a lower bound for the nominal torque. The obstacle, floor and pair
    rows are tightened for the forces the filter cannot predict, each bounded
    (:attr:`~c3bf_gym.safety.RobotDescription.unmodelled_force`: joint dry friction, the actuators of
-   dofs that are not the arm's, such as a gripper's): :func:`~c3bf_gym.safety._rows.unmodelled_margin`;
+   dofs that are not the arm's, such as a gripper's): :func:`~c3bf_gym.safety._rows.unmodelled_margin`.
+   The joint-limit rows instead take the generalised constraint force of the last physics step
+   (MuJoCo's ``qfrc_constraint``: contacts, joint limits, dry friction) as the next step's
+   (:func:`~c3bf_gym.safety._dynamics.joint_drift`), so a link resting on the arm's own base or
+   a joint's friction, coupled to the others through ``M⁻¹``, does not carry a joint past its
+   speed bound;
 5. :class:`~c3bf_gym.safety.priority_qp.PriorityQP` (DAQP) returns the torque closest to the
    nominal one (in the metric ``weight``) that satisfies every row within the actuator limits.
    When none does, the rows give way by priority: the barrier's rows first, while the joint
@@ -68,7 +73,7 @@ import numba
 import numpy as np
 
 from c3bf_gym._capi import pack
-from c3bf_gym.safety import _qp, _rows, _step
+from c3bf_gym.safety import _dynamics, _qp, _rows, _step
 from c3bf_gym.safety.barriers import Floor, JointLimits, Rows, SelfCollision
 from c3bf_gym.safety.dynamics import ArmModel, segment_closest_points
 from c3bf_gym.safety.envelope import EnvelopeWarning, FilterEnvelope, filter_envelope
@@ -576,8 +581,8 @@ class SafetyController:
                 warnings.warn(UnprotectedGeometryWarning(
                     f"geom {names[0]!r} touches geom {names[1]!r} of the same arm (contact distance "
                     f"{contact.dist:.3g} m at the joint positions the filter was built at): their contact forces "
-                    "are not in the filter's model and no row keeps them apart, so they can push the arm past its "
-                    "rows; if the contact is an artefact of the collision geometry, exclude it in the model "
+                    "are not in the filter's model (its joint rows see only the last physics step's) and no row keeps "
+                    "them apart, so they can push the arm past its rows; if the contact is an artefact of the collision geometry, exclude it in the model "
                     f"(<contact><exclude body1=\"{bodies[0]}\" body2=\"{bodies[1]}\"/></contact>)"), stacklevel=3)
 
     def _check_timestep(self, timestep: float) -> None:
@@ -670,7 +675,8 @@ class SafetyController:
             m += len(self.self_collision.rows(arm._ends, Rows(self._A[m:], self._b[m:])).b)
         _rows.unmodelled_margin(self._A[:m], self._b[:m], self._unmodelled)
         if self.joint_limits is not None:
-            self.joint_limits.rows(data.qpos, data.qvel, arm.Minv, arm.qacc_free, out=Rows(self._A[m:], self._b[m:]),
+            _dynamics.joint_drift(arm.Minv, arm.qacc_free, arm.views(data).qfrc_constraint, arm.qacc_joint)
+            self.joint_limits.rows(data.qpos, data.qvel, arm.Minv, arm.qacc_joint, out=Rows(self._A[m:], self._b[m:]),
                                    dofs=self._dofs, qpos_ids=self._qpos_ids)
             m += self._n_joint_rows
         return self._A[:m], self._b[:m], min_h, inside, len(sensed)

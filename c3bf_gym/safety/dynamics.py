@@ -64,6 +64,7 @@ class _DataViews(NamedTuple):
     M: np.ndarray
     qfrc_passive: np.ndarray
     qfrc_bias: np.ndarray
+    qfrc_constraint: np.ndarray
     qpos: np.ndarray
     qvel: np.ndarray
     cdof: np.ndarray
@@ -173,6 +174,9 @@ class ArmModel:
         #: step integrates (module docstring); ``M⁻¹`` when the integrator has no implicit damping.
         self.Minv = np.zeros((nv, nv))
         self.qacc_free = np.zeros(nv)  # Minv (τ_passive − b): joint acceleration at zero torque
+        #: ``qacc_free + Minv φ`` with ``φ`` the last physics step's constraint force
+        #: (:func:`~c3bf_gym.safety._dynamics.joint_drift`): the joint-limit rows' drift.
+        self.qacc_joint = np.zeros(nv)
         self._version: int | None = None
         self._ends_current = False
         self._views_of: mujoco.MjData | None = None
@@ -223,7 +227,8 @@ class ArmModel:
         reallocates them; every attribute access would build a new numpy view)."""
         if data is not self._views_of:
             self._views = _DataViews(
-                data.M, data.qfrc_passive, data.qfrc_bias, data.qpos, data.qvel, data.cdof, data.cdof_dot,
+                data.M, data.qfrc_passive, data.qfrc_bias, data.qfrc_constraint, data.qpos, data.qvel, data.cdof,
+                data.cdof_dot,
                 data.subtree_com[self._root], data.geom_xpos, data.geom_xmat, data.xpos, data.xmat,
             )
             self._views_of = data
@@ -239,11 +244,11 @@ class ArmModel:
         (:class:`~c3bf_gym.safety._dynamics.ArmArrays`; views, valid while both live)."""
         v = self.views(data)
         return _dynamics.ArmArrays(
-            v.M, v.qfrc_passive, v.qfrc_bias, v.geom_xpos, v.geom_xmat, v.xpos, v.xmat, v.cdof, v.cdof_dot, v.com,
+            v.M, v.qfrc_passive, v.qfrc_bias, v.qfrc_constraint, v.geom_xpos, v.geom_xmat, v.xpos, v.xmat, v.cdof, v.cdof_dot, v.com,
             v.qpos, v.qvel, self._capsule_ids, self.capsule_body, self._M_rowadr, self._M_rownnz, self._M_colind,
             self.implicit_damping,
             self.capsule_local, self._length2, self.capsule_radius, self.capsule_chain, self._factor, self._end_jac,
-            self.Minv, self.qacc_free, self._ends, self._ends_ab, self._a_dot_ab, self._tool_site,
+            self.Minv, self.qacc_free, self.qacc_joint, self._ends, self._ends_ab, self._a_dot_ab, self._tool_site,
         )
 
     def _ensure_ends(self) -> None:

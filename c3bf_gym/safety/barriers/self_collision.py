@@ -17,8 +17,9 @@ class SelfCollision:
     """Pairs of the arm's capsules kept at a distance ``d ≥ d_min`` between their axes, as ``P``
     rows ``A @ τ >= b``, and ``Q`` more between capsules and fixed parts of the arm.
 
-    Contact forces between the arm's own links are not in the filter's model ``ẍ = G τ + c``: a
-    link pressed against another is pushed by a force no row predicts, which can drive joints
+    Contact forces between the arm's own links are not in the filter's model ``ẍ = G τ + c``
+    (only the joint-limit rows take the last physics step's, as an estimate of the next): a link
+    pressed against another is pushed by a force no obstacle row predicts, which can drive joints
     past their speed bound and a link into an obstacle while every row reports held. So a pair
     that the model lets collide gets a row, the second-order barrier on the distance ``d``
     between the closest points of the two capsule axes (gain γ [1/s], a double root)::
