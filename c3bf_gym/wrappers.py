@@ -452,7 +452,8 @@ class AppliedAction(gym.Wrapper):
     action's posture entries (``posture_reach``) are passed on as chosen. Where the filter left the
     torque alone, or where ``r`` is 0 (the fade at the goal itself: every action sets the same
     target there), ``applied`` is ``a``. Approximations: one physics step stands for the policy
-    step's fifty, and the controller's ``max_force`` bound is not inverted. The environment's
+    step's fifty, ``G`` and ``Λ`` are taken at the state the step reached (one physics step after
+    that correction), and the controller's ``max_force`` bound is not inverted. The environment's
     step, its reward and its observation are unchanged.
 
     Args:
@@ -483,7 +484,7 @@ class AppliedAction(gym.Wrapper):
     def applied(self, action: np.ndarray, report: StepSafety) -> np.ndarray:
         """The applied action (float32, the action's shape) for ``action``, the one the last
         :meth:`step` received, given the filter's ``report`` of that step (its last physics step's
-        ``tau`` and ``tau_nominal``); the arm's state is the one that step left."""
+        ``tau`` and ``tau_nominal``), at the state that step reached."""
         out = np.array(action, dtype=np.float32)
         reach = self._impedance.reach
         if report.tau is None or report.tau_nominal is None or reach <= 0.0:
@@ -492,7 +493,7 @@ class AppliedAction(gym.Wrapper):
         if not delta.any():
             return out
         arm, data = self._base.arm, self._base.data
-        arm.update(data)  # M_h⁻¹ at the last physics step's state, which data still holds
+        arm.update(data)  # M_h⁻¹ at the state the step reached (data holds its mj_step1 results)
         tool = arm.site_dynamics(data)
         gain, jac = tool.G[0], tool.jac[0]
         mu, basis = np.linalg.eigh(gain @ jac.T)

@@ -29,9 +29,9 @@ configurations the project compares. At every physics step (between ``mj_step1``
    dofs that are not the arm's, such as a gripper's): :func:`~c3bf_gym.safety._rows.unmodelled_margin`.
    The joint-limit rows instead take the generalised constraint force of the last physics step
    (MuJoCo's ``qfrc_constraint``: contacts, joint limits, dry friction) as the next step's
-   (:func:`~c3bf_gym.safety._dynamics.joint_drift`), so a link resting on the arm's own base or
-   a joint's friction, coupled to the others through ``M⁻¹``, does not carry a joint past its
-   speed bound;
+   (:func:`~c3bf_gym.safety._dynamics.joint_drift`), so a joint's friction, coupled to the others
+   through ``M⁻¹``, does not carry a joint past its speed bound (a stiff contact's force follows
+   the torque, and the last step's only estimates it);
 5. :class:`~c3bf_gym.safety.priority_qp.PriorityQP` (DAQP) returns the torque closest to the
    nominal one (in the metric ``weight``) that satisfies every row within the actuator limits.
    When none does, the rows give way by priority: the barrier's rows first, while the joint
@@ -581,8 +581,9 @@ class SafetyController:
                 warnings.warn(UnprotectedGeometryWarning(
                     f"geom {names[0]!r} touches geom {names[1]!r} of the same arm (contact distance "
                     f"{contact.dist:.3g} m at the joint positions the filter was built at): their contact forces "
-                    "are not in the filter's model (its joint rows see only the last physics step's) and no row keeps "
-                    "them apart, so they can push the arm past its rows; if the contact is an artefact of the collision geometry, exclude it in the model "
+                    "are not in the filter's model (its joint rows see only the last physics step's) and no row "
+                    "keeps them apart, so they can push the arm past its rows; if the contact is an artefact of the "
+                    "collision geometry, exclude it in the model "
                     f"(<contact><exclude body1=\"{bodies[0]}\" body2=\"{bodies[1]}\"/></contact>)"), stacklevel=3)
 
     def _check_timestep(self, timestep: float) -> None:

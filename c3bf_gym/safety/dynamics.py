@@ -244,8 +244,8 @@ class ArmModel:
         (:class:`~c3bf_gym.safety._dynamics.ArmArrays`; views, valid while both live)."""
         v = self.views(data)
         return _dynamics.ArmArrays(
-            v.M, v.qfrc_passive, v.qfrc_bias, v.qfrc_constraint, v.geom_xpos, v.geom_xmat, v.xpos, v.xmat, v.cdof, v.cdof_dot, v.com,
-            v.qpos, v.qvel, self._capsule_ids, self.capsule_body, self._M_rowadr, self._M_rownnz, self._M_colind,
+            v.M, v.qfrc_passive, v.qfrc_bias, v.qfrc_constraint, v.geom_xpos, v.geom_xmat, v.xpos, v.xmat, v.cdof,
+            v.cdof_dot, v.com, v.qpos, v.qvel, self._capsule_ids, self.capsule_body, self._M_rowadr, self._M_rownnz, self._M_colind,
             self.implicit_damping,
             self.capsule_local, self._length2, self.capsule_radius, self.capsule_chain, self._factor, self._end_jac,
             self.Minv, self.qacc_free, self.qacc_joint, self._ends, self._ends_ab, self._a_dot_ab, self._tool_site,
