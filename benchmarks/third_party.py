@@ -549,28 +549,37 @@ def run_episode(task: tuple[str, str, str, str, FilterConfig | None, int, float,
     policy_rng = np.random.default_rng([seed, 1])
     steps = int(round(seconds / TIMESTEP))
 
-    def measure() -> None:  # MuJoCo's own distances, sphere to geom, at the current kinematics
-        for ball in balls:
-            for geom in robot.geom_ids:
-                gap = mujoco.mj_geomDistance(model, data, ball, int(geom), min(out.lowest_clearance, CUTOFF), None)
-                out.lowest_clearance = min(out.lowest_clearance, gap)
+    def capsule_gaps() -> tuple[np.ndarray, np.ndarray]:
+        """The closest point of every capsule axis to every sphere centre (K, S, 3) and the
+        surfaces' gap (K, S) [m], at the current kinematics."""
+        a, b = arm_model.capsule_segments(data)
+        centres = data.mocap_pos[mocap]
+        closest = segment_closest_points(a, b, centres)
+        gaps = np.linalg.norm(closest - centres[:, None], axis=2) - arm_model.capsule_radius - radius[:, None]
+        return closest, gaps
+
+    def measure() -> tuple[np.ndarray, np.ndarray]:  # MuJoCo's own distances, sphere to geom, now
+        # A geom lies inside its capsule, so the capsule's gap bounds the geom's from below: a pair
+        # whose capsule gap is no lower than the lowest clearance so far cannot lower it.
+        closest, bound = capsule_gaps()
+        for k, s in zip(*np.nonzero(bound < min(out.lowest_clearance, CUTOFF)), strict=True):
+            gap = mujoco.mj_geomDistance(model, data, balls[k], int(robot.geom_ids[s]),
+                                         min(out.lowest_clearance, CUTOFF), None)  # fmt: skip
+            out.lowest_clearance = min(out.lowest_clearance, gap)
         out.collided |= out.lowest_clearance < 0.0
         out.max_speed_ratio = max(out.max_speed_ratio, float(np.max(np.abs(data.qvel[dofs]) / speed_limit)))
+        return closest, bound
 
     for step in range(steps):
         mujoco.mj_step1(model, data)  # kinematics of the state the last physics step reached
-        measure()
+        closest, gaps = measure()
         if policy == "random":
             if step % HOLD_STEPS == 0:
                 draw = policy_rng.uniform(-limit, limit)
             tau = data.qfrc_bias[dofs] + draw
         else:
-            a, b = arm_model.capsule_segments(data)
-            centres = data.mocap_pos[mocap]
-            closest = segment_closest_points(a, b, centres)  # (K, S, 3)
-            gaps = np.linalg.norm(closest - centres[:, None], axis=2) - arm_model.capsule_radius - radius[:, None]
             k, s = np.unravel_index(int(np.argmin(gaps)), gaps.shape)
-            pull = centres[k] - closest[k, s]
+            pull = data.mocap_pos[mocap[k]] - closest[k, s]
             mujoco.mj_jac(model, data, jac, None, closest[k, s], int(model.geom_bodyid[robot.geom_ids[s]]))
             tau = (data.qfrc_bias + jac.T @ (PULL_FORCE * pull / max(np.linalg.norm(pull), 1e-9)))[dofs]
         tau = np.clip(tau, -limit, limit)
