@@ -18,7 +18,7 @@ import gymnasium as gym
 import numpy as np
 
 from c3bf_gym import validation
-from c3bf_gym.controllers._kernels import MIN_INVERSE_INERTIA
+from c3bf_gym.controllers._kernels import ImpedanceWork, task_inertia
 from c3bf_gym.controllers.impedance import CartesianImpedance, ImpedanceHook
 from c3bf_gym.controllers.modulation import modulated
 from c3bf_gym.envs.reach import _ACTION_BOUND, C3BFReachEnv
@@ -440,7 +440,8 @@ class AppliedAction(gym.Wrapper):
     ``Δτ = τ − clip(τ_nom)`` the filter's correction [N m] (the nominal clipped to the torque
     limits, as :class:`FilterFeedback`), ``G = J M_h⁻¹`` the tool's acceleration per unit torque
     (:meth:`~c3bf_gym.safety.dynamics.ArmModel.site_dynamics`) and ``Λ = (G Jᵀ)⁻¹`` the task
-    inertia the controller uses (eigenvalues of ``G Jᵀ`` clamped from below as it clamps them),
+    inertia the controller uses (:func:`~c3bf_gym.controllers._kernels.task_inertia`: eigenvalues
+    of ``G Jᵀ`` clamped from below),
     the task force with the same tool acceleration is ``ΔF = Λ G Δτ`` [N], the target shift that
     the controller's stiffness ``K`` turns into that force is ``Δx = K⁻¹ ΔF`` [m], and::
 
@@ -475,6 +476,7 @@ class AppliedAction(gym.Wrapper):
         self._impedance = impedance
         self._limit = np.asarray(base.robot.torque_limit, dtype=np.float64)
         self._stiffness = np.asarray(impedance.hook.controller.K, dtype=np.float64)
+        self._work = ImpedanceWork.of(base.robot.n)
 
     def step(self, action: Any) -> tuple[Any, float, bool, bool, dict[str, Any]]:
         obs, reward, terminated, truncated, info = self.env.step(action)  # validates the action
@@ -495,9 +497,9 @@ class AppliedAction(gym.Wrapper):
         arm, data = self._base.arm, self._base.data
         arm.update(data)  # M_h⁻¹ at the state the step reached (data holds its mj_step1 results)
         tool = arm.site_dynamics(data)
-        gain, jac = tool.G[0], tool.jac[0]
-        mu, basis = np.linalg.eigh(gain @ jac.T)
-        force = basis @ ((basis.T @ (gain @ delta)) / np.maximum(mu, MIN_INVERSE_INERTIA))
+        gain = np.ascontiguousarray(tool.G[0])
+        task_inertia(gain, np.ascontiguousarray(tool.jac[0]), self._work)  # Λ, as the controller's
+        force = self._work.mats[2] @ (gain @ delta)
         shift = np.linalg.solve(self._stiffness, force)
         out[:3] = np.clip(out[:3] + shift / reach, -1.0, 1.0)
         return out

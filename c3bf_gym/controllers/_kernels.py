@@ -3,7 +3,8 @@
 
 * :func:`impedance_law`: the torque from the tool's state, its Jacobian, ``M⁻¹`` and the bias
   forces (the module docstring of :mod:`c3bf_gym.controllers.impedance` has the math);
-  :func:`critical_damping`: its damping matrix for a given task inertia.
+  :func:`critical_damping`: its damping matrix for a given task inertia; :func:`task_inertia`: that
+  inertia, regularised.
 * :func:`impedance_substep`: the same law on an arm's ``MjData`` between ``mj_step1`` and
   ``mj_step2``: ``(M + h D)⁻¹`` (:func:`c3bf_gym.safety._dynamics.step_inverse`, on a new state),
   the tool site's Jacobian, velocity and ``J̇ q̇`` (:func:`c3bf_gym.safety._dynamics.tool_site_dynamics`),
@@ -30,7 +31,7 @@ from c3bf_gym._compile_cache import STEP_KERNEL_OPTIONS  # (before any @njit(cac
 from c3bf_gym.safety._dynamics import ArmMotion, SparseMass, ToolSite, step_inverse, tool_site_dynamics
 
 __all__ = ["BoundImpedance", "ImpedanceGains", "ImpedanceWork", "TaskState", "Target", "critical_damping", "impedance_law",
-           "impedance_substep"]  # fmt: skip
+           "impedance_substep", "task_inertia"]  # fmt: skip
 
 _opts = STEP_KERNEL_OPTIONS
 
@@ -210,6 +211,37 @@ def critical_damping(Lambda, K, zeta, work, D):
 
 
 @njit(**_opts)
+def task_inertia(G, J, work):
+    """The tool's task inertia ``Λ`` [kg] from ``G = J M⁻¹`` (3, n) [(m/s²)/(N m)] and the tool
+    Jacobian ``J`` (3, n), regularised near kinematic singularities::
+
+        Λ⁻¹ = G Jᵀ = V diag(μ) Vᵀ,  μ ← max(μ, MIN_INVERSE_INERTIA),  Λ = V diag(1/μ) Vᵀ
+
+    Writes ``Λ`` to ``work.mats[2]``, ``V`` to ``work.mats[1]``, the clamped ``μ`` to
+    ``work.vec[0]`` (``work``: :class:`ImpedanceWork`; ``work.mats[0]`` and ``work.vec[1]`` are
+    overwritten as scratch). The one implementation of the controller's ``Λ``:
+    :func:`impedance_law` calls it, and so does :class:`~c3bf_gym.wrappers.AppliedAction` to map
+    a torque back to the task force."""
+    n = J.shape[1]
+    Linv_task, V, Lam = work.mats[0], work.mats[1], work.mats[2]
+    mu, inv = work.vec[0], work.vec[1]
+    for i in range(3):
+        for j in range(3):
+            acc = 0.0
+            for k in range(n):
+                acc += G[i, k] * J[j, k]
+            Linv_task[i, j] = acc
+    for i in range(3):  # symmetric to rounding; the eigen-solver reads both triangles
+        for j in range(i):
+            Linv_task[i, j] = Linv_task[j, i] = 0.5 * (Linv_task[i, j] + Linv_task[j, i])
+    _eigh3(Linv_task, mu, V)
+    for k in range(3):
+        mu[k] = max(mu[k], MIN_INVERSE_INERTIA)
+        inv[k] = 1.0 / mu[k]
+    _compose(V, inv, Lam)
+
+
+@njit(**_opts)
 def impedance_law(gains, state, target, work, tau):
     """The impedance torque ``tau`` (n,) [N m] (``gains``: :class:`ImpedanceGains`, ``state``:
     :class:`TaskState`, ``target``: :class:`Target`, ``work``: :class:`ImpedanceWork`)::
@@ -223,7 +255,7 @@ def impedance_law(gains, state, target, work, tau):
     J, Minv = state.J, state.Minv
     n = J.shape[1]
     G = work.G
-    Linv_task, V, Lam, D = work.mats[0], work.mats[1], work.mats[2], work.mats[3]
+    V, Lam, D = work.mats[1], work.mats[2], work.mats[3]
     mu, F = work.vec[0], work.vec[1]
     for i in range(3):  # G = J M⁻¹, Λ⁻¹ = G Jᵀ
         for k in range(n):
@@ -231,20 +263,7 @@ def impedance_law(gains, state, target, work, tau):
             for j in range(n):
                 acc += J[i, j] * Minv[j, k]
             G[i, k] = acc
-    for i in range(3):
-        for j in range(3):
-            acc = 0.0
-            for k in range(n):
-                acc += G[i, k] * J[j, k]
-            Linv_task[i, j] = acc
-    for i in range(3):  # symmetric to rounding; the eigen-solver reads both triangles
-        for j in range(i):
-            Linv_task[i, j] = Linv_task[j, i] = 0.5 * (Linv_task[i, j] + Linv_task[j, i])
-    _eigh3(Linv_task, mu, V)
-    for k in range(3):
-        mu[k] = max(mu[k], MIN_INVERSE_INERTIA)
-        F[k] = 1.0 / mu[k]
-    _compose(V, F, Lam)
+    task_inertia(G, J, work)
     if gains.fixed_damping:
         for i in range(3):
             for j in range(3):
