@@ -92,13 +92,7 @@ def _ppo_config(config: TrainConfig, hyper: dict[str, Any]):
     hyper = dict(hyper)
     hidden = hyper.pop("fcnet_hiddens")
     per_env = hyper.pop("train_batch_size_per_env")
-    env_config = dict(
-        scenario=config.scenario, filter=config.filter_config(), action=config.action,
-        action_weight=config.action_weight, posture_stiffness=config.posture_stiffness,
-        posture_reach=config.posture_reach, correction_weight=config.correction_weight,
-        observe_clearance=config.observe_clearance, residual_fade=config.residual_fade,
-        residual_modulation=config.residual_modulation, **config.env_kwargs(),
-    )  # fmt: skip
+    env_config = dict(scenario=config.scenario, **config.env_options())
     ppo = PPOConfig()
     try:
         ppo = ppo.training(train_batch_size_per_learner=per_env * config.n_envs, **hyper)

@@ -457,6 +457,18 @@ class TrainConfig:
         reward's dense distance term and the robot."""
         return env_kwargs(self.policy_hz, self.distance_weight, self.robot)
 
+    def env_options(self) -> dict[str, Any]:
+        """:func:`build_env`'s keywords for this run's environments, all but the scenario: the
+        filter (:meth:`filter_config`), the action mode, the wrappers' options and
+        :meth:`env_kwargs`. Every engine builds its environments from these, so an option added
+        to the run reaches them all by being added here."""
+        return dict(filter=self.filter_config(), action=self.action, action_weight=self.action_weight,
+                    observe_correction=self.observe_correction, posture_stiffness=self.posture_stiffness,
+                    residual_fade=self.residual_fade, posture_reach=self.posture_reach,
+                    correction_weight=self.correction_weight, observe_clearance=self.observe_clearance,
+                    residual_modulation=self.residual_modulation, applied_action=self.applied_action,
+                    **self.env_kwargs())  # fmt: skip
+
     def resolved_hyperparams(self) -> dict[str, Any]:
         """The engine's defaults for this algorithm and action mode, with ``hyperparams`` over them."""
         defaults = RLLIB_PPO_HYPERPARAMS if self.engine == "rllib" else HYPERPARAMS[(self.algo, self.action)]
@@ -584,37 +596,21 @@ def build_env(
     return env
 
 
-def make_env(
-    scenario: str = "random",
-    filter: str | FilterConfig | None = DEFAULT_FILTER,
-    action: str = "impedance",
-    seed: int = 0,
-    monitor_file: str | None = None,
-    action_weight: float = 0.0,
-    guard_gamma: float | None = None,
-    observe_correction: bool = False,
-    posture_stiffness: float | None = None,
-    residual_fade: float | None = None,
-    posture_reach: float | None = None,
-    correction_weight: float = 0.0,
-    observe_clearance: bool = False,
-    residual_modulation: bool = False,
-    applied_action: bool = False,
-    **env_kwargs: Any,
-) -> Callable[[], gym.Env]:
-    """A thunk building ``Monitor(build_env(...))`` (:func:`build_env`) for SB3 vector envs,
-    seeded on its first reset. The options are checked here, before any env is built."""
+def make_env(scenario: str = "random", filter: str | FilterConfig | None = DEFAULT_FILTER, action: str = "impedance",
+             seed: int = 0, monitor_file: str | None = None, guard_gamma: float | None = None,
+             **options: Any) -> Callable[[], gym.Env]:
+    """A thunk building ``Monitor(build_env(scenario, filter, action, **options))``
+    (:func:`build_env`, whose keywords ``options`` are) for SB3 vector envs, seeded ``seed`` on
+    its first reset; a run's are ``make_env(config.scenario, seed=..., **config.env_options())``
+    (:meth:`TrainConfig.env_options`). The filter (with ``guard_gamma``) and the action mode are
+    checked here, before any env is built."""
     from stable_baselines3.common.monitor import Monitor
 
     config = filter_config(filter, guard_gamma)
     validation.choice("action", action, ACTIONS)
 
     def thunk() -> gym.Env:
-        env = build_env(scenario, config, action, action_weight, observe_correction=observe_correction,
-                        posture_stiffness=posture_stiffness, residual_fade=residual_fade, posture_reach=posture_reach,
-                        correction_weight=correction_weight, observe_clearance=observe_clearance,
-                        residual_modulation=residual_modulation, applied_action=applied_action, **env_kwargs)
-        env = Monitor(env, monitor_file, info_keywords=info_keywords(config))
+        env = Monitor(build_env(scenario, config, action, **options), monitor_file, info_keywords=info_keywords(config))
         env.reset(seed=seed)
         env.action_space.seed(seed)
         return env
@@ -706,16 +702,8 @@ def train(config: TrainConfig, address: str | None = None) -> Path:
     _check_sb3_hyperparams(config)
     torch.set_num_threads(1)  # one core per run: the machine runs several runs side by side
     run_dir, hyper = start_run(config)
-    filter_ = config.filter_config()
-    rate, penalty = config.env_kwargs(), config.action_weight
     venv = training_envs(config)
-    eval_env = DummyVecEnv(
-        [make_env(config.evaluated_scenario, filter_, config.action, seed=10_000 + config.seed, action_weight=penalty,
-                  observe_correction=config.observe_correction, posture_stiffness=config.posture_stiffness,
-                  residual_fade=config.residual_fade, posture_reach=config.posture_reach,
-                  correction_weight=config.correction_weight, observe_clearance=config.observe_clearance,
-                  residual_modulation=config.residual_modulation, applied_action=config.applied_action, **rate)]
-    )
+    eval_env = DummyVecEnv([make_env(config.evaluated_scenario, seed=10_000 + config.seed, **config.env_options())])
     if config.normalize_obs:
         # Running mean/std of the observations (not of the rewards); EvalCallback copies the
         # statistics into the evaluation env, and they are saved beside the model.
@@ -757,13 +745,7 @@ def training_envs(config: TrainConfig):
     (:func:`make_env`, seeds ``1000 * seed + i``), in subprocesses when more than one."""
     from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
 
-    filter_ = config.filter_config()
-    thunks = [make_env(config.scenario, filter_, config.action, seed=config.seed * 1000 + i,
-                       action_weight=config.action_weight, observe_correction=config.observe_correction,
-                       posture_stiffness=config.posture_stiffness, residual_fade=config.residual_fade,
-                       posture_reach=config.posture_reach, correction_weight=config.correction_weight,
-                       observe_clearance=config.observe_clearance, residual_modulation=config.residual_modulation,
-                       applied_action=config.applied_action, **config.env_kwargs())
+    thunks = [make_env(config.scenario, seed=config.seed * 1000 + i, **config.env_options())
               for i in range(config.n_envs)]  # fmt: skip
     return SubprocVecEnv(thunks) if config.n_envs > 1 else DummyVecEnv(thunks)
 

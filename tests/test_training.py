@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import csv
 import importlib.util
+import inspect
 import json
 import re
 import sys
@@ -576,6 +577,23 @@ def test_make_env_puts_monitor_outside_the_filter():
     env = make_env("static", "c3bf+hocbf", "impedance", seed=0)()
     assert type(env).__name__ == "Monitor"
     assert "episode_interventions" in env.info_keywords and "episode_infeasible" in env.info_keywords
+    env.close()
+
+
+def test_every_engine_builds_the_run_environment_from_env_options():
+    # every build_env option but the scenario (and guard_gamma, which filter_config has applied)
+    # is a run's: an option added to build_env and not to env_options fails here
+    options = set(inspect.signature(build_env).parameters) - {"scenario", "guard_gamma", "env_kwargs"}
+    assert options <= set(TrainConfig().env_options())
+    config = TrainConfig(correction_weight=0.5, observe_clearance=True, applied_action=True, policy_hz=20)
+    env = make_env(config.scenario, seed=0, **config.env_options())()
+    chain, layer = [], env
+    while hasattr(layer, "env"):
+        chain.append(type(layer).__name__)
+        layer = layer.env
+    assert chain[:7] == ["Monitor", "ActionPenalty", "AppliedAction", "CorrectionPenalty", "ArmClearance",
+                         "SafetyFilter", "CartesianImpedanceAction"]  # fmt: skip
+    assert env.unwrapped.frame_skip == 25 and env.get_wrapper_attr("fade") == config.residual_fade  # 20 Hz at 500 Hz
     env.close()
 
 
