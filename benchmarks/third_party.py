@@ -678,6 +678,19 @@ def _choices(values: list[str], valid, what: str, parser: argparse.ArgumentParse
     return list(dict.fromkeys(values))
 
 
+def _progress(episodes, total: int, start: float) -> list[Episode]:
+    """The ``total`` episodes of the iterable ``episodes``, in order, with a line on stderr at
+    every tenth of them: how many are done, the wall time so far and the time left at that rate."""
+    done = []
+    for episode in episodes:
+        done.append(episode)
+        if total >= 20 and len(done) % (total // 10) == 0 and len(done) < total:
+            elapsed = time.perf_counter() - start
+            print(f"{len(done)} of {total} episodes, {elapsed:.0f} s, about {elapsed * (total / len(done) - 1):.0f} s "
+                  "left", file=sys.stderr, flush=True)  # fmt: skip
+    return done
+
+
 def main(argv: list[str] | None = None) -> dict:
     """Run the benchmark (``argv``: the command line without the program name) and return what it
     writes to ``--json``: ``settings``, ``unsupported`` (arm -> the library's message), ``notes``
@@ -747,10 +760,10 @@ def main(argv: list[str] | None = None) -> dict:
             print(f"{arm}: {line}")
     start = time.perf_counter()
     if args.workers == 1:
-        episodes = [run_episode(task) for task in tasks]
+        episodes = _progress(map(run_episode, tasks), len(tasks), start)
     else:
         with mp.get_context("spawn").Pool(args.workers) as pool:
-            episodes = pool.map(run_episode, tasks, chunksize=1)
+            episodes = _progress(pool.imap(run_episode, tasks, chunksize=1), len(tasks), start)
     rows = summarise(episodes)
     print_table(rows, unsupported)
     print(f"wall time {time.perf_counter() - start:.1f} s")
