@@ -611,7 +611,8 @@ def run_episode(task: tuple[str, str, str, str, FilterConfig | None, int, float,
 
 
 def summarise(episodes: list[Episode]) -> list[dict]:
-    """One row per (arm, scenario, policy), filtered and unfiltered episodes side by side."""
+    """One row per (arm, scenario, policy), filtered and unfiltered episodes side by side (the
+    unfiltered fields None where no unfiltered episode ran: ``--no-unfiltered``)."""
     rows = {}
     for e in sorted(episodes, key=lambda e: (list(ARMS).index(e.arm), list(SCENARIOS).index(e.scenario),
                                              POLICIES.index(e.policy), e.seed)):  # fmt: skip
@@ -619,10 +620,11 @@ def summarise(episodes: list[Episode]) -> list[dict]:
             "arm": e.arm, "scenario": e.scenario, "policy": e.policy, "episodes": 0, "collision_episodes": 0,
             "lowest_clearance_m": CUTOFF, "infeasible_per_1000_steps": 0.0, "gain_raised_per_1000_steps": 0.0,
             "hard_relaxed_per_1000_steps": 0.0,
-            "max_speed_ratio": 0.0, "unfiltered_collision_episodes": 0, "unfiltered_lowest_clearance_m": CUTOFF,
+            "max_speed_ratio": 0.0, "unfiltered_episodes": 0, "unfiltered_collision_episodes": 0,
+            "unfiltered_lowest_clearance_m": CUTOFF,
             "unfiltered_max_speed_ratio": 0.0, "_steps": 0, "_infeasible": 0, "_raised": 0, "_hard": 0})  # fmt: skip
         prefix = "" if e.filtered else "unfiltered_"
-        row["episodes"] += e.filtered
+        row[prefix + "episodes"] += 1
         row[prefix + "collision_episodes"] += int(e.collided)
         row[prefix + "lowest_clearance_m"] = min(row[prefix + "lowest_clearance_m"], e.lowest_clearance)
         row[prefix + "max_speed_ratio"] = max(row[prefix + "max_speed_ratio"], e.max_speed_ratio)
@@ -636,23 +638,29 @@ def summarise(episodes: list[Episode]) -> list[dict]:
         row["infeasible_per_1000_steps"] = 1e3 * row.pop("_infeasible") / steps
         row["gain_raised_per_1000_steps"] = 1e3 * row.pop("_raised") / steps
         row["hard_relaxed_per_1000_steps"] = 1e3 * row.pop("_hard") / steps
+        if not row["unfiltered_episodes"]:
+            for name in ("unfiltered_collision_episodes", "unfiltered_lowest_clearance_m", "unfiltered_max_speed_ratio"):
+                row[name] = None
     return list(rows.values())
 
 
 def print_table(rows: list[dict], unsupported: dict[str, str]) -> None:
-    """The table (module docstring), then the arms the library refused with its message."""
-    print(f"{'':<31}{' filtered ':-^70}   {' unfiltered ':-^32}")
-    print(f"{'arm':<8} {'scenario':<9} {'policy':<11} {'episodes':>8} {'collisions':>10} {'lowest [m]':>10} "
-          f"{'infeas/1k':>9} {'raised/1k':>9} {'hard/1k':>7} {'max|qd|/lim':>11}   "
-          f"{'collisions':>10} {'lowest [m]':>10} {'max|qd|/lim':>11}")  # fmt: skip
+    """The table (module docstring; the unfiltered columns when unfiltered episodes ran), then the
+    arms the library refused with its message."""
+    twins = any(r["unfiltered_episodes"] for r in rows)
+    print(f"{'':<37}{' filtered ':-^70}" + (f"   {' unfiltered ':-^32}" if twins else ""))
+    print(f"{'arm':<14} {'scenario':<9} {'policy':<11} {'episodes':>8} {'collisions':>10} {'lowest [m]':>10} "
+          f"{'infeas/1k':>9} {'raised/1k':>9} {'hard/1k':>7} {'max|qd|/lim':>11}"
+          + (f"   {'collisions':>10} {'lowest [m]':>10} {'max|qd|/lim':>11}" if twins else ""))  # fmt: skip
     for r in rows:
         filtered = (f"{r['episodes']:>8} {r['collision_episodes']:>10} {r['lowest_clearance_m']:>+10.4f} "
                     f"{r['infeasible_per_1000_steps']:>9.2f} {r['gain_raised_per_1000_steps']:>9.2f} "
                     f"{r['hard_relaxed_per_1000_steps']:>7.2f} "
                     f"{r['max_speed_ratio']:>11.2f}")  # fmt: skip
-        unfiltered = (f"{r['unfiltered_collision_episodes']:>10} {r['unfiltered_lowest_clearance_m']:>+10.4f} "
+        unfiltered = ("" if not r["unfiltered_episodes"] else
+                      f"   {r['unfiltered_collision_episodes']:>10} {r['unfiltered_lowest_clearance_m']:>+10.4f} "
                       f"{r['unfiltered_max_speed_ratio']:>11.2f}")  # fmt: skip
-        print(f"{r['arm']:<8} {r['scenario']:<9} {r['policy']:<11} {filtered}   {unfiltered}")
+        print(f"{r['arm']:<14} {r['scenario']:<9} {r['policy']:<11} {filtered}{unfiltered}")
     for arm, why in unsupported.items():
         print(f"{arm}: not run, the library refuses it: {why}")
 

@@ -117,13 +117,28 @@ def test_the_benchmark_runs_writes_its_json_and_the_unfiltered_adversary_collide
         (a, s, p) for a in ("iiwa", "kinova3") for s in ("static", "head_on") for p in ("random", "adversarial")]
     keys = {"arm", "scenario", "policy", "episodes", "collision_episodes", "lowest_clearance_m",
             "infeasible_per_1000_steps", "gain_raised_per_1000_steps", "hard_relaxed_per_1000_steps", "max_speed_ratio",
-            "unfiltered_collision_episodes",
+            "unfiltered_episodes", "unfiltered_collision_episodes",
             "unfiltered_lowest_clearance_m", "unfiltered_max_speed_ratio"}  # fmt: skip
-    assert all(set(r) == keys and r["episodes"] == 1 for r in rows)
+    assert all(set(r) == keys and r["episodes"] == r["unfiltered_episodes"] == 1 for r in rows)
     assert all(e["steps"] == 500 for e in written["episodes"])
     # the scene is a real threat: without the filter the adversary drives the arm into a sphere
     assert any(r["unfiltered_collision_episodes"] for r in rows if r["policy"] == "adversarial")
     assert result["configurations"] == rows
+
+
+def test_a_table_without_unfiltered_episodes_claims_nothing_about_them(capsys):
+    filtered = [tp.Episode("iiwa", "static", "random", True, seed, steps=100, lowest_clearance=0.05 - seed / 100)
+                for seed in range(2)]  # fmt: skip
+    (row,) = tp.summarise(filtered)
+    assert row["episodes"] == 2 and row["unfiltered_episodes"] == 0 and row["lowest_clearance_m"] == 0.04
+    assert row["unfiltered_collision_episodes"] is row["unfiltered_lowest_clearance_m"] is None
+    tp.print_table([row], {})
+    assert "unfiltered" not in capsys.readouterr().out
+    (row,) = tp.summarise([*filtered, tp.Episode("iiwa", "static", "random", False, 0, collided=True,
+                                                 lowest_clearance=-0.1)])  # fmt: skip
+    assert row["unfiltered_episodes"] == row["unfiltered_collision_episodes"] == 1
+    tp.print_table([row], {})
+    assert "unfiltered" in capsys.readouterr().out
 
 
 def test_moving_spheres_start_outside_the_sensing_range_the_envelope_needs(assets):
