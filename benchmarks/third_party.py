@@ -55,7 +55,9 @@ their allowance, ``StepSafety.infeasible_steps``), ``raised/1k`` the steps where
 rows gave way, within it (held with a raised gain, ``StepSafety.gain_raised_steps``), ``hard/1k``
 those where rows of the last priority (the guard's, the floor's or the joint limits') gave way,
 the largest ``|q̇_i| / q̇_max,i`` (the manufacturer's speed, :data:`ARMS`; the default filter holds
-``joint_speed_fraction`` = 0.5 of it), and the same three without the filter. An arm
+``joint_speed_fraction`` = 0.5 of it), and the same three without the filter (left out, and None
+in the rows, with ``--no-unfiltered``). A line on stderr at every tenth of the episodes says how
+far the run is. An arm
 the library refuses (``UnsupportedModelError``) is listed with the library's message instead.
 
 Usage::

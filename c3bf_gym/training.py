@@ -599,9 +599,9 @@ def build_env(
 def make_env(scenario: str = "random", filter: str | FilterConfig | None = DEFAULT_FILTER, action: str = "impedance",
              seed: int = 0, monitor_file: str | None = None, guard_gamma: float | None = None,
              **options: Any) -> Callable[[], gym.Env]:
-    """A thunk building ``Monitor(build_env(scenario, filter, action, **options))``
-    (:func:`build_env`, whose keywords ``options`` are) for SB3 vector envs, seeded ``seed`` on
-    its first reset; a run's are ``make_env(config.scenario, seed=..., **config.env_options())``
+    """A thunk building ``Monitor(build_env(scenario, filter, action, **options))`` for SB3 vector
+    envs, seeded ``seed`` on its first reset; ``options`` are :func:`build_env`'s other keywords.
+    A run's environments are ``make_env(config.scenario, seed=..., **config.env_options())``
     (:meth:`TrainConfig.env_options`). The filter (with ``guard_gamma``) and the action mode are
     checked here, before any env is built."""
     from stable_baselines3.common.monitor import Monitor
