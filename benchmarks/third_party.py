@@ -49,7 +49,8 @@ the envelope the filter states (``c3bf_gym.safety.filter_envelope``), printed pe
 Every episode runs twice on the same seed: filtered and unfiltered. Collisions are judged by
 MuJoCo alone: ``mj_geomDistance`` between every sphere and every protected geom (the geom itself,
 e.g. the mesh, not its capsule) at the start and after every physics step; negative is
-penetration. Per arm x scenario x policy the table prints: episodes, filtered episodes with a
+penetration. A pair is skipped where the geom's enclosing capsule is no closer than the lowest
+clearance so far: the capsule contains the geom, so the geom could not be closer either. Per arm x scenario x policy the table prints: episodes, filtered episodes with a
 collision, the lowest clearance [m], infeasible physics steps per 1,000 (rows gave way beyond
 their allowance, ``StepSafety.infeasible_steps``), ``raised/1k`` the steps where only the barrier's
 rows gave way, within it (held with a raised gain, ``StepSafety.gain_raised_steps``), ``hard/1k``
