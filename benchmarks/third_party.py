@@ -50,16 +50,17 @@ Every episode runs twice on the same seed: filtered and unfiltered. Collisions a
 MuJoCo alone: ``mj_geomDistance`` between every sphere and every protected geom (the geom itself,
 e.g. the mesh, not its capsule) at the start and after every physics step; negative is
 penetration. A pair is skipped where the geom's enclosing capsule is no closer than the lowest
-clearance so far: the capsule contains the geom, so the geom could not be closer either. Per arm x scenario x policy the table prints: episodes, filtered episodes with a
-collision, the lowest clearance [m], infeasible physics steps per 1,000 (rows gave way beyond
+clearance so far: the capsule contains the geom, so the geom could not be closer either. Per
+arm x scenario x policy the table prints: episodes, filtered episodes with a collision, the
+lowest clearance [m], infeasible physics steps per 1,000 (rows gave way beyond
 their allowance, ``StepSafety.infeasible_steps``), ``raised/1k`` the steps where only the barrier's
 rows gave way, within it (held with a raised gain, ``StepSafety.gain_raised_steps``), ``hard/1k``
 those where rows of the last priority (the guard's, the floor's or the joint limits') gave way,
 the largest ``|q̇_i| / q̇_max,i`` (the manufacturer's speed, :data:`ARMS`; the default filter holds
 ``joint_speed_fraction`` = 0.5 of it), and the same three without the filter (left out, and None
 in the rows, with ``--no-unfiltered``). A line on stderr at every tenth of the episodes says how
-far the run is. An arm
-the library refuses (``UnsupportedModelError``) is listed with the library's message instead.
+far the run is. An arm the library refuses (``UnsupportedModelError``) is listed with the
+library's message instead.
 
 Usage::
 
