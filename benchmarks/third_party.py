@@ -12,7 +12,8 @@ default filter with the project's environment's sensing radius (``FilterConfig(s
 :data:`SENSING_RADIUS` ``)``: a sphere adds rows once its surface is within 1 m of the arm). The
 arm's geoms keep the file's ``contype`` and ``conaffinity``, so the arms can touch the floor and robosuite's Sawyer its own links and base (its
 file excludes no pair; its first link touches the base at the start): contact forces are outside
-the filter's model, as in the project's own environment.
+the filter's model, as in the project's own environment. ``--exclude BODY1 BODY2`` switches off the
+contacts of one pair of bodies, as the filter's warning advises (off by default).
 
 Episodes of ``--seconds`` (:data:`SECONDS`, 8 s) at a 0.002 s physics step start from robosuite's initial joint
 configuration of the arm. Obstacle spheres (radius 5-8 cm, speed 0.1-0.4 m/s capped by the filter's
@@ -68,6 +69,8 @@ Usage::
     python benchmarks/third_party.py --episodes 10 --arms iiwa sawyer jaco --json third_party.json
     python benchmarks/third_party.py --episodes 8 --arms iiwa sawyer --scenarios multi head_on --no-unfiltered \\
         --set joint_speed_fraction=1.0 guard_gamma=20       # another filter setting, on the same seeds
+    python benchmarks/third_party.py --episodes 20 --arms sawyer --no-unfiltered \\
+        --exclude right_l0 right_arm_base_link              # the Sawyer without its link 0's contact on its base
 """
 
 from __future__ import annotations
@@ -83,7 +86,7 @@ import tempfile
 import time
 import warnings
 import zipfile
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Protocol
@@ -248,9 +251,10 @@ _BALL = "c3bf_ball{}"
 # ----------------------------------------------------------------------------- the scene
 
 
-def build_scene(assets: Path, arm: str, spheres: int) -> tuple[mujoco.MjModel, RobotDescription, list[str]]:
-    """The arm's robosuite MJCF with the benchmark's scene added (:func:`scene_spec`), compiled,
-    and its description.
+def build_scene(assets: Path, arm: str, spheres: int,
+                exclude: Sequence[tuple[str, str]] = ()) -> tuple[mujoco.MjModel, RobotDescription, list[str]]:
+    """The arm's robosuite MJCF with the benchmark's scene added (:func:`scene_spec`, ``exclude``
+    passed on), compiled, and its description.
 
     Returns:
         (model, robot, notes): the compiled model, ``RobotDescription.from_model`` with the
@@ -258,10 +262,11 @@ def build_scene(assets: Path, arm: str, spheres: int) -> tuple[mujoco.MjModel, R
         warnings and additions to report (strings).
 
     Raises:
-        ValueError: an unknown arm (names the valid ones), or a file that reads angles in degrees.
+        ValueError: an unknown arm (names the valid ones), a file that reads angles in degrees, or
+            an ``exclude`` body the arm lacks.
         UnsupportedModelError: the library refuses the model (its message says why).
     """
-    spec, arm_joints, tool, notes = scene_spec(assets, arm, spheres)
+    spec, arm_joints, tool, notes = scene_spec(assets, arm, spheres, exclude)
     model = spec.compile()
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
@@ -271,20 +276,27 @@ def build_scene(assets: Path, arm: str, spheres: int) -> tuple[mujoco.MjModel, R
     return model, robot, notes
 
 
-def scene_spec(assets: Path, arm: str, spheres: int) -> tuple[mujoco.MjSpec, list[str], str, list[str]]:
+def scene_spec(assets: Path, arm: str, spheres: int,
+               exclude: Sequence[tuple[str, str]] = ()) -> tuple[mujoco.MjSpec, list[str], str, list[str]]:
     """The arm's robosuite MJCF with the benchmark's scene added, not yet compiled.
 
     Added: ``model.opt.timestep`` = :data:`TIMESTEP`; a floor plane at z = 0 (the arm's base
     stands on it); ``spheres`` mocap spheres ``c3bf_ball0``... (contype = conaffinity = 0, radius
     set per episode); a site ``c3bf_tool`` on the last body when the file has no site; and a
-    ``<motor>`` (±:data:`EXTRA_MOTOR_TORQUE` N m) on every joint without an actuator.
+    ``<motor>`` (±:data:`EXTRA_MOTOR_TORQUE` N m) on every joint without an actuator. With
+    ``exclude``, pairs of the model's body names (``--exclude``), an ``<exclude>`` for each: the
+    contacts between those two bodies are switched off, as the filter's
+    ``UnprotectedGeometryWarning`` advises for a contact no row can part (the Sawyer's link 0 on
+    its base: ``("right_l0", "right_arm_base_link")``). Nothing is excluded by default: the arms
+    are robosuite's as shipped.
 
     Returns:
         (spec, joints, tool, notes): the scene's ``MjSpec``, the names of the arm's joints (a
         gripper's are not among them), the tool site's name, and the additions to report.
 
     Raises:
-        ValueError: an unknown arm (names the valid ones), or a file that reads angles in degrees.
+        ValueError: an unknown arm (names the valid ones), a file that reads angles in degrees, or
+            an ``exclude`` body the arm lacks (names the arm's bodies).
     """
     if arm not in ARMS:
         raise ValueError(f"unknown arm {arm!r}; choose from {', '.join(ARMS)}")
@@ -320,6 +332,13 @@ def scene_spec(assets: Path, arm: str, spheres: int) -> tuple[mujoco.MjSpec, lis
         body = spec.worldbody.add_body(name=_BALL.format(k), mocap=True, pos=[5.0 + k, 0.0, 1.0])
         body.add_geom(name=_BALL.format(k), type=mujoco.mjtGeom.mjGEOM_SPHERE, size=[RADIUS[0], 0, 0],
                       contype=0, conaffinity=0, rgba=[0.9, 0.2, 0.15, 0.6])  # fmt: skip
+    for pair in exclude:
+        missing = [name for name in pair if spec.body(name) is None]
+        if missing:
+            raise ValueError(f"--exclude: {arm} has no body {', '.join(map(repr, missing))}; its bodies are "
+                             f"{', '.join(body.name for body in spec.bodies[1:])}")  # fmt: skip
+        spec.add_exclude(bodyname1=pair[0], bodyname2=pair[1])
+        notes.append(f"excluded the contacts between bodies {pair[0]!r} and {pair[1]!r}")
     driven = {actuator.target for actuator in spec.actuators}
     for joint in (j for j in spec.joints if j.name in arm_joints):
         # e.g. a Sawyer head joint: the filter needs a torque motor on every dof (robosuite 1.5.2's
@@ -421,7 +440,7 @@ class Episode:
     max_speed_ratio: float = 0.0
 
 
-_SCENES: dict = {}  # (assets, arm, spheres) -> build_scene(...), per process
+_SCENES: dict = {}  # (assets, arm, spheres, exclude) -> build_scene(...), per process
 _ENVELOPES: dict = {}  # (assets, arm, config) -> arm_envelope(...), per process
 
 
@@ -518,19 +537,20 @@ class Takeover(Protocol):
         among them, not only the C3BF's."""
 
 
-def run_episode(task: tuple[str, str, str, str, FilterConfig | None, int, float, tuple[float, float],
-                            FilterConfig | None], takeover: Takeover | None = None) -> Episode:
+def run_episode(task: tuple, takeover: Takeover | None = None) -> Episode:
     """One episode: ``task`` = (assets folder, arm, scenario, policy, the filter's configuration or
     None for none, seed, seconds, the spheres' speed range [m/s], the configuration whose envelope's
-    sensing range the moving spheres start outside of (:func:`_spawn`), or None for none); with a
-    filter, ``takeover`` (or None) may replace the policy's nominal torque and the torque applied
-    where the rows give way."""
-    assets, arm, scenario, policy, config, seed, seconds, speed, spawn_config = task
+    sensing range the moving spheres start outside of (:func:`_spawn`), or None for none[, the
+    body pairs whose contacts :func:`scene_spec` excludes: a tuple of pairs, () when left out]);
+    with a filter, ``takeover`` (or None) may replace the policy's nominal torque and the torque
+    applied where the rows give way."""
+    assets, arm, scenario, policy, config, seed, seconds, speed, spawn_config, *rest = task
+    exclude = tuple(rest[0]) if rest else ()
     filtered = config is not None
     kinds = SCENARIOS[scenario]
-    key = (assets, arm, len(kinds))
+    key = (assets, arm, len(kinds), exclude)
     if key not in _SCENES:
-        _SCENES[key] = build_scene(Path(assets), arm, len(kinds))
+        _SCENES[key] = build_scene(Path(assets), arm, len(kinds), exclude)
     model, robot, _ = _SCENES[key]
     sensing = None if spawn_config is None else _envelope(assets, arm, spawn_config, model, robot).min_sensing_range
     data, drawn = episode_start(model, robot, arm, scenario, seed, seconds, speed, sensing)
@@ -672,12 +692,17 @@ def print_table(rows: list[dict], unsupported: dict[str, str]) -> None:
 # ----------------------------------------------------------------------------- main
 
 
-def _check_arm(assets: Path, arm: str, config: FilterConfig) -> tuple[str | None, list[str], FilterEnvelope | None]:
-    """(None, notes, the filter's envelope on the arm) when the filter ``config`` runs on ``arm``,
-    else (the library's refusal, notes, None)."""
+def _check_arm(assets: Path, arm: str, config: FilterConfig,
+               exclude: Sequence[tuple[str, str]] = ()) -> tuple[str | None, list[str], FilterEnvelope | None]:
+    """(None, notes, the filter's envelope on the arm) when the filter ``config`` runs on ``arm``
+    (its scene with ``exclude``'s pairs excluded), else (the library's refusal, notes, None). The
+    notes are :func:`build_scene`'s and the warnings the filter gives when it is built."""
     try:
-        model, robot, notes = build_scene(assets, arm, 1)
-        SafetyController(model, mujoco.MjData(model), robot, MocapSpheres(model, [_BALL.format(0)]), config)
+        model, robot, notes = build_scene(assets, arm, 1, exclude)
+        with warnings.catch_warnings(record=True) as caught:  # the filter's own warnings, e.g. a contact
+            warnings.simplefilter("always")                   # no row can part: reported with the notes
+            SafetyController(model, mujoco.MjData(model), robot, MocapSpheres(model, [_BALL.format(0)]), config)
+        notes += [str(w.message) for w in caught]
     except UnsupportedModelError as error:
         return str(error), [], None
     return None, notes, _envelope(str(assets), arm, config, model, robot)  # run_episode's too
@@ -728,6 +753,10 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--max-speed", type=float, default=SPEED[1], metavar="V",
                         help=f"the spheres' top speed [m/s] before the envelope's cap (default {SPEED[1]}); a "
                              "lower one asks whether slower spheres are safer")  # fmt: skip
+    parser.add_argument("--exclude", nargs=2, action="append", default=[], metavar=("BODY1", "BODY2"),
+                        help="switch off the contacts between two of the model's bodies (repeatable), as the "
+                             "filter's warning advises for a contact no row can part, e.g. the Sawyer's "
+                             "right_l0 right_arm_base_link (default: none, the files as shipped)")  # fmt: skip
     args = parser.parse_args(argv)
     try:
         config = CONFIG.replace(**dict(args.set))
@@ -746,8 +775,12 @@ def main(argv: list[str] | None = None) -> dict:
     assets = robosuite_assets(args.cache)
 
     unsupported, notes, envelopes, speeds = {}, {}, {}, {}
+    exclude = tuple(map(tuple, args.exclude))
     for arm in arms:
-        why, notes[arm], envelope = _check_arm(assets, arm, config)
+        try:
+            why, notes[arm], envelope = _check_arm(assets, arm, config, exclude)
+        except ValueError as error:
+            parser.error(str(error))
         if why is not None:
             unsupported[arm] = why
             continue
@@ -762,7 +795,8 @@ def main(argv: list[str] | None = None) -> dict:
     runnable = [arm for arm in arms if arm not in unsupported]
     twins = (config,) if args.no_unfiltered else (config, None)
     spawn_config = None if args.ignore_envelope else config
-    tasks = [(str(assets), arm, scenario, policy, twin, args.seed + i, args.seconds, speeds[arm], spawn_config)
+    tasks = [(str(assets), arm, scenario, policy, twin, args.seed + i, args.seconds, speeds[arm], spawn_config,
+              exclude)
              for arm in runnable for scenario in scenarios for policy in policies
              for i in range(args.episodes) for twin in twins]  # fmt: skip
     print(f"robosuite {ROBOSUITE_VERSION} arms from {assets}: {len(tasks)} episodes of {args.seconds:g} s "
@@ -782,6 +816,7 @@ def main(argv: list[str] | None = None) -> dict:
     result = {"settings": {"robosuite": ROBOSUITE_VERSION, "episodes_per_configuration": args.episodes,
                            "seconds": args.seconds, "timestep": TIMESTEP, "seed": args.seed, "arms": arms,
                            "scenarios": scenarios, "policies": policies, "filter": repr(config),
+                           "exclude": [list(pair) for pair in exclude],
                            "joint_speed_limit_rad_s": {arm: list(ARMS[arm].joint_speed_limit) for arm in arms},
                            "sphere_speed_m_s": {arm: list(speed) for arm, speed in speeds.items()},
                            "envelopes": envelopes},

@@ -105,6 +105,28 @@ def test_the_jacos_friction_loss_does_not_carry_its_joints_past_their_speed_boun
     assert row["max_speed_ratio"] <= 1.05 * tp.CONFIG.joint_speed_fraction
 
 
+def test_excluding_the_contact_the_filter_warns_of_holds_the_sawyers_speed_bound(assets, capsys):
+    """robosuite's Sawyer rests its link 0 on its base; the filter warns of that contact and names
+    the ``<exclude>`` that removes it. Its friction impulses, which no row predicts, throw the
+    joints past the filter's speed bound (this episode: 1.55 times it); with ``--exclude``
+    the pair no longer touches and the bound holds. A body the arm lacks is refused by name."""
+    common = ["--arms", "sawyer", "--scenarios", "static", "--policies", "random", "--episodes", "1", "--seed",
+              "1", "--no-unfiltered", "--cache", str(assets.parents[2])]  # fmt: skip
+    shipped = tp.main(common)
+    assert any("touches geom 'base_col'" in line for line in shipped["notes"]["sawyer"])
+    assert shipped["settings"]["exclude"] == []
+    excluded = tp.main(common + ["--exclude", "right_l0", "right_arm_base_link"])
+    assert excluded["settings"]["exclude"] == [["right_l0", "right_arm_base_link"]]
+    assert not any("touches geom 'base_col'" in line for line in excluded["notes"]["sawyer"])
+    bound = tp.CONFIG.joint_speed_fraction
+    assert shipped["configurations"][0]["max_speed_ratio"] > 1.05 * bound
+    assert excluded["configurations"][0]["max_speed_ratio"] <= 1.05 * bound
+    assert excluded["configurations"][0]["collision_episodes"] == 0
+    with pytest.raises(SystemExit):
+        tp.main(common + ["--exclude", "right_l0", "pedestal"])
+    assert "sawyer has no body 'pedestal'; its bodies are base, right_arm_base_link, right_l0" in capsys.readouterr().err
+
+
 def test_the_benchmark_runs_writes_its_json_and_the_unfiltered_adversary_collides(assets, tmp_path):
     out = tmp_path / "third_party.json"
     result = tp.main(["--arms", "iiwa", "kinova3", "--scenarios", "static", "head_on", "--episodes", "1",
