@@ -567,7 +567,7 @@ def online(arm: str, scenario: str, policy: str, seed: int, config: FilterConfig
     and wall time [s], and the online searches' records."""
     envelope = _scene(arm, scenario, config, assets)[2]  # third_party.main's: the arm's, the same on every scene
     task = (str(assets), arm, scenario, policy, config, seed, tp.SECONDS,
-            tp.speed_range(envelope, max_speed), config)  # fmt: skip
+            tp.speed_range(envelope, max_speed), config, ())  # fmt: skip
     clock = time.perf_counter()
     alone = tp.run_episode(task)
     alone_seconds = time.perf_counter() - clock

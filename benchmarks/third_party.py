@@ -76,6 +76,7 @@ Usage::
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import multiprocessing as mp
 import os
@@ -86,7 +87,7 @@ import tempfile
 import time
 import warnings
 import zipfile
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Protocol
@@ -268,12 +269,21 @@ def build_scene(assets: Path, arm: str, spheres: int,
     """
     spec, arm_joints, tool, notes = scene_spec(assets, arm, spheres, exclude)
     model = spec.compile()
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
+    with _warnings_into(notes):
         robot = RobotDescription.from_model(model, joints=arm_joints, site=tool,
                                             joint_speed_limit=ARMS[arm].joint_speed_limit)  # fmt: skip
-    notes += [str(w.message) for w in caught]
     return model, robot, notes
+
+
+@contextlib.contextmanager
+def _warnings_into(notes: list[str]) -> Iterator[None]:
+    """Record every warning the library gives inside the block, repeats included, and append its
+    message to ``notes`` (the benchmark reports them with the arm instead of letting them reach
+    stderr)."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        yield
+    notes += [str(w.message) for w in caught]
 
 
 def scene_spec(assets: Path, arm: str, spheres: int,
@@ -537,15 +547,15 @@ class Takeover(Protocol):
         among them, not only the C3BF's."""
 
 
-def run_episode(task: tuple, takeover: Takeover | None = None) -> Episode:
+def run_episode(task: tuple[str, str, str, str, FilterConfig | None, int, float, tuple[float, float],
+                            FilterConfig | None, tuple[tuple[str, str], ...]],
+                takeover: Takeover | None = None) -> Episode:
     """One episode: ``task`` = (assets folder, arm, scenario, policy, the filter's configuration or
     None for none, seed, seconds, the spheres' speed range [m/s], the configuration whose envelope's
-    sensing range the moving spheres start outside of (:func:`_spawn`), or None for none[, the
-    body pairs whose contacts :func:`scene_spec` excludes: a tuple of pairs, () when left out]);
-    with a filter, ``takeover`` (or None) may replace the policy's nominal torque and the torque
-    applied where the rows give way."""
-    assets, arm, scenario, policy, config, seed, seconds, speed, spawn_config, *rest = task
-    exclude = tuple(rest[0]) if rest else ()
+    sensing range the moving spheres start outside of (:func:`_spawn`), or None for none, the body
+    pairs whose contacts :func:`scene_spec` excludes, () for none); with a filter, ``takeover`` (or
+    None) may replace the policy's nominal torque and the torque applied where the rows give way."""
+    assets, arm, scenario, policy, config, seed, seconds, speed, spawn_config, exclude = task
     filtered = config is not None
     kinds = SCENARIOS[scenario]
     key = (assets, arm, len(kinds), exclude)
@@ -699,10 +709,8 @@ def _check_arm(assets: Path, arm: str, config: FilterConfig,
     notes are :func:`build_scene`'s and the warnings the filter gives when it is built."""
     try:
         model, robot, notes = build_scene(assets, arm, 1, exclude)
-        with warnings.catch_warnings(record=True) as caught:  # the filter's own warnings, e.g. a contact
-            warnings.simplefilter("always")                   # no row can part: reported with the notes
+        with _warnings_into(notes):  # the filter's own, e.g. a contact no row can part
             SafetyController(model, mujoco.MjData(model), robot, MocapSpheres(model, [_BALL.format(0)]), config)
-        notes += [str(w.message) for w in caught]
     except UnsupportedModelError as error:
         return str(error), [], None
     return None, notes, _envelope(str(assets), arm, config, model, robot)  # run_episode's too

@@ -45,7 +45,7 @@ def test_an_episode_the_filter_loses_has_an_escape_and_holding_still_has_none(as
     model, robot, _ = tp.build_scene(assets, "sawyer", 4)
     speed = tp.speed_range(tp.arm_envelope(model, robot, "sawyer", CANDIDATE))
     assert tp.run_episode((str(assets), "sawyer", "multi", "random", CANDIDATE, 20, tp.SECONDS, speed,
-                           CANDIDATE)).collided  # the filter loses it
+                           CANDIDATE, ())).collided  # the filter loses it
 
     found = escape.search("sawyer", "multi", 20, CANDIDATE, assets=assets, iterations=15)
     assert found.found
@@ -142,7 +142,7 @@ class _PassThrough:
 def test_a_takeover_that_changes_nothing_leaves_the_episode_as_it_was(assets):
     model, robot, _ = tp.build_scene(assets, "sawyer", 4)
     speed = tp.speed_range(tp.arm_envelope(model, robot, "sawyer", CANDIDATE))
-    task = (str(assets), "sawyer", "multi", "random", CANDIDATE, 20, 2.0, speed, CANDIDATE)
+    task = (str(assets), "sawyer", "multi", "random", CANDIDATE, 20, 2.0, speed, CANDIDATE, ())
     watching, alone = _PassThrough(), tp.run_episode(task)
     assert tp.run_episode(task, watching) == alone
     assert watching.gave_way_steps == alone.infeasible_steps > 0  # asked at every step they gave way
@@ -168,7 +168,8 @@ def test_the_forecast_sees_a_pinch_ahead_on_its_own_data_and_none_without_sphere
     2 s of its first second's states, and forecasting leaves the episode as it was."""
     model, robot, _ = tp.build_scene(assets, "sawyer", 4)
     envelope = tp.arm_envelope(model, robot, "sawyer", tp.CONFIG)
-    task = (str(assets), "sawyer", "multi", "random", tp.CONFIG, 2, tp.SECONDS, tp.speed_range(envelope), tp.CONFIG)
+    task = (str(assets), "sawyer", "multi", "random", tp.CONFIG, 2, tp.SECONDS, tp.speed_range(envelope), tp.CONFIG,
+            ())
     alone, watching = tp.run_episode(task), _Forecasting(robot, envelope)
     assert tp.run_episode(task, watching) == alone
     assert len(watching.pinched) == 10 and any(watching.pinched)
