@@ -101,7 +101,7 @@ def add_robot(parser: argparse.ArgumentParser, default: str) -> None:
 def _add_train(sub: argparse._SubParsersAction) -> None:
     from c3bf_gym.scenarios import SCENARIOS
     from c3bf_gym.safety import GUARD_GAMMA
-    from c3bf_gym.training import (ACTION_WEIGHTS, ACTIONS, ALGORITHMS, DEFAULT_TIMESTEPS, ENGINE_DEFAULTS, ENGINES, OBSTACLE_ENCODERS,
+    from c3bf_gym.training import (ACTION_REACH, ACTION_WEIGHTS, ACTIONS, ALGORITHMS, DEFAULT_TIMESTEPS, ENGINE_DEFAULTS, ENGINES, OBSTACLE_ENCODERS,
                                    POLICY_RATES, RESIDUAL_FADE, TRAIN_FILTERS, TrainConfig)  # fmt: skip
 
     d = TrainConfig()  # the defaults live there
@@ -171,6 +171,9 @@ def _add_train(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--residual-fade", type=_nonnegative_float, default=None, metavar="M",
                    help="shrink the residual correction within M metres of the goal, in proportion to the distance "
                         f"(residual actions only; 0: never; default: {RESIDUAL_FADE:g})")  # fmt: skip
+    p.add_argument("--action-reach", type=_positive_float, default=None, metavar="M",
+                   help="how far one unit of a Cartesian action entry moves the tool target, and the most the "
+                        f"residual's straight step for the goal moves it, per axis [m] (default: {ACTION_REACH:g})")  # fmt: skip
     p.add_argument("--modulate", action="store_true",
                    help="bend the residual action's straight step for the goal round the sensed obstacles "
                         "(c3bf_gym.controllers.modulate; residual actions only)")  # fmt: skip
@@ -199,7 +202,7 @@ def _run_train(args: argparse.Namespace) -> int:
         progress_bar=not args.no_progress, normalize_obs=args.normalize_obs, policy_hz=args.policy_hz, distance_weight=args.distance_weight, action_weight=args.action_weight, obstacle_encoder=args.obstacle_encoder or defaults["obstacle_encoder"], hyperparams=args.hyperparams,
         observe_correction=args.observe_correction, posture_stiffness=args.posture_stiffness,
         posture_reach=args.posture_reach, correction_weight=args.correction_weight, residual_fade=args.residual_fade,
-        observe_clearance=args.observe_clearance, residual_modulation=args.modulate, applied_action=args.applied_action,
+        action_reach=args.action_reach, observe_clearance=args.observe_clearance, residual_modulation=args.modulate, applied_action=args.applied_action,
     )  # fmt: skip
     run_dir = train(config, address=args.address)
     print(f"run written to {run_dir}")

@@ -89,6 +89,10 @@ DEFAULT_TIMESTEPS = {"sac": 25_000, "ppo": 100_000}
 #: ``fade``, here its ``max_offset``), so a policy's small bias cannot hold the tool off the goal.
 #: Why (measured): the docs' RL results page, "Holding the goal".
 RESIDUAL_FADE = 0.1
+#: The Cartesian action's reach [m] when a run names none: one unit of an action entry moves the
+#: impedance controller's target this far (:class:`~c3bf_gym.wrappers.CartesianImpedanceAction`'s
+#: ``max_offset``), and the residual action's straight step for the goal is clipped to it.
+ACTION_REACH = 0.1
 #: The reward's action penalty (:class:`~c3bf_gym.wrappers.ActionPenalty`'s weight) per arm when a
 #: run names none; an arm not listed gets the UR5e's. It makes a residual correction pay for
 #: itself. The Panda's is dearer: with it its filtered SAC agents came within 0.03 of its unfiltered
@@ -301,6 +305,12 @@ class TrainConfig:
     (:class:`~c3bf_gym.wrappers.CartesianImpedanceAction`'s ``posture_reach``; Cartesian action
     modes only; None, the default: the tool target only).
 
+    ``action_reach`` [m] is the Cartesian action's reach: one unit of an action entry moves the
+    impedance controller's target that far along its axis, and the residual action's straight
+    step for the goal is clipped to it (:class:`~c3bf_gym.wrappers.CartesianImpedanceAction`'s
+    ``max_offset``; Cartesian action modes only). None (the default) is :data:`ACTION_REACH`,
+    resolved when the config is made like ``timesteps``.
+
     ``residual_modulation`` bends the residual action's straight step for the goal round the
     sensed obstacles (:class:`~c3bf_gym.wrappers.CartesianImpedanceAction`'s ``modulate``;
     residual actions only; off by default).
@@ -346,6 +356,7 @@ class TrainConfig:
     posture_reach: float | None = None
     correction_weight: float = 0.0
     residual_fade: float | None = None
+    action_reach: float | None = None
     residual_modulation: bool = False
     applied_action: bool = False
     hyperparams: dict[str, Any] = field(default_factory=dict)
@@ -355,6 +366,8 @@ class TrainConfig:
             self.timesteps = DEFAULT_TIMESTEPS[self.algo]
         if self.residual_fade is None and self.action == "residual":
             self.residual_fade = RESIDUAL_FADE
+        if self.action_reach is None and self.action in ("impedance", "residual"):
+            self.action_reach = ACTION_REACH
         if self.action_weight is None:
             self.action_weight = ACTION_WEIGHTS.get(self.robot, ACTION_WEIGHTS["ur5e"])
 
@@ -395,6 +408,7 @@ class TrainConfig:
                 raise ValueError("posture_reach moves the impedance controller's posture target, in the Cartesian "
                                  "action modes ('impedance', 'residual'); this run's action is 'torque'")  # fmt: skip
         _residual_fade_or_none(self.residual_fade, self.action)
+        _action_reach(self.action_reach, self.action)
         if not (isinstance(self.hyperparams, dict) and all(isinstance(key, str) for key in self.hyperparams)):
             raise ValueError(f"hyperparams must be a dict of keyword arguments, got {self.hyperparams!r}")
         for name in ("normalize_obs", "observe_correction", "observe_clearance", "residual_modulation", "applied_action"):
@@ -432,6 +446,7 @@ class TrainConfig:
         encoder += "" if self.posture_reach is None else f"_pr{self.posture_reach:g}"
         encoder += f"_cw{self.correction_weight:g}" if self.correction_weight else ""
         encoder += f"_fade{self.residual_fade:g}" if self.residual_fade else ""
+        encoder += "" if self.action_reach in (None, ACTION_REACH) else f"_reach{self.action_reach:g}"
         encoder += "_mod" if self.residual_modulation else ""
         encoder += "_applied" if self.applied_action else ""
         robot = "" if self.robot == "ur5e" else f"{self.robot}_"  # UR5e runs keep their earlier names
@@ -465,7 +480,7 @@ class TrainConfig:
         return dict(filter=self.filter_config(), action=self.action, action_weight=self.action_weight,
                     observe_correction=self.observe_correction, posture_stiffness=self.posture_stiffness,
                     residual_fade=self.residual_fade, posture_reach=self.posture_reach,
-                    correction_weight=self.correction_weight, observe_clearance=self.observe_clearance,
+                    action_reach=self.action_reach, correction_weight=self.correction_weight, observe_clearance=self.observe_clearance,
                     residual_modulation=self.residual_modulation, applied_action=self.applied_action,
                     **self.env_kwargs())  # fmt: skip
 
@@ -512,6 +527,21 @@ def _residual_fade_or_none(value: float | None, action: str) -> float | None:
     return fade or None
 
 
+def _action_reach(value: float | None, action: str) -> float:
+    """``value`` as the Cartesian action's reach [m] (None: :data:`ACTION_REACH`).
+
+    Raises:
+        ValueError: not a finite number > 0, or given with torque actions (which have no reach).
+    """
+    if value is None:
+        return ACTION_REACH
+    reach = validation.number("action_reach", value, low=0.0, low_open=True, unit="m")
+    if action not in ("impedance", "residual"):
+        raise ValueError(f"action_reach scales the Cartesian actions' tool target; action={action!r} "
+                         "(valid with 'impedance' and 'residual' only)")  # fmt: skip
+    return reach
+
+
 def _check_applied_action(applied: bool, action: str) -> None:
     """ValueError for ``applied_action`` with torque actions (it maps the correction back to a tool target)."""
     if applied and action not in ("impedance", "residual"):
@@ -536,6 +566,7 @@ def build_env(
     posture_stiffness: float | None = None,
     residual_fade: float | None = None,
     posture_reach: float | None = None,
+    action_reach: float | None = None,
     correction_weight: float = 0.0,
     observe_clearance: bool = False,
     residual_modulation: bool = False,
@@ -553,7 +584,8 @@ def build_env(
     (None: the default); ``posture_stiffness``: the impedance controller's null-space pull
     [N m/rad] (None: the arm's own, :func:`~c3bf_gym.wrappers.default_impedance`);
     ``residual_fade``: the residual action's ``fade`` [m] (None or 0: none); ``posture_reach``:
-    the action's posture entries [rad] (None: none); ``correction_weight``: the weight of the
+    the action's posture entries [rad] (None: none); ``action_reach``: the Cartesian action's
+    ``max_offset`` [m] (None: :data:`ACTION_REACH`); ``correction_weight``: the weight of the
     filter's correction in the reward (0: none); ``residual_modulation``: the residual action's
     ``modulate``; ``applied_action``: put the action the filter applied in ``info``;
     ``env_kwargs`` go to ``gym.make`` (:func:`env_kwargs`).
@@ -561,6 +593,7 @@ def build_env(
     Raises:
         ValueError: an unknown filter or action mode, ``observe_correction`` or
             ``correction_weight`` without a filter, ``posture_stiffness`` or ``posture_reach``
+            with torque actions, an ``action_reach`` that is not a finite number > 0 or is given
             with torque actions, a ``residual_fade`` that is not a finite number >= 0 or is given
             with other than residual actions, ``residual_modulation`` with other than residual
             actions, ``applied_action`` without a filter or with torque actions, or bad environment
@@ -571,10 +604,11 @@ def build_env(
     fade = _residual_fade_or_none(residual_fade, action)
     _check_residual_modulation(residual_modulation, action)
     _check_applied_action(applied_action, action)
+    reach = _action_reach(action_reach, action)
     env = gym.make("C3BFReach-v0", scenario=scenario, **env_kwargs)
     if action in ("impedance", "residual"):
         controller = None if posture_stiffness is None else default_impedance(env.unwrapped, posture_stiffness)
-        env = CartesianImpedanceAction(env, controller=controller, residual=action == "residual", fade=fade,
+        env = CartesianImpedanceAction(env, reach, controller=controller, residual=action == "residual", fade=fade,
                                        posture_reach=posture_reach, modulate=residual_modulation)  # fmt: skip
     else:
         for name, value in (("posture_stiffness", posture_stiffness), ("posture_reach", posture_reach)):
@@ -932,6 +966,7 @@ def evaluate(
     env = build_env(scenario, filter_, action, action_weight=config.get("action_weight", 0.0),
                     observe_correction=observe, posture_stiffness=config.get("posture_stiffness"),
                     residual_fade=residual_fade, posture_reach=config.get("posture_reach"),
+                    action_reach=config.get("action_reach"),
                     correction_weight=config.get("correction_weight", 0.0) if filter_ is not None else 0.0,
                     observe_clearance=config.get("observe_clearance", False),
                     residual_modulation=config.get("residual_modulation", False),

@@ -18,6 +18,7 @@ from c3bf_gym.cli import filter_setting, main
 from c3bf_gym.safety import GUARD_GAMMA, FilterConfig
 from c3bf_gym.plots import plot_training
 from c3bf_gym.training import (
+    ACTION_REACH,
     ACTION_WEIGHTS,
     NORMALIZATION_FILE,
     RESIDUAL_FADE,
@@ -279,6 +280,42 @@ def test_correction_weight_charges_the_run_names_it_and_needs_a_filter():
                          ({"correction_weight": -1.0}, "correction_weight must be a finite number >= 0")):  # fmt: skip
         with pytest.raises(ValueError, match=re.escape(message)):
             TrainConfig(**bad).validate()
+
+
+def test_action_reach_reaches_the_action_names_the_run_and_is_evaluated_with(tmp_path, monkeypatch):
+    """``action_reach`` is the Cartesian action's ``max_offset`` in the run's envs: the residual's
+    zero action steps at most that far per axis, and one unit of an entry moves the target that
+    far. The default keeps the run's name as before the option; ``evaluate`` rebuilds a run's
+    envs with its own (the default for runs from before the option)."""
+    from c3bf_gym import training
+
+    assert TrainConfig(action_reach=0.15).name == "sac_residual_10hz_dw10_aw3_set_fade0.1_reach0.15_c3bf+hocbf_random_s0"
+    assert TrainConfig().name == TrainConfig(action_reach=ACTION_REACH).name == (
+        "sac_residual_10hz_dw10_aw3_set_fade0.1_c3bf+hocbf_random_s0")
+    assert TrainConfig().action_reach == ACTION_REACH and TrainConfig(action="torque").action_reach is None
+    for reach in (None, 0.15):
+        env = build_env("none", "none", "residual", action_reach=reach, **policy_rate_kwargs(10))
+        try:
+            env.reset(seed=0)
+            base = env.unwrapped
+            tool = base.data.site_xpos[base.ee_site_id].copy()
+            assert np.linalg.norm(base.goal - tool) > RESIDUAL_FADE  # the fade leaves this step alone
+            env.step(np.array([1.0, 0.0, 0.0], np.float32))
+            step = env.get_wrapper_attr("hook").target_pos - tool  # straight (clipped per axis) + one unit along x
+            expected = reach or ACTION_REACH
+            straight = np.clip(base.goal - tool, -expected, expected)
+            np.testing.assert_allclose(step, straight + [expected, 0.0, 0.0], atol=1e-12)
+        finally:
+            env.close()
+    built = []
+    monkeypatch.setattr(training, "build_env", lambda *args, **kwargs: built.append(kwargs) or build_env(*args, **kwargs))
+    monkeypatch.setattr(training, "_load_policy", lambda *args: lambda obs: np.zeros(3, np.float32))
+    (tmp_path / "model.zip").touch()
+    for saved, expected in (({"action_reach": 0.15}, 0.15), ({}, None)):
+        (tmp_path / "config.json").write_text(json.dumps({"algo": "sac", "action": "residual", "filter": "none",
+                                                          "policy_hz": 10, **saved}))  # fmt: skip
+        evaluate(tmp_path / "model.zip", episodes=1, scenario="none")
+        assert built.pop()["action_reach"] == expected
 
 
 def test_residual_fade_reaches_the_action_names_the_run_and_is_evaluated_with(tmp_path, monkeypatch):
@@ -640,6 +677,9 @@ def test_make_env_action_modes(action, shape):
         ({"residual_fade": -0.1}, re.escape("residual_fade must be a finite number >= 0 [m], got -0.1")),
         ({"residual_fade": float("inf")}, "residual_fade must be a finite number >= 0"),
         ({"residual_fade": 0.1, "action": "impedance"}, "residual_fade shrinks .* action='impedance' .*'residual' only"),
+        ({"action_reach": 0.0}, re.escape("action_reach must be a finite number > 0 [m], got 0.0")),
+        ({"action_reach": float("nan")}, "action_reach must be a finite number > 0"),
+        ({"action_reach": 0.2, "action": "torque"}, "action_reach scales .* action='torque' .*'impedance' and 'residual' only"),
     ],
 )
 def test_bad_training_options(kwargs, message):
