@@ -36,7 +36,7 @@ from c3bf_gym import validation
 from c3bf_gym.envs.reach import ROBOTS, observation_layout
 from c3bf_gym.safety import DEFAULT_FILTER, FILTERS, FilterConfig
 from c3bf_gym.wrappers import (ActionPenalty, AppliedAction, ArmClearance, CartesianImpedanceAction, CorrectionPenalty,
-                               FilterFeedback, SafetyFilter, default_impedance)  # fmt: skip
+                               ElapsedTime, FilterFeedback, SafetyFilter, default_impedance)  # fmt: skip
 
 __all__ = [
     "ACTIONS",
@@ -292,6 +292,12 @@ class TrainConfig:
     ``observe_clearance`` appends each arm geom's clearance to the obstacles to the observation
     (:class:`~c3bf_gym.wrappers.ArmClearance`, saturating at 0.5 m).
 
+    ``observe_time`` appends the share of the episode's time already used
+    (:class:`~c3bf_gym.wrappers.ElapsedTime`) and makes SAC's replay buffer end each episode at its
+    time limit instead of bootstrapping past it (``handle_timeout_termination=False``): an episode
+    judged at its last step is then a finite-horizon task the critic sees whole (SB3 SAC only; off
+    by default).
+
     ``applied_action`` stores the action the filter applied in the replay buffer in place of
     the policy's (:class:`~c3bf_gym.wrappers.AppliedAction`,
     :class:`~c3bf_gym.replay.AppliedActionReplayBuffer`; the action penalty then charges it too;
@@ -352,6 +358,7 @@ class TrainConfig:
     obstacle_encoder: Literal["flat", "set"] = "set"
     observe_correction: bool = False
     observe_clearance: bool = False
+    observe_time: bool = False
     posture_stiffness: float | None = None
     posture_reach: float | None = None
     correction_weight: float = 0.0
@@ -411,14 +418,17 @@ class TrainConfig:
         _action_reach(self.action_reach, self.action)
         if not (isinstance(self.hyperparams, dict) and all(isinstance(key, str) for key in self.hyperparams)):
             raise ValueError(f"hyperparams must be a dict of keyword arguments, got {self.hyperparams!r}")
-        for name in ("normalize_obs", "observe_correction", "observe_clearance", "residual_modulation", "applied_action"):
+        for name in ("normalize_obs", "observe_correction", "observe_clearance", "observe_time", "residual_modulation",
+                     "applied_action"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"{name} must be True or False, got {getattr(self, name)!r}")
         _check_residual_modulation(self.residual_modulation, self.action)
         _check_applied_action(self.applied_action, self.action)
-        if self.applied_action and (self.engine, self.algo) != ("sb3", "sac"):
-            raise ValueError("applied_action relabels the actions of an off-policy replay buffer: it needs "
-                             f"engine='sb3' and algo='sac', got engine={self.engine!r}, algo={self.algo!r}")  # fmt: skip
+        for name, use in (("applied_action", "relabels the actions of an off-policy replay buffer"),
+                          ("observe_time", "ends each episode at its time limit in an off-policy replay buffer")):
+            if getattr(self, name) and (self.engine, self.algo) != ("sb3", "sac"):
+                raise ValueError(f"{name} {use}: it needs engine='sb3' and algo='sac', got engine={self.engine!r}, "
+                                 f"algo={self.algo!r}")  # fmt: skip
         for name, use in (("correction_weight", "charges"), ("observe_correction", "observes"),
                           ("applied_action", "maps back")):
             if getattr(self, name) and filter_ is None:
@@ -442,6 +452,7 @@ class TrainConfig:
         encoder = "" if self.obstacle_encoder == "flat" else f"_{self.obstacle_encoder}"
         encoder += "_oc" if self.observe_correction else ""
         encoder += "_cl" if self.observe_clearance else ""
+        encoder += "_time" if self.observe_time else ""
         encoder += "" if self.posture_stiffness is None else f"_ps{self.posture_stiffness:g}"
         encoder += "" if self.posture_reach is None else f"_pr{self.posture_reach:g}"
         encoder += f"_cw{self.correction_weight:g}" if self.correction_weight else ""
@@ -481,6 +492,7 @@ class TrainConfig:
                     observe_correction=self.observe_correction, posture_stiffness=self.posture_stiffness,
                     residual_fade=self.residual_fade, posture_reach=self.posture_reach,
                     action_reach=self.action_reach, correction_weight=self.correction_weight, observe_clearance=self.observe_clearance,
+                    observe_time=self.observe_time,
                     residual_modulation=self.residual_modulation, applied_action=self.applied_action,
                     **self.env_kwargs())  # fmt: skip
 
@@ -569,6 +581,7 @@ def build_env(
     action_reach: float | None = None,
     correction_weight: float = 0.0,
     observe_clearance: bool = False,
+    observe_time: bool = False,
     residual_modulation: bool = False,
     applied_action: bool = False,
     **env_kwargs: Any,
@@ -621,6 +634,8 @@ def build_env(
         env = FilterFeedback(env)  # refuses an environment without a filter
     if observe_clearance:
         env = ArmClearance(env)
+    if observe_time:
+        env = ElapsedTime(env)
     if correction_weight:
         env = CorrectionPenalty(env, correction_weight)  # refuses an environment without a filter too
     if applied_action:
@@ -827,6 +842,9 @@ def sb3_model(config: TrainConfig, venv, hyper: dict[str, Any], **kwargs: Any):
         from c3bf_gym.replay import AppliedActionReplayBuffer
 
         hyper = {**hyper, "replay_buffer_class": AppliedActionReplayBuffer}
+    if config.observe_time:  # the time limit is the task's end, seen in the observation: no bootstrap past it
+        buffer = {**hyper.get("replay_buffer_kwargs", {}), "handle_timeout_termination": False}
+        hyper = {**hyper, "replay_buffer_kwargs": buffer}
     return algo("MlpPolicy", venv, seed=config.seed, verbose=0, **hyper, **kwargs)
 
 
@@ -969,6 +987,7 @@ def evaluate(
                     action_reach=config.get("action_reach"),
                     correction_weight=config.get("correction_weight", 0.0) if filter_ is not None else 0.0,
                     observe_clearance=config.get("observe_clearance", False),
+                    observe_time=config.get("observe_time", False),
                     residual_modulation=config.get("residual_modulation", False),
                     applied_action=config.get("applied_action", False) if filter_ is not None else False,
                     **run_env)  # fmt: skip

@@ -31,6 +31,7 @@ __all__ = [
     "ArmClearance",
     "CartesianImpedanceAction",
     "CorrectionPenalty",
+    "ElapsedTime",
     "FilterFeedback",
     "ImpedanceHook",
     "SafetyFilter",
@@ -587,6 +588,46 @@ class ArmClearance(gym.ObservationWrapper):
         np.clip(out, -self.cap, self.cap, out=out)
         out /= self.cap
         return np.concatenate([observation, out.astype(observation.dtype)])
+
+
+class ElapsedTime(gym.wrappers.TimeAwareObservation):
+    """Appends the share of the episode's time limit already used, ``t / T`` in [0, 1], to the
+    observation: Gymnasium's ``gymnasium.wrappers.TimeAwareObservation``, flattened and
+    normalised by the environment's ``max_episode_steps``.
+
+    An episode judged at its last step (``is_success`` there) is not Markov in the environment's
+    own observation: the same state calls for waiting out a passing sphere early in the episode
+    and for holding the goal near its end. With the time observed it is (Pardo et al., "Time
+    Limits in Reinforcement Learning", ICML 2018), provided the learner treats the time limit as
+    the end of the episode rather than bootstrapping past it (the training option
+    ``TrainConfig.observe_time`` does both). The appended entry comes last.
+
+    Unlike Gymnasium's wrapper, a step that raises (a bad action, a filter's
+    :class:`~c3bf_gym.safety.SafetyInfeasibleError`) leaves the count as it was.
+
+    Args:
+        env: an environment with a flat ``Box`` observation (TypeError otherwise) and a time
+            limit (``gym.make`` with ``max_episode_steps``; ValueError otherwise).
+        flatten, normalize_time, dict_time_key: Gymnasium's arguments, which it records to rebuild
+            the wrapper; only ``True``, ``True`` (the form described above) is accepted.
+    """
+
+    def __init__(self, env: gym.Env, flatten: bool = True, normalize_time: bool = True, *,
+                 dict_time_key: str = "time") -> None:  # fmt: skip
+        space = env.observation_space
+        if not isinstance(space, gym.spaces.Box) or len(space.shape) != 1:
+            raise TypeError(f"ElapsedTime needs a flat Box observation space, got {space}")
+        if flatten is not True or normalize_time is not True:
+            raise ValueError("ElapsedTime appends t / T to the flat observation: flatten and normalize_time must be "
+                             f"True, got flatten={flatten!r}, normalize_time={normalize_time!r}")  # fmt: skip
+        super().__init__(env, flatten=True, normalize_time=True, dict_time_key=dict_time_key)  # finds T or raises
+
+    def step(self, action: Any):
+        try:
+            return super().step(action)
+        except BaseException:
+            self.timesteps -= 1  # Gymnasium's wrapper counted the step before it was taken
+            raise
 
 
 def make_reach(safety_filter: FilterConfig | str | None = None, **kwargs: Any) -> gym.Env:

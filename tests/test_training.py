@@ -30,6 +30,7 @@ from c3bf_gym.training import (
     filter_label,
     make_env,
     policy_rate_kwargs,
+    sb3_model,
     train,
 )
 
@@ -402,6 +403,34 @@ def test_posture_reach_correction_weight_and_clearance_run_trains_reloads_and_ev
     result = evaluate(run / "model.zip", episodes=1)
     assert result["episodes"] == 1 and result["collision_episodes"] == 0
     assert evaluate(run / "model.zip", episodes=1, filter="none")["episodes"] == 1  # no filter, no correction to charge
+
+
+def test_observe_time_run_sees_the_clock_and_ends_its_episodes_at_the_limit(tmp_path):
+    """``observe_time``: the model sees one more entry (the set encoder passes it through), SAC's
+    replay buffer stores the time limit as the episode's end, and evaluate rebuilds the
+    observation from the run's config. PPO and RLlib are refused by name."""
+    from stable_baselines3 import SAC
+    from stable_baselines3.common.vec_env import DummyVecEnv
+
+    run = train(TrainConfig(timesteps=150, scenario="crossing", observe_time=True, eval_freq=10_000,
+                            final_eval_episodes=0, out=str(tmp_path), progress_bar=False,
+                            hyperparams={"learning_starts": 100}))  # fmt: skip
+    assert run.name == "sac_residual_10hz_dw10_aw3_set_time_fade0.1_c3bf+hocbf_crossing_s0"
+    assert json.loads((run / "config.json").read_text())["observe_time"] is True
+    model = SAC.load(run / "model.zip", device="cpu")
+    assert model.observation_space.shape == (2 * 6 + 73 + 1,)
+    assert model.actor.features_extractor.features_dim == 21 + 1 + 2 * 64
+    config = TrainConfig(observe_time=True)
+    venv = DummyVecEnv([make_env(config.scenario, seed=0, **config.env_options())])
+    try:
+        buffer = sb3_model(config, venv, config.resolved_hyperparams()).replay_buffer
+        assert buffer.handle_timeout_termination is False
+    finally:
+        venv.close()
+    assert evaluate(run / "model.zip", episodes=1)["episodes"] == 1
+    for bad in ({"algo": "ppo"}, {"engine": "rllib", "algo": "ppo", "obstacle_encoder": "flat"}):
+        with pytest.raises(ValueError, match="observe_time ends each episode at its time limit .* needs engine='sb3' and algo='sac'"):
+            TrainConfig(observe_time=True, **bad).validate()
 
 
 @pytest.mark.slow

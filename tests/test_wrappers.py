@@ -15,7 +15,7 @@ from c3bf_gym import DEFAULT_FILTER, FILTERS, ActionPenalty, CartesianImpedanceA
 from c3bf_gym.safety.barriers import C3BF, DistanceHOCBF
 from c3bf_gym.controllers import CartesianImpedance, modulate
 from c3bf_gym.controllers.modulation import REACH
-from c3bf_gym.wrappers import AppliedAction, ArmClearance, CorrectionPenalty, FilterFeedback
+from c3bf_gym.wrappers import AppliedAction, ArmClearance, CorrectionPenalty, ElapsedTime, FilterFeedback
 from c3bf_gym.safety import GUARD_GAMMA
 
 from conftest import ENV_ID
@@ -821,6 +821,35 @@ def test_arm_clearance_appends_each_geoms_clearance_to_the_nearest_obstacle(make
     free = ArmClearance(make_env(scenario="none"))
     obs, _ = free.reset(seed=1)
     np.testing.assert_array_equal(obs[-len(free.unwrapped.arm_geom_ids):], 1.0)
+
+
+def test_elapsed_time_appends_the_share_of_the_time_limit_used_and_survives_a_refused_step(make_env):
+    """The last entry is t / T (T the time limit's ``max_episode_steps``), 0 after reset and 1 at the
+    limit; the environment's own observation and the rollout are unchanged; a step that raises
+    leaves the count as it was; an environment with no time limit is refused."""
+    plain = SafetyFilter(make_env(scenario="crossing", max_episode_steps=20))
+    timed = ElapsedTime(SafetyFilter(make_env(scenario="crossing", max_episode_steps=20)))
+    assert timed.observation_space.shape == (plain.observation_space.shape[0] + 1,)
+    assert timed.observation_space.dtype == np.float32
+    obs_a, _ = plain.reset(seed=3)
+    obs_b, _ = timed.reset(seed=3)
+    action = np.full(6, 0.2, np.float32)
+    for step in range(1, 21):
+        np.testing.assert_array_equal(obs_a, obs_b[:-1])
+        assert obs_b[-1] == pytest.approx((step - 1) / 20)
+        if step == 5:
+            with pytest.raises(ValueError, match="NaN"):
+                timed.step(np.full(6, np.nan, np.float32))
+        obs_a, _, _, truncated_a, _ = plain.step(action)
+        obs_b, _, _, truncated_b, _ = timed.step(action)
+        assert truncated_a == truncated_b == (step == 20)
+    assert obs_b[-1] == 1.0
+    obs, _ = timed.reset(seed=4)
+    assert obs[-1] == 0.0
+    with pytest.raises(ValueError, match="TimeLimit"):
+        ElapsedTime(make_env().unwrapped)
+    with pytest.raises(ValueError, match="flatten and normalize_time must be True"):
+        ElapsedTime(make_env(), normalize_time=False)
 
 
 @pytest.mark.parametrize("cap", [0.0, -1.0, float("inf"), True])
