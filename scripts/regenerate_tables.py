@@ -161,6 +161,14 @@ TRAINING_TABLES = (
     # filter on seeds 0-4 and no filter on seeds 0 and 1 (code c1ba180, the recipe's own episodes)
     ("training_table_sets_fade_50k_ur5e.md", "sets_fade_50k/sac_*", "final_eval.json",
      "training_curves_sets_fade_50k_ur5e.png"),
+    # an attempt on the UR5e: the Cartesian action's reach 0.15 m instead of 0.1, c3bf-gym train
+    # --action-reach 0.15 (code 87409e2), seeds 0 and 1
+    ("training_table_sets_ur5e_action_reach.md", "sets_action_reach/sac_*", "final_eval.json",
+     "training_curves_sets_ur5e_action_reach.png"),
+    # an attempt on the UR5e: the share of the episode's time in the observation, and SAC's replay buffer ending
+    # each episode at its limit, c3bf-gym train --observe-time (code fb51199), seeds 0 and 1
+    ("training_table_sets_ur5e_observe_time.md", "sets_observe_time/sac_*", "final_eval.json",
+     "training_curves_sets_ur5e_observe_time.png"),
 )
 
 
