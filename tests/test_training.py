@@ -433,6 +433,23 @@ def test_observe_time_run_sees_the_clock_and_ends_its_episodes_at_the_limit(tmp_
             TrainConfig(observe_time=True, **bad).validate()
 
 
+def test_the_open_loop_oracle_wins_an_episode_the_zero_action_loses(monkeypatch, capsys):
+    """train/oracle.py: on evaluation episode 12 (`static`) the zero action stops behind the
+    resting sphere, 26 cm from the goal; a small search under the filter finds a sequence that
+    ends within the tolerance with no collision, and the summary counts it for the scenario."""
+    spec = importlib.util.spec_from_file_location("oracle", Path(__file__).parents[1] / "train" / "oracle.py")
+    oracle = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(oracle)
+    monkeypatch.setattr(sys, "argv", ["oracle.py", "--episodes", "12", "--segments", "5", "--samples", "16",
+                                      "--iterations", "2"])  # fmt: skip
+    oracle.main()
+    searched, summary = (json.loads(line) for line in capsys.readouterr().out.splitlines())
+    assert searched["episode"] == 12 and searched["scenario"] == "static"
+    assert searched["zero_action_final"] > 0.2 and searched["zero_action_collisions"] == 0
+    assert searched["searched_success"] and searched["searched_final"] < 0.05
+    assert summary["by_scenario"] == {"static": {"episodes": 1, "zero_action": 0.0, "zero_action_or_searched": 1.0}}
+
+
 @pytest.mark.slow
 def test_panda_run_trains_under_the_filter_names_itself_and_evaluates_on_the_panda(tmp_path):
     """``robot="panda"``: the run's envs are the 7-joint Panda's (its 87-entry observation,
