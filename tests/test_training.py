@@ -440,8 +440,8 @@ def test_the_open_loop_oracle_wins_an_episode_the_zero_action_loses(monkeypatch,
     spec = importlib.util.spec_from_file_location("oracle", Path(__file__).parents[1] / "train" / "oracle.py")
     oracle = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(oracle)
-    monkeypatch.setattr(sys, "argv", ["oracle.py", "--episodes", "12", "--segments", "5", "--samples", "16",
-                                      "--iterations", "2"])  # fmt: skip
+    argv = ["oracle.py", "--episodes", "12", "--segments", "5", "--samples", "16", "--iterations", "2"]
+    monkeypatch.setattr(sys, "argv", argv)
     oracle.main()
     searched, summary = (json.loads(line) for line in capsys.readouterr().out.splitlines())
     assert searched["episode"] == 12 and searched["scenario"] == "static"

@@ -43,11 +43,11 @@ def rollout(env, seed: int, actions: np.ndarray) -> tuple[float, float, bool]:
 
 
 def search(env, seed: int, steps: int, segments: int, samples: int, elites: int, iterations: int,
-           rng: np.random.Generator) -> tuple[float, float]:  # fmt: skip
-    """The cross-entropy method over ``segments`` constant actions: the best final distance found
-    and its collision steps."""
+           rng: np.random.Generator) -> float:  # fmt: skip
+    """The cross-entropy method over ``segments`` constant actions: the least final distance [m]
+    of a candidate with no collision step (inf if every candidate collided)."""
     mean, spread = np.zeros((segments, 3)), np.full((segments, 3), 0.7)
-    best = (np.inf, 0.0)
+    best = np.inf
     per_segment = -(-steps // segments)
     for _ in range(iterations):
         candidates = np.clip(mean + spread * rng.standard_normal((samples, segments, 3)), -1.0, 1.0)
@@ -57,8 +57,8 @@ def search(env, seed: int, steps: int, segments: int, samples: int, elites: int,
             actions = np.repeat(plan, per_segment, axis=0).astype(np.float32)
             final, collisions, _ = rollout(env, seed, actions)
             scores[i] = final + collisions  # a collision costs more than any distance in the workspace
-            if collisions == 0 and final < best[0]:
-                best = (final, collisions)
+            if collisions == 0:
+                best = min(best, final)
         elite = candidates[np.argsort(scores)[:elites]]
         mean, spread = elite.mean(axis=0), elite.std(axis=0) + 0.05
     return best
@@ -90,7 +90,7 @@ def main() -> None:
         if success:
             continue
         start = time.perf_counter()
-        best, best_collisions = search(env, seed, steps, args.segments, args.samples, args.elites, args.iterations,
+        best = search(env, seed, steps, args.segments, args.samples, args.elites, args.iterations,
                                        np.random.default_rng(episode))  # fmt: skip
         found = best < tolerance
         wins[scenario][1] += found
