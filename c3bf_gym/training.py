@@ -35,8 +35,8 @@ import numpy as np
 from c3bf_gym import validation
 from c3bf_gym.envs.reach import ROBOTS, observation_layout
 from c3bf_gym.safety import DEFAULT_FILTER, FILTERS, FilterConfig
-from c3bf_gym.wrappers import (ActionPenalty, AppliedAction, ArmClearance, CartesianImpedanceAction, CorrectionPenalty,
-                               ElapsedTime, FilterFeedback, SafetyFilter, default_impedance)  # fmt: skip
+from c3bf_gym.wrappers import (ActionPenalty, AppliedAction, ArmClearance, ArmContactTime, CartesianImpedanceAction,
+                               CorrectionPenalty, ElapsedTime, FilterFeedback, SafetyFilter, default_impedance)  # fmt: skip
 
 __all__ = [
     "ACTIONS",
@@ -292,6 +292,9 @@ class TrainConfig:
     ``observe_clearance`` appends each arm geom's clearance to the obstacles to the observation
     (:class:`~c3bf_gym.wrappers.ArmClearance`, saturating at 0.5 m).
 
+    ``observe_contact_time`` appends, per arm geom, how soon an obstacle would touch it at the
+    present closing speed (:class:`~c3bf_gym.wrappers.ArmContactTime`, saturating at 2 s).
+
     ``observe_time`` appends the share of the episode's time already used
     (:class:`~c3bf_gym.wrappers.ElapsedTime`) and makes SAC's replay buffer end each episode at its
     time limit instead of bootstrapping past it (``handle_timeout_termination=False``): an episode
@@ -358,6 +361,7 @@ class TrainConfig:
     obstacle_encoder: Literal["flat", "set"] = "set"
     observe_correction: bool = False
     observe_clearance: bool = False
+    observe_contact_time: bool = False
     observe_time: bool = False
     posture_stiffness: float | None = None
     posture_reach: float | None = None
@@ -418,8 +422,8 @@ class TrainConfig:
         _action_reach(self.action_reach, self.action)
         if not (isinstance(self.hyperparams, dict) and all(isinstance(key, str) for key in self.hyperparams)):
             raise ValueError(f"hyperparams must be a dict of keyword arguments, got {self.hyperparams!r}")
-        for name in ("normalize_obs", "observe_correction", "observe_clearance", "observe_time", "residual_modulation",
-                     "applied_action"):
+        for name in ("normalize_obs", "observe_correction", "observe_clearance", "observe_contact_time", "observe_time",
+                     "residual_modulation", "applied_action"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"{name} must be True or False, got {getattr(self, name)!r}")
         _check_residual_modulation(self.residual_modulation, self.action)
@@ -452,6 +456,7 @@ class TrainConfig:
         encoder = "" if self.obstacle_encoder == "flat" else f"_{self.obstacle_encoder}"
         encoder += "_oc" if self.observe_correction else ""
         encoder += "_cl" if self.observe_clearance else ""
+        encoder += "_ct" if self.observe_contact_time else ""
         encoder += "_time" if self.observe_time else ""
         encoder += "" if self.posture_stiffness is None else f"_ps{self.posture_stiffness:g}"
         encoder += "" if self.posture_reach is None else f"_pr{self.posture_reach:g}"
@@ -492,7 +497,7 @@ class TrainConfig:
                     observe_correction=self.observe_correction, posture_stiffness=self.posture_stiffness,
                     residual_fade=self.residual_fade, posture_reach=self.posture_reach,
                     action_reach=self.action_reach, correction_weight=self.correction_weight, observe_clearance=self.observe_clearance,
-                    observe_time=self.observe_time,
+                    observe_contact_time=self.observe_contact_time, observe_time=self.observe_time,
                     residual_modulation=self.residual_modulation, applied_action=self.applied_action,
                     **self.env_kwargs())  # fmt: skip
 
@@ -581,17 +586,19 @@ def build_env(
     action_reach: float | None = None,
     correction_weight: float = 0.0,
     observe_clearance: bool = False,
+    observe_contact_time: bool = False,
     observe_time: bool = False,
     residual_modulation: bool = False,
     applied_action: bool = False,
     **env_kwargs: Any,
 ) -> gym.Env:
-    """``ActionPenalty(AppliedAction(CorrectionPenalty(ArmClearance(FilterFeedback(SafetyFilter(
-    CartesianImpedanceAction(C3BFReach-v0)))))))``, the parts the options ask for (``ActionPenalty``
-    when ``action_weight > 0``, charging the applied action with ``applied_action``,
-    ``AppliedAction`` with ``applied_action``, ``CorrectionPenalty`` when ``correction_weight > 0``,
-    ``ArmClearance`` with ``observe_clearance``, ``FilterFeedback`` with ``observe_correction``):
-    the environment every training engine
+    """``ActionPenalty(AppliedAction(CorrectionPenalty(ElapsedTime(ArmContactTime(ArmClearance(
+    FilterFeedback(SafetyFilter(CartesianImpedanceAction(C3BFReach-v0)))))))))``, the parts the
+    options ask for (``ActionPenalty`` when ``action_weight > 0``, charging the applied action with
+    ``applied_action``, ``AppliedAction`` with ``applied_action``, ``CorrectionPenalty`` when
+    ``correction_weight > 0``, ``ElapsedTime`` with ``observe_time``, ``ArmContactTime`` with
+    ``observe_contact_time``, ``ArmClearance`` with ``observe_clearance``, ``FilterFeedback`` with
+    ``observe_correction``): the environment every training engine
     steps. ``filter``: "none"/None, a name of :data:`~c3bf_gym.safety.FILTERS` or a
     :class:`~c3bf_gym.safety.FilterConfig`; ``guard_gamma``: the guard's gains where it has one
     (None: the default); ``posture_stiffness``: the impedance controller's null-space pull
@@ -634,6 +641,8 @@ def build_env(
         env = FilterFeedback(env)  # refuses an environment without a filter
     if observe_clearance:
         env = ArmClearance(env)
+    if observe_contact_time:
+        env = ArmContactTime(env)
     if observe_time:
         env = ElapsedTime(env)
     if correction_weight:
@@ -987,6 +996,7 @@ def evaluate(
                     action_reach=config.get("action_reach"),
                     correction_weight=config.get("correction_weight", 0.0) if filter_ is not None else 0.0,
                     observe_clearance=config.get("observe_clearance", False),
+                    observe_contact_time=config.get("observe_contact_time", False),
                     observe_time=config.get("observe_time", False),
                     residual_modulation=config.get("residual_modulation", False),
                     applied_action=config.get("applied_action", False) if filter_ is not None else False,

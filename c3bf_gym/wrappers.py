@@ -29,6 +29,7 @@ __all__ = [
     "ActionPenalty",
     "AppliedAction",
     "ArmClearance",
+    "ArmContactTime",
     "CartesianImpedanceAction",
     "CorrectionPenalty",
     "ElapsedTime",
@@ -555,7 +556,20 @@ class FilterFeedback(gym.ObservationWrapper):
         return np.concatenate([observation, self._correction.astype(observation.dtype)])
 
 
-class ArmClearance(gym.ObservationWrapper):
+class _PerArmGeom(gym.ObservationWrapper):
+    """An observation wrapper that appends one entry in [-1, 1] per arm geom
+    (``env.unwrapped.arm_geom_ids``, in that order), kept in ``self._entries``."""
+
+    def __init__(self, env: gym.Env) -> None:
+        super().__init__(env)
+        name = type(self).__name__
+        self._base = reach_env(env, name)
+        n = len(self._base.arm_geom_ids)
+        self.observation_space = _appended_space(env.observation_space, np.ones(n), name)
+        self._entries = np.zeros(n)
+
+
+class ArmClearance(_PerArmGeom):
     """Appends each arm geom's clearance to the obstacles, so a policy can see which link is close.
 
     The entries added, one per arm geom (``env.unwrapped.arm_geom_ids``, in that order), are
@@ -572,21 +586,65 @@ class ArmClearance(gym.ObservationWrapper):
     """
 
     def __init__(self, env: gym.Env, cap: float = 0.5) -> None:
-        super().__init__(env)
         self.cap = validation.number("cap", cap, low=0.0, low_open=True, unit="m")
-        base = reach_env(env, "ArmClearance")
-        n = len(base.arm_geom_ids)
-        self.observation_space = _appended_space(env.observation_space, np.ones(n), "ArmClearance")
-        self._base = base
-        self._clearance = np.zeros(n)
+        super().__init__(env)
 
     def observation(self, observation: np.ndarray) -> np.ndarray:
-        base, out = self._base, self._clearance
+        base, out = self._base, self._entries
         out[:] = self.cap
         if base.obstacle_active.any():
             np.minimum(out, base.distances[base.obstacle_active].min(axis=0), out=out)
         np.clip(out, -self.cap, self.cap, out=out)
         out /= self.cap
+        return np.concatenate([observation, out.astype(observation.dtype)])
+
+
+class ArmContactTime(_PerArmGeom):
+    """Appends, per arm geom, how soon an obstacle would touch it at the present closing speed.
+
+    For each arm geom (``env.unwrapped.arm_geom_ids``, in that order) and each active obstacle,
+    ``d`` [m] is their signed surface distance now (MuJoCo's distance sensors,
+    ``env.unwrapped.distances``) and ``r = (d_prev − d) / dt`` [m/s] the rate at which it closed over
+    the last policy step (``dt``: the environment's step; 0 after reset and for an obstacle that was
+    not active at the last step). The time to contact is
+    ``d / r`` where ``r > 0`` (whatever moved, the sphere or the arm), none where the gap opens or
+    holds, and 0 in contact. The entry is the least over the obstacles, ``min(t, horizon) /
+    horizon``: 1 for nothing closing within ``horizon``, 0 in contact. Where :class:`ArmClearance`
+    tells the policy how close each link is, this tells it how soon, which is what decides whether
+    a link has to leave a passing sphere's way. The environment's own observation is unchanged;
+    the appended part comes last. The training option ``TrainConfig.observe_contact_time`` (off
+    by default) puts it in a run's environments.
+
+    Args:
+        env: a ``C3BFReach`` environment (any wrappers, with or without a filter).
+        horizon: the time [s] at which the entries saturate (finite, > 0).
+    """
+
+    def __init__(self, env: gym.Env, horizon: float = 2.0) -> None:
+        self.horizon = validation.number("horizon", horizon, low=0.0, low_open=True, unit="s")
+        super().__init__(env)
+        self._previous = self._base.distances.copy()
+        self._was_active = np.zeros_like(self._base.obstacle_active)
+
+    def reset(self, **kwargs: Any):
+        obs, info = self.env.reset(**kwargs)
+        self._was_active[:] = False  # no closing speed yet
+        return self.observation(obs), info
+
+    def observation(self, observation: np.ndarray) -> np.ndarray:
+        base, out = self._base, self._entries
+        now, active = base.distances, base.obstacle_active
+        out[:] = 1.0
+        if active.any():
+            gap = now[active]
+            before = np.where(self._was_active[active, None], self._previous[active], gap)
+            closing = (before - gap) / base.dt
+            with np.errstate(divide="ignore", invalid="ignore"):
+                time = np.where(closing > 0.0, gap / closing, np.inf)
+            time[gap <= 0.0] = 0.0
+            np.minimum(out, time.min(axis=0) / self.horizon, out=out)
+        self._previous[:] = now
+        self._was_active[:] = active
         return np.concatenate([observation, out.astype(observation.dtype)])
 
 

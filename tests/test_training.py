@@ -433,6 +433,32 @@ def test_observe_time_run_sees_the_clock_and_ends_its_episodes_at_the_limit(tmp_
             TrainConfig(observe_time=True, **bad).validate()
 
 
+def test_observe_contact_time_reaches_the_envs_names_the_run_and_is_evaluated_with(tmp_path, monkeypatch):
+    """``observe_contact_time`` appends ArmContactTime's entries, one per arm geom, to the run's
+    observation, names the run, and ``evaluate`` rebuilds it from the run's config."""
+    from c3bf_gym import training
+
+    assert TrainConfig(observe_contact_time=True).name == "sac_residual_10hz_dw10_aw3_set_ct_fade0.1_c3bf+hocbf_random_s0"
+    plain = build_env("multi", **TrainConfig().env_options())
+    timed = build_env("multi", **TrainConfig(observe_contact_time=True).env_options())
+    try:
+        n = len(timed.unwrapped.arm_geom_ids)
+        assert timed.observation_space.shape == (plain.observation_space.shape[0] + n,)
+        assert timed.get_wrapper_attr("horizon") == 2.0
+    finally:
+        plain.close()
+        timed.close()
+    built = []
+    monkeypatch.setattr(training, "build_env", lambda *args, **kwargs: built.append(kwargs) or build_env(*args, **kwargs))
+    monkeypatch.setattr(training, "_load_policy", lambda *args: lambda obs: np.zeros(3, np.float32))
+    (tmp_path / "model.zip").touch()
+    for saved, expected in (({"observe_contact_time": True}, True), ({}, False)):
+        (tmp_path / "config.json").write_text(json.dumps({"algo": "sac", "action": "residual", "filter": "none",
+                                                          "policy_hz": 10, **saved}))  # fmt: skip
+        evaluate(tmp_path / "model.zip", episodes=1, scenario="none")
+        assert built.pop()["observe_contact_time"] is expected
+
+
 def test_the_open_loop_oracle_wins_an_episode_the_zero_action_loses(monkeypatch, capsys):
     """train/oracle.py: on evaluation episode 12 (`static`) the zero action stops behind the
     resting sphere, 26 cm from the goal; a small search under the filter finds a sequence that

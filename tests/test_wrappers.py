@@ -15,7 +15,7 @@ from c3bf_gym import DEFAULT_FILTER, FILTERS, ActionPenalty, CartesianImpedanceA
 from c3bf_gym.safety.barriers import C3BF, DistanceHOCBF
 from c3bf_gym.controllers import CartesianImpedance, modulate
 from c3bf_gym.controllers.modulation import REACH
-from c3bf_gym.wrappers import AppliedAction, ArmClearance, CorrectionPenalty, ElapsedTime, FilterFeedback
+from c3bf_gym.wrappers import AppliedAction, ArmClearance, ArmContactTime, CorrectionPenalty, ElapsedTime, FilterFeedback
 from c3bf_gym.safety import GUARD_GAMMA
 
 from conftest import ENV_ID
@@ -850,6 +850,37 @@ def test_elapsed_time_appends_the_share_of_the_time_limit_used_and_survives_a_re
         ElapsedTime(make_env().unwrapped)
     with pytest.raises(ValueError, match="flatten and normalize_time must be True"):
         ElapsedTime(make_env(), normalize_time=False)
+
+
+def test_arm_contact_time_appends_how_soon_each_geom_would_be_touched(make_env):
+    """One entry per arm geom: min over the active obstacles of d / r (r the gap's closing speed
+    over the last step, d / r counted only where r > 0), over the horizon, capped at 1; 1 after
+    reset, 0 in contact; the rollout and the env's own observation are unchanged."""
+    plain = CartesianImpedanceAction(make_env(scenario="multi"), residual=True)
+    seen = ArmContactTime(CartesianImpedanceAction(make_env(scenario="multi"), residual=True), horizon=2.0)
+    base = seen.unwrapped
+    n = len(base.arm_geom_ids)
+    assert seen.observation_space.shape == (plain.observation_space.shape[0] + n,)
+    obs_a, _ = plain.reset(seed=4)
+    obs_b, _ = seen.reset(seed=4)
+    np.testing.assert_array_equal(obs_b[-n:], 1.0)  # nothing has closed yet
+    lowest = 1.0
+    for _ in range(25):
+        before = base.distances.copy()
+        obs_a, *_ = plain.step(np.zeros(3, np.float32))
+        obs_b, *_ = seen.step(np.zeros(3, np.float32))
+        np.testing.assert_array_equal(obs_a, obs_b[:-n])
+        active = base.obstacle_active
+        gap = base.distances[active]
+        closing = (before[active] - gap) / base.dt
+        time = np.where(closing > 0, gap / np.where(closing > 0, closing, 1.0), np.inf)
+        time[gap <= 0] = 0.0  # in contact (no filter here: the tool does reach a sphere)
+        expected = np.minimum(time.min(axis=0) / 2.0, 1.0)
+        np.testing.assert_allclose(obs_b[-n:], expected, rtol=1e-5, atol=1e-6)
+        lowest = min(lowest, obs_b[-n:].min())
+    assert lowest == 0.0  # the unfiltered arm met a sphere
+    with pytest.raises(ValueError, match=re.escape("horizon must be a finite number > 0 [s]")):
+        ArmContactTime(make_env(), horizon=0.0)
 
 
 @pytest.mark.parametrize("cap", [0.0, -1.0, float("inf"), True])
