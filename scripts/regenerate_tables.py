@@ -169,6 +169,10 @@ TRAINING_TABLES = (
     # each episode at its limit, c3bf-gym train --observe-time (code fb51199), seeds 0 and 1
     ("training_table_sets_ur5e_observe_time.md", "sets_observe_time/sac_*", "final_eval.json",
      "training_curves_sets_ur5e_observe_time.png"),
+    # an attempt on the UR5e: per arm geom, how soon an obstacle would touch it, in the observation, c3bf-gym train
+    # --observe-contact-time (code 2717fa8), seeds 0 and 1
+    ("training_table_sets_ur5e_contact_time.md", "sets_contact_time/sac_*", "final_eval.json",
+     "training_curves_sets_ur5e_contact_time.png"),
 )
 
 
