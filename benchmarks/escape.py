@@ -44,7 +44,8 @@ and engages an escape found for ``--engage`` s as the filter's nominal torque an
 (:class:`OnlineEscape`). Each episode runs without and with it on the same seed. ``--trigger``
 says what starts a search: the rows giving way (``rows``), a hard row giving way (``hard``), or a
 forecast of one: the filtered arm rolled ahead from the state reached, left to the filter, every
-0.1 s (``forecast``, :class:`Forecast`).
+``--forecast-every`` s (0.1) over ``--forecast-horizon`` s (``--lookahead``'s) (``forecast``,
+:class:`Forecast`).
 
 Usage::
 
@@ -53,6 +54,7 @@ Usage::
     python benchmarks/escape.py --arm sawyer --scenario multi --seeds 20 --hold 1.0 --set joint_speed_fraction=1.0
     python benchmarks/escape.py --online --arm sawyer --scenario multi --seeds 2 12 20 40 89
     python benchmarks/escape.py --online --trigger forecast --arm sawyer --scenario multi --seeds 2 12 20 40 89
+    python benchmarks/escape.py --online --trigger forecast --forecast-every 0.3 --arm sawyer --seeds 2 12 20 40 89
 """
 
 from __future__ import annotations
@@ -463,14 +465,16 @@ class OnlineEscape:
     filter's own torque (the relaxed QP's, with the escape as its nominal) is applied.
 
     ``trigger="forecast"`` starts a search, while nothing is engaged, only where the
-    :class:`Forecast` run every :data:`FORECAST_EVERY` s over ``lookahead`` s sees a hard row give
-    way; the rest is as with ``"rows"``. With ``forecast_torque="held"`` the forecast's nominal
+    :class:`Forecast` run every ``forecast_every`` s (None: :data:`FORECAST_EVERY`) over
+    ``forecast_horizon`` s (None: ``lookahead``) sees a hard row give way; the rest is as with
+    ``"rows"``. With ``forecast_torque="held"`` the forecast's nominal
     adds the policy's torque in excess of the bias force at its start, held. Its runs and their
     wall time are kept in :attr:`forecast`."""
 
     def __init__(self, arm: str, scenario: str, seed: int, config: FilterConfig, *, assets: Path,
                  max_speed: float, lookahead: float, engage: float, iterations: int, threads: int,
-                 target: float, samples: int = SAMPLES, trigger: str = "rows", forecast_torque: str = "bias") -> None:
+                 target: float, samples: int = SAMPLES, trigger: str = "rows", forecast_torque: str = "bias",
+                 forecast_every: float | None = None, forecast_horizon: float | None = None) -> None:
         if not 0.0 < engage <= lookahead:
             raise ValueError(f"engage must be in (0, lookahead = {lookahead:g}] s, got {engage}")
         if trigger not in TRIGGERS:
@@ -485,7 +489,11 @@ class OnlineEscape:
         self.model, self.robot, self.envelope, self.bound = _scene(arm, scenario, config, assets)
         self.rest = mujoco.MjData(self.model)
         self.lookahead, self.engage = lookahead, engage
-        self._every = round(FORECAST_EVERY / self.model.opt.timestep)
+        every = FORECAST_EVERY if forecast_every is None else forecast_every
+        self.forecast_horizon = lookahead if forecast_horizon is None else forecast_horizon
+        if not (every > 0.0 and self.forecast_horizon > 0.0):
+            raise ValueError(f"forecast_every and forecast_horizon must be > 0 s, got {every}, {self.forecast_horizon}")
+        self._every = max(1, round(every / self.model.opt.timestep))
         self.searches: list[Escape] = []
         self.fallback_steps = 0
         # the motion's first step, its engaged end, the end of its certified horizon, the next search's
@@ -513,7 +521,7 @@ class OnlineEscape:
                 _, scenario, _, config = self.episode
                 self.forecast = Forecast(data.model, self.robot, len(tp.SCENARIOS[scenario]), config, self.envelope)
             held = tau - data.qfrc_bias[self.robot.dof_ids] if self.forecast_torque == "held" else None
-            if self.forecast.pinched(data, obstacles, self.lookahead, held):
+            if self.forecast.pinched(data, obstacles, self.forecast_horizon, held):
                 found = self._search(step, data, obstacles)
                 if found.found:
                     self._engage(step, data, found)
@@ -561,9 +569,11 @@ class OnlineEscape:
 def online(arm: str, scenario: str, policy: str, seed: int, config: FilterConfig, *, assets: Path,
            max_speed: float = tp.SPEED[1], lookahead: float = LOOKAHEAD, engage: float = ENGAGE,
            iterations: int = 40, threads: int = 2, target: float = TARGET, samples: int = SAMPLES,
-           trigger: str = "rows", forecast_torque: str = "bias") -> dict:
+           trigger: str = "rows", forecast_torque: str = "bias", forecast_every: float | None = None,
+           forecast_horizon: float | None = None) -> dict:
     """``third_party``'s filtered episode (``arm``, ``scenario``, ``policy``, ``seed``), without and
-    with :class:`OnlineEscape` (its ``trigger`` and ``forecast_torque``): each one's outcome (:class:`third_party.Episode`)
+    with :class:`OnlineEscape` (its ``trigger``, ``forecast_torque``, ``forecast_every`` and
+    ``forecast_horizon``): each one's outcome (:class:`third_party.Episode`)
     and wall time [s], and the online searches' records."""
     envelope = _scene(arm, scenario, config, assets)[2]  # third_party.main's: the arm's, the same on every scene
     task = (str(assets), arm, scenario, policy, config, seed, tp.SECONDS,
@@ -573,7 +583,8 @@ def online(arm: str, scenario: str, policy: str, seed: int, config: FilterConfig
     alone_seconds = time.perf_counter() - clock
     takeover = OnlineEscape(arm, scenario, seed, config, assets=assets, max_speed=max_speed, lookahead=lookahead,
                             engage=engage, iterations=iterations, threads=threads, target=target,
-                            samples=samples, trigger=trigger, forecast_torque=forecast_torque)  # fmt: skip
+                            samples=samples, trigger=trigger, forecast_torque=forecast_torque,
+                            forecast_every=forecast_every, forecast_horizon=forecast_horizon)  # fmt: skip
     clock = time.perf_counter()
     helped = tp.run_episode(task, takeover)
     return {"filtered": asdict(alone), "filtered_seconds": alone_seconds, "online": asdict(helped),
@@ -591,7 +602,8 @@ def _online_records(args: argparse.Namespace, config: FilterConfig, assets: Path
             run = online(args.arm, args.scenario, policy, seed, config, assets=assets, max_speed=args.max_speed,
                          lookahead=args.lookahead, engage=args.engage, iterations=args.iterations,
                          threads=args.threads, target=args.target, samples=args.samples,
-                         trigger=args.trigger, forecast_torque=args.forecast_torque)  # fmt: skip
+                         trigger=args.trigger, forecast_torque=args.forecast_torque,
+                         forecast_every=args.forecast_every, forecast_horizon=args.forecast_horizon)  # fmt: skip
             records.append({"seed": seed, "policy": policy, **run})
             alone, helped = run["filtered"], run["online"]
             print(f"seed {seed}, {policy}: filtered {1e3 * alone['lowest_clearance']:+.1f} mm "
@@ -656,6 +668,10 @@ def main(argv: list[str] | None = None) -> list[dict]:
                         "torque then replaces the filter's (hard); a forecast of one over --lookahead s (forecast)")  # fmt: skip
     parser.add_argument("--forecast-torque", choices=FORECAST_TORQUES, default="bias", help="--trigger forecast: "
                         "its nominal torque, the bias force alone or with the policy's excess over it held")  # fmt: skip
+    parser.add_argument("--forecast-every", type=float, default=FORECAST_EVERY, metavar="S",
+                        help="--trigger forecast: how often the forecast runs while nothing is engaged [s]")
+    parser.add_argument("--forecast-horizon", type=float, default=None, metavar="S",
+                        help="--trigger forecast: how far ahead it rolls the arm [s] (default: --lookahead)")
     parser.add_argument("--cache", help="robosuite download folder (third_party.py's)")
     parser.add_argument("--json", type=Path, help="write the records here")
     add_filter_settings(parser, "--set")
@@ -684,7 +700,9 @@ def main(argv: list[str] | None = None) -> list[dict]:
                     "samples": args.samples, "max_speed": args.max_speed}
         if args.online:
             settings.update(online=True, lookahead=args.lookahead, engage=args.engage, target=args.target,
-                            trigger=args.trigger, forecast_torque=args.forecast_torque)
+                            trigger=args.trigger, forecast_torque=args.forecast_torque,
+                            forecast_every=args.forecast_every,
+                            forecast_horizon=args.forecast_horizon or args.lookahead)
         args.json.write_text(json.dumps({"settings": settings,
                                          "episodes": records}, indent=2))  # fmt: skip
         print(f"wrote {args.json}")

@@ -123,6 +123,11 @@ def test_the_search_names_the_valid_choices(assets):
                             forecast_torque="policy")  # fmt: skip
     with pytest.raises(SystemExit):
         escape.main(["--seeds", "20", "--online", "--trigger", "soon"])
+    for every, horizon in ((0.0, None), (0.1, -1.0)):
+        with pytest.raises(ValueError, match="forecast_every and forecast_horizon must be > 0 s"):
+            escape.OnlineEscape("sawyer", "multi", 20, CANDIDATE, assets=assets, max_speed=0.4, lookahead=2.0,
+                                engage=1.0, iterations=1, threads=1, target=escape.TARGET, trigger="forecast",
+                                forecast_every=every, forecast_horizon=horizon)  # fmt: skip
 
 
 class _PassThrough:
