@@ -604,12 +604,12 @@ class ArmContactTime(_PerArmGeom):
 
     For each arm geom (``env.unwrapped.arm_geom_ids``, in that order) and each active obstacle,
     ``d`` [m] is their signed surface distance now (MuJoCo's distance sensors,
-    ``env.unwrapped.distances``) and ``r = (d_prev − d) / dt`` [m/s] the rate at which it closed over
-    the last policy step (``dt``: the environment's step; 0 after reset and for an obstacle that was
-    not active at the last step). The time to contact is
-    ``d / r`` where ``r > 0`` (whatever moved, the sphere or the arm), none where the gap opens or
-    holds, and 0 in contact. The entry is the least over the obstacles, ``min(t, horizon) /
-    horizon``: 1 for nothing closing within ``horizon``, 0 in contact. Where :class:`ArmClearance`
+    ``env.unwrapped.distances``) and ``r = (d_prev − d) / dt`` [m/s] the rate at which the gap
+    closed over the last policy step (``dt``: the environment's step; 0 after reset and for an
+    obstacle that was not active at the last step). The time to contact ``t`` is ``d / r`` where
+    ``r > 0`` (whatever moved, the sphere or the arm), none where the gap opens or holds, and 0 in
+    contact (``d <= 0``). The entry is ``min(t, horizon) / horizon`` for the least ``t`` over the
+    obstacles: 1 for nothing closing within ``horizon``, 0 in contact. Where :class:`ArmClearance`
     tells the policy how close each link is, this tells it how soon, which is what decides whether
     a link has to leave a passing sphere's way. The environment's own observation is unchanged;
     the appended part comes last. The training option ``TrainConfig.observe_contact_time`` (off
