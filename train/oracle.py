@@ -27,6 +27,7 @@ from collections import defaultdict
 
 import numpy as np
 
+from c3bf_gym.envs.reach import ROBOTS
 from c3bf_gym.training import FINAL_EVAL_SEED, TrainConfig, build_env
 
 
@@ -56,7 +57,7 @@ def search(env, seed: int, steps: int, segments: int, samples: int, elites: int,
         for i, plan in enumerate(candidates):
             actions = np.repeat(plan, per_segment, axis=0).astype(np.float32)
             final, collisions, _ = rollout(env, seed, actions)
-            scores[i] = final + collisions  # a collision costs more than any distance in the workspace
+            scores[i] = final + collisions  # 1 m per collision step: more than the tool is ever off the goal
             if collisions == 0:
                 best = min(best, final)
         elite = candidates[np.argsort(scores)[:elites]]
@@ -69,12 +70,17 @@ def main() -> None:
     parser.add_argument("--episodes", type=int, nargs="+", default=None,
                         help="episode indices from FINAL_EVAL_SEED (default: 0 to --count - 1)")  # fmt: skip
     parser.add_argument("--count", type=int, default=200, help="evaluation episodes when --episodes is not given")
-    parser.add_argument("--robot", default="ur5e")
+    parser.add_argument("--robot", choices=list(ROBOTS), default="ur5e")
     parser.add_argument("--segments", type=int, default=10, help="constant actions per episode")
     parser.add_argument("--samples", type=int, default=48, help="candidates per iteration")
     parser.add_argument("--elites", type=int, default=8)
     parser.add_argument("--iterations", type=int, default=6)
     args = parser.parse_args()
+    for name in ("count", "segments", "samples", "elites", "iterations"):
+        if getattr(args, name) < 1:
+            parser.error(f"--{name} must be >= 1, got {getattr(args, name)}")
+    if args.elites > args.samples:
+        parser.error(f"--elites ({args.elites}) must not exceed --samples ({args.samples})")
     config = TrainConfig(robot=args.robot)
     env = build_env("random", **config.env_options())
     tolerance = env.unwrapped.success_tolerance
