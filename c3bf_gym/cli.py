@@ -186,6 +186,9 @@ def _add_train(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--observe-contact-time", action="store_true",
                    help="append, per arm geom, how soon an obstacle would touch it at the present closing speed "
                         "(c3bf_gym.wrappers.ArmContactTime)")  # fmt: skip
+    p.add_argument("--observe-forecast", action="store_true",
+                   help="append the obstacles' clearance, moved ahead along their motion by 0.5-3 s, to the arm held "
+                        "still and to the goal (c3bf_gym.wrappers.ArmForecast)")  # fmt: skip
     p.add_argument("--observe-time", action="store_true",
                    help="append the share of the episode's time used to the observation, and end each episode at "
                         "its time limit in SAC's replay buffer (c3bf_gym.wrappers.ElapsedTime; SB3 SAC only)")  # fmt: skip
@@ -210,6 +213,7 @@ def _run_train(args: argparse.Namespace) -> int:
         posture_reach=args.posture_reach, correction_weight=args.correction_weight, residual_fade=args.residual_fade,
         action_reach=args.action_reach, observe_clearance=args.observe_clearance, residual_modulation=args.modulate, applied_action=args.applied_action,
         observe_time=args.observe_time, observe_contact_time=args.observe_contact_time,
+        observe_forecast=args.observe_forecast,
     )  # fmt: skip
     run_dir = train(config, address=args.address)
     print(f"run written to {run_dir}")

@@ -36,7 +36,7 @@ from c3bf_gym import validation
 from c3bf_gym.envs.reach import ROBOTS, observation_layout
 from c3bf_gym.safety import DEFAULT_FILTER, FILTERS, FilterConfig
 from c3bf_gym.wrappers import (ActionPenalty, AppliedAction, ArmClearance, ArmContactTime, CartesianImpedanceAction,
-                               CorrectionPenalty, ElapsedTime, FilterFeedback, SafetyFilter, default_impedance)  # fmt: skip
+                               ArmForecast, CorrectionPenalty, ElapsedTime, FilterFeedback, SafetyFilter, default_impedance)  # fmt: skip
 
 __all__ = [
     "ACTIONS",
@@ -295,6 +295,10 @@ class TrainConfig:
     ``observe_contact_time`` appends, per arm geom, how soon an obstacle would touch it at the
     present closing speed (:class:`~c3bf_gym.wrappers.ArmContactTime`, saturating at 2 s).
 
+    ``observe_forecast`` appends the obstacles' clearance, moved ahead along their present
+    motion by 0.5 to 3 s, to the arm held in its present pose and to the goal
+    (:class:`~c3bf_gym.wrappers.ArmForecast`).
+
     ``observe_time`` appends the share of the episode's time already used
     (:class:`~c3bf_gym.wrappers.ElapsedTime`) and makes SAC's replay buffer end each episode at its
     time limit instead of bootstrapping past it (``handle_timeout_termination=False``): an episode
@@ -362,6 +366,7 @@ class TrainConfig:
     observe_correction: bool = False
     observe_clearance: bool = False
     observe_contact_time: bool = False
+    observe_forecast: bool = False
     observe_time: bool = False
     posture_stiffness: float | None = None
     posture_reach: float | None = None
@@ -422,7 +427,8 @@ class TrainConfig:
         _action_reach(self.action_reach, self.action)
         if not (isinstance(self.hyperparams, dict) and all(isinstance(key, str) for key in self.hyperparams)):
             raise ValueError(f"hyperparams must be a dict of keyword arguments, got {self.hyperparams!r}")
-        for name in ("normalize_obs", "observe_correction", "observe_clearance", "observe_contact_time", "observe_time",
+        for name in ("normalize_obs", "observe_correction", "observe_clearance", "observe_contact_time", "observe_forecast",
+                     "observe_time",
                      "residual_modulation", "applied_action"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"{name} must be True or False, got {getattr(self, name)!r}")
@@ -457,6 +463,7 @@ class TrainConfig:
         encoder += "_oc" if self.observe_correction else ""
         encoder += "_cl" if self.observe_clearance else ""
         encoder += "_ct" if self.observe_contact_time else ""
+        encoder += "_fc" if self.observe_forecast else ""
         encoder += "_time" if self.observe_time else ""
         encoder += "" if self.posture_stiffness is None else f"_ps{self.posture_stiffness:g}"
         encoder += "" if self.posture_reach is None else f"_pr{self.posture_reach:g}"
@@ -497,8 +504,9 @@ class TrainConfig:
                     observe_correction=self.observe_correction, posture_stiffness=self.posture_stiffness,
                     residual_fade=self.residual_fade, posture_reach=self.posture_reach,
                     action_reach=self.action_reach, correction_weight=self.correction_weight, observe_clearance=self.observe_clearance,
-                    observe_contact_time=self.observe_contact_time, observe_time=self.observe_time,
-                    residual_modulation=self.residual_modulation, applied_action=self.applied_action,
+                    observe_contact_time=self.observe_contact_time, observe_forecast=self.observe_forecast,
+                    observe_time=self.observe_time, residual_modulation=self.residual_modulation,
+                    applied_action=self.applied_action,
                     **self.env_kwargs())  # fmt: skip
 
     def resolved_hyperparams(self) -> dict[str, Any]:
@@ -587,28 +595,29 @@ def build_env(
     correction_weight: float = 0.0,
     observe_clearance: bool = False,
     observe_contact_time: bool = False,
+    observe_forecast: bool = False,
     observe_time: bool = False,
     residual_modulation: bool = False,
     applied_action: bool = False,
     **env_kwargs: Any,
 ) -> gym.Env:
-    """``ActionPenalty(AppliedAction(CorrectionPenalty(ElapsedTime(ArmContactTime(ArmClearance(
-    FilterFeedback(SafetyFilter(CartesianImpedanceAction(C3BFReach-v0)))))))))``, the parts the
-    options ask for (``ActionPenalty`` when ``action_weight > 0``, charging the applied action with
-    ``applied_action``, ``AppliedAction`` with ``applied_action``, ``CorrectionPenalty`` when
-    ``correction_weight > 0``, ``ElapsedTime`` with ``observe_time``, ``ArmContactTime`` with
-    ``observe_contact_time``, ``ArmClearance`` with ``observe_clearance``, ``FilterFeedback`` with
-    ``observe_correction``): the environment every training engine
-    steps. ``filter``: "none"/None, a name of :data:`~c3bf_gym.safety.FILTERS` or a
+    """``ActionPenalty(AppliedAction(CorrectionPenalty(ElapsedTime(ArmForecast(ArmContactTime(
+    ArmClearance(FilterFeedback(SafetyFilter(CartesianImpedanceAction(C3BFReach-v0))))))))))``, the
+    parts the options ask for (``ActionPenalty`` when ``action_weight > 0``, charging the applied
+    action with ``applied_action``, ``AppliedAction`` with ``applied_action``, ``CorrectionPenalty``
+    when ``correction_weight > 0``, ``ElapsedTime`` with ``observe_time``, ``ArmForecast`` with
+    ``observe_forecast``, ``ArmContactTime`` with ``observe_contact_time``, ``ArmClearance`` with
+    ``observe_clearance``, ``FilterFeedback`` with ``observe_correction``): the environment every
+    training engine steps. ``filter``: "none"/None, a name of :data:`~c3bf_gym.safety.FILTERS` or a
     :class:`~c3bf_gym.safety.FilterConfig`; ``guard_gamma``: the guard's gains where it has one
-    (None: the default); ``posture_stiffness``: the impedance controller's null-space pull
-    [N m/rad] (None: the arm's own, :func:`~c3bf_gym.wrappers.default_impedance`);
-    ``residual_fade``: the residual action's ``fade`` [m] (None or 0: none); ``posture_reach``:
-    the action's posture entries [rad] (None: none); ``action_reach``: the Cartesian action's
-    ``max_offset`` [m] (None: :data:`ACTION_REACH`); ``correction_weight``: the weight of the
-    filter's correction in the reward (0: none); ``residual_modulation``: the residual action's
-    ``modulate``; ``applied_action``: put the action the filter applied in ``info``;
-    ``env_kwargs`` go to ``gym.make`` (:func:`env_kwargs`).
+    (None: the default); ``posture_stiffness``: the impedance controller's null-space pull [N m/rad]
+    (None: the arm's own, :func:`~c3bf_gym.wrappers.default_impedance`); ``residual_fade``: the
+    residual action's ``fade`` [m] (None or 0: none); ``posture_reach``: the action's posture
+    entries [rad] (None: none); ``action_reach``: the Cartesian action's ``max_offset`` [m] (None:
+    :data:`ACTION_REACH`); ``correction_weight``: the weight of the filter's correction in the
+    reward (0: none); ``residual_modulation``: the residual action's ``modulate``;
+    ``applied_action``: put the action the filter applied in ``info``; ``env_kwargs`` go to
+    ``gym.make`` (:func:`env_kwargs`).
 
     Raises:
         ValueError: an unknown filter or action mode, ``observe_correction`` or
@@ -643,6 +652,8 @@ def build_env(
         env = ArmClearance(env)
     if observe_contact_time:
         env = ArmContactTime(env)
+    if observe_forecast:
+        env = ArmForecast(env)
     if observe_time:
         env = ElapsedTime(env)
     if correction_weight:
@@ -997,6 +1008,7 @@ def evaluate(
                     correction_weight=config.get("correction_weight", 0.0) if filter_ is not None else 0.0,
                     observe_clearance=config.get("observe_clearance", False),
                     observe_contact_time=config.get("observe_contact_time", False),
+                    observe_forecast=config.get("observe_forecast", False),
                     observe_time=config.get("observe_time", False),
                     residual_modulation=config.get("residual_modulation", False),
                     applied_action=config.get("applied_action", False) if filter_ is not None else False,

@@ -12,6 +12,7 @@ wrapping order: the impedance controller is always the ``nominal`` stage and the
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from typing import Any
 
 import gymnasium as gym
@@ -30,6 +31,7 @@ __all__ = [
     "AppliedAction",
     "ArmClearance",
     "ArmContactTime",
+    "ArmForecast",
     "CartesianImpedanceAction",
     "CorrectionPenalty",
     "ElapsedTime",
@@ -646,6 +648,61 @@ class ArmContactTime(_PerArmGeom):
         self._previous[:] = now
         self._was_active[:] = active
         return np.concatenate([observation, out.astype(observation.dtype)])
+
+
+class ArmForecast(gym.ObservationWrapper):
+    """Appends where the obstacles will be relative to the arm held still and to the goal, at
+    several horizons: what decides whether to stay at the goal or wait for a sphere to pass.
+
+    Each active obstacle is moved ahead along its present motion, ``p + v τ + ½ a τ²``
+    (``env.unwrapped.obstacle_pos``, ``obstacle_vel``, ``obstacle_acc``; the scenarios' spheres
+    move at constant velocity), for each horizon ``τ`` of ``horizons`` [s]. Two entries per
+    horizon, in the order of ``horizons``: the least surface distance [m] from a moved obstacle to
+    the arm's geoms in their present pose (:meth:`~c3bf_gym.envs.C3BFReachEnv.arm_capsules`), then
+    to the goal point; each ``clip(d, −cap, cap) / cap``, 1 for nothing within ``cap``, 0 in
+    contact, negative inside. :class:`ArmClearance` and :class:`ArmContactTime` describe the
+    present; this says whether the arm, or the goal it is headed for, lies on a sphere's path
+    within the horizons. The environment's own observation is unchanged; the appended part comes
+    last. The training option ``TrainConfig.observe_forecast`` (off by default) puts it in a
+    run's environments.
+
+    Args:
+        env: a ``C3BFReach`` environment (any wrappers, with or without a filter).
+        horizons: the look-ahead times [s], each finite and > 0, at least one.
+        cap: the distance [m] at which the entries saturate (finite, > 0).
+
+    Raises:
+        ValueError: an empty ``horizons``, or a horizon or ``cap`` that is not a finite number > 0.
+    """
+
+    def __init__(self, env: gym.Env, horizons: Sequence[float] = (0.5, 1.0, 1.5, 2.0, 2.5, 3.0),
+                 cap: float = 0.5) -> None:  # fmt: skip
+        super().__init__(env)
+        if len(horizons) == 0:
+            raise ValueError("ArmForecast needs at least one horizon [s], got none")
+        self.horizons = np.array([validation.number("horizon", h, low=0.0, low_open=True, unit="s") for h in horizons])
+        self.cap = validation.number("cap", cap, low=0.0, low_open=True, unit="m")
+        self._base = reach_env(env, "ArmForecast")
+        self.observation_space = _appended_space(env.observation_space, np.ones(2 * len(self.horizons)), "ArmForecast")
+
+    def observation(self, observation: np.ndarray) -> np.ndarray:
+        base, tau = self._base, self.horizons[:, None, None]
+        out = np.full((len(self.horizons), 2), self.cap)
+        active = base.obstacle_active
+        if active.any():
+            ahead = base.obstacle_pos[active] + base.obstacle_vel[active] * tau + 0.5 * base.obstacle_acc[active] * tau**2
+            radius = base.obstacle_radius[active]
+            arm = base.arm_capsules()
+            axis = arm.b - arm.a  # (G, 3)
+            rel = ahead[:, :, None, :] - arm.a  # (K, N, G, 3)
+            along = np.clip(np.einsum("kngi,gi->kng", rel, axis) / np.maximum(np.einsum("gi,gi->g", axis, axis), 1e-12),
+                            0.0, 1.0)  # fmt: skip
+            gap = np.linalg.norm(rel - along[..., None] * axis, axis=-1) - arm.radius - radius[:, None]
+            out[:, 0] = np.minimum(out[:, 0], gap.min(axis=(1, 2)))
+            to_goal = np.linalg.norm(ahead - base.goal, axis=-1) - radius
+            out[:, 1] = np.minimum(out[:, 1], to_goal.min(axis=1))
+        np.clip(out, -self.cap, self.cap, out=out)
+        return np.concatenate([observation, (out.ravel() / self.cap).astype(observation.dtype)])
 
 
 class ElapsedTime(gym.wrappers.TimeAwareObservation):

@@ -433,30 +433,36 @@ def test_observe_time_run_sees_the_clock_and_ends_its_episodes_at_the_limit(tmp_
             TrainConfig(observe_time=True, **bad).validate()
 
 
-def test_observe_contact_time_reaches_the_envs_names_the_run_and_is_evaluated_with(tmp_path, monkeypatch):
-    """``observe_contact_time`` appends ArmContactTime's entries, one per arm geom, to the run's
-    observation, names the run, and ``evaluate`` rebuilds it from the run's config."""
+@pytest.mark.parametrize(("option", "suffix", "attribute", "value", "entries"), [
+    ("observe_contact_time", "ct", "horizon", 2.0, lambda n: n),
+    ("observe_forecast", "fc", "cap", 0.5, lambda n: 12),
+])  # fmt: skip
+def test_an_observation_option_reaches_the_envs_names_the_run_and_is_evaluated_with(tmp_path, monkeypatch, option,
+                                                                                   suffix, attribute, value, entries):
+    """``observe_contact_time`` (ArmContactTime: one entry per arm geom) and ``observe_forecast``
+    (ArmForecast: two per horizon, six horizons) append their entries to the run's observation,
+    name the run, and ``evaluate`` rebuilds them from the run's config."""
     from c3bf_gym import training
 
-    assert TrainConfig(observe_contact_time=True).name == "sac_residual_10hz_dw10_aw3_set_ct_fade0.1_c3bf+hocbf_random_s0"
+    assert TrainConfig(**{option: True}).name == f"sac_residual_10hz_dw10_aw3_set_{suffix}_fade0.1_c3bf+hocbf_random_s0"
     plain = build_env("multi", **TrainConfig().env_options())
-    timed = build_env("multi", **TrainConfig(observe_contact_time=True).env_options())
+    seen = build_env("multi", **TrainConfig(**{option: True}).env_options())
     try:
-        n = len(timed.unwrapped.arm_geom_ids)
-        assert timed.observation_space.shape == (plain.observation_space.shape[0] + n,)
-        assert timed.get_wrapper_attr("horizon") == 2.0
+        n = len(seen.unwrapped.arm_geom_ids)
+        assert seen.observation_space.shape == (plain.observation_space.shape[0] + entries(n),)
+        assert seen.get_wrapper_attr(attribute) == value
     finally:
         plain.close()
-        timed.close()
+        seen.close()
     built = []
     monkeypatch.setattr(training, "build_env", lambda *args, **kwargs: built.append(kwargs) or build_env(*args, **kwargs))
     monkeypatch.setattr(training, "_load_policy", lambda *args: lambda obs: np.zeros(3, np.float32))
     (tmp_path / "model.zip").touch()
-    for saved, expected in (({"observe_contact_time": True}, True), ({}, False)):
+    for saved, expected in (({option: True}, True), ({}, False)):
         (tmp_path / "config.json").write_text(json.dumps({"algo": "sac", "action": "residual", "filter": "none",
                                                           "policy_hz": 10, **saved}))  # fmt: skip
         evaluate(tmp_path / "model.zip", episodes=1, scenario="none")
-        assert built.pop()["observe_contact_time"] is expected
+        assert built.pop()[option] is expected
 
 
 def test_the_open_loop_oracle_wins_an_episode_the_zero_action_loses(monkeypatch, capsys):
@@ -600,6 +606,19 @@ def test_action_weight_penalises_the_policy_action_and_names_the_run():
     assert info["reward_action"] == pytest.approx(-0.5)
     assert reward == pytest.approx(sum(v for k, v in info.items() if k.startswith("reward_")))
     env.close()
+
+
+@pytest.mark.parametrize(("flag", "field"), [
+    ("--observe-clearance", "observe_clearance"), ("--observe-contact-time", "observe_contact_time"),
+    ("--observe-forecast", "observe_forecast"), ("--observe-time", "observe_time"),
+])  # fmt: skip
+def test_train_observation_flags_reach_their_config_field(monkeypatch, tmp_path, flag, field):
+    import c3bf_gym.training
+
+    seen = []
+    (tmp_path / "summary.json").write_text("{}")
+    monkeypatch.setattr(c3bf_gym.training, "train", lambda config, address=None: seen.append(config) or tmp_path)
+    assert main(["train", flag]) == 0 and seen == [TrainConfig(**{field: True})]
 
 
 def test_defaults_are_the_readme_recipe_on_every_entry_point(monkeypatch, tmp_path):

@@ -15,7 +15,8 @@ from c3bf_gym import DEFAULT_FILTER, FILTERS, ActionPenalty, CartesianImpedanceA
 from c3bf_gym.safety.barriers import C3BF, DistanceHOCBF
 from c3bf_gym.controllers import CartesianImpedance, modulate
 from c3bf_gym.controllers.modulation import REACH
-from c3bf_gym.wrappers import AppliedAction, ArmClearance, ArmContactTime, CorrectionPenalty, ElapsedTime, FilterFeedback
+from c3bf_gym.wrappers import (AppliedAction, ArmClearance, ArmContactTime, ArmForecast, CorrectionPenalty, ElapsedTime,
+                               FilterFeedback)
 from c3bf_gym.safety import GUARD_GAMMA
 
 from conftest import ENV_ID
@@ -881,6 +882,48 @@ def test_arm_contact_time_appends_how_soon_each_geom_would_be_touched(make_env):
     assert lowest == 0.0  # the unfiltered arm met a sphere
     with pytest.raises(ValueError, match=re.escape("horizon must be a finite number > 0 [s]")):
         ArmContactTime(make_env(), horizon=0.0)
+
+
+def test_arm_forecast_appends_the_moved_obstacles_clearance_to_the_arm_and_the_goal(make_env):
+    """Per horizon: the arm entry, then the goal entry. At a vanishing horizon the arm entry is the
+    present clearance MuJoCo's distance sensors give (ArmClearance's least entry); at 1 s it is
+    the clearance of each obstacle moved 1 s along its motion to the arm's capsules (the sampler's
+    own routine), and the goal entry is the moved obstacle's surface distance to the goal. The
+    rollout and the env's own observation are unchanged."""
+    plain = CartesianImpedanceAction(make_env(scenario="multi"), residual=True)
+    seen = ArmForecast(ArmClearance(CartesianImpedanceAction(make_env(scenario="multi"), residual=True)),
+                       horizons=(1e-9, 1.0), cap=0.5)  # fmt: skip
+    base = seen.unwrapped
+    n = len(base.arm_geom_ids)
+    assert seen.observation_space.shape == (plain.observation_space.shape[0] + n + 4,)
+    plain.reset(seed=4)
+    seen.reset(seed=4)
+    lowest = 1.0
+    for _ in range(25):
+        obs_a, *_ = plain.step(np.zeros(3, np.float32))
+        obs_b, *_ = seen.step(np.zeros(3, np.float32))
+        np.testing.assert_array_equal(obs_a, obs_b[: -n - 4])
+        now, ahead = obs_b[-4:-2], obs_b[-2:]
+        np.testing.assert_allclose(now[0], obs_b[-n - 4 : -4].min(), atol=1e-5)  # MuJoCo's distances, now
+        active = base.obstacle_active
+        moved = base.obstacle_pos[active] + base.obstacle_vel[active] + 0.5 * base.obstacle_acc[active]
+        radius = base.obstacle_radius[active]
+        arm = base.arm_capsules()
+        to_arm = min(arm.clearance(p, r) for p, r in zip(moved, radius))
+        to_goal = (np.linalg.norm(moved - base.goal, axis=1) - radius).min()
+        np.testing.assert_allclose(ahead, np.clip([to_arm, to_goal], -0.5, 0.5) / 0.5, atol=1e-5)
+        lowest = min(lowest, ahead[0])
+    assert lowest < 0.0  # a sphere's path crossed the arm where it stood
+
+
+@pytest.mark.parametrize(("kwargs", "message"), [
+    ({"horizons": ()}, "ArmForecast needs at least one horizon [s], got none"),
+    ({"horizons": (1.0, 0.0)}, "horizon must be a finite number > 0 [s]"),
+    ({"cap": float("inf")}, "cap must be a finite number > 0 [m]"),
+])  # fmt: skip
+def test_arm_forecast_bad_horizons_or_cap_rejected(make_env, kwargs, message):
+    with pytest.raises(ValueError, match=re.escape(message)):
+        ArmForecast(make_env(), **kwargs)
 
 
 @pytest.mark.parametrize("cap", [0.0, -1.0, float("inf"), True])

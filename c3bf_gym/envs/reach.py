@@ -920,6 +920,11 @@ class C3BFReachEnv(MujocoEnv, utils.EzPickle):
             mujoco.mj_forward(self.model, self.data)  # sensors and contacts see the new position
         self.state_version += 1
 
+    def arm_capsules(self) -> ArmCapsules:
+        """The arm geoms (:attr:`arm_geom_ids`, in that order) as capsules in the present state,
+        each about its axis (exact for capsules and spheres) [m]."""
+        return self._arm_capsules(self.data, self.arm_geom_ids)
+
     def _arm_capsules(self, d: mujoco.MjData, ids: np.ndarray) -> ArmCapsules:
         """Geoms ``ids`` in state ``d``, each taken as a capsule about its axis (exact for
         capsules and spheres): what obstacles spawn clear of."""
