@@ -173,6 +173,10 @@ TRAINING_TABLES = (
     # --observe-contact-time (code 2717fa8), seeds 0 and 1
     ("training_table_sets_ur5e_contact_time.md", "sets_contact_time/sac_*", "final_eval.json",
      "training_curves_sets_ur5e_contact_time.png"),
+    # an attempt on the UR5e: the obstacles' clearance 0.5-3 s ahead, to the arm held still and to the goal, in the
+    # observation, c3bf-gym train --observe-forecast (code 7615cf2), seeds 0 and 1
+    ("training_table_sets_ur5e_forecast.md", "sets_forecast/sac_*", "final_eval.json",
+     "training_curves_sets_ur5e_forecast.png"),
 )
 
 
