@@ -45,7 +45,9 @@ and engages an escape found for ``--engage`` s as the filter's nominal torque an
 says what starts a search: the rows giving way (``rows``), a hard row giving way (``hard``), or a
 forecast of one: the filtered arm rolled ahead from the state reached, left to the filter, every
 ``--forecast-every`` s (0.1) over ``--forecast-horizon`` s (``--lookahead``'s) (``forecast``,
-:class:`Forecast`).
+:class:`Forecast`). ``--forecast-gate D`` runs that forecast only while some sphere, moved along its
+velocity, comes within ``D`` m of the arm's capsules held still within the horizon
+(:func:`near_path`).
 
 Usage::
 
@@ -55,6 +57,8 @@ Usage::
     python benchmarks/escape.py --online --arm sawyer --scenario multi --seeds 2 12 20 40 89
     python benchmarks/escape.py --online --trigger forecast --arm sawyer --scenario multi --seeds 2 12 20 40 89
     python benchmarks/escape.py --online --trigger forecast --forecast-every 0.3 --arm sawyer --seeds 2 12 20 40 89
+    python benchmarks/escape.py --online --trigger forecast --forecast-every 0.3 --forecast-gate 0.1 --arm sawyer \
+        --seeds 2 12 20 40 89
 """
 
 from __future__ import annotations
@@ -81,9 +85,11 @@ from c3bf_gym.safety import (
     FilterConfig,
     FilterEnvelope,
     MocapSpheres,
+    Obstacles,
     RobotDescription,
     SafetyController,
     UnprotectedGeometryWarning,
+    capsule_distances,
 )
 
 SEGMENT = 0.1  # [s] a velocity target is held this long
@@ -387,6 +393,24 @@ FORECAST_EVERY = 0.1  # [s] how often the forecast runs while no escape is engag
 #: The forecast's nominal torque (--forecast-torque): the bias force alone (the arm left to the
 #: filter), or with the policy's excess over it at the forecast's start held throughout.
 FORECAST_TORQUES = ("bias", "held")
+GATE_STEP = 0.05  # [s] the times at which near_path checks the spheres' paths
+
+
+def near_path(robot: RobotDescription, data: mujoco.MjData, obstacles: Obstacles, horizon: float,
+              distance: float) -> bool:
+    """Whether some active obstacle, moved along its velocity (``p + v t``), comes within
+    ``distance`` [m] (surface to surface) of the robot's protected capsules held in ``data``'s pose,
+    at some ``t`` of 0, :data:`GATE_STEP`, ... up to ``horizon`` s. The arm does not stay still, so
+    this only says where a forecast has something to look at: a pinch needs a sphere on its way to
+    the arm."""
+    active = obstacles.active
+    if not active.any():
+        return False
+    a, b, radius = robot.capsule_segments(data)
+    times = np.arange(0.0, horizon + 0.5 * GATE_STEP, GATE_STEP)[:, None, None]
+    moved = obstacles.position[active] + obstacles.velocity[active] * times  # (T, N, 3)
+    gap = capsule_distances(moved, a, b, radius) - obstacles.radius[active][:, None]
+    return bool(gap.min() < distance)
 
 
 class Forecast:
@@ -468,13 +492,16 @@ class OnlineEscape:
     :class:`Forecast` run every ``forecast_every`` s (None: :data:`FORECAST_EVERY`) over
     ``forecast_horizon`` s (None: ``lookahead``) sees a hard row give way; the rest is as with
     ``"rows"``. With ``forecast_torque="held"`` the forecast's nominal
-    adds the policy's torque in excess of the bias force at its start, held. Its runs and their
-    wall time are kept in :attr:`forecast`."""
+    adds the policy's torque in excess of the bias force at its start, held. With ``forecast_gate``
+    [m] the forecast runs only where :func:`near_path` sees a sphere come within that of the arm
+    held still within its horizon (None: wherever it is due). Its runs and their wall time are
+    kept in :attr:`forecast`."""
 
     def __init__(self, arm: str, scenario: str, seed: int, config: FilterConfig, *, assets: Path,
                  max_speed: float, lookahead: float, engage: float, iterations: int, threads: int,
                  target: float, samples: int = SAMPLES, trigger: str = "rows", forecast_torque: str = "bias",
-                 forecast_every: float | None = None, forecast_horizon: float | None = None) -> None:
+                 forecast_every: float | None = None, forecast_horizon: float | None = None,
+                 forecast_gate: float | None = None) -> None:
         if not 0.0 < engage <= lookahead:
             raise ValueError(f"engage must be in (0, lookahead = {lookahead:g}] s, got {engage}")
         if trigger not in TRIGGERS:
@@ -494,6 +521,9 @@ class OnlineEscape:
         if not (every > 0.0 and self.forecast_horizon > 0.0):
             raise ValueError(f"forecast_every and forecast_horizon must be > 0 s, got {every}, {self.forecast_horizon}")
         self._every = max(1, round(every / self.model.opt.timestep))
+        if forecast_gate is not None and not forecast_gate > 0.0:
+            raise ValueError(f"forecast_gate must be > 0 m (or None: no gate), got {forecast_gate}")
+        self.forecast_gate = forecast_gate
         self.searches: list[Escape] = []
         self.fallback_steps = 0
         # the motion's first step, its engaged end, the end of its certified horizon, the next search's
@@ -517,6 +547,9 @@ class OnlineEscape:
                 self._until = self._certified
         if self.trigger == "forecast" and step >= max(self._until, self._next) and step % self._every == 0:
             obstacles.refresh(data)  # the filter last read them a physics step ago, or never (step 0)
+            if self.forecast_gate is not None and not near_path(self.robot, data, obstacles, self.forecast_horizon,
+                                                                self.forecast_gate):  # fmt: skip
+                return tau
             if self.forecast is None:
                 _, scenario, _, config = self.episode
                 self.forecast = Forecast(data.model, self.robot, len(tp.SCENARIOS[scenario]), config, self.envelope)
@@ -570,10 +603,10 @@ def online(arm: str, scenario: str, policy: str, seed: int, config: FilterConfig
            max_speed: float = tp.SPEED[1], lookahead: float = LOOKAHEAD, engage: float = ENGAGE,
            iterations: int = 40, threads: int = 2, target: float = TARGET, samples: int = SAMPLES,
            trigger: str = "rows", forecast_torque: str = "bias", forecast_every: float | None = None,
-           forecast_horizon: float | None = None) -> dict:
+           forecast_horizon: float | None = None, forecast_gate: float | None = None) -> dict:
     """``third_party``'s filtered episode (``arm``, ``scenario``, ``policy``, ``seed``), without and
-    with :class:`OnlineEscape` (its ``trigger``, ``forecast_torque``, ``forecast_every`` and
-    ``forecast_horizon``): each one's outcome (:class:`third_party.Episode`)
+    with :class:`OnlineEscape` (its ``trigger``, ``forecast_torque``, ``forecast_every``,
+    ``forecast_horizon`` and ``forecast_gate``): each one's outcome (:class:`third_party.Episode`)
     and wall time [s], and the online searches' records."""
     envelope = _scene(arm, scenario, config, assets)[2]  # third_party.main's: the arm's, the same on every scene
     task = (str(assets), arm, scenario, policy, config, seed, tp.SECONDS,
@@ -584,7 +617,8 @@ def online(arm: str, scenario: str, policy: str, seed: int, config: FilterConfig
     takeover = OnlineEscape(arm, scenario, seed, config, assets=assets, max_speed=max_speed, lookahead=lookahead,
                             engage=engage, iterations=iterations, threads=threads, target=target,
                             samples=samples, trigger=trigger, forecast_torque=forecast_torque,
-                            forecast_every=forecast_every, forecast_horizon=forecast_horizon)  # fmt: skip
+                            forecast_every=forecast_every, forecast_horizon=forecast_horizon,
+                            forecast_gate=forecast_gate)  # fmt: skip
     clock = time.perf_counter()
     helped = tp.run_episode(task, takeover)
     return {"filtered": asdict(alone), "filtered_seconds": alone_seconds, "online": asdict(helped),
@@ -603,7 +637,8 @@ def _online_records(args: argparse.Namespace, config: FilterConfig, assets: Path
                          lookahead=args.lookahead, engage=args.engage, iterations=args.iterations,
                          threads=args.threads, target=args.target, samples=args.samples,
                          trigger=args.trigger, forecast_torque=args.forecast_torque,
-                         forecast_every=args.forecast_every, forecast_horizon=args.forecast_horizon)  # fmt: skip
+                         forecast_every=args.forecast_every, forecast_horizon=args.forecast_horizon,
+                         forecast_gate=args.forecast_gate)  # fmt: skip
             records.append({"seed": seed, "policy": policy, **run})
             alone, helped = run["filtered"], run["online"]
             print(f"seed {seed}, {policy}: filtered {1e3 * alone['lowest_clearance']:+.1f} mm "
@@ -672,6 +707,9 @@ def main(argv: list[str] | None = None) -> list[dict]:
                         help="--trigger forecast: how often the forecast runs while nothing is engaged [s]")
     parser.add_argument("--forecast-horizon", type=float, default=None, metavar="S",
                         help="--trigger forecast: how far ahead it rolls the arm [s] (default: --lookahead)")
+    parser.add_argument("--forecast-gate", type=float, default=None, metavar="D",
+                        help="--trigger forecast: run it only while a sphere's path comes within D m of the arm held "
+                             "still within the horizon [m] (default: no gate)")  # fmt: skip
     parser.add_argument("--cache", help="robosuite download folder (third_party.py's)")
     parser.add_argument("--json", type=Path, help="write the records here")
     add_filter_settings(parser, "--set")
@@ -702,7 +740,8 @@ def main(argv: list[str] | None = None) -> list[dict]:
             settings.update(online=True, lookahead=args.lookahead, engage=args.engage, target=args.target,
                             trigger=args.trigger, forecast_torque=args.forecast_torque,
                             forecast_every=args.forecast_every,
-                            forecast_horizon=args.forecast_horizon or args.lookahead)
+                            forecast_horizon=args.forecast_horizon or args.lookahead,
+                            forecast_gate=args.forecast_gate)
         args.json.write_text(json.dumps({"settings": settings,
                                          "episodes": records}, indent=2))  # fmt: skip
         print(f"wrote {args.json}")

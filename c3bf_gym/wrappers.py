@@ -24,7 +24,7 @@ from c3bf_gym.controllers.impedance import CartesianImpedance, ImpedanceHook
 from c3bf_gym.controllers.modulation import modulated
 from c3bf_gym.envs.reach import _ACTION_BOUND, C3BFReachEnv
 from c3bf_gym.filter import SafetyHook
-from c3bf_gym.safety import FILTERS, FilterConfig, StepSafety
+from c3bf_gym.safety import FILTERS, FilterConfig, StepSafety, capsule_distances
 
 __all__ = [
     "ActionPenalty",
@@ -693,11 +693,7 @@ class ArmForecast(gym.ObservationWrapper):
             ahead = base.obstacle_pos[active] + base.obstacle_vel[active] * tau + 0.5 * base.obstacle_acc[active] * tau**2
             radius = base.obstacle_radius[active]
             arm = base.arm_capsules()
-            axis = arm.b - arm.a  # (G, 3)
-            rel = ahead[:, :, None, :] - arm.a  # (K, N, G, 3)
-            along = np.clip(np.einsum("kngi,gi->kng", rel, axis) / np.maximum(np.einsum("gi,gi->g", axis, axis), 1e-12),
-                            0.0, 1.0)  # fmt: skip
-            gap = np.linalg.norm(rel - along[..., None] * axis, axis=-1) - arm.radius - radius[:, None]
+            gap = capsule_distances(ahead, arm.a, arm.b, arm.radius) - radius[:, None]  # (K, N, G)
             out[:, 0] = np.minimum(out[:, 0], gap.min(axis=(1, 2)))
             to_goal = np.linalg.norm(ahead - base.goal, axis=-1) - radius
             out[:, 1] = np.minimum(out[:, 1], to_goal.min(axis=1))

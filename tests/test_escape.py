@@ -128,6 +128,34 @@ def test_the_search_names_the_valid_choices(assets):
             escape.OnlineEscape("sawyer", "multi", 20, CANDIDATE, assets=assets, max_speed=0.4, lookahead=2.0,
                                 engage=1.0, iterations=1, threads=1, target=escape.TARGET, trigger="forecast",
                                 forecast_every=every, forecast_horizon=horizon)  # fmt: skip
+    with pytest.raises(ValueError, match=r"forecast_gate must be > 0 m \(or None: no gate\), got 0.0"):
+        escape.OnlineEscape("sawyer", "multi", 20, CANDIDATE, assets=assets, max_speed=0.4, lookahead=2.0,
+                            engage=1.0, iterations=1, threads=1, target=escape.TARGET, trigger="forecast",
+                            forecast_gate=0.0)  # fmt: skip
+
+
+def test_the_forecast_gate_opens_for_a_sphere_headed_at_the_arm_within_the_horizon(assets):
+    """near_path: a sphere 1 m above a link's middle, coming down at 0.5 m/s, is on the arm's path
+    within 2 s, not within 0.5 s; going up, or inactive, it never is."""
+    from c3bf_gym.safety import Obstacles
+
+    model, robot, _ = tp.build_scene(assets, "sawyer", 4)
+    data = mujoco.MjData(model)
+    mujoco.mj_forward(model, data)
+    a, b, radius = robot.capsule_segments(data)
+    spheres = Obstacles(1)
+    spheres.position[0] = 0.5 * (a[2] + b[2]) + (0.0, 0.0, 1.0)
+    spheres.radius[0] = 0.05
+    spheres.active[0] = True
+    assert escape.capsule_distances(spheres.position[0], a, b, radius).min() - 0.05 > 0.5  # far at the start
+    spheres.velocity[0] = (0.0, 0.0, -0.5)
+    assert escape.near_path(robot, data, spheres, 2.0, 0.1)
+    assert not escape.near_path(robot, data, spheres, 0.5, 0.1)
+    spheres.velocity[0] = (0.0, 0.0, 0.5)
+    assert not escape.near_path(robot, data, spheres, 2.0, 0.1)
+    spheres.velocity[0] = (0.0, 0.0, -0.5)
+    spheres.active[0] = False
+    assert not escape.near_path(robot, data, spheres, 2.0, 0.1)
 
 
 class _PassThrough:

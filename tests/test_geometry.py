@@ -18,6 +18,7 @@ from c3bf_gym.safety import (
     SafetyController,
     UnprotectedGeometryWarning,
     UnsupportedGeomError,
+    capsule_distances,
     enclosing_capsule,
     fit_capsule,
 )
@@ -133,6 +134,35 @@ def test_primitives_are_enclosed_as_documented():
     assert fitted.half_length > 2 * fitted.radius
     with pytest.raises(UnsupportedGeomError, match=r"geom 'floor' is a plane: it has no enclosing capsule"):
         enclosing_capsule(model, model.geom("floor").id)
+
+
+def test_capsule_distances_are_mujocos_for_capsules_and_spheres():
+    """Signed distances from points to capsule surfaces (a sphere being a segment of length 0),
+    for any leading shape of the points, against MuJoCo's ``mj_geomDistance`` from tiny spheres."""
+    spec = mujoco.MjSpec.from_string("""
+    <mujoco><worldbody>
+      <geom name="a" type="capsule" fromto="0 0 0 0.3 0.1 0.2" size="0.05"/>
+      <geom name="b" type="sphere" pos="-0.2 0.1 0.4" size="0.07"/>
+      <body name="probe" mocap="true"><geom name="probe" type="sphere" size="1e-4" contype="0" conaffinity="0"/></body>
+    </worldbody></mujoco>""")
+    model = spec.compile()
+    data = mujoco.MjData(model)
+    mujoco.mj_forward(model, data)
+    a = np.array([[0.0, 0.0, 0.0], [-0.2, 0.1, 0.4]])
+    b = np.array([[0.3, 0.1, 0.2], [-0.2, 0.1, 0.4]])
+    points = np.random.default_rng(0).uniform(-0.4, 0.6, size=(4, 5, 3))
+    points[0, 0] = (0.15, 0.05, 0.1)  # on the first axis: inside
+    ours = capsule_distances(points, a, b, np.array([0.05, 0.07]))
+    assert ours.shape == (4, 5, 2) and ours[0, 0, 0] == pytest.approx(-0.05)
+    for index in np.ndindex(4, 5):
+        data.mocap_pos[0] = points[index]
+        mujoco.mj_forward(model, data)
+        for g, name in enumerate("ab"):
+            exact = mujoco.mj_geomDistance(model, data, model.geom("probe").id, model.geom(name).id, 2.0, None)
+            if exact > 0.0:  # MuJoCo's penetration depth is not the distance to the axis's capsule
+                assert ours[index][g] == pytest.approx(exact + 1e-4, abs=1e-9)
+            else:
+                assert ours[index][g] <= 1e-4
 
 
 def test_fit_capsule_holds_every_point_and_refuses_bad_input():

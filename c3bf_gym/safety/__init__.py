@@ -44,6 +44,7 @@ if TYPE_CHECKING:
     from c3bf_gym.safety.geometry import (
         Capsule,
         UnsupportedGeomError,
+        capsule_distances,
         enclosing_capsule,
         fit_capsule,
         protected_capsule,
@@ -73,6 +74,7 @@ _EXPORTS = {
     "UnprotectedGeometryWarning": "c3bf_gym.safety.robot",
     "UnsupportedGeomError": "c3bf_gym.safety.geometry",
     "UnsupportedModelError": "c3bf_gym.safety.robot",
+    "capsule_distances": "c3bf_gym.safety.geometry",
     "enclosing_capsule": "c3bf_gym.safety.geometry",
     "filter_envelope": "c3bf_gym.safety.envelope",
     "fit_capsule": "c3bf_gym.safety.geometry",
@@ -98,6 +100,7 @@ __all__ = [
     "UnprotectedGeometryWarning",
     "UnsupportedGeomError",
     "UnsupportedModelError",
+    "capsule_distances",
     "enclosing_capsule",
     "filter_envelope",
     "fit_capsule",

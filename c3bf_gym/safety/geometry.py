@@ -34,7 +34,10 @@ from typing import NamedTuple
 import mujoco
 import numpy as np
 
-__all__ = ["Capsule", "UnsupportedGeomError", "enclosing_capsule", "fit_capsule", "protected_capsule", "world_segments"]
+__all__ = [
+    "Capsule", "UnsupportedGeomError", "capsule_distances", "enclosing_capsule", "fit_capsule", "protected_capsule",
+    "world_segments",
+]
 
 _T = mujoco.mjtGeom
 _HINGE, _SLIDE = int(mujoco.mjtJoint.mjJNT_HINGE), int(mujoco.mjtJoint.mjJNT_SLIDE)
@@ -294,3 +297,16 @@ def world_segments(data: mujoco.MjData, geom_ids: np.ndarray, local: np.ndarray,
     mat = np.where(geom_frame, data.geom_xmat[geom_ids], data.xmat[body]).reshape(-1, 3, 3)
     ends = pos[:, None, :] + np.einsum("sij,sej->sei", mat, local)
     return ends[:, 0], ends[:, 1]
+
+
+def capsule_distances(points: np.ndarray, a: np.ndarray, b: np.ndarray, radius: np.ndarray) -> np.ndarray:
+    """(..., S) the signed distances [m] from ``points`` (..., 3) to the surfaces of the S capsules
+    about the segments ``a``–``b`` ((S, 3) each, e.g. :func:`world_segments`' or
+    :meth:`~c3bf_gym.safety.RobotDescription.capsule_segments`') with radii ``radius`` (S,);
+    negative inside. A segment of length 0 is a sphere. Subtract a sphere's radius for its surface
+    distance."""
+    axis = b - a
+    rel = points[..., None, :] - a
+    length2 = np.einsum("si,si->s", axis, axis)
+    along = np.clip(np.einsum("...si,si->...s", rel, axis) / np.where(length2 > 0.0, length2, 1.0), 0.0, 1.0)
+    return np.linalg.norm(rel - along[..., None] * axis, axis=-1) - radius
