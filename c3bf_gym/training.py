@@ -427,9 +427,8 @@ class TrainConfig:
         _action_reach(self.action_reach, self.action)
         if not (isinstance(self.hyperparams, dict) and all(isinstance(key, str) for key in self.hyperparams)):
             raise ValueError(f"hyperparams must be a dict of keyword arguments, got {self.hyperparams!r}")
-        for name in ("normalize_obs", "observe_correction", "observe_clearance", "observe_contact_time", "observe_forecast",
-                     "observe_time",
-                     "residual_modulation", "applied_action"):
+        for name in ("normalize_obs", "observe_correction", "observe_clearance", "observe_contact_time",
+                     "observe_forecast", "observe_time", "residual_modulation", "applied_action"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"{name} must be True or False, got {getattr(self, name)!r}")
         _check_residual_modulation(self.residual_modulation, self.action)

@@ -301,10 +301,9 @@ def world_segments(data: mujoco.MjData, geom_ids: np.ndarray, local: np.ndarray,
 
 def capsule_distances(points: np.ndarray, a: np.ndarray, b: np.ndarray, radius: np.ndarray) -> np.ndarray:
     """(..., S) the signed distances [m] from ``points`` (..., 3) to the surfaces of the S capsules
-    about the segments ``a``–``b`` ((S, 3) each, e.g. :func:`world_segments`' or
-    :meth:`~c3bf_gym.safety.RobotDescription.capsule_segments`') with radii ``radius`` (S,);
-    negative inside. A segment of length 0 is a sphere. Subtract a sphere's radius for its surface
-    distance."""
+    about the segments ``a``–``b`` ((S, 3) each) with radii ``radius`` (S,), negative inside: for
+    instance the ends and radii :meth:`~c3bf_gym.safety.RobotDescription.capsule_segments` gives.
+    A segment of length 0 is a sphere. Subtract a sphere's radius for its surface distance."""
     axis = b - a
     rel = points[..., None, :] - a
     length2 = np.einsum("si,si->s", axis, axis)
