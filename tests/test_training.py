@@ -482,13 +482,11 @@ def test_the_open_loop_oracle_wins_an_episode_the_zero_action_loses(monkeypatch,
     assert summary["by_scenario"] == {"static": {"episodes": 1, "zero_action": 0.0, "zero_action_or_searched": 1.0}}
 
 
-def test_the_tool_metric_probe_holds_the_goal_where_the_default_filter_pushes_the_tool_off(monkeypatch, capsys):
+def test_the_tool_metric_probe_holds_the_goal_where_the_default_filter_pushes_the_tool_off(capsys):
     """train/tool_metric.py: on evaluation episode 192 (`multi`) the zero action under the default
     filter ends 6.6 cm from the goal; with the probe's metric (corrections the tool feels cost
     more) it ends within the tolerance, with no collision by the environment's own distances."""
-    train_dir = Path(__file__).parents[1] / "train"
-    monkeypatch.syspath_prepend(str(train_dir))
-    spec = importlib.util.spec_from_file_location("tool_metric", train_dir / "tool_metric.py")
+    spec = importlib.util.spec_from_file_location("tool_metric", Path(__file__).parents[1] / "train" / "tool_metric.py")
     probe = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(probe)
     default, tool = probe.main(["--episodes", "192", "--tool-acceleration", "10"])

@@ -42,7 +42,6 @@ from collections import defaultdict
 import daqp
 import mujoco
 import numpy as np
-from oracle import rollout  # the script beside this file
 
 from c3bf_gym.envs.reach import ROBOTS
 from c3bf_gym.training import FINAL_EVAL_SEED, TrainConfig, build_env
@@ -99,13 +98,12 @@ def run(robot: str, episodes: list[int], tool_acceleration: float | None, model=
         hook = ToolMetric(env, tool_acceleration)
         env.unwrapped.remove_torque_hook("filter")
         env.unwrapped.add_torque_hook(hook, "filter")
+    zero = np.zeros(env.action_space.shape, np.float32)
+    policy = (lambda obs: zero) if model is None else (lambda obs: model.predict(obs, deterministic=True)[0])
     env.reset(seed=FINAL_EVAL_SEED)  # as evaluate starts; each episode below is reseeded
     records, clock = [], time.perf_counter()
     for episode in episodes:
-        if model is None:
-            final, collisions, success = rollout(env, FINAL_EVAL_SEED + episode, np.zeros((1, 3), np.float32))
-        else:
-            final, collisions, success = _agent_rollout(env, FINAL_EVAL_SEED + episode, model)
+        final, collisions, success = _rollout(env, FINAL_EVAL_SEED + episode, policy)
         records.append({"episode": episode, "scenario": env.unwrapped.episode_scenario.name,
                         "final": round(final, 4), "collisions": collisions, "success": success})  # fmt: skip
     env.close()
@@ -114,27 +112,27 @@ def run(robot: str, episodes: list[int], tool_acceleration: float | None, model=
             "episodes": records}  # fmt: skip
 
 
-def _agent_rollout(env, seed: int, model) -> tuple[float, float, bool]:
-    """``rollout``'s three numbers for ``model``'s deterministic actions."""
+def _rollout(env, seed: int, policy) -> tuple[float, float, bool]:
+    """The episode of ``seed`` under ``policy`` (observation -> action): the tool's final distance
+    to the goal [m], the episode's collision steps, and success."""
     obs, _ = env.reset(seed=seed)
-    done, info = False, {}
+    collisions, done, info = 0.0, False, {}
     while not done:
-        obs, _, terminated, truncated, info = env.step(model.predict(obs, deterministic=True)[0])
+        obs, _, terminated, truncated, info = env.step(policy(obs))
+        collisions += info["cost"]
         done = terminated or truncated
-    return float(info["distance"]), float(info["episode_cost"]), bool(info["is_success"])
+    return float(info["distance"]), collisions, bool(info["is_success"])
 
 
 def main(argv: list[str] | None = None) -> list[dict]:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--robot", default="ur5e", help=f"from {', '.join(ROBOTS)}")
+    parser.add_argument("--robot", choices=list(ROBOTS), default="ur5e")
     parser.add_argument("--episodes", type=int, nargs="+", default=list(range(200)),
                         help="evaluation episode indices (default: the 200 of c3bf-gym evaluate)")  # fmt: skip
     parser.add_argument("--tool-acceleration", type=float, nargs="+", default=[10.0], metavar="A",
                         help="the metric's a [m/s^2], one run each, beside the default filter's")  # fmt: skip
     parser.add_argument("--model", help="a recipe run's SB3 SAC model.zip, in place of the zero action")
     args = parser.parse_args(argv)
-    if args.robot not in ROBOTS:
-        parser.error(f"unknown --robot {args.robot!r}; valid choices: {', '.join(ROBOTS)}")
     if any(not a > 0.0 for a in args.tool_acceleration) or any(e < 0 for e in args.episodes):
         parser.error("--tool-acceleration must be > 0 m/s^2 and --episodes >= 0")
     model = None
