@@ -367,7 +367,27 @@ def test_obstacles_beyond_sensing_radius_add_no_row(env):
 # ----------------------------------------------------------------------------- QP
 
 
-@pytest.mark.parametrize("weight", ["limits", "identity"])
+def tool_metric_in_torque(u, tool_acceleration=10.0):
+    """The ``"tool"`` metric's W in torque units, ``S⁻¹ (I + GᵀG / a²) S⁻¹`` with ``S =
+    diag(τ_max)`` and ``G = J (M + hD)⁻¹ S``, from MuJoCo's own site Jacobian and mass matrix
+    (independent of the filter's kernels; the arm is the model's every dof)."""
+    m, d = u.model, u.data
+    jac, M = np.zeros((3, m.nv)), np.zeros((m.nv, m.nv))
+    mujoco.mj_jacSite(m, d, jac, None, u.ee_site_id)
+    mujoco.mj_fullM(m, d, M)
+    G = jac @ np.linalg.inv(M + np.diag(m.opt.timestep * m.dof_damping)) * u.torque_limit
+    S_inv = np.diag(1.0 / u.torque_limit)
+    return S_inv @ (np.eye(m.nv) + G.T @ G / tool_acceleration**2) @ S_inv
+
+
+def metric_in_torque(u, weight):
+    """The QP metric ``weight`` in torque units: ``½ (τ − τ_nom)ᵀ W (τ − τ_nom)``."""
+    if weight == "tool":
+        return tool_metric_in_torque(u)
+    return np.diag(1.0 / u.torque_limit**2) if weight == "limits" else np.eye(len(u.torque_limit))
+
+
+@pytest.mark.parametrize("weight", ["limits", "identity", "tool"])
 @pytest.mark.parametrize("seed", range(5))
 def test_solution_satisfies_every_row_and_is_optimal(env, seed, weight):
     u = env
@@ -386,8 +406,7 @@ def test_solution_satisfies_every_row_and_is_optimal(env, seed, weight):
     tau = hook(tau_nom.copy()).copy()
     assert hook.report.feasible and hook.report.slack == 0.0 and hook.report.intervened
     assert hook.report.active_rows >= 1
-    W = np.diag(1.0 / u.torque_limit**2) if weight == "limits" else np.eye(6)
-    assert_kkt_optimal(tau, tau_nom, A, b, W, -u.torque_limit, u.torque_limit)
+    assert_kkt_optimal(tau, tau_nom, A, b, metric_in_torque(u, weight), -u.torque_limit, u.torque_limit)
 
 
 def test_weights_give_different_optima_in_their_own_metric(env):
@@ -399,18 +418,40 @@ def test_weights_give_different_optima_in_their_own_metric(env):
             break
     tau_nom = toward_obstacles(u)
     out = {}
-    for weight in ("limits", "identity"):
+    for weight in ("limits", "identity", "tool"):
         hook = hook_for(u, weight=weight, on_infeasible="raise")
         A, b, *_ = hook.rows()
         A, b = A.copy(), b.copy()
         out[weight] = hook(tau_nom.copy()).copy()
         assert np.min(A @ out[weight] - b) >= -1e-6 * np.linalg.norm(A, axis=1).max()
-    assert np.linalg.norm(out["limits"] - out["identity"]) > 1e-3
-    W = np.diag(1.0 / u.torque_limit**2)
-    cost = {k: (v - tau_nom) @ W @ (v - tau_nom) for k, v in out.items()}
-    assert cost["limits"] <= cost["identity"] + 1e-9  # each is optimal in its own metric
-    cost = {k: (v - tau_nom) @ (v - tau_nom) for k, v in out.items()}
-    assert cost["identity"] <= cost["limits"] + 1e-9
+    for weight, other in [("limits", "identity"), ("limits", "tool"), ("identity", "tool")]:
+        assert np.linalg.norm(out[weight] - out[other]) > 1e-3
+    for weight in out:  # each is optimal in its own metric
+        W = metric_in_torque(u, weight)
+        cost = {k: (v - tau_nom) @ W @ (v - tau_nom) for k, v in out.items()}
+        assert all(cost[weight] <= value + 1e-9 for value in cost.values()), (weight, cost)
+
+
+def test_the_tool_metric_spares_the_tool():
+    """What the ``"tool"`` metric is for: in the episode of ``multi`` it was traced on (the
+    recipe's evaluation episode 187: crossing spheres press on the upper arm while the tool holds
+    the goal), the zero action keeps the tool at the goal under it and is pushed off it under
+    ``"limits"``, with no collision under either (the environment's own distances)."""
+    from c3bf_gym.training import FINAL_EVAL_SEED, TrainConfig, build_env
+
+    final = {}
+    for weight in ("limits", "tool"):
+        env = build_env("random", **TrainConfig(filter_settings={"weight": weight}).env_options())
+        env.reset(seed=FINAL_EVAL_SEED + 187)
+        done, collisions = False, 0.0
+        while not done:
+            _, _, terminated, truncated, info = env.step(np.zeros(env.action_space.shape, np.float32))
+            collisions += info["cost"]
+            done = terminated or truncated
+        assert env.unwrapped.episode_scenario.name == "multi" and collisions == 0.0
+        final[weight] = info["distance"]
+        env.close()
+    assert final["tool"] < 0.02 and final["limits"] > 0.1, final
 
 
 def test_torque_limits_are_never_exceeded(env):
@@ -757,7 +798,12 @@ def _unfused_call(hook, tau_nom):
 
     A, b, *_ = hook.rows()
     tau_nom = np.ascontiguousarray(tau_nom, dtype=np.float64)
-    result = hook.qp.solve_scaled(tau_nom, A, b, hook._scale, hook._low_priority_span(len(b)), hook._stride)
+    metric = None
+    if hook.qp.metric_rows:  # the tool metric, from the site's dynamics as the per-class path computes them
+        metric = np.zeros((3, len(tau_nom)))
+        _step.tool_metric(hook.arm.site_dynamics(hook.data).G[0], hook._dofs, hook._scale, hook._tool_weight, metric)
+    result = hook.qp.solve_scaled(tau_nom, A, b, hook._scale, hook._low_priority_span(len(b)), hook._stride,
+                                  metric=metric)
     tau = np.empty_like(tau_nom)
     qp, m = hook.qp.buffers, len(b)
     _step.hook_post(b, qp.norm[:m], qp.residual[:m], result.tau, hook._scale, tau_nom, hook._limit, tau)
@@ -768,11 +814,12 @@ def _unfused_call(hook, tau_nom):
     return tau, result
 
 
-@pytest.mark.parametrize(("scenario", "name"), [("multi", "c3bf"), ("crossing", "c3bf"), ("multi", "c3bf+hocbf")])
-def test_fused_step_replays_the_unfused_path(make_env, scenario, name):
+@pytest.mark.parametrize(("scenario", "name", "weight"), [("multi", "c3bf", "limits"), ("crossing", "c3bf", "limits"),
+                                                     ("multi", "c3bf+hocbf", "limits"), ("multi", "c3bf+hocbf", "tool")])
+def test_fused_step_replays_the_unfused_path(make_env, scenario, name, weight):
     """A seeded filtered rollout: the fused kernel gives the torques and outcomes (slack,
-    status, iterations, active rows) of the unfused calls bit for bit."""
-    envs = [SafetyFilter(make_env(scenario=scenario), name) for _ in range(2)]
+    status, iterations, active rows) of the unfused calls bit for bit, in either metric."""
+    envs = [SafetyFilter(make_env(scenario=scenario), FilterConfig.named(name, weight=weight)) for _ in range(2)]
     hooks = [e.hook for e in envs]
     assert hooks[0]._fused
     seen = [[], []]

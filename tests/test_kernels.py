@@ -309,6 +309,26 @@ def test_fused_rows_equal_the_per_class_path(make_env, guard, points):
     close(b1, b2, 1e-10)
 
 
+@pytest.mark.parametrize("points", ["whole_arm", "ee"])
+def test_the_tool_metric_is_the_same_on_the_fused_and_per_class_paths(make_env, points):
+    """``weight="tool"``: a barrier the filter cannot fuse takes the per-class path, which weighs
+    the QP with the tool site's dynamics from the arm model instead of the fused kernel's; with
+    the same rows it takes the fused kernel's torque, and one the ``"limits"`` metric does not."""
+    u = make_env(scenario="none").unwrapped
+    u.reset(seed=5)
+    scene(u, np.random.default_rng(5), 3)
+    config = FilterConfig(sensing_radius=0.5, weight="tool", tool_acceleration=3.0, points=points)
+    fused = SafetyHook(u, config.replace(barrier=C3BF(gamma=5.0, eps=1e-2)))
+    generic = SafetyHook(u, config.replace(barrier=_NumpyC3BF(gamma=5.0, eps=1e-2)))
+    limits = SafetyHook(u, config.replace(barrier=C3BF(gamma=5.0, eps=1e-2), weight="limits", tool_acceleration=None))
+    assert fused._fused and not generic._fused
+    tau_nom = u.data.qfrc_bias + np.array([10.0, -15.0, 7.5, 5.0, -5.0, 2.0])
+    tau = [hook(tau_nom).copy() for hook in (fused, generic, limits)]
+    assert fused.report.intervened
+    close(tau[0], tau[1], 1e-8)
+    assert np.linalg.norm(tau[0] - tau[2]) > 1e-3
+
+
 @pytest.mark.parametrize("guard", [None, DistanceHOCBF(gamma1=3.0, gamma2=4.0)])
 def test_fused_obstacle_rows_are_their_pieces_bit_for_bit(make_env, guard):
     """The fused kernel's obstacle rows are exactly the vectorised kernels' pieces put together:

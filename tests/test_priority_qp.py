@@ -20,12 +20,14 @@ from c3bf_gym.safety.priority_qp import PriorityQP
 proxqp = pytest.importorskip("proxsuite").proxqp
 
 
-def _oracle(tau_nom, A, b, scale, lo, hi) -> tuple[np.ndarray, bool]:
-    """proxsuite's solution of min ½‖u − τ_nom/s‖², (A s) u ≥ b, lo ≤ u ≤ hi, and whether it
-    reached the requested accuracy (it does not on an infeasible problem)."""
+def _oracle(tau_nom, A, b, scale, lo, hi, H=None) -> tuple[np.ndarray, bool]:
+    """proxsuite's solution of min ½ (u − u_nom)ᵀ H (u − u_nom) (``u_nom = τ_nom/s``; ``H`` None: the
+    identity), (A s) u ≥ b, lo ≤ u ≤ hi, and whether it reached the requested accuracy (it does
+    not on an infeasible problem)."""
     n = len(tau_nom)
+    H = np.eye(n) if H is None else H
     rows = A * scale
-    result = proxqp.dense.solve(np.eye(n), -tau_nom / scale, None, None, np.vstack([rows, np.eye(n)]),
+    result = proxqp.dense.solve(H, -H @ (tau_nom / scale), None, None, np.vstack([rows, np.eye(n)]),
                                 np.concatenate([b, lo]), np.concatenate([np.full(len(b), 1e20), hi]),
                                 eps_abs=1e-10, eps_rel=0.0, max_iter=10_000)  # fmt: skip
     return result.x, result.info.status == proxqp.PROXQP_SOLVED
@@ -54,6 +56,77 @@ def test_feasible_problems_match_proxsuite(seed):
     assert converged and result.feasible and result.status == "solved" and result.slack == 0.0
     np.testing.assert_allclose(result.tau, oracle, atol=1e-6)
     assert np.all(result.tau >= lo) and np.all(result.tau <= hi)
+
+
+def test_a_metric_matches_proxsuite_and_a_fresh_workspace():
+    """The cost ``½ (u − u_nom)ᵀ (I + WᵀW) (u − u_nom)`` (the filter's tool metric): one warm
+    workspace through problems whose metric changes at every solve gives proxsuite's answer in
+    that metric, and a fresh workspace's, and not the identity metric's."""
+    rng = np.random.default_rng(11)
+    n, capacity = 6, 25
+    lo, hi = -np.ones(n), np.ones(n)
+    warm = PriorityQP(n, lo, hi, capacity, 0, metric_rows=3)
+    moved = 0
+    for _ in range(30):
+        m = int(rng.integers(1, capacity + 1))
+        scale = rng.uniform(0.5, 3.0, n)
+        tau_nom, A, b = _problem(rng, n, m)
+        A = A / scale
+        W = rng.normal(size=(3, n)) * rng.uniform(0.1, 3.0)
+        H = np.eye(n) + W.T @ W
+        got = warm.solve_scaled(tau_nom, A, b, scale, n_obstacle_rows=0, metric=W)
+        assert got.feasible and got.status == "solved"
+        oracle, converged = _oracle(tau_nom, A, b, scale, lo, hi, H)
+        assert converged
+        np.testing.assert_allclose(got.tau, oracle, atol=1e-6)
+        fresh = PriorityQP(n, lo, hi, capacity, 0, metric_rows=3).solve_scaled(tau_nom, A, b, scale, 0, metric=W)
+        np.testing.assert_allclose(got.tau, fresh.tau, atol=1e-9)
+        plain = PriorityQP(n, lo, hi, capacity, 0).solve_scaled(tau_nom, A, b, scale, 0).tau
+        moved += np.linalg.norm(plain - oracle) > 1e-3
+    assert moved > 20  # the metric changes the answer: it is in use
+
+
+def test_a_metric_keeps_the_rows_priorities():
+    """Conflicting rows with a metric: the prioritised solve still holds level 1 wherever the box
+    allows, and a warm workspace gives a fresh one's answers."""
+    rng = np.random.default_rng(5)
+    n, checked = 6, 0
+    warm = PriorityQP(n, -np.ones(n), np.ones(n), 10, 10, metric_rows=3)
+    for _ in range(40):
+        m1, m2 = int(rng.integers(1, 10)), int(rng.integers(1, 10))
+        _, A1, b1 = _problem(rng, n, m1)
+        A2 = rng.normal(size=(m2, n))
+        b2 = rng.uniform(0.5, 3.0, m2) * np.linalg.norm(A2, axis=1)  # far beyond: conflicts
+        tau_nom, W = rng.uniform(-2.0, 2.0, n), rng.normal(size=(3, n))
+        A, b = np.vstack([A2, A1]), np.concatenate([b2, b1])
+        result = warm.solve_scaled(tau_nom, A, b, np.ones(n), n_obstacle_rows=m2, metric=W)
+        fresh = PriorityQP(n, -np.ones(n), np.ones(n), 10, 10, metric_rows=3).solve_scaled(
+            tau_nom, A, b, np.ones(n), n_obstacle_rows=m2, metric=W)
+        np.testing.assert_allclose(result.tau, fresh.tau, atol=1e-9)
+        if result.feasible:
+            continue
+        checked += 1
+        assert ((A1 @ result.tau - b1) / np.linalg.norm(A1, axis=1)).min() >= -1e-6
+        assert np.all(np.abs(result.tau) <= 1.0)
+    assert checked > 10
+
+
+@pytest.mark.parametrize(("rows", "metric", "message"), [
+    (3, None, "metric_rows=3: pass metric"),
+    (0, np.zeros((3, 2)), "metric_rows=0: pass metric"),
+    (3, np.zeros((2, 2)), r"shape \(3, 2\)"),
+    (3, np.full((3, 2), np.nan), "finite"),
+    (-1, None, "metric_rows must be >= 0"),
+])
+def test_a_bad_metric_is_refused(rows, metric, message):
+    with pytest.raises(ValueError, match=message):
+        PriorityQP(2, -np.ones(2), np.ones(2), 2, 0, metric_rows=rows).solve_scaled(
+            np.zeros(2), np.eye(2), np.zeros(2), np.ones(2), metric=metric)
+
+
+def test_a_pickled_qp_keeps_its_metric_rows():
+    qp = pickle.loads(pickle.dumps(PriorityQP(2, -np.ones(2), np.ones(2), 2, 0, metric_rows=3)))
+    assert qp.metric_rows == 3 and qp.buffers.metric.shape == (3, 2)
 
 
 def test_warm_start_does_not_change_the_answer():

@@ -63,7 +63,9 @@ import daqp  # noqa: E402
 
 #: DAQP's "no bound" (constants.h)
 INF = 1e30
-UPDATE_M, UPDATE_V, UPDATE_D, UPDATE_SENSE = 2, 4, 8, 16
+#: ``daqp_update_ldp``'s mask bits (constants.h): the cost's ``H`` (refactored), the rows, the cost's
+#: linear term, the bounds, the constraint flags
+UPDATE_RINV, UPDATE_M, UPDATE_V, UPDATE_D, UPDATE_SENSE = 1, 2, 4, 8, 16
 #: DAQP's exit flags (constants.h): positive = a solution
 EXIT_FLAGS = {5: "feasible", 4: "optimal_inexact", 3: "constrained_point", 2: "soft_optimal", 1: "optimal",
               -1: "infeasible", -2: "cycle", -3: "unbounded", -4: "iterlimit", -5: "nonconvex",
@@ -136,7 +138,9 @@ class DaqpBuffers(NamedTuple):
     pointers to them, so they are updated in place, never replaced).
 
     Attributes:
-        f: (n,) the cost's linear term ``−u_nom``.
+        H: (n, n) the cost's Hessian, the identity unless the caller writes another (symmetric,
+            positive definite) and passes :data:`UPDATE_RINV`, which refactors it.
+        f: (n,) the cost's linear term (``−H u_nom``).
         A: (rows, n) the general rows (zero rows are ignored by DAQP).
         lower: (n + rows,) lower bounds: the box's, then the rows' (``−INF``: unused).
         sense: (n + rows,) int32 constraint flags (0: an ordinary inequality).
@@ -149,6 +153,7 @@ class DaqpBuffers(NamedTuple):
         addr: uint64 addresses: workspace, problem, result, ``daqp_update_ldp``, ``daqp_solve``.
     """
 
+    H: np.ndarray
     f: np.ndarray
     A: np.ndarray
     lower: np.ndarray
@@ -175,11 +180,14 @@ def _release(work_buf: np.ndarray) -> None:
 
 
 class DaqpWorkspace:
-    """A DAQP workspace for ``min ½‖u‖² + fᵀu`` with ``n`` simple bounds and up to ``rows`` rows.
+    """A DAQP workspace for ``min ½ uᵀHu + fᵀu`` with ``n`` simple bounds and up to ``rows`` rows,
+    ``H`` the identity until the caller writes another.
 
-    Set up once (``setup_daqp``; no allocation per solve); every solve then writes ``f``, the rows
-    and their bounds into :attr:`buffers`, calls ``daqp_update_ldp`` and ``daqp_solve``. DAQP keeps
-    the last working set, so consecutive solves start from it (warm start).
+    Set up once (``setup_daqp``; no allocation per solve: DAQP allocates its factor of ``H`` dense
+    whatever ``H`` is, so a new ``H`` needs no new workspace); every solve then writes ``f`` (and
+    ``H``, when it changes), the rows and their bounds into :attr:`buffers`, calls
+    ``daqp_update_ldp`` and ``daqp_solve``. DAQP keeps the last working set, so consecutive solves
+    start from it (warm start).
 
     Args:
         n: number of variables.
@@ -230,7 +238,7 @@ class DaqpWorkspace:
         addr[ADDR_WORK], addr[ADDR_PROBLEM] = self._work_buf.ctypes.data, self._prob_buf.ctypes.data
         addr[ADDR_RESULT], addr[ADDR_UPDATE_LDP], addr[ADDR_SOLVE] = self._res_buf.ctypes.data, _UPDATE_LDP, _SOLVE
         levels = self._break if self._break is not None and len(self._break) > 1 else np.zeros(0, np.int32)
-        self.buffers = DaqpBuffers(f, A, lower, sense, x, self._res_buf.view(np.int32), self._prob_buf.view(np.int32),
+        self.buffers = DaqpBuffers(self._H, f, A, lower, sense, x, self._res_buf.view(np.int32), self._prob_buf.view(np.int32),
                                    levels, addr)
 
     def check_guard(self) -> None:
@@ -258,31 +266,38 @@ def _self_check() -> None:
     """Raises ImportError unless the binding gives what ``daqp.solve`` gives (exit flag, and the
     solution within 1e-9) on: bounds and two general rows on a workspace with room for three (the
     problem's constraint count set as the filter sets it), cold and then warm-started with a new
-    cost; and a box with two levels of rows that conflict (``break_points``). The workspaces are
-    built and freed as the filter's are."""
+    cost, then with a dense ``H`` written into the workspace (:data:`UPDATE_RINV`); and a box with
+    two levels of rows that conflict (``break_points``), the second solve with a dense ``H``. The
+    workspaces are built and freed as the filter's are."""
     n = 3
     lo, hi = np.full(n, -1.0), np.full(n, 1.0)
-    cases = [  # (rows capacity, break points, rows, lower bounds of the rows, nominal torques)
-        (3, None, [[1.0, 1.0, 0.0], [0.0, 1.0, -1.0]], [0.8, 0.2], [[2.0, -0.5, 0.3], [-0.4, 0.9, 0.1]]),
-        (2, [n, n + 1, n + 2], [[1.0, 1.0, 0.0], [-1.0, -1.0, 0.0]], [1.5, -0.5], [[0.2, -0.7, 0.5]]),
+    dense = np.array([[2.0, 0.6, -0.3], [0.6, 1.5, 0.4], [-0.3, 0.4, 1.2]])  # symmetric positive definite
+    cases = [  # (rows capacity, break points, rows, lower bounds of the rows, nominal torques, their H)
+        (3, None, [[1.0, 1.0, 0.0], [0.0, 1.0, -1.0]], [0.8, 0.2], [[2.0, -0.5, 0.3], [-0.4, 0.9, 0.1],
+                                                                   [0.5, 0.9, -0.8]], [None, None, dense]),
+        (2, [n, n + 1, n + 2], [[1.0, 1.0, 0.0], [-1.0, -1.0, 0.0]], [1.5, -0.5], [[0.2, -0.7, 0.5]] * 2,
+         [None, dense]),
     ]
-    for capacity, levels, rows, bounds, nominals in cases:
+    for capacity, levels, rows, bounds, nominals, hessians in cases:
         work = DaqpWorkspace(n, capacity, lo, hi, break_points=levels)
         buffers, r = work.buffers, len(rows)
         buffers.A[:r] = rows
         buffers.lower[n:n + r] = bounds
         buffers.problem[PROBLEM_M] = n + r
         mask = UPDATE_M | UPDATE_V | UPDATE_D | UPDATE_SENSE
-        for nominal in nominals:
+        for nominal, hessian in zip(nominals, hessians):
+            H = np.eye(n) if hessian is None else hessian
             buffers.f[:] = -np.asarray(nominal)
-            flag = _call_from_python(buffers, mask)
+            if hessian is not None:
+                buffers.H[:] = hessian
+            flag = _call_from_python(buffers, mask | (UPDATE_RINV if hessian is not None else 0))
             mask = UPDATE_M | UPDATE_V | UPDATE_D  # then warm-started
             work.check_guard()
             x, _, expected, _ = daqp.solve(
-                np.eye(n), buffers.f.copy(), np.array(rows), np.concatenate([hi, np.full(r, INF)]),
+                H, buffers.f.copy(), np.array(rows), np.concatenate([hi, np.full(r, INF)]),
                 np.concatenate([lo, bounds]), np.zeros(n + r, np.intc),
                 break_points=np.zeros(0, np.intc) if levels is None else np.array(levels, np.intc))
-            what = f"{'two levels' if levels else 'one level'}, nominal {nominal}"
+            what = f"{'two levels' if levels else 'one level'}, nominal {nominal}, H {H.tolist()}"
             if flag != expected or not np.allclose(buffers.x, x, rtol=0.0, atol=1e-9):
                 raise ImportError(
                     f"c3bf_gym's binding of DAQP's C API disagrees with daqp.solve on daqp {DAQP_VERSION} ({what}): "

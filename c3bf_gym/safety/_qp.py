@@ -4,10 +4,15 @@ safety row, by priority (:func:`solve_rows`), on DAQP through its binding :mod:`
 In the scaled torque ``u = τ / s`` (``s`` the controller's scale, so the box is
 ``u_min ≤ u ≤ u_max``)::
 
-    minimise    ½ ‖u − u_nom‖²
+    minimise    ½ (u − u_nom)ᵀ H (u − u_nom),   H = I + WᵀW
     subject to  u_min ≤ u ≤ u_max            (the torque limits: always hard)
                 â_k u ≥ b̂_k,  k = 1 … m     (the rows A_k s u ≥ b_k divided by ‖A_k s‖:
                                               residuals in N·m)
+
+``W`` (``QPBuffers.metric``, (r, n)) is what the caller wants a correction to cost besides its
+own size: with the filter's tool metric (``FilterConfig.weight="tool"``), ``W = G / a``, the tool's
+acceleration per unit of ``u`` over the acceleration ``a`` that costs as much as a unit of ``u``.
+A workspace with ``r = 0`` solves with ``H = I``, as DAQP was set up, and never refactors it.
 
 When no ``u`` in the box satisfies every row, the rows give way **by priority, not by weights**:
 DAQP's hierarchical mode satisfies each level as well as the levels above it allow (least squares
@@ -62,6 +67,7 @@ from c3bf_gym.safety._daqp import (
     PROBLEM_M,
     UPDATE_D,
     UPDATE_M,
+    UPDATE_RINV,
     UPDATE_SENSE,
     UPDATE_V,
     DaqpBuffers,
@@ -118,6 +124,9 @@ class QPBuffers(NamedTuple):
             ≥ 0], set by the caller before each solve when ``capacity[2] > 0`` (read only then;
             other rows' entries are ignored): the allowance level holds ``A_k τ ≥ b_k −
             allowance[k]``.
+        metric: (r, n) ``W`` of the cost's ``H = I + WᵀW`` (the module docstring), set by the
+            caller before each solve; (0, n): ``H = I``.
+        u_nom: (n,) the last call's nominal ``u`` (the cost's linear term is ``−H u_nom``).
     """
 
     plain: DaqpBuffers
@@ -132,6 +141,8 @@ class QPBuffers(NamedTuple):
     last: np.ndarray
     reserve: np.ndarray
     allowance: np.ndarray
+    metric: np.ndarray
+    u_nom: np.ndarray
 
 
 @njit(**STEP_KERNEL_OPTIONS)
@@ -145,11 +156,47 @@ def _clear(buffers, start, stop):
 
 
 @njit(**STEP_KERNEL_OPTIONS)
+def _load_cost(qp):
+    """The cost of ``qp.u_nom``: ``f = −H u_nom`` into ``qp.plain``, and with a metric
+    (``qp.metric`` (r, n), ``r > 0``) ``H = I + WᵀW`` into both workspaces (which then need
+    :data:`~c3bf_gym.safety._daqp.UPDATE_RINV`, :func:`_cost_mask`). Returns False when the metric
+    is not finite (nothing else is usable then)."""
+    plain, W, u_nom = qp.plain, qp.metric, qp.u_nom
+    n = u_nom.shape[0]
+    if W.shape[0] == 0:
+        for j in range(n):
+            plain.f[j] = -u_nom[j]
+        return True
+    for i in range(n):
+        for j in range(i, n):
+            acc = 1.0 if i == j else 0.0
+            for r in range(W.shape[0]):
+                acc += W[r, i] * W[r, j]
+            if not math.isfinite(acc):
+                return False
+            plain.H[i, j] = plain.H[j, i] = qp.hier.H[i, j] = qp.hier.H[j, i] = acc
+    for i in range(n):
+        acc = 0.0
+        for j in range(n):
+            acc += plain.H[i, j] * u_nom[j]
+        plain.f[i] = -acc
+    return True
+
+
+@njit(**STEP_KERNEL_OPTIONS)
+def _cost_mask(qp):
+    """The update mask a solve's cost needs: :data:`~c3bf_gym.safety._daqp.UPDATE_RINV` with a
+    metric (``H`` is new at every call), else none (``H = I``, factored at setup)."""
+    return UPDATE_RINV if qp.metric.shape[0] > 0 else 0
+
+
+@njit(**STEP_KERNEL_OPTIONS)
 def _load_rows(tau_nom, A, b, scale, cols, qp):
-    """Step 1 of :func:`solve_rows`: the cost and the scaled, normalised rows into ``qp.plain`` (its
-    problem sized to them), each row's norm into ``qp.norm`` (0: a row the torque cannot change,
-    left out). Returns ``(SOLVED, impossible)`` (the largest ``b_k`` of a row that can never
-    hold, 0 if none), or ``(BAD_NOMINAL or BAD_ROWS, 0)`` for a non-finite input."""
+    """Step 1 of :func:`solve_rows`: the cost (:func:`_load_cost`) and the scaled, normalised rows
+    into ``qp.plain`` (its problem sized to them), each row's norm into ``qp.norm`` (0: a row the
+    torque cannot change, left out). Returns ``(SOLVED, impossible)`` (the largest ``b_k`` of a
+    row that can never hold, 0 if none), or ``(BAD_NOMINAL or BAD_ROWS, 0)`` for a non-finite
+    input."""
     n = tau_nom.shape[0]
     m = b.shape[0]
     plain = qp.plain
@@ -157,7 +204,9 @@ def _load_rows(tau_nom, A, b, scale, cols, qp):
         u_nom = tau_nom[j] / scale[j]
         if not math.isfinite(u_nom):
             return BAD_NOMINAL, 0.0
-        plain.f[j] = -u_nom
+        qp.u_nom[j] = u_nom
+    if not _load_cost(qp):
+        return BAD_ROWS, 0.0
     impossible = 0.0
     for k in range(m):
         sq = 0.0
@@ -250,7 +299,7 @@ def solve_rows(tau_nom, A, b, scale, cols, n_obstacle_rows, stride, qp):
         if by_priority >= 1 and _residuals(plain, qp, m) < -INFEASIBLE_TOL:
             status = RELAXED
     if status == SOLVED:
-        mask = UPDATE_M | UPDATE_V | UPDATE_D
+        mask = UPDATE_M | UPDATE_V | UPDATE_D | _cost_mask(qp)
         if qp.cold[0]:
             qp.cold[0] = 0
             for i in range(plain.sense.shape[0]):
@@ -274,7 +323,7 @@ def solve_rows(tau_nom, A, b, scale, cols, n_obstacle_rows, stride, qp):
             else:
                 status = FAILED
                 for j in range(n):
-                    qp.u[j] = min(max(-plain.f[j], qp.lo[j]), qp.hi[j])
+                    qp.u[j] = min(max(qp.u_nom[j], qp.lo[j]), qp.hi[j])
             _residuals(plain, qp, m)
         elif impossible > 0.0:
             status = RELAXED
@@ -408,13 +457,14 @@ def _solve_by_priority(qp, m, n_obstacle_rows, stride):
     for j in range(n):
         hier.f[j] = plain.f[j]
     flag, iterations = 0, 0
+    mask = UPDATE_M | UPDATE_V | UPDATE_D | _cost_mask(qp)
     if not qp.cold[1]:
-        flag, iterations = daqp_call(hier, UPDATE_M | UPDATE_V | UPDATE_D)
+        flag, iterations = daqp_call(hier, mask)
     if flag < 1:  # cold, or the warm start failed: again from an empty working set
         qp.cold[1] = 0
         for i in range(hier.sense.shape[0]):
             hier.sense[i] = 0
-        flag, more = daqp_call(hier, UPDATE_M | UPDATE_V | UPDATE_D | UPDATE_SENSE)
+        flag, more = daqp_call(hier, mask | UPDATE_SENSE)
         iterations += more
     if flag >= 1:
         for j in range(n):

@@ -32,6 +32,7 @@ from c3bf_gym._capi import unpack
 
 # filter_substep compiles _rows.filter_rows and _qp.solve_rows into itself: _compile_cache keys
 # the on-disk cache of every kernel file's functions on all of them.
+from c3bf_gym.safety._dynamics import ArmMotion, tool_site_dynamics
 from c3bf_gym.safety._qp import ACTIVE_TOL, RELAXED, SOLVED, barrier_row, solve_rows
 from c3bf_gym.safety._rows import filter_rows
 
@@ -168,6 +169,20 @@ def set_allowances(allowance, row_h, gains, n_obstacle, stride):
     raise_by = _gain_room(gains)
     for k in range(allowance.shape[0]):
         allowance[k] = raise_by * max(row_h[k], 0.0) if barrier_row(k, n_obstacle, stride) else 0.0
+
+
+@njit(**_opts)
+def tool_metric(G, dofs, scale, weight, metric):
+    """The filter's tool metric (``FilterConfig.weight="tool"``) into ``metric`` (3, n), the
+    ``W`` of the QP's cost ``H = I + WᵀW`` (:mod:`c3bf_gym.safety._qp`): ``W = G[:, dofs]
+    diag(scale) · weight``, with ``G`` (3, nv) the tool site's acceleration per unit of
+    generalised force [m/s² per N m] (:func:`~c3bf_gym.safety._dynamics.tool_site_dynamics`),
+    ``scale`` (n,) the torque scale and ``weight`` ``1/a`` [s²/m]. So a change of the scaled
+    torque ``u`` that changes the tool's acceleration by ``a`` costs as much as a unit change of
+    ``u`` itself."""
+    for i in range(3):
+        for j in range(dofs.shape[0]):
+            metric[i, j] = G[i, dofs[j]] * scale[j] * weight
 
 
 @njit(**_opts)
@@ -319,6 +334,8 @@ class StepBuffers(NamedTuple):
         tally: :class:`Tally`.
         intervention_tol: the change of the torque [N m] above which a call counts as an
             intervention.
+        tool_weight: ``1/a`` [s²/m] of the tool metric (:func:`tool_metric`), when the QP has
+            metric rows (``qp.metric``); unused otherwise.
     """
 
     arm: tuple
@@ -331,6 +348,7 @@ class StepBuffers(NamedTuple):
     qp: tuple
     tally: Tally
     intervention_tol: float
+    tool_weight: float
 
 
 @njit(**_opts)
@@ -339,7 +357,8 @@ def filter_substep(stage, tau_nom, tau, buffers):
     environment's compiled policy step, and :meth:`~c3bf_gym.safety.SafetyController.__call__`
     through :func:`filter_substep_at`): the rows
     (:func:`~c3bf_gym.safety._rows.filter_rows`, whose arguments ``stage`` … ``b`` are),
-    the QP (:func:`solve_call` on ``qp``) in the scaled torque ``τ / scale``, :func:`hook_post`, which writes
+    the tool metric when the QP has one (:func:`tool_metric`, on the tool site's dynamics), the
+    QP (:func:`solve_call` on ``qp``) in the scaled torque ``τ / scale``, :func:`hook_post`, which writes
     the torque into ``tau``, and :func:`record` of the outcome into ``tally``.
 
     Returns the status, one of :func:`~c3bf_gym.safety._qp.solve_rows`' codes (invalid input, < 0,
@@ -347,8 +366,11 @@ def filter_substep(stage, tau_nom, tau, buffers):
     (:func:`record`'s :data:`GAIN_RAISED`) returned as :data:`~c3bf_gym.safety._qp.SOLVED`: the
     callers (an environment's loop, ``on_infeasible="raise"``) stop on the others.
     """
-    arm, obstacles, params, A, b, scale, limit, qp, tally, intervention_tol = buffers
+    arm, obstacles, params, A, b, scale, limit, qp, tally, intervention_tol, tool_weight = buffers
     m, min_h, inside, n_sensed = filter_rows(stage, arm, obstacles, params, A, b, tally.row_h)
+    if qp.metric.shape[0] > 0:
+        tool_site_dynamics(arm.site, ArmMotion(arm.cdof, arm.cdof_dot, arm.com, arm.qvel, arm.Minv, arm.qacc_free))
+        tool_metric(arm.site.packed[0, :, 3:], params.dofs, scale, tool_weight, qp.metric)
     n_floor, n_self = params.floor_ends.shape[0], params.self_pairs.shape[0] + params.fixed_capsules.shape[0]
     n_fixed = n_floor + n_self + (4 * params.dofs.shape[0] if params.joint_rows else 0)
     stride = 2 if params.guard.present else 1  # obstacle rows: barrier, guard, barrier, guard, ... beside a guard

@@ -14,12 +14,16 @@ from c3bf_gym import validation
 from c3bf_gym.safety.barriers import BARRIERS, C3BF, Barrier, make_barrier
 
 __all__ = [
-    "DEFAULT_FILTER", "FILTERS", "FilterConfig", "GUARD_GAMMA", "GUARDS", "ON_INFEASIBLE", "POINTS", "WEIGHTS",
+    "DEFAULT_FILTER", "FILTERS", "FilterConfig", "GUARD_GAMMA", "GUARDS", "ON_INFEASIBLE", "POINTS",
+    "TOOL_ACCELERATION", "WEIGHTS",
 ]
 
 POINTS = ("whole_arm", "ee")
 ON_INFEASIBLE = ("relax", "raise")
-WEIGHTS = ("limits", "identity")
+WEIGHTS = ("limits", "identity", "tool")
+#: The tool metric's ``a`` [m/s²] (``FilterConfig.tool_acceleration``) when none is given: chosen by
+#: the metric's probe (docs/design-decisions.md, "The QP metric: what the tool feels").
+TOOL_ACCELERATION = 10.0
 #: ``FilterConfig.guard``'s named choices besides a Barrier instance and the barrier names.
 GUARDS = ("auto", None, "none")
 
@@ -92,8 +96,22 @@ class FilterConfig:
             not in the filter's model, so a link pressed against another could be pushed past
             the rows. True (the default) adds those rows; a model whose links cannot collide with
             each other (the UR5e's and the Panda's here) has none either way.
-        weight: the QP metric: ``"limits"`` (W = diag(1/τ_max²): relative changes weigh the same
-            on every joint) or ``"identity"`` (the paper's plain ‖τ − τ_nom‖²).
+        weight: the QP metric, what a change of the nominal torque costs: ``"limits"``
+            (``‖u − u_nom‖²`` in the scaled torque ``u = τ / τ_max``: relative changes weigh the
+            same on every joint), ``"identity"`` (the paper's plain ``‖τ − τ_nom‖²``) or
+            ``"tool"`` (``(u − u_nom)ᵀ (I + GᵀG / a²) (u − u_nom)``, ``G = J (M + hD)⁻¹
+            diag(τ_max)`` the tool site's acceleration per unit of ``u`` and ``a`` =
+            ``tool_acceleration``: the ``"limits"`` metric, plus a cost on what the correction
+            does to the tool's acceleration. Of the safe torques it prefers those that move the
+            links the obstacles press on and leave the tool where the nominal torque takes it:
+            a redundant arm has joint motions the tool does not feel. The rows, their
+            priorities and so the safety are the same in every metric; only which safe torque
+            is taken changes. Needs a tool site).
+        tool_acceleration: ``a`` of the ``"tool"`` metric [m/s²], > 0: a change of the tool's
+            acceleration by ``a`` costs as much as a change of one joint's torque by its
+            limit. Smaller: the tool held more firmly, the other joints spent more freely.
+            None: :data:`TOOL_ACCELERATION` with ``weight="tool"``; must be None with any other
+            weight.
         on_infeasible: what happens when no torque within the limits satisfies every row:
             ``"relax"`` (the rows give way by priority, the barrier's first, and the step is
             reported: :mod:`c3bf_gym.safety.priority_qp`) or
@@ -107,7 +125,8 @@ class FilterConfig:
             out of its range, or inconsistent settings (a gain beside a Barrier instance, a
             ``guard_gamma`` without a named guard, a ``joint_range_reserve`` or
             ``nominal_speed_fraction`` without ``joint_limits``, a ``nominal_speed_fraction``
-            above ``joint_speed_fraction``, an ``allowance_level`` without a guard).
+            above ``joint_speed_fraction``, an ``allowance_level`` without a guard, a
+            ``tool_acceleration`` without ``weight="tool"``).
     """
 
     barrier: str | Barrier = "c3bf"
@@ -125,7 +144,8 @@ class FilterConfig:
     allowance_level: bool = False
     floor_gamma: float = 10.0
     self_collision: bool = True
-    weight: Literal["limits", "identity"] = "limits"
+    weight: Literal["limits", "identity", "tool"] = "limits"
+    tool_acceleration: float | None = None
     on_infeasible: Literal["relax", "raise"] = "relax"
     intervention_tol: float = 1e-3
 
@@ -182,6 +202,12 @@ class FilterConfig:
         set_(self, "floor_gamma", check.number("floor_gamma", self.floor_gamma, low=0.0, low_open=True, unit="1/s"))
         set_(self, "self_collision", check.boolean("self_collision", self.self_collision))
         check.choice("weight", self.weight, WEIGHTS)
+        if self.tool_acceleration is not None:
+            if self.weight != "tool":
+                raise ValueError(f"tool_acceleration={self.tool_acceleration!r} was given with weight={self.weight!r}: "
+                                 "it sets the 'tool' metric's a (weight='tool')")  # fmt: skip
+            set_(self, "tool_acceleration", check.number("tool_acceleration", self.tool_acceleration, low=0.0,
+                                                         low_open=True, unit="m/s^2"))  # fmt: skip
         check.choice("on_infeasible", self.on_infeasible, ON_INFEASIBLE)
         set_(self, "intervention_tol", check.number("intervention_tol", self.intervention_tol, low=0.0, unit="N m"))
 
@@ -213,6 +239,13 @@ class FilterConfig:
             return self.barrier
         gains = self.guard_object().gamma
         return f"{self.barrier}+{guard}" + ("" if gains == GUARD_GAMMA else f"{gains:g}")
+
+    def resolved_tool_acceleration(self) -> float | None:
+        """The ``"tool"`` metric's ``a`` [m/s²]: ``tool_acceleration``, or
+        :data:`TOOL_ACCELERATION` when that is None; None with another weight."""
+        if self.weight != "tool":
+            return None
+        return TOOL_ACCELERATION if self.tool_acceleration is None else self.tool_acceleration
 
     def resolved_guard(self) -> str | Barrier | None:
         """The guard itself: ``"auto"`` resolved against the barrier (``"hocbf"`` beside the C3BF)."""

@@ -210,6 +210,9 @@ def _checked_arguments(model: mujoco.MjModel, robot: RobotDescription, obstacles
     if config.points == "ee" and robot.site_id < 0:
         raise UnsupportedModelError("points='ee' protects the tool site, and the robot has none: pass site= to "
                                     "RobotDescription.from_model")  # fmt: skip
+    if config.weight == "tool" and robot.site_id < 0:
+        raise UnsupportedModelError("weight='tool' weighs the tool site's acceleration, and the robot has none: pass "
+                                    "site= to RobotDescription.from_model, or choose weight='limits'")  # fmt: skip
     if envelope is not None and not isinstance(envelope, FilterEnvelope):
         raise TypeError(f"envelope must be a FilterEnvelope or None, got {type(envelope).__name__}")
     return config
@@ -355,11 +358,15 @@ class SafetyController:
         # joint limits and the floor
         barrier_rows = n_obstacles * points_count if guard is not None else 0
         max_rows = n_obstacles * self._per_obstacle + self._n_fixed_rows
-        # The QP runs in normalised torque u = τ / s with s = τ_max ("limits": W = diag(1/τ_max²)
-        # becomes the identity, box ±1) or s = 1 ("identity"): a well-conditioned problem either way.
-        self._scale = limit.copy() if weight == "limits" else np.ones(n)
+        # The QP runs in normalised torque u = τ / s with s = τ_max ("limits" and "tool": W = diag(1/τ_max²)
+        # becomes the identity, box ±1) or s = 1 ("identity"): a well-conditioned problem either way. The
+        # "tool" metric adds (G/a)ᵀ(G/a) to the identity, its 3 rows written at every call (_step.tool_metric).
+        self._scale = np.ones(n) if weight == "identity" else limit.copy()
+        tool_acceleration = config.resolved_tool_acceleration()
+        self._tool_weight = 0.0 if tool_acceleration is None else 1.0 / tool_acceleration
         self.qp = PriorityQP(n, -limit / self._scale, limit / self._scale, max_rows - barrier_rows, barrier_rows,
-                             reserve, config.allowance_level and barrier_rows > 0, speed_reserve)
+                             reserve, config.allowance_level and barrier_rows > 0, speed_reserve,
+                             metric_rows=3 if weight == "tool" else 0)
         self._limit = limit
         # rows on the generalised force of every dof (the QP reads the arm's columns, self._dofs)
         self._A = np.zeros((max_rows, model.nv))
@@ -689,7 +696,7 @@ class SafetyController:
         the kernel's dispatch."""
         self._bound = _step.StepBuffers(self.arm.kernel_arrays(self.data), self._obstacle_arrays, self._params,
                                         self._A, self._b, self._scale, self._limit, self.qp.buffers, self._tally,
-                                        float(self.intervention_tol))
+                                        float(self.intervention_tol), self._tool_weight)
         self._filter_substep = None  # its entry point and handle, if any, were for the buffers before
         return self._bound
 
@@ -778,6 +785,9 @@ class SafetyController:
             A, b, min_h, inside, n_sensed = self.rows()
             m = len(b)
             qp = self.qp.buffers
+            if self.qp.metric_rows:
+                _step.tool_metric(self.arm.site_dynamics(self.data).G[0], self._dofs, self._scale, self._tool_weight,
+                                  qp.metric)  # fmt: skip
             status, iterations, active, slack = _step.solve_call(tau_nom, A, b, self._scale, self._dofs,
                                                                  self._layout(m), self._tally, qp)  # fmt: skip
             if status >= 0:

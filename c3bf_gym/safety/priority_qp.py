@@ -61,6 +61,9 @@ class PriorityQP:
             filter's), or None: none.
         allowance_level: hold the barrier's rows in two levels below the reserve: loosened by the
             allowance each solve gives them (:meth:`solve_scaled`), then as written.
+        metric_rows: ``r``, the rows of the cost's ``W`` each solve gives (:meth:`solve_scaled`):
+            the cost is ``½ (u − u_nom)ᵀ (I + WᵀW) (u − u_nom)``; 0 (the default): ``½ ‖u −
+            u_nom‖²``.
 
     Which row is which is given per solve: of the rows, those with index ``k <
     n_obstacle_rows`` and ``k % stride == 0`` are the barrier's (``stride`` 2 when each barrier
@@ -73,13 +76,17 @@ class PriorityQP:
 
     Raises:
         ValueError: a reserve or speed reserve that is not (2n,), finite and >= 0, or one with
-            fewer than 4n priority-1 rows; an allowance level without barrier rows.
+            fewer than 4n priority-1 rows; an allowance level without barrier rows; a negative
+            ``metric_rows``.
     """
 
     def __init__(self, n: int, tau_min: np.ndarray, tau_max: np.ndarray, level1_rows: int, level2_rows: int,
                  reserve: np.ndarray | None = None, allowance_level: bool = False,
-                 speed_reserve: np.ndarray | None = None) -> None:
+                 speed_reserve: np.ndarray | None = None, metric_rows: int = 0) -> None:
         self.n = int(n)
+        if int(metric_rows) < 0:
+            raise ValueError(f"metric_rows must be >= 0, got {metric_rows}")
+        self.metric_rows = int(metric_rows)
         self._cols = np.arange(self.n, dtype=np.int64)  # the rows' columns are the torque's, in order
         self.tau_min = np.array(tau_min, dtype=np.float64)
         self.tau_max = np.array(tau_max, dtype=np.float64)
@@ -109,7 +116,7 @@ class PriorityQP:
                                      np.array(capacity, np.int64), self.tau_min, self.tau_max,
                                      np.zeros(n), np.zeros(max(rows, 1)), np.zeros(max(rows, 1)),
                                      np.ones(2, np.int64), np.zeros(1, np.int64), self._reserve,
-                                     np.zeros(max(rows, 1)))
+                                     np.zeros(max(rows, 1)), np.zeros((self.metric_rows, n)), np.zeros(n))
 
     def reset(self) -> None:
         """Forget the warm start: the next solve starts from an empty working set, so a sequence
@@ -120,11 +127,11 @@ class PriorityQP:
     def __reduce__(self):
         """Pickled as its arguments: the copy sets up its own DAQP workspaces (cold)."""
         return PriorityQP, (self.n, self.tau_min, self.tau_max, *self._levels, self._given[0], self._allowance_level,
-                            self._given[1])
+                            self._given[1], self.metric_rows)
 
     def solve_scaled(self, tau_nom: np.ndarray, A: np.ndarray, b: np.ndarray, scale: np.ndarray,
                      n_obstacle_rows: int | None = None, stride: int = 1,
-                     allowance: np.ndarray | None = None) -> QPResult:
+                     allowance: np.ndarray | None = None, metric: np.ndarray | None = None) -> QPResult:
         """Solve for ``u`` with rows ``(A s) u ≥ b``; ``tau_nom`` in torque units.
 
         Args:
@@ -137,12 +144,15 @@ class PriorityQP:
                 with an allowance level: when the rows conflict, the barrier's rows are held
                 loosened by it (after the rows of priority 1 and the reserve), and as written only
                 after that (entries of the other rows are ignored). None: 0 for every row.
+            metric: (r, n) ``W`` of the cost ``½ (u − u_nom)ᵀ (I + WᵀW) (u − u_nom)``, ``r`` the
+                QP's ``metric_rows`` (given exactly when that is above 0).
 
         Raises:
             ValueError: wrong shapes, more rows of either priority than the capacity, fewer than
                 the joint limits' ``4n`` with a reserve, a stride below 1, NaN or inf in the input,
                 an allowance that is negative, not finite, not (m,), or given to a QP without an
-                allowance level.
+                allowance level; a metric that is not (r, n) or not finite, or one given to a QP
+                built without metric rows (or none given to one with).
         """
         start = time.perf_counter()
         tau_nom = np.ascontiguousarray(tau_nom, dtype=np.float64)
@@ -171,6 +181,15 @@ class PriorityQP:
             if allowance.shape != (m,) or not np.all(np.isfinite(allowance)) or np.any(allowance < 0.0):
                 raise ValueError(f"allowance must be finite, >= 0 and of shape ({m},), got {allowance!r}")
         self.buffers.allowance[:m] = 0.0 if allowance is None else allowance
+        if (metric is None) != (self.metric_rows == 0):
+            raise ValueError(f"this QP was built with metric_rows={self.metric_rows}: pass metric (r, n) exactly "
+                             "when that is above 0")  # fmt: skip
+        if metric is not None:
+            metric = np.asarray(metric, dtype=np.float64)
+            if metric.shape != (self.metric_rows, self.n) or not np.all(np.isfinite(metric)):
+                raise ValueError(f"metric must be finite and of shape ({self.metric_rows}, {self.n}), got "
+                                 f"{metric!r}")  # fmt: skip
+            self.buffers.metric[:] = metric
         code, iterations, active, slack = _qp.solve_rows(tau_nom, A, b, scale, self._cols, int(n_obstacle_rows),
                                                          int(stride), self.buffers)
         error = bad_input_error(code)
