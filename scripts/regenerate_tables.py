@@ -177,6 +177,10 @@ TRAINING_TABLES = (
     # observation, c3bf-gym train --observe-forecast (code 7615cf2), seeds 0 and 1
     ("training_table_sets_ur5e_forecast.md", "sets_forecast/sac_*", "final_eval.json",
      "training_curves_sets_ur5e_forecast.png"),
+    # the default filter's rows under the QP's tool metric, c3bf-gym train --filter-set weight=tool (code a013db5,
+    # a = 10 m/s²), seeds 0-4
+    ("training_table_sets_tool_metric_ur5e.md", "sets_tool_metric/sac_*", "final_eval.json",
+     "training_curves_sets_tool_metric_ur5e.png"),
 )
 
 

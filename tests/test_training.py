@@ -482,20 +482,27 @@ def test_the_open_loop_oracle_wins_an_episode_the_zero_action_loses(monkeypatch,
     assert summary["by_scenario"] == {"static": {"episodes": 1, "zero_action": 0.0, "zero_action_or_searched": 1.0}}
 
 
-def test_the_tool_metric_probe_holds_the_goal_where_the_default_filter_pushes_the_tool_off(capsys):
+@pytest.mark.parametrize("in_filter", [False, True])
+def test_the_tool_metric_probe_holds_the_goal_where_the_default_filter_pushes_the_tool_off(capsys, in_filter):
     """train/tool_metric.py: on evaluation episode 192 (`multi`) the zero action under the default
     filter ends 6.6 cm from the goal; with the probe's metric (corrections the tool feels cost
-    more) it ends within the tolerance, with no collision by the environment's own distances."""
+    more), or the filter's own (``--in-filter``: ``weight="tool"``), it ends within the tolerance,
+    with no collision by the environment's own distances."""
     spec = importlib.util.spec_from_file_location("tool_metric", Path(__file__).parents[1] / "train" / "tool_metric.py")
     probe = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(probe)
-    default, tool = probe.main(["--episodes", "192", "--tool-acceleration", "10"])
+    default, tool = probe.main(["--episodes", "192", "--tool-acceleration", "10"] + ["--in-filter"] * in_filter)
     (lost,), (won,) = default["episodes"], tool["episodes"]
     assert lost["scenario"] == won["scenario"] == "multi"
     assert not lost["success"] and lost["final"] > 0.05 and lost["collisions"] == 0
     assert won["success"] and won["final"] < 0.05 and won["collisions"] == 0
-    assert tool["calls"] == 2_500 and tool["fallbacks"] < tool["calls"] // 10
-    assert "default filter: multi 0/1 (0 collided)" in capsys.readouterr().out
+    if in_filter:
+        assert tool["calls"] is None and tool["in_filter"]
+    else:
+        assert tool["calls"] == 2_500 and tool["fallbacks"] < tool["calls"] // 10
+    out = capsys.readouterr().out
+    assert "default filter: multi 0/1 (0 collided)" in out
+    assert ("a = 10 (in the filter): multi 1/1" in out) == in_filter
     with pytest.raises(SystemExit):
         probe.main(["--tool-acceleration", "0"])
 

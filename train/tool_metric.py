@@ -25,6 +25,11 @@ the filter. This is a measurement, not the filter: it runs in Python at every ph
     python train/tool_metric.py --tool-acceleration 1 --episodes 43 94 181
     python train/tool_metric.py --model runs/RUN/model.zip  # a trained recipe agent instead of the zero action
 
+``--in-filter`` runs the filter's own metric instead (``FilterConfig(weight="tool",
+tool_acceleration=a)``, compiled, with the filter's levels of priority), not the probe's hook:
+
+    python train/tool_metric.py --in-filter --tool-acceleration 3 10
+
 ``--model`` runs a Stable-Baselines3 model trained on the recipe's environment (its deterministic
 action) in place of the zero action: an agent trained under the default filter, under the probe's
 metric, which it never trained with.
@@ -85,16 +90,21 @@ class ToolMetric:
         return u * limit
 
 
-def run(robot: str, episodes: list[int], tool_acceleration: float | None, model=None) -> dict:
+def run(robot: str, episodes: list[int], tool_acceleration: float | None, model=None,
+        in_filter: bool = False) -> dict:
     """The zero action (or ``model``'s deterministic action) on ``episodes`` (indices from
-    ``FINAL_EVAL_SEED``) under the default filter (``tool_acceleration`` None) or the probe's
-    metric: per-episode records and the counts."""
-    env = build_env("random", **TrainConfig(robot=robot).env_options())
+    ``FINAL_EVAL_SEED``) under the default filter (``tool_acceleration`` None), the probe's
+    metric, or (``in_filter``) the filter's own ``"tool"`` metric: per-episode records and the
+    counts."""
+    settings = {}
+    if in_filter and tool_acceleration is not None:
+        settings = {"weight": "tool", "tool_acceleration": tool_acceleration}
+    env = build_env("random", **TrainConfig(robot=robot, filter_settings=settings).env_options())
     if model is not None and model.observation_space.shape != env.observation_space.shape:
         raise ValueError(f"the model sees observations of shape {model.observation_space.shape}, the recipe's "
                          f"{robot} environment gives {env.observation_space.shape}: not a recipe run")  # fmt: skip
     hook = None
-    if tool_acceleration is not None:
+    if tool_acceleration is not None and not in_filter:
         hook = ToolMetric(env, tool_acceleration)
         env.unwrapped.remove_torque_hook("filter")
         env.unwrapped.add_torque_hook(hook, "filter")
@@ -107,7 +117,7 @@ def run(robot: str, episodes: list[int], tool_acceleration: float | None, model=
         records.append({"episode": episode, "scenario": env.unwrapped.episode_scenario.name,
                         "final": round(final, 4), "collisions": collisions, "success": success})  # fmt: skip
     env.close()
-    return {"tool_acceleration": tool_acceleration, "seconds": round(time.perf_counter() - clock, 1),
+    return {"tool_acceleration": tool_acceleration, "in_filter": in_filter, "seconds": round(time.perf_counter() - clock, 1),
             "calls": hook.calls if hook else None, "fallbacks": hook.fallbacks if hook else None,
             "episodes": records}  # fmt: skip
 
@@ -132,6 +142,8 @@ def main(argv: list[str] | None = None) -> list[dict]:
     parser.add_argument("--tool-acceleration", type=float, nargs="+", default=[10.0], metavar="A",
                         help="the metric's a [m/s^2], one run each, beside the default filter's")  # fmt: skip
     parser.add_argument("--model", help="a recipe run's SB3 SAC model.zip, in place of the zero action")
+    parser.add_argument("--in-filter", action="store_true",
+                        help="the filter's own weight='tool' metric (with its levels), not the probe's hook")  # fmt: skip
     args = parser.parse_args(argv)
     if any(not a > 0.0 for a in args.tool_acceleration) or any(e < 0 for e in args.episodes):
         parser.error("--tool-acceleration must be > 0 m/s^2 and --episodes >= 0")
@@ -142,7 +154,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
         model = SAC.load(args.model, device="cpu")
     results = []
     for tool_acceleration in (None, *args.tool_acceleration):
-        result = run(args.robot, args.episodes, tool_acceleration, model)
+        result = run(args.robot, args.episodes, tool_acceleration, model, args.in_filter)
         results.append(result)
         print(json.dumps(result), flush=True)
     for result in results:
@@ -152,6 +164,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
             wins[record["scenario"]] += record["success"]
             collided[record["scenario"]] += record["collisions"] > 0
         label = "default filter" if result["tool_acceleration"] is None else f"a = {result['tool_acceleration']:g}"
+        label += " (in the filter)" if result["in_filter"] and result["tool_acceleration"] is not None else ""
         print(f"{label}: " + ", ".join(f"{name} {wins[name]}/{counts[name]} ({collided[name]} collided)"
                                        for name in counts), flush=True)  # fmt: skip
     return results
