@@ -208,6 +208,42 @@ def test_standalone_fused_and_per_class_paths_agree(points, barrier, guard, obst
     assert np.abs(A1[:obstacle_rows]).max() > 0.0  # the obstacle rows are there, not zeros on both paths
 
 
+def test_the_tool_metric_on_a_users_arm_is_the_qp_in_that_metric():
+    """``weight="tool"`` through the standalone API, on a 3-joint arm of the user's: the torque is
+    proxsuite's optimum of ``½ (u − u_nom)ᵀ (I + GᵀG / a²) (u − u_nom)`` over the filter's own
+    rows and the box (``u = τ / τ_max``, ``G`` from MuJoCo's site Jacobian and mass matrix), and
+    not the ``"limits"`` metric's."""
+    proxqp = pytest.importorskip("proxsuite").proxqp
+    model = _model()
+    data = mujoco.MjData(model)
+    data.qpos[:] = (0.3, -0.6, 0.9)
+    data.qvel[:] = (0.5, -1.0, 0.7)
+    mujoco.mj_forward(model, data)
+    robot = RobotDescription.from_model(model, site="tool", joint_speed_limit=3.0)
+    obstacles = Obstacles(1, position=np.array([[0.45, 0.1, 0.75]]), velocity=np.array([[-0.2, 0.0, -0.4]]),
+                          radius=np.array([0.05]), active=np.ones(1, bool))
+    tau_nom = np.array([20.0, -30.0, 10.0])
+    config = FilterConfig(sensing_radius=None, weight="tool", tool_acceleration=2.0, on_infeasible="raise")
+    controller = SafetyController(model, data, robot, obstacles, config)
+    A, b, *_ = (x.copy() for x in controller.rows()[:2])
+    tau, report = controller.filter(tau_nom)
+    assert report.feasible and report.correction > 0.0
+    limit = robot.torque_limit
+    jac, M = np.zeros((3, model.nv)), np.zeros((model.nv, model.nv))
+    mujoco.mj_jacSite(model, data, jac, None, robot.site_id)
+    mujoco.mj_fullM(model, data, M)
+    G = jac @ np.linalg.inv(M + np.diag(model.opt.timestep * model.dof_damping)) * limit
+    H = np.eye(3) + G.T @ G / 2.0**2
+    u_nom = tau_nom / limit
+    result = proxqp.dense.solve(H, -H @ u_nom, None, None, np.vstack([A * limit, np.eye(3)]),
+                                np.concatenate([b, -np.ones(3)]), np.concatenate([np.full(len(b), 1e20), np.ones(3)]),
+                                eps_abs=1e-10, eps_rel=0.0)  # fmt: skip
+    np.testing.assert_allclose(tau / limit, result.x, atol=1e-6)
+    limits, _ = SafetyController(model, data, robot, obstacles, config.replace(weight="limits",
+                                                                               tool_acceleration=None)).filter(tau_nom)
+    assert np.linalg.norm((limits - tau) / limit) > 1e-3
+
+
 def test_obstacle_arrays_given_as_strided_views_filter_as_their_copies():
     """Obstacles may keep their arrays as views of a simulator's state, which need not be contiguous.
     The controller's call from Python hands contiguous buffers to compiled code by address and takes
@@ -252,6 +288,9 @@ def test_controller_input_errors():
     with pytest.raises(UnsupportedModelError, match="points='ee'.*site"):
         SafetyController(model, data, RobotDescription.from_model(model, joint_speed_limit=3.0), Obstacles(1),
                          FilterConfig(points="ee"))
+    with pytest.raises(UnsupportedModelError, match="weight='tool'.*site=.*weight='limits'"):
+        SafetyController(model, data, RobotDescription.from_model(model, joint_speed_limit=3.0), Obstacles(1),
+                         FilterConfig(weight="tool"))
     obstacles = Obstacles(2)
     with pytest.raises(ValueError, match="radius must be a finite number > 0"):
         obstacles.set(0, (0, 0, 1), radius=0.0)
