@@ -178,9 +178,11 @@ TRAINING_TABLES = (
     ("training_table_sets_ur5e_forecast.md", "sets_forecast/sac_*", "final_eval.json",
      "training_curves_sets_ur5e_forecast.png"),
     # the default filter's rows under the QP's tool metric, c3bf-gym train --filter-set weight=tool (code a013db5,
-    # a = 10 m/s²), seeds 0-4
+    # a = 10 m/s²), seeds 0-4, both arms
     ("training_table_sets_tool_metric_ur5e.md", "sets_tool_metric/sac_*", "final_eval.json",
      "training_curves_sets_tool_metric_ur5e.png"),
+    ("training_table_sets_tool_metric_panda.md", "sets_tool_metric/panda_sac_*", "final_eval.json",
+     "training_curves_sets_tool_metric_panda.png"),
 )
 
 
