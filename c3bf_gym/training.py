@@ -35,6 +35,7 @@ import numpy as np
 from c3bf_gym import validation
 from c3bf_gym.envs.reach import ROBOTS, observation_layout
 from c3bf_gym.safety import DEFAULT_FILTER, FILTERS, FilterConfig
+from c3bf_gym.safety.config import TOOL_ACCELERATION
 from c3bf_gym.wrappers import (ActionPenalty, AppliedAction, ArmClearance, ArmContactTime, CartesianImpedanceAction,
                                ArmForecast, CorrectionPenalty, ElapsedTime, FilterFeedback, SafetyFilter, default_impedance)  # fmt: skip
 
@@ -194,6 +195,8 @@ def filter_label(filter: str | FilterConfig | None, guard_gamma: float | None = 
         return "none"
     if config.name is None:
         raise ValueError("a filter built on Barrier instances has no name to label a run with")
+    if config.tool_acceleration == TOOL_ACCELERATION:  # what None reads as: one filter, one label
+        config = config.replace(tool_acceleration=None)
     rows = FilterConfig(barrier=config.barrier, guard=config.guard, guard_gamma=config.guard_gamma)
     changed = [f"{field.name}={_setting_text(getattr(config, field.name))}" for field in fields(config)
                if getattr(config, field.name) != getattr(rows, field.name)]  # fmt: skip

@@ -59,7 +59,7 @@ def test_feasible_problems_match_proxsuite(seed):
 
 
 def test_a_metric_matches_proxsuite_and_a_fresh_workspace():
-    """The cost ``½ (u − u_nom)ᵀ (I + WᵀW) (u − u_nom)`` (the filter's tool metric): one warm
+    """The cost ``½ (u − u_nom)ᵀ (I + KᵀK) (u − u_nom)`` (the filter's tool metric): one warm
     workspace through problems whose metric changes at every solve gives proxsuite's answer in
     that metric, and a fresh workspace's, and not the identity metric's."""
     rng = np.random.default_rng(11)
@@ -88,7 +88,9 @@ def test_a_metric_matches_proxsuite_and_a_fresh_workspace():
 
 def test_a_metric_keeps_the_rows_priorities():
     """Conflicting rows with a metric: the prioritised solve still holds level 1 wherever the box
-    allows, and a warm workspace gives a fresh one's answers."""
+    allows, gives what ``daqp.solve`` (DAQP's documented Python interface) gives on the same
+    levels in that metric, and a warm workspace gives a fresh one's answers."""
+    daqp = pytest.importorskip("daqp")
     rng = np.random.default_rng(5)
     n, checked = 6, 0
     warm = PriorityQP(n, -np.ones(n), np.ones(n), 10, 10, metric_rows=3)
@@ -108,6 +110,14 @@ def test_a_metric_keeps_the_rows_priorities():
         checked += 1
         assert ((A1 @ result.tau - b1) / np.linalg.norm(A1, axis=1)).min() >= -1e-6
         assert np.all(np.abs(result.tau) <= 1.0)
+        H = np.eye(n) + W.T @ W
+        norm1, norm2 = np.linalg.norm(A1, axis=1), np.linalg.norm(A2, axis=1)
+        rows = np.vstack([A1 / norm1[:, None], A2 / norm2[:, None]])  # level 1, then the barrier's
+        x, _, flag, _ = daqp.solve(H, -H @ tau_nom, rows, np.concatenate([np.ones(n), np.full(m1 + m2, 1e30)]),
+                                   np.concatenate([-np.ones(n), b1 / norm1, b2 / norm2]), np.zeros(n + m1 + m2, np.intc),
+                                   break_points=np.array([n, n + m1, n + m1 + m2], np.intc))  # fmt: skip
+        assert flag >= 1
+        np.testing.assert_allclose(result.tau, x, atol=1e-6)
     assert checked > 10
 
 
@@ -116,7 +126,8 @@ def test_a_metric_keeps_the_rows_priorities():
     (0, np.zeros((3, 2)), "metric_rows=0: pass metric"),
     (3, np.zeros((2, 2)), r"shape \(3, 2\)"),
     (3, np.full((3, 2), np.nan), "finite"),
-    (-1, None, "metric_rows must be >= 0"),
+    (-1, None, "metric_rows must be an integer >= 0"),
+    (2.5, None, "metric_rows must be an integer >= 0"),
 ])
 def test_a_bad_metric_is_refused(rows, metric, message):
     with pytest.raises(ValueError, match=message):

@@ -593,6 +593,9 @@ def test_filter_settings_build_the_run_filter_and_name_it():
                            "allowance_level=true]_random_s0")  # fmt: skip
     assert filter_label("c3bf+hocbf", 20.0, {"margin": 0.02}) == "c3bf+hocbf20"  # a default is no change
     assert filter_label("c3bf", None, {"gamma": 2, "weight": "identity"}) == "c3bf[gamma=2,weight=identity]"
+    tool = filter_label("c3bf+hocbf", None, {"weight": "tool"})  # a = 10 is what None reads as: one filter, one name
+    assert tool == filter_label("c3bf+hocbf", None, {"weight": "tool", "tool_acceleration": 10.0}) == "c3bf+hocbf[weight=tool]"
+    assert filter_label("c3bf+hocbf", None, {"weight": "tool", "tool_acceleration": 3}) == "c3bf+hocbf[weight=tool,tool_acceleration=3]"
     assert filter_label("c3bf", None, {"margin": 0.0123456789}) == "c3bf[margin=0.0123456789]"  # exact
     env = make_env("none", config.filter_config(), "residual", seed=0)()
     assert env.get_wrapper_attr("config").allowance_level

@@ -30,7 +30,8 @@ ones (``daqp_default_settings``, all the filter uses) and frees them with the wo
 
 A DAQP whose structs or calls no longer mean what they meant is caught at import: the module
 solves two small QPs through this binding (bounds and general rows on a workspace sized for more
-rows than it is given; and two levels of priority that conflict) and compares them with
+rows than it is given; and two levels of priority that conflict; each also with a dense ``H``
+written into the warm workspace) and compares them with
 ``daqp.solve``, DAQP's documented Python interface, on the same problems. A difference raises
 ``ImportError`` naming the installed daqp and what differed. (A change of ``DAQPProblem`` or
 ``DAQPResult`` themselves can crash that check instead: the layouts are what C code compiled

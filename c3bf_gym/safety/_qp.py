@@ -4,19 +4,24 @@ safety row, by priority (:func:`solve_rows`), on DAQP through its binding :mod:`
 In the scaled torque ``u = τ / s`` (``s`` the controller's scale, so the box is
 ``u_min ≤ u ≤ u_max``)::
 
-    minimise    ½ (u − u_nom)ᵀ H (u − u_nom),   H = I + WᵀW
+    minimise    ½ (u − u_nom)ᵀ H (u − u_nom),   H = I + KᵀK
     subject to  u_min ≤ u ≤ u_max            (the torque limits: always hard)
                 â_k u ≥ b̂_k,  k = 1 … m     (the rows A_k s u ≥ b_k divided by ‖A_k s‖:
                                               residuals in N·m)
 
-``W`` (``QPBuffers.metric``, (r, n)) is what the caller wants a correction to cost besides its
-own size: with the filter's tool metric (``FilterConfig.weight="tool"``), ``W = G / a``, the tool's
+``K`` (``QPBuffers.metric``, (r, n)) is what the caller wants a correction to cost besides its
+own size: with the filter's tool metric (``FilterConfig.weight="tool"``), ``K = G / a``, the tool's
 acceleration per unit of ``u`` over the acceleration ``a`` that costs as much as a unit of ``u``.
 A workspace with ``r = 0`` solves with ``H = I``, as DAQP was set up, and never refactors it.
 
 When no ``u`` in the box satisfies every row, the rows give way **by priority, not by weights**:
 DAQP's hierarchical mode satisfies each level as well as the levels above it allow (least squares
-of the level's violations), and only then minimises the cost. The levels:
+of the level's violations), and only then minimises the cost. DAQP measures a violation in its
+own form of the problem, where each row is normalised in the metric: row ``k``'s violation ``s_k``
+(row-normalised, as the residuals) counts as ``s_k / ‖â_k‖_{H⁻¹}``. With ``H = I`` that is
+``s_k`` itself; with a metric, a level's conflict is spread differently over its rows (a row
+along which the metric makes ``u`` dear, ``‖â_k‖_{H⁻¹}`` small, is held harder). The levels and
+which rows give way at all are the same in every metric. The levels:
 
 0. the torque box: hard;
 1. the joint position and speed limits, the floor, the arm's own capsule pairs and the distance guard;
@@ -124,7 +129,7 @@ class QPBuffers(NamedTuple):
             ≥ 0], set by the caller before each solve when ``capacity[2] > 0`` (read only then;
             other rows' entries are ignored): the allowance level holds ``A_k τ ≥ b_k −
             allowance[k]``.
-        metric: (r, n) ``W`` of the cost's ``H = I + WᵀW`` (the module docstring), set by the
+        metric: (r, n) ``K`` of the cost's ``H = I + KᵀK`` (the module docstring), set by the
             caller before each solve; (0, n): ``H = I``.
         u_nom: (n,) the last call's nominal ``u`` (the cost's linear term is ``−H u_nom``).
     """
@@ -158,20 +163,20 @@ def _clear(buffers, start, stop):
 @njit(**STEP_KERNEL_OPTIONS)
 def _load_cost(qp):
     """The cost of ``qp.u_nom``: ``f = −H u_nom`` into ``qp.plain``, and with a metric
-    (``qp.metric`` (r, n), ``r > 0``) ``H = I + WᵀW`` into both workspaces (which then need
+    (``qp.metric`` (r, n), ``r > 0``) ``H = I + KᵀK`` into both workspaces (which then need
     :data:`~c3bf_gym.safety._daqp.UPDATE_RINV`, :func:`_cost_mask`). Returns False when the metric
     is not finite (nothing else is usable then)."""
-    plain, W, u_nom = qp.plain, qp.metric, qp.u_nom
+    plain, K, u_nom = qp.plain, qp.metric, qp.u_nom
     n = u_nom.shape[0]
-    if W.shape[0] == 0:
+    if K.shape[0] == 0:
         for j in range(n):
             plain.f[j] = -u_nom[j]
         return True
     for i in range(n):
         for j in range(i, n):
             acc = 1.0 if i == j else 0.0
-            for r in range(W.shape[0]):
-                acc += W[r, i] * W[r, j]
+            for r in range(K.shape[0]):
+                acc += K[r, i] * K[r, j]
             if not math.isfinite(acc):
                 return False
             plain.H[i, j] = plain.H[j, i] = qp.hier.H[i, j] = qp.hier.H[j, i] = acc

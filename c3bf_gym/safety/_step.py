@@ -34,7 +34,7 @@ from c3bf_gym._capi import unpack
 # the on-disk cache of every kernel file's functions on all of them.
 from c3bf_gym.safety._dynamics import ArmMotion, tool_site_dynamics
 from c3bf_gym.safety._qp import ACTIVE_TOL, RELAXED, SOLVED, barrier_row, solve_rows
-from c3bf_gym.safety._rows import filter_rows
+from c3bf_gym.safety._rows import EE_POINTS, filter_rows
 
 _opts = STEP_KERNEL_OPTIONS
 
@@ -174,7 +174,7 @@ def set_allowances(allowance, row_h, gains, n_obstacle, stride):
 @njit(**_opts)
 def tool_metric(G, dofs, scale, weight, metric):
     """The filter's tool metric (``FilterConfig.weight="tool"``) into ``metric`` (3, n), the
-    ``W`` of the QP's cost ``H = I + WᵀW`` (:mod:`c3bf_gym.safety._qp`): ``W = G[:, dofs]
+    ``K`` of the QP's cost ``H = I + KᵀK`` (:mod:`c3bf_gym.safety._qp`): ``K = G[:, dofs]
     diag(scale) · weight``, with ``G`` (3, nv) the tool site's acceleration per unit of
     generalised force [m/s² per N m] (:func:`~c3bf_gym.safety._dynamics.tool_site_dynamics`),
     ``scale`` (n,) the torque scale and ``weight`` ``1/a`` [s²/m]. So a change of the scaled
@@ -369,7 +369,9 @@ def filter_substep(stage, tau_nom, tau, buffers):
     arm, obstacles, params, A, b, scale, limit, qp, tally, intervention_tol, tool_weight = buffers
     m, min_h, inside, n_sensed = filter_rows(stage, arm, obstacles, params, A, b, tally.row_h)
     if qp.metric.shape[0] > 0:
-        tool_site_dynamics(arm.site, ArmMotion(arm.cdof, arm.cdof_dot, arm.com, arm.qvel, arm.Minv, arm.qacc_free))
+        if params.points != EE_POINTS:  # (filter_rows computed the site's dynamics for its own rows)
+            tool_site_dynamics(arm.site, ArmMotion(arm.cdof, arm.cdof_dot, arm.com, arm.qvel, arm.Minv,
+                                                   arm.qacc_free))
         tool_metric(arm.site.packed[0, :, 3:], params.dofs, scale, tool_weight, qp.metric)
     n_floor, n_self = params.floor_ends.shape[0], params.self_pairs.shape[0] + params.fixed_capsules.shape[0]
     n_fixed = n_floor + n_self + (4 * params.dofs.shape[0] if params.joint_rows else 0)

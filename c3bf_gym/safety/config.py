@@ -15,7 +15,7 @@ from c3bf_gym.safety.barriers import BARRIERS, C3BF, Barrier, make_barrier
 
 __all__ = [
     "DEFAULT_FILTER", "FILTERS", "FilterConfig", "GUARD_GAMMA", "GUARDS", "ON_INFEASIBLE", "POINTS",
-    "TOOL_ACCELERATION", "WEIGHTS",
+    "MIN_TOOL_ACCELERATION", "TOOL_ACCELERATION", "WEIGHTS",
 ]
 
 POINTS = ("whole_arm", "ee")
@@ -24,6 +24,11 @@ WEIGHTS = ("limits", "identity", "tool")
 #: The tool metric's ``a`` [m/s²] (``FilterConfig.tool_acceleration``) when none is given: chosen by
 #: the metric's probe (docs/design-decisions.md, "The QP metric: what the tool feels").
 TOOL_ACCELERATION = 10.0
+#: The smallest ``tool_acceleration`` [m/s²]. The UR5e's and the Panda's tools move at up to 90 and
+#: 150 m/s² per unit of the scaled torque (``‖G‖₂``), so at 0.1 ``H = I + GᵀG / a²`` already has a
+#: condition number of about 10⁶: below it the QP grows ill-conditioned, for nothing the metric's
+#: measurements ask for (a = 1 did worse than 3 and 10).
+MIN_TOOL_ACCELERATION = 0.1
 #: ``FilterConfig.guard``'s named choices besides a Barrier instance and the barrier names.
 GUARDS = ("auto", None, "none")
 
@@ -104,14 +109,16 @@ class FilterConfig:
             ``tool_acceleration``: the ``"limits"`` metric, plus a cost on what the correction
             does to the tool's acceleration. Of the safe torques it prefers those that move the
             links the obstacles press on and leave the tool where the nominal torque takes it:
-            a redundant arm has joint motions the tool does not feel. The rows, their
-            priorities and so the safety are the same in every metric; only which safe torque
-            is taken changes. Needs a tool site).
-        tool_acceleration: ``a`` of the ``"tool"`` metric [m/s²], > 0: a change of the tool's
-            acceleration by ``a`` costs as much as a change of one joint's torque by its
-            limit. Smaller: the tool held more firmly, the other joints spent more freely.
-            None: :data:`TOOL_ACCELERATION` with ``weight="tool"``; must be None with any other
-            weight.
+            a redundant arm has joint motions the tool does not feel. The rows and their
+            priorities are the same in every metric: where every row can hold, only which safe
+            torque is taken changes; where the rows of a level conflict, DAQP measures their
+            violations in the metric, so the conflict spreads differently over that level's
+            rows (:mod:`c3bf_gym.safety._qp`). Needs a tool site).
+        tool_acceleration: ``a`` of the ``"tool"`` metric [m/s²], >= :data:`MIN_TOOL_ACCELERATION`:
+            a change of the tool's acceleration by ``a`` costs as much as a change of one
+            joint's torque by its limit. Smaller: the tool held more firmly, the other joints
+            spent more freely. None: :data:`TOOL_ACCELERATION` with ``weight="tool"``; must be
+            None with any other weight.
         on_infeasible: what happens when no torque within the limits satisfies every row:
             ``"relax"`` (the rows give way by priority, the barrier's first, and the step is
             reported: :mod:`c3bf_gym.safety.priority_qp`) or
@@ -206,8 +213,8 @@ class FilterConfig:
             if self.weight != "tool":
                 raise ValueError(f"tool_acceleration={self.tool_acceleration!r} was given with weight={self.weight!r}: "
                                  "it sets the 'tool' metric's a (weight='tool')")  # fmt: skip
-            set_(self, "tool_acceleration", check.number("tool_acceleration", self.tool_acceleration, low=0.0,
-                                                         low_open=True, unit="m/s^2"))  # fmt: skip
+            set_(self, "tool_acceleration", check.number("tool_acceleration", self.tool_acceleration,
+                                                         low=MIN_TOOL_ACCELERATION, unit="m/s^2"))  # fmt: skip
         check.choice("on_infeasible", self.on_infeasible, ON_INFEASIBLE)
         set_(self, "intervention_tol", check.number("intervention_tol", self.intervention_tol, low=0.0, unit="N m"))
 

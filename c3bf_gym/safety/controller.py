@@ -269,7 +269,7 @@ class SafetyController:
 
     Raises:
         ValueError / :class:`~c3bf_gym.safety.UnsupportedModelError`: a config that needs what
-            the robot lacks (joint limits, a tool site for ``points="ee"``).
+            the robot lacks (joint limits, a tool site for ``points="ee"`` or ``weight="tool"``).
 
     Attributes:
         config: the settings it was built with.
@@ -360,7 +360,7 @@ class SafetyController:
         max_rows = n_obstacles * self._per_obstacle + self._n_fixed_rows
         # The QP runs in normalised torque u = τ / s with s = τ_max ("limits" and "tool": W = diag(1/τ_max²)
         # becomes the identity, box ±1) or s = 1 ("identity"): a well-conditioned problem either way. The
-        # "tool" metric adds (G/a)ᵀ(G/a) to the identity, its 3 rows written at every call (_step.tool_metric).
+        # "tool" metric adds KᵀK, K = G/a in u, to the identity, its 3 rows written at every call (_step.tool_metric).
         self._scale = np.ones(n) if weight == "identity" else limit.copy()
         tool_acceleration = config.resolved_tool_acceleration()
         self._tool_weight = 0.0 if tool_acceleration is None else 1.0 / tool_acceleration

@@ -1,7 +1,8 @@
 """The filter's QP as a Python object: :class:`PriorityQP` sets up the two DAQP workspaces once
 (:mod:`c3bf_gym.safety._daqp`) and solves with the compiled priority algorithm
 :func:`c3bf_gym.safety._qp.solve_rows`, whose module states the problem: the torque closest to the
-nominal one within the torque box that keeps every safety row, the rows giving way by priority
+nominal one (in the scaled torque, ``‖u − u_nom‖²``, or with a metric ``(u − u_nom)ᵀ (I + KᵀK)
+(u − u_nom)``) within the torque box that keeps every safety row, the rows giving way by priority
 (joint limits, floor and guard before the barrier's rows) when no torque keeps them all.
 """
 
@@ -12,6 +13,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from c3bf_gym import validation
 from c3bf_gym.safety import _daqp, _qp
 
 __all__ = ["PriorityQP", "QPResult"]
@@ -61,9 +63,9 @@ class PriorityQP:
             filter's), or None: none.
         allowance_level: hold the barrier's rows in two levels below the reserve: loosened by the
             allowance each solve gives them (:meth:`solve_scaled`), then as written.
-        metric_rows: ``r``, the rows of the cost's ``W`` each solve gives (:meth:`solve_scaled`):
-            the cost is ``½ (u − u_nom)ᵀ (I + WᵀW) (u − u_nom)``; 0 (the default): ``½ ‖u −
-            u_nom‖²``.
+        metric_rows: ``r`` >= 0, the rows of the cost's ``K`` each solve gives
+            (:meth:`solve_scaled`): the cost is ``½ (u − u_nom)ᵀ (I + KᵀK) (u − u_nom)``; 0 (the
+            default): ``½ ‖u − u_nom‖²``.
 
     Which row is which is given per solve: of the rows, those with index ``k <
     n_obstacle_rows`` and ``k % stride == 0`` are the barrier's (``stride`` 2 when each barrier
@@ -76,17 +78,15 @@ class PriorityQP:
 
     Raises:
         ValueError: a reserve or speed reserve that is not (2n,), finite and >= 0, or one with
-            fewer than 4n priority-1 rows; an allowance level without barrier rows; a negative
-            ``metric_rows``.
+            fewer than 4n priority-1 rows; an allowance level without barrier rows; a
+            ``metric_rows`` that is not an integer >= 0.
     """
 
     def __init__(self, n: int, tau_min: np.ndarray, tau_max: np.ndarray, level1_rows: int, level2_rows: int,
                  reserve: np.ndarray | None = None, allowance_level: bool = False,
                  speed_reserve: np.ndarray | None = None, metric_rows: int = 0) -> None:
         self.n = int(n)
-        if int(metric_rows) < 0:
-            raise ValueError(f"metric_rows must be >= 0, got {metric_rows}")
-        self.metric_rows = int(metric_rows)
+        self.metric_rows = int(validation.integer("metric_rows", metric_rows, low=0))
         self._cols = np.arange(self.n, dtype=np.int64)  # the rows' columns are the torque's, in order
         self.tau_min = np.array(tau_min, dtype=np.float64)
         self.tau_max = np.array(tau_max, dtype=np.float64)
@@ -144,7 +144,7 @@ class PriorityQP:
                 with an allowance level: when the rows conflict, the barrier's rows are held
                 loosened by it (after the rows of priority 1 and the reserve), and as written only
                 after that (entries of the other rows are ignored). None: 0 for every row.
-            metric: (r, n) ``W`` of the cost ``½ (u − u_nom)ᵀ (I + WᵀW) (u − u_nom)``, ``r`` the
+            metric: (r, n) ``K`` of the cost ``½ (u − u_nom)ᵀ (I + KᵀK) (u − u_nom)``, ``r`` the
                 QP's ``metric_rows`` (given exactly when that is above 0).
 
         Raises:
