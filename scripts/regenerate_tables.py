@@ -183,6 +183,12 @@ TRAINING_TABLES = (
      "training_curves_sets_tool_metric_ur5e.png"),
     ("training_table_sets_tool_metric_panda.md", "sets_tool_metric/panda_sac_*", "final_eval.json",
      "training_curves_sets_tool_metric_panda.png"),
+    # SB3 PPO under the tool metric, c3bf-gym train --algo ppo --filter-set weight=tool (code a013db5), seeds 0-4,
+    # both arms, one run at a time beside the SAC sets
+    ("training_table_sets_tool_metric_ppo_ur5e.md", "sets_tool_metric_ppo/ppo_*", "final_eval.json",
+     "training_curves_sets_tool_metric_ppo_ur5e.png"),
+    ("training_table_sets_tool_metric_ppo_panda.md", "sets_tool_metric_ppo/panda_ppo_*", "final_eval.json",
+     "training_curves_sets_tool_metric_ppo_panda.png"),
 )
 
 
