@@ -8,6 +8,7 @@ They read an :class:`~c3bf_gym.safety.dynamics.ArmModel`'s packed capsule ends (
 
 from __future__ import annotations
 
+import mujoco
 import numpy as np
 
 from c3bf_gym.safety.dynamics import ArmModel, PointDynamics
@@ -147,3 +148,14 @@ def impedance_torque(ctrl, q, qd, x, xd, J, Jdot_qd, Minv, bias, x_des, xd_des=N
         Jbar = Minv @ J.T @ Lambda
         tau += tau0 - J.T @ (Jbar.T @ tau0)
     return tau
+
+
+def tool_acceleration_gain(model, data, site_id: int, scale: np.ndarray) -> np.ndarray:
+    """(3, nv) ``G = J (M + hD)⁻¹ diag(scale)``, the tool site's acceleration per unit of the
+    scaled torque, from MuJoCo's own ``mj_jacSite`` and ``mj_fullM`` (the filter's ``"tool"``
+    metric, independent of its kernels; ``hD`` the implicit damping, the arm the model's every
+    dof)."""
+    jac, M = np.zeros((3, model.nv)), np.zeros((model.nv, model.nv))
+    mujoco.mj_jacSite(model, data, jac, None, site_id)
+    mujoco.mj_fullM(model, data, M)
+    return jac @ np.linalg.inv(M + np.diag(model.opt.timestep * model.dof_damping)) * scale

@@ -371,13 +371,9 @@ def tool_metric_in_torque(u, tool_acceleration=10.0):
     """The ``"tool"`` metric's W in torque units, ``S⁻¹ (I + GᵀG / a²) S⁻¹`` with ``S =
     diag(τ_max)`` and ``G = J (M + hD)⁻¹ S``, from MuJoCo's own site Jacobian and mass matrix
     (independent of the filter's kernels; the arm is the model's every dof)."""
-    m, d = u.model, u.data
-    jac, M = np.zeros((3, m.nv)), np.zeros((m.nv, m.nv))
-    mujoco.mj_jacSite(m, d, jac, None, u.ee_site_id)
-    mujoco.mj_fullM(m, d, M)
-    G = jac @ np.linalg.inv(M + np.diag(m.opt.timestep * m.dof_damping)) * u.torque_limit
+    G = reference.tool_acceleration_gain(u.model, u.data, u.ee_site_id, u.torque_limit)
     S_inv = np.diag(1.0 / u.torque_limit)
-    return S_inv @ (np.eye(m.nv) + G.T @ G / tool_acceleration**2) @ S_inv
+    return S_inv @ (np.eye(u.model.nv) + G.T @ G / tool_acceleration**2) @ S_inv
 
 
 def metric_in_torque(u, weight):

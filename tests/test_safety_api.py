@@ -20,6 +20,8 @@ from c3bf_gym.safety import (
     UnsupportedModelError,
 )
 
+import reference
+
 #: The inline arm's post lies on its yaw axis: the default selection leaves it out with a warning
 #: (test_description_reads_the_model checks it), which the other tests need not repeat.
 pytestmark = pytest.mark.filterwarnings("ignore::c3bf_gym.safety.UnprotectedGeometryWarning")
@@ -208,18 +210,24 @@ def test_standalone_fused_and_per_class_paths_agree(points, barrier, guard, obst
     assert np.abs(A1[:obstacle_rows]).max() > 0.0  # the obstacle rows are there, not zeros on both paths
 
 
+def _moving_arm() -> tuple[mujoco.MjModel, mujoco.MjData, RobotDescription]:
+    """The 3-joint arm in motion (its kinematics and dynamics current), and its description with
+    the tool site."""
+    model = _model()
+    data = mujoco.MjData(model)
+    data.qpos[:] = (0.3, -0.6, 0.9)
+    data.qvel[:] = (0.5, -1.0, 0.7)
+    mujoco.mj_forward(model, data)
+    return model, data, RobotDescription.from_model(model, site="tool", joint_speed_limit=3.0)
+
+
 def test_the_tool_metric_on_a_users_arm_is_the_qp_in_that_metric():
     """``weight="tool"`` through the standalone API, on a 3-joint arm of the user's: the torque is
     proxsuite's optimum of ``½ (u − u_nom)ᵀ (I + GᵀG / a²) (u − u_nom)`` over the filter's own
     rows and the box (``u = τ / τ_max``, ``G`` from MuJoCo's site Jacobian and mass matrix), and
     not the ``"limits"`` metric's."""
     proxqp = pytest.importorskip("proxsuite").proxqp
-    model = _model()
-    data = mujoco.MjData(model)
-    data.qpos[:] = (0.3, -0.6, 0.9)
-    data.qvel[:] = (0.5, -1.0, 0.7)
-    mujoco.mj_forward(model, data)
-    robot = RobotDescription.from_model(model, site="tool", joint_speed_limit=3.0)
+    model, data, robot = _moving_arm()
     obstacles = Obstacles(1, position=np.array([[0.45, 0.1, 0.75]]), velocity=np.array([[-0.2, 0.0, -0.4]]),
                           radius=np.array([0.05]), active=np.ones(1, bool))
     tau_nom = np.array([20.0, -30.0, 10.0])
@@ -229,10 +237,7 @@ def test_the_tool_metric_on_a_users_arm_is_the_qp_in_that_metric():
     tau, report = controller.filter(tau_nom)
     assert report.feasible and report.correction > 0.0
     limit = robot.torque_limit
-    jac, M = np.zeros((3, model.nv)), np.zeros((model.nv, model.nv))
-    mujoco.mj_jacSite(model, data, jac, None, robot.site_id)
-    mujoco.mj_fullM(model, data, M)
-    G = jac @ np.linalg.inv(M + np.diag(model.opt.timestep * model.dof_damping)) * limit
+    G = reference.tool_acceleration_gain(model, data, robot.site_id, limit)
     H = np.eye(3) + G.T @ G / 2.0**2
     u_nom = tau_nom / limit
     result = proxqp.dense.solve(H, -H @ u_nom, None, None, np.vstack([A * limit, np.eye(3)]),
@@ -248,12 +253,7 @@ def test_obstacle_arrays_given_as_strided_views_filter_as_their_copies():
     """Obstacles may keep their arrays as views of a simulator's state, which need not be contiguous.
     The controller's call from Python hands contiguous buffers to compiled code by address and takes
     the others as they are: the torques are the same, bit for bit."""
-    model = _model()
-    data = mujoco.MjData(model)
-    data.qpos[:] = (0.3, -0.6, 0.9)
-    data.qvel[:] = (0.5, -1.0, 0.7)
-    mujoco.mj_forward(model, data)
-    robot = RobotDescription.from_model(model, site="tool", joint_speed_limit=3.0)
+    model, data, robot = _moving_arm()
     state = np.zeros((2, 6))  # a simulator's (position, velocity) rows
     state[0] = (0.45, 0.1, 0.75, -0.2, 0.0, -0.4)
     state[1] = (-0.3, 0.2, 0.6, 0.3, 0.1, 0.0)
